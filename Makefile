@@ -1,0 +1,55 @@
+# calfit: set-up, demo and tests on a fresh Debian machine.
+#   make demo   set-up + the main job (built-in phantom leg, end to end)
+#   make test   set-up + the whole fast test suite (C++ unit tests + pytest)
+# Other targets: setup, test-slow, bench, clean.
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+DEBIAN_PACKAGES := g++ cmake make pkg-config libeigen3-dev libsuitesparse-dev libopenblas-dev calculix-ccx
+ENGINE_SOURCES := $(shell find solver_cpp -type f \( -name '*.cpp' -o -name '*.hpp' -o -name 'CMakeLists.txt' \))
+
+.PHONY: setup system-packages demo test test-slow test-cpp bench clean
+
+setup: system-packages $(VENV)/.installed
+
+# Debian packages: installed with apt-get when root, otherwise one clear instruction.
+system-packages:
+	@missing=""; for p in $(DEBIAN_PACKAGES); do \
+	  dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "install ok installed" || missing="$$missing $$p"; \
+	done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Debian packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing; \
+	  else \
+	    echo "Missing Debian packages:$$missing. Run: sudo apt-get install$$missing" >&2; exit 1; \
+	  fi; \
+	fi
+
+$(VENV)/bin/python:
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+
+$(VENV)/.installed: $(VENV)/bin/python pyproject.toml CMakeLists.txt $(ENGINE_SOURCES)
+	$(PY) -m pip install -q -e '.[test]'
+	touch $@
+
+demo: setup
+	$(VENV)/bin/calfit demo
+
+test-cpp: setup
+	ctest --test-dir $$(ls -d build/*/ | head -n 1) --output-on-failure
+
+test: test-cpp
+	$(PY) -m pytest -m "not slow" -q
+
+test-slow: setup
+	$(PY) -m pytest -m slow -q
+
+bench: setup
+	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf build $(VENV) *.egg-info
