@@ -1,0 +1,42 @@
+"""Meshing: from region boundaries to a conforming triangle mesh, its deck include and VTU.
+
+Two sources of geometry share one triangulation path (triangulate.py): a label image
+(labels.py: 0 background, 1 fat with skin, 2 muscle, 3 bone, >= 4 muscle
+compartments) and the analytic leg-like slice used to verify and benchmark the
+engine (leg_slice.py). Conventions (positions in mm in the image frame, elements
+counter-clockwise in deck coordinates, face numbering, set names) are in mesh.py.
+"""
+
+from .curves import Curve, SpacingRules
+from .leg_slice import (
+    DEFAULT_MATERIALS,
+    DEFAULT_PRESSURE_MPA,
+    LegSliceGeometry,
+    elements_for_dof,
+    leg_slice_deck,
+    leg_slice_geometry,
+    leg_slice_mesh,
+    leg_slice_mesh_for_dof,
+)
+from .mesh import Mesh, corner_angles_deg, signed_areas, tissue_name
+from .triangulate import BONE_KEY_OFFSET, MeshingError, mesh_curves
+
+__all__ = [
+    "BONE_KEY_OFFSET",
+    "Curve",
+    "DEFAULT_MATERIALS",
+    "DEFAULT_PRESSURE_MPA",
+    "LegSliceGeometry",
+    "Mesh",
+    "MeshingError",
+    "SpacingRules",
+    "corner_angles_deg",
+    "elements_for_dof",
+    "leg_slice_deck",
+    "leg_slice_geometry",
+    "leg_slice_mesh",
+    "leg_slice_mesh_for_dof",
+    "mesh_curves",
+    "signed_areas",
+    "tissue_name",
+]
