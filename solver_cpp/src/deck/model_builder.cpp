@@ -1,0 +1,679 @@
+// Deck keywords -> Model. One handler per keyword, registered in one table
+// (ModelBuilder::handlers), each checking its parameters and data where they are
+// read, so that every error names the line that caused it and says the fix.
+#include "deck/deck_reader.hpp"
+#include "material/laws.hpp"
+#include "model/model.hpp"
+#include "element/solid_element.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <set>
+
+namespace calfit {
+
+int Model::surface(const std::string& name) const {
+  const auto it = std::find(surface_names.begin(), surface_names.end(), upper(name));
+  return it == surface_names.end() ? -1 : static_cast<int>(it - surface_names.begin());
+}
+
+double TensionProfile::factor(double theta) const {
+  const auto& t = angle_factor;
+  if (t.size() == 1) return t[0].second;
+  theta = std::fmod(std::fmod(theta, 360.0) + 360.0, 360.0);
+  for (std::size_t k = 0; k < t.size(); ++k) {
+    const auto& a = t[k];
+    const auto& b = t[(k + 1) % t.size()];
+    const double span = k + 1 < t.size() ? b.first - a.first : b.first + 360.0 - a.first;
+    double offset = theta - a.first;
+    if (offset < 0) offset += 360.0;
+    if (offset <= span) return a.second + (b.second - a.second) * (span > 0 ? offset / span : 0.0);
+  }
+  return t.back().second;
+}
+
+namespace {
+
+struct Context {
+  const DataLine& line;
+  std::size_t field_count() const { return line.fields.size(); }
+  const std::string& field(std::size_t i, const std::string& what) const {
+    if (i >= line.fields.size() || line.fields[i].empty()) throw DeckError(line.where, what + " is missing");
+    return line.fields[i];
+  }
+  double number(std::size_t i, const std::string& what) const { return to_double(field(i, what), line.where, what); }
+  int integer(std::size_t i, const std::string& what) const { return to_int(field(i, what), line.where, what); }
+};
+
+class ModelBuilder {
+public:
+  explicit ModelBuilder(const std::string& path) { model_.deck_path = path; }
+
+  Model build() {
+    const std::vector<KeywordBlock> blocks = read_deck(model_.deck_path);
+    const std::map<std::string, Handler> table = handlers();
+    for (const KeywordBlock& block : blocks) {
+      const auto it = table.find(block.name);
+      if (it == table.end()) throw DeckError(block.where, unknown_keyword_message(block.name));
+      it->second(block);
+    }
+    finish(blocks.empty() ? SourceLocation{model_.deck_path, 0} : blocks.back().where);
+    return std::move(model_);
+  }
+
+private:
+  using Handler = std::function<void(const KeywordBlock&)>;
+  Model model_;
+  int current_material_ = -1;
+  bool material_has_law_ = false;
+  bool in_step_ = false;
+  bool step_has_static_ = false;
+  LoadState loads_;                 // state carried from step to step
+  std::map<int, double> model_bcs_;  // *BOUNDARY given before the first step
+
+  std::map<std::string, Handler> handlers() {
+    auto bind = [this](void (ModelBuilder::*fn)(const KeywordBlock&)) {
+      return [this, fn](const KeywordBlock& b) { (this->*fn)(b); };
+    };
+    std::map<std::string, Handler> h = {
+        {"HEADING", bind(&ModelBuilder::heading)},
+        {"NODE", bind(&ModelBuilder::node)},
+        {"ELEMENT", bind(&ModelBuilder::element)},
+        {"NSET", bind(&ModelBuilder::node_set)},
+        {"ELSET", bind(&ModelBuilder::element_set)},
+        {"SURFACE", bind(&ModelBuilder::surface)},
+        {"MATERIAL", bind(&ModelBuilder::material)},
+        {"HYPERELASTIC", bind(&ModelBuilder::hyperelastic)},
+        {"ELASTIC", bind(&ModelBuilder::elastic)},
+        {"SOLID SECTION", bind(&ModelBuilder::solid_section)},
+        {"BOUNDARY", bind(&ModelBuilder::boundary)},
+        {"TENSION PROFILE", bind(&ModelBuilder::tension_profile)},
+        {"STEP", bind(&ModelBuilder::step)},
+        {"STATIC", bind(&ModelBuilder::static_procedure)},
+        {"CLOAD", bind(&ModelBuilder::cload)},
+        {"DLOAD", bind(&ModelBuilder::dload)},
+        {"LAPLACE PRESSURE", bind(&ModelBuilder::laplace_pressure)},
+        {"NODE PRINT", bind(&ModelBuilder::output_request)},
+        {"NODE FILE", bind(&ModelBuilder::output_request)},
+        {"EL PRINT", bind(&ModelBuilder::output_request)},
+        {"EL FILE", bind(&ModelBuilder::output_request)},
+        {"END STEP", bind(&ModelBuilder::end_step)},
+    };
+    for (const char* later : {"CONTACT PAIR", "SURFACE INTERACTION", "SURFACE BEHAVIOR", "FRICTION"})
+      h[later] = [](const KeywordBlock& b) {
+        throw DeckError(b.where, "*" + b.name +
+                                     " (garment contact) is not available in this version of calfit-fe; use "
+                                     "*LAPLACE PRESSURE for the garment");
+      };
+    return h;
+  }
+
+  static std::string unknown_keyword_message(const std::string& name) {
+    return "unknown keyword *" + name + " (see solver_cpp/README.md for the keywords calfit-fe reads)";
+  }
+
+  // ---- context checks -------------------------------------------------------
+  void model_data(const KeywordBlock& b) const {
+    if (in_step_) throw DeckError(b.where, "*" + b.name + " is model data: put it before the first *STEP");
+  }
+  void step_data(const KeywordBlock& b) const {
+    if (!in_step_) throw DeckError(b.where, "*" + b.name + " belongs inside a *STEP ... *END STEP block");
+  }
+  static void no_data(const KeywordBlock& b) {
+    if (!b.data.empty()) throw DeckError(b.data.front().where, "*" + b.name + " takes no data lines");
+  }
+  static void needs_data(const KeywordBlock& b) {
+    if (b.data.empty()) throw DeckError(b.where, "*" + b.name + " needs at least one data line");
+  }
+  static void field_count(const DataLine& line, std::size_t min, std::size_t max, const std::string& what) {
+    const std::size_t n = line.fields.size();
+    if (n < min || n > max)
+      throw DeckError(line.where, what + ": expected " + (min == max ? std::to_string(min)
+                                                                      : std::to_string(min) + " to " + std::to_string(max)) +
+                                      " values, found " + std::to_string(n));
+  }
+
+  // ---- lookups ----------------------------------------------------------------
+  int node(const std::string& text, const SourceLocation& where) const {
+    const int id = to_int(text, where, "node number");
+    const auto it = model_.node_index.find(id);
+    if (it == model_.node_index.end()) throw DeckError(where, "node " + text + " is not defined (no *NODE line for it)");
+    return it->second;
+  }
+  std::vector<int> nodes_of(const std::string& text, const SourceLocation& where) const {
+    if (looks_like_int(text)) return {node(text, where)};
+    const auto it = model_.node_sets.find(upper(text));
+    if (it == model_.node_sets.end()) throw DeckError(where, "node set " + text + " is not defined (*NSET, NSET=" + text + ")");
+    return it->second;
+  }
+  std::vector<int> elements_of(const std::string& text, const SourceLocation& where) const {
+    if (looks_like_int(text)) {
+      const int id = to_int(text, where, "element number");
+      const auto it = model_.element_index.find(id);
+      if (it == model_.element_index.end()) throw DeckError(where, "element " + text + " is not defined");
+      return {it->second};
+    }
+    const auto it = model_.element_sets.find(upper(text));
+    if (it == model_.element_sets.end())
+      throw DeckError(where, "element set " + text + " is not defined (*ELSET, ELSET=" + text + ")");
+    return it->second;
+  }
+  static int dof_number(const std::string& text, const SourceLocation& where) {
+    const int dof = to_int(text, where, "degree of freedom");
+    if (dof < 1 || dof > 2)
+      throw DeckError(where, "degree of freedom " + text + " does not exist in plane strain: use 1 (x) or 2 (y)");
+    return dof - 1;
+  }
+  static int face_label(const std::string& text, const std::string& prefix, const SourceLocation& where) {
+    const std::string u = upper(text);
+    if (u.size() == prefix.size() + 1 && u.compare(0, prefix.size(), prefix) == 0 && u.back() >= '1' && u.back() <= '3')
+      return u.back() - '1';
+    throw DeckError(where, "face label " + text + " is not valid for a triangle: use " + prefix + "1, " + prefix + "2 or " +
+                               prefix + "3");
+  }
+
+  // ---- model data -----------------------------------------------------------
+  void heading(const KeywordBlock& b) {
+    b.allow_only({});
+    model_data(b);
+  }
+
+  void node(const KeywordBlock& b) {
+    b.allow_only({"NSET"});
+    model_data(b);
+    needs_data(b);
+    const std::optional<std::string> set = b.value("NSET");
+    for (const DataLine& line : b.data) {
+      field_count(line, 3, 4, "*NODE data line (id, x, y[, z])");
+      Context c{line};
+      const int id = c.integer(0, "node number");
+      if (id <= 0) throw DeckError(line.where, "node number must be positive, found " + std::to_string(id));
+      if (model_.node_index.count(id)) throw DeckError(line.where, "node " + std::to_string(id) + " is defined twice");
+      const int index = static_cast<int>(model_.coordinates.size());
+      model_.node_index[id] = index;
+      model_.node_ids.push_back(id);
+      model_.coordinates.emplace_back(c.number(1, "x coordinate"), c.number(2, "y coordinate"));
+      if (c.field_count() == 4) c.number(3, "z coordinate");
+      if (set) model_.node_sets[upper(*set)].push_back(index);
+    }
+  }
+
+  void element(const KeywordBlock& b) {
+    b.allow_only({"TYPE", "ELSET"});
+    model_data(b);
+    needs_data(b);
+    const std::string type = upper(b.required("TYPE"));
+    ElementShape shape;
+    if (type == "CPE3") {
+      shape = ElementShape::T3;
+    } else if (type == "CPE6") {
+      shape = ElementShape::T6;
+    } else if (type == "CPE3H" || type == "CPE6H") {
+      throw DeckError(b.where, "hybrid u/p element " + type +
+                                   " is not available in this version of calfit-fe: use CPE3 or CPE6 with D1 > 0");
+    } else {
+      throw DeckError(b.where, "unknown element type " + type + ": calfit-fe is plane strain (TYPE=CPE3 or CPE6)");
+    }
+    const std::size_t n = static_cast<std::size_t>(node_count(shape));
+    const std::optional<std::string> set = b.value("ELSET");
+    for (const DataLine& line : b.data) {
+      field_count(line, n + 1, n + 1, "*ELEMENT, TYPE=" + type + " data line (id and " + std::to_string(n) + " nodes)");
+      Context c{line};
+      ElementDef e;
+      e.id = c.integer(0, "element number");
+      if (e.id <= 0) throw DeckError(line.where, "element number must be positive");
+      if (model_.element_index.count(e.id))
+        throw DeckError(line.where, "element " + std::to_string(e.id) + " is defined twice");
+      e.shape = shape;
+      e.type = type;
+      e.where = line.where;
+      for (std::size_t k = 1; k <= n; ++k) e.nodes.push_back(node(line.fields[k], line.where));
+      if (std::set<int>(e.nodes.begin(), e.nodes.end()).size() != n)
+        throw DeckError(line.where, "element " + std::to_string(e.id) + " lists the same node twice");
+      const int index = static_cast<int>(model_.elements.size());
+      model_.element_index[e.id] = index;
+      model_.elements.push_back(std::move(e));
+      if (set) model_.element_sets[upper(*set)].push_back(index);
+    }
+  }
+
+  template <typename Resolve>
+  void fill_set(const KeywordBlock& b, std::vector<int>& target, Resolve resolve, const std::string& item) {
+    needs_data(b);
+    for (const DataLine& line : b.data) {
+      if (b.flag("GENERATE")) {
+        field_count(line, 2, 3, "GENERATE data line (first, last[, increment])");
+        Context c{line};
+        const int first = c.integer(0, "first " + item), last = c.integer(1, "last " + item);
+        const int step = c.field_count() == 3 ? c.integer(2, "increment") : 1;
+        if (step <= 0 || last < first) throw DeckError(line.where, "GENERATE needs first <= last and a positive increment");
+        for (int id = first; id <= last; id += step) {
+          const std::vector<int> found = resolve(std::to_string(id), line.where);
+          target.insert(target.end(), found.begin(), found.end());
+        }
+        continue;
+      }
+      for (const std::string& f : line.fields) {
+        if (f.empty()) continue;
+        const std::vector<int> found = resolve(f, line.where);
+        target.insert(target.end(), found.begin(), found.end());
+      }
+    }
+  }
+
+  void node_set(const KeywordBlock& b) {
+    b.allow_only({"NSET", "GENERATE"});
+    model_data(b);
+    std::vector<int>& target = model_.node_sets[upper(b.required("NSET"))];
+    fill_set(b, target, [this](const std::string& t, const SourceLocation& w) { return nodes_of(t, w); }, "node");
+  }
+
+  void element_set(const KeywordBlock& b) {
+    b.allow_only({"ELSET", "GENERATE"});
+    model_data(b);
+    std::vector<int>& target = model_.element_sets[upper(b.required("ELSET"))];
+    fill_set(b, target, [this](const std::string& t, const SourceLocation& w) { return elements_of(t, w); }, "element");
+  }
+
+  void surface(const KeywordBlock& b) {
+    b.allow_only({"NAME", "TYPE"});
+    model_data(b);
+    needs_data(b);
+    const std::string type = upper(b.value("TYPE").value_or("ELEMENT"));
+    if (type != "ELEMENT") throw DeckError(b.where, "*SURFACE, TYPE=" + type + " is not supported: use TYPE=ELEMENT");
+    const std::string name = upper(b.required("NAME"));
+    if (model_.surface(name) >= 0) throw DeckError(b.where, "surface " + name + " is defined twice");
+    std::vector<Face> faces;
+    for (const DataLine& line : b.data) {
+      field_count(line, 2, 2, "*SURFACE data line (element or element set, face S1..S3)");
+      const int face = face_label(line.fields[1], "S", line.where);
+      for (int e : elements_of(line.fields[0], line.where)) faces.push_back({e, face});
+    }
+    model_.surface_names.push_back(name);
+    model_.surfaces.push_back(std::move(faces));
+  }
+
+  void material(const KeywordBlock& b) {
+    b.allow_only({"NAME"});
+    model_data(b);
+    no_data(b);
+    check_material_complete();
+    const std::string name = upper(b.required("NAME"));
+    for (const MaterialDef& m : model_.materials)
+      if (m.name == name) throw DeckError(b.where, "material " + name + " is defined twice");
+    model_.materials.push_back({name, nullptr, b.where});
+    current_material_ = static_cast<int>(model_.materials.size()) - 1;
+    material_has_law_ = false;
+  }
+
+  void check_material_complete() const {
+    if (current_material_ >= 0 && !material_has_law_) {
+      const MaterialDef& m = model_.materials[current_material_];
+      throw DeckError(m.where, "material " + m.name + " has no *HYPERELASTIC or *ELASTIC data");
+    }
+  }
+
+  const DataLine& single_data_line(const KeywordBlock& b) {
+    if (current_material_ < 0) throw DeckError(b.where, "*" + b.name + " must follow a *MATERIAL keyword");
+    if (material_has_law_)
+      throw DeckError(b.where, "material " + model_.materials[current_material_].name + " already has a constitutive law");
+    needs_data(b);
+    if (b.data.size() > 1)
+      throw DeckError(b.data[1].where, "temperature-dependent material data is not supported: give one data line");
+    return b.data.front();
+  }
+
+  static void require(bool ok, const DataLine& line, const std::string& message) {
+    if (!ok) throw DeckError(line.where, message);
+  }
+
+  void set_law(std::shared_ptr<const Material> law) {
+    model_.materials[current_material_].law = std::move(law);
+    material_has_law_ = true;
+  }
+
+  void hyperelastic(const KeywordBlock& b) {
+    model_data(b);
+    const DataLine& line = single_data_line(b);
+    Context c{line};
+    std::string law = "NEO HOOKE";
+    int n = 1;
+    for (const Parameter& p : b.parameters) {
+      if (p.name == "N") {
+        n = to_int(p.value, b.where, "N");
+        if (n < 1 || n > 3) throw DeckError(b.where, "REDUCED POLYNOMIAL needs N = 1, 2 or 3");
+      } else if (p.name == "NEO HOOKE" || p.name == "MOONEY-RIVLIN" || p.name == "REDUCED POLYNOMIAL" ||
+                 p.name == "ARRUDA-BOYCE" || p.name == "AVRIL") {
+        law = p.name;
+      } else {
+        throw DeckError(b.where, "unknown parameter " + p.name +
+                                     " on *HYPERELASTIC (calfit-fe reads NEO HOOKE, MOONEY-RIVLIN, REDUCED "
+                                     "POLYNOMIAL with N=, ARRUDA-BOYCE, AVRIL)");
+      }
+    }
+    using std::make_shared;
+    auto nonneg = [&](double d, const std::string& name) { require(d >= 0.0, line, name + " must be >= 0 (0 means incompressible)"); };
+    if (law == "NEO HOOKE") {
+      field_count(line, 2, 2, "*HYPERELASTIC, NEO HOOKE data (C10, D1)");
+      const double c10 = c.number(0, "C10"), d1 = c.number(1, "D1");
+      require(c10 > 0.0, line, "C10 must be > 0");
+      nonneg(d1, "D1");
+      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{c10}),
+                                             make_shared<PolynomialVolumetric>(std::vector<double>{d1})));
+    } else if (law == "MOONEY-RIVLIN") {
+      field_count(line, 3, 3, "*HYPERELASTIC, MOONEY-RIVLIN data (C10, C01, D1)");
+      const double c10 = c.number(0, "C10"), c01 = c.number(1, "C01"), d1 = c.number(2, "D1");
+      require(c10 + c01 > 0.0, line, "C10 + C01 (the initial shear modulus / 2) must be > 0");
+      nonneg(d1, "D1");
+      set_law(make_shared<SplitHyperelastic>(make_shared<MooneyRivlinIsochoric>(c10, c01),
+                                             make_shared<PolynomialVolumetric>(std::vector<double>{d1})));
+    } else if (law == "REDUCED POLYNOMIAL") {
+      const std::size_t count = static_cast<std::size_t>(2 * n);
+      field_count(line, count, count, "*HYPERELASTIC, REDUCED POLYNOMIAL, N=" + std::to_string(n) +
+                                          " data (C10..CN0, D1..DN)");
+      std::vector<double> coeff, d;
+      for (int i = 0; i < n; ++i) coeff.push_back(c.number(i, "C" + std::to_string(i + 1) + "0"));
+      for (int i = 0; i < n; ++i) {
+        d.push_back(c.number(n + i, "D" + std::to_string(i + 1)));
+        nonneg(d.back(), "D" + std::to_string(i + 1));
+      }
+      require(coeff[0] > 0.0, line, "C10 must be > 0");
+      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(coeff),
+                                             make_shared<PolynomialVolumetric>(d)));
+    } else if (law == "ARRUDA-BOYCE") {
+      field_count(line, 3, 3, "*HYPERELASTIC, ARRUDA-BOYCE data (mu, lambda_m, D)");
+      const double mu = c.number(0, "mu"), lm = c.number(1, "lambda_m"), d = c.number(2, "D");
+      require(mu > 0.0, line, "mu must be > 0");
+      require(lm >= 1.0, line, "lambda_m (locking stretch) must be >= 1");
+      nonneg(d, "D");
+      set_law(make_shared<SplitHyperelastic>(make_shared<ArrudaBoyceIsochoric>(mu, lm),
+                                             make_shared<LogVolumetric>(d > 0.0 ? 1.0 / d : 0.0)));
+    } else {  // AVRIL
+      field_count(line, 2, 2, "*HYPERELASTIC, AVRIL data (C10, Kv)");
+      const double c10 = c.number(0, "C10"), kv = c.number(1, "Kv");
+      require(c10 > 0.0, line, "C10 must be > 0");
+      require(kv > 0.0, line, "Kv must be > 0");
+      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{c10}),
+                                             make_shared<LogVolumetric>(kv)));
+    }
+  }
+
+  void elastic(const KeywordBlock& b) {
+    b.allow_only({"TYPE"});
+    model_data(b);
+    const std::string type = upper(b.value("TYPE").value_or("ISO"));
+    if (type != "ISO") throw DeckError(b.where, "*ELASTIC, TYPE=" + type + " is not supported: use TYPE=ISO");
+    const DataLine& line = single_data_line(b);
+    field_count(line, 2, 2, "*ELASTIC data (E, nu)");
+    Context c{line};
+    const double E = c.number(0, "E"), nu = c.number(1, "nu");
+    require(E > 0.0, line, "Young's modulus E must be > 0");
+    require(nu > -1.0 && nu < 0.5, line, "Poisson's ratio must lie in (-1, 0.5)");
+    set_law(std::make_shared<StVenantKirchhoff>(E, nu));
+  }
+
+  void solid_section(const KeywordBlock& b) {
+    b.allow_only({"ELSET", "MATERIAL", "INTEGRATION"});
+    model_data(b);
+    check_material_complete();
+    SectionDef s;
+    s.where = b.where;
+    const std::string material = upper(b.required("MATERIAL"));
+    for (std::size_t m = 0; m < model_.materials.size(); ++m)
+      if (model_.materials[m].name == material) s.material = static_cast<int>(m);
+    if (s.material < 0) throw DeckError(b.where, "material " + material + " is not defined (*MATERIAL, NAME=" + material + ")");
+    const std::string integration = upper(b.value("INTEGRATION").value_or("REDUCED"));
+    if (integration != "FULL" && integration != "REDUCED")
+      throw DeckError(b.where, "INTEGRATION must be FULL or REDUCED");
+    s.full_integration = integration == "FULL";
+    if (b.data.size() > 1) throw DeckError(b.data[1].where, "*SOLID SECTION takes at most one data line (thickness)");
+    if (!b.data.empty() && !b.data[0].fields.empty()) {
+      s.thickness = Context{b.data[0]}.number(0, "thickness");
+      require(s.thickness > 0.0, b.data[0], "thickness must be > 0");
+    }
+    const int index = static_cast<int>(model_.sections.size());
+    model_.sections.push_back(s);
+    for (int e : elements_of(b.required("ELSET"), b.where)) {
+      ElementDef& el = model_.elements[e];
+      if (el.section >= 0)
+        throw DeckError(b.where, "element " + std::to_string(el.id) + " is already in another *SOLID SECTION");
+      el.section = index;
+    }
+  }
+
+  template <typename Map>
+  static void apply_op(const KeywordBlock& b, Map& target) {
+    const std::string op = upper(b.value("OP").value_or("MOD"));
+    if (op == "NEW") {
+      target.clear();
+    } else if (op != "MOD") {
+      throw DeckError(b.where, "OP must be MOD or NEW");
+    }
+  }
+
+  void boundary(const KeywordBlock& b) {
+    b.allow_only({"OP"});
+    needs_data(b);
+    std::map<int, double>& target = in_step_ ? loads_.prescribed : model_bcs_;
+    if (in_step_) apply_op(b, target);
+    for (const DataLine& line : b.data) {
+      field_count(line, 2, 4, "*BOUNDARY data line (node or set, first dof[, last dof[, value]])");
+      Context c{line};
+      const int first = dof_number(line.fields[1], line.where);
+      const int last = c.field_count() >= 3 && !line.fields[2].empty() ? dof_number(line.fields[2], line.where) : first;
+      if (last < first) throw DeckError(line.where, "last dof is smaller than first dof");
+      const double value = c.field_count() == 4 ? c.number(3, "prescribed value") : 0.0;
+      if (!in_step_ && value != 0.0)
+        throw DeckError(line.where, "a nonzero prescribed value belongs inside a *STEP (model-level *BOUNDARY fixes to 0)");
+      for (int n : nodes_of(line.fields[0], line.where))
+        for (int d = first; d <= last; ++d) target[2 * n + d] = value;
+    }
+  }
+
+  void tension_profile(const KeywordBlock& b) {
+    b.allow_only({"NAME", "CX", "CY"});
+    model_data(b);
+    needs_data(b);
+    TensionProfile p;
+    p.name = upper(b.required("NAME"));
+    p.where = b.where;
+    const auto cx = b.value("CX"), cy = b.value("CY");
+    if (cx.has_value() != cy.has_value()) throw DeckError(b.where, "give both CX= and CY= (or neither)");
+    if (cx) {
+      p.has_center = true;
+      p.center = {to_double(*cx, b.where, "CX"), to_double(*cy, b.where, "CY")};
+    }
+    for (const DataLine& line : b.data) {
+      field_count(line, 2, 2, "*TENSION PROFILE data line (angle in degrees, factor)");
+      Context c{line};
+      const double angle = c.number(0, "angle"), factor = c.number(1, "factor");
+      require(angle >= 0.0 && angle < 360.0, line, "angle must lie in [0, 360) degrees");
+      require(factor >= 0.0, line, "tension factor must be >= 0");
+      if (!p.angle_factor.empty() && angle <= p.angle_factor.back().first)
+        throw DeckError(line.where, "angles must increase from line to line");
+      p.angle_factor.emplace_back(angle, factor);
+    }
+    for (const TensionProfile& other : model_.profiles)
+      if (other.name == p.name) throw DeckError(b.where, "tension profile " + p.name + " is defined twice");
+    model_.profiles.push_back(p);
+  }
+
+  // ---- steps ------------------------------------------------------------------
+  void step(const KeywordBlock& b) {
+    b.allow_only({"NLGEOM", "INC"});
+    if (in_step_) throw DeckError(b.where, "*STEP inside a step: close the previous one with *END STEP");
+    no_data(b);
+    check_material_complete();
+    current_material_ = -1;
+    const Parameter* nlgeom = b.find("NLGEOM");
+    if (!nlgeom || (nlgeom->has_value && upper(nlgeom->value) != "YES"))
+      throw DeckError(b.where, "calfit-fe solves finite strain only: write *STEP, NLGEOM");
+    if (model_.steps.empty())
+      for (const auto& [dof, value] : model_bcs_) loads_.prescribed[dof] = value;
+    StepDef s;
+    s.where = b.where;
+    if (const auto inc = b.value("INC")) {
+      s.max_increments = to_int(*inc, b.where, "INC");
+      if (s.max_increments < 1) throw DeckError(b.where, "INC must be >= 1");
+    }
+    model_.steps.push_back(s);
+    in_step_ = true;
+    step_has_static_ = false;
+  }
+
+  void static_procedure(const KeywordBlock& b) {
+    b.allow_only({"DIRECT"});
+    step_data(b);
+    if (step_has_static_) throw DeckError(b.where, "a step has one *STATIC");
+    step_has_static_ = true;
+    StepDef& s = model_.steps.back();
+    if (b.data.size() > 1) throw DeckError(b.data[1].where, "*STATIC takes one data line");
+    if (b.data.empty()) return;
+    const DataLine& line = b.data[0];
+    field_count(line, 0, 4, "*STATIC data line (initial dt, period, min dt, max dt)");
+    Context c{line};
+    auto get = [&](std::size_t i, double fallback, const std::string& what) {
+      return i < c.field_count() && !line.fields[i].empty() ? c.number(i, what) : fallback;
+    };
+    s.initial_dt = get(0, s.initial_dt, "initial time increment");
+    s.period = get(1, s.period, "time period");
+    s.min_dt = get(2, std::min(s.min_dt, s.initial_dt), "minimum time increment");
+    s.max_dt = get(3, s.period, "maximum time increment");
+    require(s.period > 0.0, line, "time period must be > 0");
+    require(s.initial_dt > 0.0 && s.initial_dt <= s.period, line, "initial increment must lie in (0, period]");
+    require(s.min_dt > 0.0 && s.min_dt <= s.initial_dt, line, "minimum increment must lie in (0, initial increment]");
+    require(s.max_dt >= s.initial_dt, line, "maximum increment must be >= the initial increment");
+    if (b.flag("DIRECT")) s.min_dt = s.max_dt = s.initial_dt;
+  }
+
+  void cload(const KeywordBlock& b) {
+    b.allow_only({"OP"});
+    step_data(b);
+    needs_data(b);
+    apply_op(b, loads_.forces);
+    for (const DataLine& line : b.data) {
+      field_count(line, 3, 3, "*CLOAD data line (node or set, dof, magnitude)");
+      const int dof = dof_number(line.fields[1], line.where);
+      const double value = Context{line}.number(2, "force");
+      for (int n : nodes_of(line.fields[0], line.where)) loads_.forces[2 * n + dof] = value;
+    }
+  }
+
+  void dload(const KeywordBlock& b) {
+    b.allow_only({"OP"});
+    step_data(b);
+    needs_data(b);
+    apply_op(b, loads_.pressures);
+    for (const DataLine& line : b.data) {
+      field_count(line, 3, 3, "*DLOAD data line (element or set, P1..P3, pressure)");
+      const int face = face_label(line.fields[1], "P", line.where);
+      const double value = Context{line}.number(2, "pressure");
+      for (int e : elements_of(line.fields[0], line.where)) loads_.pressures[{e, face}] = value;
+    }
+  }
+
+  void laplace_pressure(const KeywordBlock& b) {
+    b.allow_only({"SURFACE", "TENSION", "PROFILE", "OP"});
+    step_data(b);
+    no_data(b);
+    apply_op(b, loads_.laplace);
+    const std::string name = b.required("SURFACE");
+    const int surface = model_.surface(name);
+    if (surface < 0) throw DeckError(b.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+    LaplaceLoad load;
+    load.tension = to_double(b.required("TENSION"), b.where, "TENSION");
+    if (load.tension < 0.0) throw DeckError(b.where, "TENSION must be >= 0 (a garment pulls, it does not push)");
+    if (const auto profile = b.value("PROFILE")) {
+      for (std::size_t p = 0; p < model_.profiles.size(); ++p)
+        if (model_.profiles[p].name == upper(*profile)) load.profile = static_cast<int>(p);
+      if (load.profile < 0)
+        throw DeckError(b.where, "tension profile " + *profile + " is not defined (*TENSION PROFILE, NAME=" + *profile + ")");
+    }
+    loads_.laplace[surface] = load;
+  }
+
+  void output_request(const KeywordBlock& b) {
+    b.allow_only({"NSET", "ELSET", "FREQUENCY", "TOTALS", "GLOBAL", "OUTPUT", "POSITION"});
+    step_data(b);
+    if (const auto nset = b.value("NSET")) nodes_of(*nset, b.where);
+    if (const auto elset = b.value("ELSET")) elements_of(*elset, b.where);
+    const bool nodal = b.name.rfind("NODE", 0) == 0;
+    const std::set<std::string> known = nodal ? std::set<std::string>{"U", "RF"} : std::set<std::string>{"S", "E", "ENER"};
+    for (const DataLine& line : b.data)
+      for (const std::string& f : line.fields)
+        if (!f.empty() && !known.count(upper(f)))
+          throw DeckError(line.where, "output variable " + f + " is not available on *" + b.name +
+                                          (nodal ? " (use U, RF)" : " (use S, E, ENER)"));
+  }
+
+  void end_step(const KeywordBlock& b) {
+    b.allow_only({});
+    no_data(b);
+    if (!in_step_) throw DeckError(b.where, "*END STEP without a matching *STEP");
+    model_.steps.back().loads = loads_;
+    in_step_ = false;
+  }
+
+  // ---- whole-model checks -----------------------------------------------------
+  void finish(const SourceLocation& last) {
+    check_material_complete();
+    if (in_step_) throw DeckError(model_.steps.back().where, "this *STEP has no *END STEP");
+    if (model_.coordinates.empty()) throw DeckError(last, "the deck defines no nodes (*NODE)");
+    if (model_.elements.empty()) throw DeckError(last, "the deck defines no elements (*ELEMENT)");
+    if (model_.steps.empty()) throw DeckError(last, "the deck defines no step: add *STEP, NLGEOM / *STATIC / *END STEP");
+    for (const ElementDef& e : model_.elements) {
+      if (e.section < 0)
+        throw DeckError(e.where, "element " + std::to_string(e.id) + " has no *SOLID SECTION (put it in an ELSET with one)");
+      const SectionDef& s = model_.sections[e.section];
+      const MaterialDef& m = model_.materials[s.material];
+      if (m.law->incompressible())
+        throw DeckError(s.where, "material " + m.name + " is incompressible (D = 0): displacement elements " + e.type +
+                                     " lock; give D1 > 0 (hybrid elements are not available in this version)");
+      check_geometry(e);
+    }
+  }
+
+  void check_geometry(const ElementDef& e) const {
+    NodeMatrix X(node_count(e.shape), 2);
+    for (int k = 0; k < X.rows(); ++k) X.row(k) = model_.coordinates[e.nodes[k]].transpose();
+    // Corner area and scale: a clockwise element is inverted, a flat one degenerate.
+    const Eigen::Vector2d a = X.row(1) - X.row(0), c = X.row(2) - X.row(0);
+    const double area = 0.5 * (a.x() * c.y() - a.y() * c.x());
+    const double scale = std::max({a.squaredNorm(), c.squaredNorm(), (X.row(2) - X.row(1)).squaredNorm()});
+    const std::string id = std::to_string(e.id);
+    if (std::abs(area) <= 1e-10 * scale || scale == 0.0)
+      throw DeckError(e.where, "element " + id + " is degenerate (zero area): its corner nodes are collinear or coincide");
+    if (area < 0.0)
+      throw DeckError(e.where, "element " + id + " is inverted (nodes listed clockwise): list its corners counter-clockwise");
+    if (e.shape == ElementShape::T6) {
+      // Mid-side nodes far from their edge make det(dX/dxi) change sign inside.
+      static const SolidElementProbe probe;
+      if (probe.min_jacobian(X) <= 0.0)
+        throw DeckError(e.where, "element " + id + " is distorted: a mid-side node lies too far from its edge's midpoint");
+    }
+  }
+
+  // Checks det(dX/dxi) of a T6 at its nodes and the 6-point rule, which covers the
+  // places where a misplaced mid-side node makes the map fold.
+  struct SolidElementProbe {
+    double min_jacobian(const NodeMatrix& X) const {
+      static const double probes[][2] = {{0, 0},   {1, 0},   {0, 1},   {0.5, 0},   {0.5, 0.5}, {0, 0.5},
+                                         {1. / 3, 1. / 3}, {0.1, 0.1}, {0.8, 0.1}, {0.1, 0.8}};
+      Eigen::VectorXd N;
+      Eigen::MatrixXd dN;
+      double smallest = 1e300;
+      for (const auto& p : probes) {
+        shape_functions(ElementShape::T6, p[0], p[1], N, dN);
+        smallest = std::min(smallest, (X.transpose() * dN).determinant());
+      }
+      return smallest;
+    }
+  };
+};
+
+}  // namespace
+
+Model build_model(const std::string& path) { return ModelBuilder(path).build(); }
+
+}  // namespace calfit

@@ -1,0 +1,114 @@
+// Plane-strain total Lagrangian element: see solid_element.hpp for the equations.
+#include "element/solid_element.hpp"
+
+namespace calfit {
+namespace {
+
+// Voigt positions of the in-plane components 11, 22, 12 in the 6x6 tangent.
+constexpr int kPlane[3] = {0, 1, 3};
+
+Eigen::Matrix2d deformation_gradient(const NodeMatrix& u, const NodeMatrix& dN_dX) {
+  return Eigen::Matrix2d::Identity() + u.transpose() * dN_dX;
+}
+
+Mat3 right_cauchy_green(const Eigen::Matrix2d& F) {
+  Mat3 C = Mat3::Identity();
+  C.topLeftCorner<2, 2>() = F.transpose() * F;
+  return C;
+}
+
+}  // namespace
+
+SolidElement::SolidElement(ElementShape shape, const NodeMatrix& X, const Material& material, double thickness,
+                           int quadrature_degree)
+    : shape_(shape), material_(&material) {
+  Eigen::VectorXd N;
+  Eigen::MatrixXd dN;
+  bool first = true;
+  for (const QuadraturePoint& q : triangle_rule(quadrature_degree)) {
+    shape_functions(shape, q.xi, q.eta, N, dN);
+    const Eigen::Matrix2d J0 = X.transpose() * dN;  // dX/dxi
+    const double det = J0.determinant();
+    min_det_ = first ? det : std::min(min_det_, det);
+    first = false;
+    Point p;
+    p.dN_dX = dN * J0.inverse();
+    p.weight = q.weight * det * thickness;
+    points_.push_back(p);
+  }
+}
+
+double SolidElement::reference_area() const {
+  double area = 0.0;
+  for (const Point& p : points_) area += p.weight;
+  return area;
+}
+
+bool SolidElement::internal_force(const NodeMatrix& u, ElementVector& f, ElementMatrix* K) const {
+  const int n = node_count(shape_);
+  f.setZero(2 * n);
+  if (K) K->setZero(2 * n, 2 * n);
+  Mat3 S;
+  Mat6 D;
+  for (const Point& p : points_) {
+    const Eigen::Matrix2d F = deformation_gradient(u, p.dN_dX);
+    if (F.determinant() <= 0.0) return false;
+    material_->stress(right_cauchy_green(F), S, K ? &D : nullptr);
+    const Eigen::Matrix2d S2 = S.topLeftCorner<2, 2>();
+    const Eigen::Matrix2d P = F * S2;
+    for (int a = 0; a < n; ++a) f.segment<2>(2 * a) += p.weight * P * p.dN_dX.row(a).transpose();
+    if (!K) continue;
+
+    // B (3 x 2n): rows dE11, dE22, 2 dE12 per nodal displacement component.
+    Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> B(3, 2 * n);
+    for (int a = 0; a < n; ++a) {
+      const double g1 = p.dN_dX(a, 0), g2 = p.dN_dX(a, 1);
+      for (int i = 0; i < 2; ++i) {
+        B(0, 2 * a + i) = F(i, 0) * g1;
+        B(1, 2 * a + i) = F(i, 1) * g2;
+        B(2, 2 * a + i) = F(i, 0) * g2 + F(i, 1) * g1;
+      }
+    }
+    Eigen::Matrix3d D3;
+    for (int r = 0; r < 3; ++r)
+      for (int c = 0; c < 3; ++c) D3(r, c) = D(kPlane[r], kPlane[c]);
+    K->noalias() += p.weight * B.transpose() * D3 * B;
+    const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6> G =
+        p.weight * p.dN_dX * S2 * p.dN_dX.transpose();
+    for (int a = 0; a < n; ++a)
+      for (int b = 0; b < n; ++b) {
+        (*K)(2 * a, 2 * b) += G(a, b);
+        (*K)(2 * a + 1, 2 * b + 1) += G(a, b);
+      }
+  }
+  return true;
+}
+
+ElementState SolidElement::state(const NodeMatrix& u) const {
+  ElementState out;
+  out.cauchy.setZero();
+  out.J = 0.0;
+  double volume = 0.0;
+  Mat3 S;
+  bool first = true;
+  for (const Point& p : points_) {
+    const Eigen::Matrix2d F2 = deformation_gradient(u, p.dN_dX);
+    Mat3 F = Mat3::Identity();
+    F.topLeftCorner<2, 2>() = F2;
+    const double J = F2.determinant();
+    out.min_J = first ? J : std::min(out.min_J, J);
+    first = false;
+    if (J <= 0.0) continue;
+    material_->stress(right_cauchy_green(F2), S, nullptr);
+    out.cauchy += p.weight * (F * S * F.transpose()) / J;
+    out.J += p.weight * J;
+    volume += p.weight;
+  }
+  if (volume > 0.0) {
+    out.cauchy /= volume;
+    out.J /= volume;
+  }
+  return out;
+}
+
+}  // namespace calfit

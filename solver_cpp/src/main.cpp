@@ -1,0 +1,159 @@
+// calfit-fe: command-line entry of the engine. Reads a deck, solves its steps, writes
+// the results (see solver_cpp/README.md) and maps every outcome to an exit code:
+// 0 converged, 2 bad deck or mesh, 3 not converged (last converged state written),
+// 4 any other failure.
+#include "deck/deck_reader.hpp"
+#include "model/model.hpp"
+#include "output/writers.hpp"
+#include "solver/newton.hpp"
+
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <iostream>
+#include <new>
+#include <string>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+namespace {
+
+constexpr int kConverged = 0, kUsage = 2, kBadDeck = 2, kNotConverged = 3, kFailure = 4;
+
+struct Arguments {
+  std::string deck, outdir;
+  int threads = 0;
+  bool quiet = false;
+};
+
+const char* kUsageText =
+    "usage: calfit-fe DECK.inp [-o OUTDIR] [--threads N] [--quiet]\n"
+    "  Solves a plane-strain finite-strain deck; writes step-N.vtu, step-N.u.npy and summary.json\n"
+    "  into OUTDIR (default: DECK without .inp, plus .out). Exit: 0 converged, 2 bad deck,\n"
+    "  3 not converged, 4 other failure.\n";
+
+bool parse_arguments(int argc, char** argv, Arguments& args) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    if ((a == "-o" || a == "--output") && i + 1 < argc) {
+      args.outdir = argv[++i];
+    } else if (a == "--threads" && i + 1 < argc) {
+      char* end = nullptr;
+      const long n = std::strtol(argv[++i], &end, 10);
+      if (*end != '\0' || n < 1 || n > 1024) return false;
+      args.threads = static_cast<int>(n);
+    } else if (a == "--quiet" || a == "-q") {
+      args.quiet = true;
+    } else if (a == "-h" || a == "--help") {
+      std::cout << kUsageText;
+      std::exit(0);
+    } else if (!a.empty() && a[0] != '-' && args.deck.empty()) {
+      args.deck = a;
+    } else {
+      return false;
+    }
+  }
+  return !args.deck.empty();
+}
+
+std::string default_outdir(const std::string& deck) {
+  std::filesystem::path p(deck);
+  if (p.extension() == ".inp") p.replace_extension();
+  return p.string() + ".out";
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  using namespace calfit;
+  Arguments args;
+  if (!parse_arguments(argc, argv, args)) {
+    std::cerr << kUsageText;
+    return kUsage;
+  }
+  if (args.outdir.empty()) args.outdir = default_outdir(args.deck);
+  const auto start = std::chrono::steady_clock::now();
+  auto log = [&](const std::string& line) {
+    if (!args.quiet) std::cout << line << '\n';
+  };
+
+  Model model;
+  try {
+    model = build_model(args.deck);
+  } catch (const DeckError& e) {
+    std::cerr << e.what() << '\n';
+    return kBadDeck;
+  } catch (const std::exception& e) {
+    std::cerr << args.deck << ":0: " << e.what() << '\n';
+    return kBadDeck;
+  }
+
+  RunSummary summary;
+  summary.deck = args.deck;
+  summary.n_nodes = static_cast<int>(model.coordinates.size());
+  summary.n_elements = static_cast<int>(model.elements.size());
+  summary.n_dof = model.dof_count();
+#ifdef _OPENMP
+  summary.threads = args.threads > 0 ? args.threads : omp_get_max_threads();
+#else
+  summary.threads = 1;
+#endif
+  const std::string summary_path = (std::filesystem::path(args.outdir) / "summary.json").string();
+  auto elapsed = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(); };
+
+  try {
+    std::filesystem::create_directories(args.outdir);
+    SolverSettings settings;
+    settings.threads = args.threads;
+    StaticAnalysis analysis(model, settings);
+    summary.status = "converged";
+    for (std::size_t k = 0; k < model.steps.size(); ++k) {
+      StepSummary step;
+      step.result = analysis.run_step(static_cast<int>(k), log);
+      summary.n_free_dof = analysis.free_dof_count();
+      summary.linear_solver = analysis.linear_solver();
+      const std::string stem = "step-" + std::to_string(k + 1);
+      step.vtu = stem + ".vtu";
+      step.table = stem + ".u.npy";
+      const FieldOutput fields = analysis.output();
+      write_vtu((std::filesystem::path(args.outdir) / step.vtu).string(), model, fields);
+      write_displacement_table((std::filesystem::path(args.outdir) / step.table).string(), model, fields.displacement);
+      const bool ok = step.result.converged;
+      summary.steps.push_back(step);
+      if (!ok) {
+        summary.status = "not_converged";
+        summary.exit_code = kNotConverged;
+        summary.message = "step " + std::to_string(k + 1) + " did not converge: " + step.result.message +
+                          "; the last converged state (step time " + std::to_string(step.result.time_reached) +
+                          ") is written";
+        summary.wall_time_s = elapsed();
+        write_summary(summary_path, summary);
+        std::cerr << args.deck << ": " << summary.message << '\n';
+        return kNotConverged;
+      }
+      summary.wall_time_s = elapsed();
+      write_summary(summary_path, summary);
+    }
+    log("converged in " + std::to_string(elapsed()) + " s; results in " + args.outdir);
+    return kConverged;
+  } catch (const DeckError& e) {
+    std::cerr << e.what() << '\n';
+    return kBadDeck;
+  } catch (const std::bad_alloc&) {
+    std::cerr << args.deck << ": out of memory\n";
+    return kFailure;
+  } catch (const std::exception& e) {
+    std::cerr << args.deck << ": " << e.what() << '\n';
+    try {
+      summary.status = "failed";
+      summary.exit_code = kFailure;
+      summary.message = e.what();
+      summary.wall_time_s = elapsed();
+      write_summary(summary_path, summary);
+    } catch (...) {
+    }
+    return kFailure;
+  }
+}

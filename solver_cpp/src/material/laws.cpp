@@ -1,0 +1,102 @@
+// Strain-energy laws: see laws.hpp for the equations and their sources.
+#include "material/laws.hpp"
+
+#include <cmath>
+#include <sstream>
+
+namespace calfit {
+
+IsochoricDerivatives ReducedPolynomialIsochoric::evaluate(double I1bar, double) const {
+  IsochoricDerivatives w;
+  const double x = I1bar - 3.0;
+  for (std::size_t k = 0; k < c_.size(); ++k) {
+    const double i = static_cast<double>(k + 1);
+    w.W += c_[k] * std::pow(x, i);
+    w.W1 += c_[k] * i * std::pow(x, i - 1.0);
+    if (k >= 1) w.W11 += c_[k] * i * (i - 1.0) * std::pow(x, i - 2.0);
+  }
+  return w;
+}
+
+std::string ReducedPolynomialIsochoric::description() const {
+  std::ostringstream out;
+  out << "reduced polynomial (";
+  for (std::size_t k = 0; k < c_.size(); ++k) out << (k ? ", " : "") << "C" << k + 1 << "0=" << c_[k];
+  out << ")";
+  return out.str();
+}
+
+IsochoricDerivatives MooneyRivlinIsochoric::evaluate(double I1bar, double I2bar) const {
+  IsochoricDerivatives w;
+  w.W = c10_ * (I1bar - 3.0) + c01_ * (I2bar - 3.0);
+  w.W1 = c10_;
+  w.W2 = c01_;
+  return w;
+}
+
+std::string MooneyRivlinIsochoric::description() const {
+  std::ostringstream out;
+  out << "Mooney-Rivlin (C10=" << c10_ << ", C01=" << c01_ << ")";
+  return out.str();
+}
+
+ArrudaBoyceIsochoric::ArrudaBoyceIsochoric(double mu, double lambda_m)
+    : mu_(mu), lambda_m_(lambda_m), a_{0.5, 1.0 / 20.0, 11.0 / 1050.0, 19.0 / 7000.0, 519.0 / 673750.0} {}
+
+IsochoricDerivatives ArrudaBoyceIsochoric::evaluate(double I1bar, double) const {
+  IsochoricDerivatives w;
+  const double inv_l2 = 1.0 / (lambda_m_ * lambda_m_);
+  double scale = 1.0;  // lambda_m^-(2i-2)
+  for (int k = 0; k < 5; ++k) {
+    const double i = k + 1.0;
+    const double c = mu_ * a_[k] * scale;
+    w.W += c * (std::pow(I1bar, i) - std::pow(3.0, i));
+    w.W1 += c * i * std::pow(I1bar, i - 1.0);
+    if (k >= 1) w.W11 += c * i * (i - 1.0) * std::pow(I1bar, i - 2.0);
+    scale *= inv_l2;
+  }
+  return w;
+}
+
+std::string ArrudaBoyceIsochoric::description() const {
+  std::ostringstream out;
+  out << "Arruda-Boyce (mu=" << mu_ << ", lambda_m=" << lambda_m_ << ")";
+  return out.str();
+}
+
+VolumetricDerivatives PolynomialVolumetric::evaluate(double J) const {
+  VolumetricDerivatives u;
+  const double x = J - 1.0;
+  for (std::size_t k = 0; k < d_.size(); ++k) {
+    if (d_[k] == 0.0) continue;
+    const double n = 2.0 * static_cast<double>(k + 1);
+    u.U += std::pow(x, n) / d_[k];
+    u.dU += n * std::pow(x, n - 1.0) / d_[k];
+    u.d2U += n * (n - 1.0) * std::pow(x, n - 2.0) / d_[k];
+  }
+  return u;
+}
+
+std::string PolynomialVolumetric::description() const {
+  std::ostringstream out;
+  out << "polynomial volumetric (";
+  for (std::size_t k = 0; k < d_.size(); ++k) out << (k ? ", " : "") << "D" << k + 1 << "=" << d_[k];
+  out << ")";
+  return out.str();
+}
+
+VolumetricDerivatives LogVolumetric::evaluate(double J) const {
+  VolumetricDerivatives u;
+  u.U = k_ * (0.5 * (J * J - 1.0) - std::log(J));
+  u.dU = k_ * (J - 1.0 / J);
+  u.d2U = k_ * (1.0 + 1.0 / (J * J));
+  return u;
+}
+
+std::string LogVolumetric::description() const {
+  std::ostringstream out;
+  out << "log volumetric (K=" << k_ << ")";
+  return out.str();
+}
+
+}  // namespace calfit

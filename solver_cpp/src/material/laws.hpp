@@ -1,0 +1,72 @@
+// The strain-energy laws of calfit-fe, as CalculiX/Abaqus define them, and the
+// compressible neo-Hookean law of Avril et al. (2010), eq. (2).
+#pragma once
+
+#include "material/material.hpp"
+
+#include <vector>
+
+namespace calfit {
+
+// Reduced polynomial W_iso = sum_i Ci0 (I1bar - 3)^i, i = 1..N (N = 1: neo-Hooke).
+class ReducedPolynomialIsochoric final : public IsochoricEnergy {
+public:
+  explicit ReducedPolynomialIsochoric(std::vector<double> coefficients) : c_(std::move(coefficients)) {}
+  IsochoricDerivatives evaluate(double I1bar, double I2bar) const override;
+  std::string description() const override;
+
+private:
+  std::vector<double> c_;
+};
+
+// Mooney-Rivlin W_iso = C10 (I1bar - 3) + C01 (I2bar - 3).
+class MooneyRivlinIsochoric final : public IsochoricEnergy {
+public:
+  MooneyRivlinIsochoric(double c10, double c01) : c10_(c10), c01_(c01) {}
+  IsochoricDerivatives evaluate(double I1bar, double I2bar) const override;
+  std::string description() const override;
+
+private:
+  double c10_, c01_;
+};
+
+// Arruda-Boyce W_iso = mu sum_i a_i / lambda_m^(2i-2) (I1bar^i - 3^i), i = 1..5, with
+// a = 1/2, 1/20, 11/1050, 19/7000, 519/673750 (CalculiX manual, *HYPERELASTIC).
+class ArrudaBoyceIsochoric final : public IsochoricEnergy {
+public:
+  ArrudaBoyceIsochoric(double mu, double lambda_m);
+  IsochoricDerivatives evaluate(double I1bar, double I2bar) const override;
+  std::string description() const override;
+
+private:
+  double mu_, lambda_m_;
+  double a_[5];
+};
+
+// U = sum_i (J - 1)^(2i) / Di (CalculiX polynomial forms); D1 = 0 is the
+// incompressible constraint, Di = 0 for i > 1 drops the term.
+class PolynomialVolumetric final : public VolumetricEnergy {
+public:
+  explicit PolynomialVolumetric(std::vector<double> d) : d_(std::move(d)) {}
+  VolumetricDerivatives evaluate(double J) const override;
+  bool is_constraint() const override { return d_.empty() || d_[0] == 0.0; }
+  std::string description() const override;
+
+private:
+  std::vector<double> d_;
+};
+
+// U = K [(J^2 - 1)/2 - ln J]: Avril et al. eq. (2) with K = Kv, and the volumetric
+// part of CalculiX's Arruda-Boyce law with K = 1/D.
+class LogVolumetric final : public VolumetricEnergy {
+public:
+  explicit LogVolumetric(double bulk) : k_(bulk) {}
+  VolumetricDerivatives evaluate(double J) const override;
+  bool is_constraint() const override { return k_ == 0.0; }
+  std::string description() const override;
+
+private:
+  double k_;
+};
+
+}  // namespace calfit

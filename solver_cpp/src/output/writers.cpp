@@ -1,0 +1,187 @@
+// Result writers: see writers.hpp.
+#include "output/writers.hpp"
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <sstream>
+#include <stdexcept>
+
+namespace calfit {
+namespace {
+
+// Writes through a temporary file renamed into place once complete.
+template <typename Fill>
+void write_atomically(const std::string& path, Fill fill, bool binary = false) {
+  const std::string temporary = path + ".part";
+  {
+    std::ofstream out(temporary, binary ? std::ios::binary : std::ios::out);
+    if (!out) throw std::runtime_error("cannot write " + temporary);
+    fill(out);
+    out.flush();
+    if (!out) throw std::runtime_error("error while writing " + temporary + " (disk full?)");
+  }
+  std::filesystem::rename(temporary, path);
+}
+
+std::string json_string(const std::string& s) {
+  std::ostringstream out;
+  out << '"';
+  for (char c : s) {
+    switch (c) {
+      case '"': out << "\\\""; break;
+      case '\\': out << "\\\\"; break;
+      case '\n': out << "\\n"; break;
+      case '\t': out << "\\t"; break;
+      default:
+        if (static_cast<unsigned char>(c) < 0x20) {
+          out << "\\u" << std::hex << std::setw(4) << std::setfill('0') << static_cast<int>(c) << std::dec;
+        } else {
+          out << c;
+        }
+    }
+  }
+  out << '"';
+  return out.str();
+}
+
+std::string json_number(double v) {
+  if (!std::isfinite(v)) return "null";
+  std::ostringstream out;
+  out << std::setprecision(17) << v;
+  return out.str();
+}
+
+constexpr int kVtkTriangle = 5, kVtkQuadraticTriangle = 22;
+
+void data_array(std::ostream& out, const char* name, int components, const std::vector<double>& values) {
+  out << "        <DataArray type=\"Float64\" Name=\"" << name << "\" NumberOfComponents=\"" << components
+      << "\" format=\"ascii\">\n";
+  for (std::size_t i = 0; i < values.size(); ++i) out << values[i] << ((i + 1) % components == 0 ? '\n' : ' ');
+  out << "        </DataArray>\n";
+}
+
+std::vector<double> voigt6(const Mat3& s) { return {s(0, 0), s(1, 1), s(2, 2), s(0, 1), s(1, 2), s(0, 2)}; }
+
+}  // namespace
+
+void write_vtu(const std::string& path, const Model& model, const FieldOutput& fields) {
+  const std::size_t n_nodes = model.coordinates.size(), n_elements = model.elements.size();
+  std::vector<double> displacement, point_stress(6 * n_nodes, 0.0), point_pressure(n_nodes, 0.0), laplace;
+  std::vector<double> count(n_nodes, 0.0), cell_stress, cell_pressure, cell_J, material;
+  for (std::size_t n = 0; n < n_nodes; ++n) {
+    displacement.insert(displacement.end(), {fields.displacement[2 * n], fields.displacement[2 * n + 1], 0.0});
+    laplace.push_back(fields.laplace_pressure[static_cast<Eigen::Index>(n)]);
+  }
+  for (std::size_t e = 0; e < n_elements; ++e) {
+    const ElementState& s = fields.element_states[e];
+    const std::vector<double> v = voigt6(s.cauchy);
+    const double pressure = -s.cauchy.trace() / 3.0;
+    cell_stress.insert(cell_stress.end(), v.begin(), v.end());
+    cell_pressure.push_back(pressure);
+    cell_J.push_back(s.J);
+    material.push_back(model.sections[model.elements[e].section].material + 1);
+    for (int node : model.elements[e].nodes) {
+      for (int k = 0; k < 6; ++k) point_stress[6 * node + k] += v[k];
+      point_pressure[node] += pressure;
+      count[node] += 1.0;
+    }
+  }
+  for (std::size_t n = 0; n < n_nodes; ++n) {
+    if (count[n] == 0.0) continue;
+    for (int k = 0; k < 6; ++k) point_stress[6 * n + k] /= count[n];
+    point_pressure[n] /= count[n];
+  }
+
+  write_atomically(path, [&](std::ostream& out) {
+    out << std::setprecision(12);
+    out << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
+        << "  <UnstructuredGrid>\n    <Piece NumberOfPoints=\"" << n_nodes << "\" NumberOfCells=\"" << n_elements
+        << "\">\n      <Points>\n        <DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
+    for (const Eigen::Vector2d& x : model.coordinates) out << x.x() << ' ' << x.y() << " 0\n";
+    out << "        </DataArray>\n      </Points>\n      <Cells>\n"
+        << "        <DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n";
+    for (const ElementDef& e : model.elements) {
+      for (int node : e.nodes) out << node << ' ';
+      out << '\n';
+    }
+    out << "        </DataArray>\n        <DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n";
+    std::size_t offset = 0;
+    for (const ElementDef& e : model.elements) out << (offset += e.nodes.size()) << '\n';
+    out << "        </DataArray>\n        <DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
+    for (const ElementDef& e : model.elements)
+      out << (e.shape == ElementShape::T3 ? kVtkTriangle : kVtkQuadraticTriangle) << '\n';
+    out << "        </DataArray>\n      </Cells>\n      <PointData>\n";
+    data_array(out, "displacement", 3, displacement);
+    data_array(out, "cauchy_stress", 6, point_stress);
+    data_array(out, "pressure", 1, point_pressure);
+    data_array(out, "laplace_pressure", 1, laplace);
+    out << "      </PointData>\n      <CellData>\n";
+    data_array(out, "cauchy_stress", 6, cell_stress);
+    data_array(out, "pressure", 1, cell_pressure);
+    data_array(out, "J", 1, cell_J);
+    data_array(out, "material_id", 1, material);
+    out << "      </CellData>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n";
+  });
+}
+
+void write_displacement_table(const std::string& path, const Model& model, const Eigen::VectorXd& u) {
+  const std::size_t n = model.coordinates.size();
+  // NPY format 1.0: magic, version, little-endian header length, a Python dict
+  // literal padded with spaces to a multiple of 64 bytes, then the raw array.
+  std::string header = "{'descr': '<f8', 'fortran_order': False, 'shape': (" + std::to_string(n) + ", 5), }";
+  const std::size_t total = 10 + header.size() + 1;
+  header.append((64 - total % 64) % 64, ' ');
+  header += '\n';
+  std::vector<double> table;
+  table.reserve(5 * n);
+  for (std::size_t i = 0; i < n; ++i)
+    table.insert(table.end(), {static_cast<double>(model.node_ids[i]), model.coordinates[i].x(),
+                               model.coordinates[i].y(), u[2 * i], u[2 * i + 1]});
+  write_atomically(
+      path,
+      [&](std::ostream& out) {
+        const unsigned short length = static_cast<unsigned short>(header.size());
+        out.write("\x93NUMPY\x01\x00", 8);
+        const char length_bytes[2] = {static_cast<char>(length & 0xff), static_cast<char>(length >> 8)};
+        out.write(length_bytes, 2);
+        out.write(header.data(), static_cast<std::streamsize>(header.size()));
+        out.write(reinterpret_cast<const char*>(table.data()), static_cast<std::streamsize>(table.size() * sizeof(double)));
+      },
+      true);
+}
+
+void write_summary(const std::string& path, const RunSummary& s) {
+  write_atomically(path, [&](std::ostream& out) {
+    out << "{\n  \"deck\": " << json_string(s.deck) << ",\n  \"status\": " << json_string(s.status)
+        << ",\n  \"converged\": " << (s.status == "converged" ? "true" : "false") << ",\n  \"exit_code\": " << s.exit_code
+        << ",\n  \"message\": " << json_string(s.message) << ",\n  \"wall_time_s\": " << json_number(s.wall_time_s)
+        << ",\n  \"n_nodes\": " << s.n_nodes << ",\n  \"n_elements\": " << s.n_elements << ",\n  \"n_dof\": " << s.n_dof
+        << ",\n  \"n_free_dof\": " << s.n_free_dof << ",\n  \"threads\": " << s.threads
+        << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"steps\": [";
+    for (std::size_t k = 0; k < s.steps.size(); ++k) {
+      const StepResult& r = s.steps[k].result;
+      out << (k ? "," : "") << "\n    {\"step\": " << k + 1 << ", \"status\": "
+          << json_string(r.converged ? "converged" : "not_converged") << ", \"message\": " << json_string(r.message)
+          << ", \"time_reached\": " << json_number(r.time_reached) << ", \"n_increments\": " << r.increments
+          << ", \"n_cutbacks\": " << r.cutbacks << ", \"newton_iterations\": " << r.newton_iterations
+          << ", \"vtu\": " << json_string(s.steps[k].vtu) << ", \"table\": " << json_string(s.steps[k].table)
+          << ",\n     \"increments\": [";
+      for (std::size_t i = 0; i < r.records.size(); ++i) {
+        const IncrementRecord& rec = r.records[i];
+        out << (i ? "," : "") << "\n       {\"time\": " << json_number(rec.time) << ", \"dt\": " << json_number(rec.dt)
+            << ", \"converged\": " << (rec.converged ? "true" : "false") << ", \"note\": " << json_string(rec.note)
+            << ", \"residual_norms\": [";
+        for (std::size_t j = 0; j < rec.residual_norms.size(); ++j)
+          out << (j ? ", " : "") << json_number(rec.residual_norms[j]);
+        out << "]}";
+      }
+      out << "]}";
+    }
+    out << "\n  ]\n}\n";
+  });
+}
+
+}  // namespace calfit

@@ -1,0 +1,363 @@
+// Incremental Newton-Raphson solution: see newton.hpp.
+#include "solver/newton.hpp"
+
+#include "load/edge_loads.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
+namespace calfit {
+namespace {
+
+constexpr double kPi = 3.14159265358979323846;
+
+double ramp(double start, double end, double lambda) { return start + lambda * (end - start); }
+
+// Face-local dof indices (2 per node) into the element's dof list.
+std::vector<int> local_dofs(const std::vector<int>& local_nodes) {
+  std::vector<int> dofs;
+  for (int l : local_nodes) {
+    dofs.push_back(2 * l);
+    dofs.push_back(2 * l + 1);
+  }
+  return dofs;
+}
+
+}  // namespace
+
+StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : model_(model), settings_(settings) {
+#ifdef _OPENMP
+  if (settings_.threads > 0) omp_set_num_threads(settings_.threads);
+#endif
+  for (const ElementDef& e : model.elements) {
+    const SectionDef& s = model.sections[e.section];
+    const int degree = e.shape == ElementShape::T3 ? 1 : (s.full_integration ? 4 : 2);
+    NodeMatrix X(node_count(e.shape), 2);
+    std::vector<int> dofs;
+    for (int k = 0; k < X.rows(); ++k) {
+      X.row(k) = model.coordinates[e.nodes[k]].transpose();
+      dofs.push_back(2 * e.nodes[k]);
+      dofs.push_back(2 * e.nodes[k] + 1);
+    }
+    elements_.emplace_back(e.shape, X, *model.materials[s.material].law, s.thickness, degree);
+    element_dofs_.push_back(std::move(dofs));
+  }
+  u_.setZero(model.dof_count());
+  element_force_.resize(elements_.size());
+  element_tangent_.resize(elements_.size());
+}
+
+std::vector<StaticAnalysis::FaceLoad> StaticAnalysis::laplace_faces(const LoadState& state, bool end) const {
+  std::vector<FaceLoad> faces;
+  for (const auto& [surface, load] : state.laplace) {
+    const std::vector<Face>& surface_faces = model_.surfaces[surface];
+    Eigen::Vector2d center = Eigen::Vector2d::Zero();
+    const TensionProfile* profile = load.profile >= 0 ? &model_.profiles[load.profile] : nullptr;
+    if (profile && profile->has_center) {
+      center = profile->center;
+    } else if (profile) {
+      std::set<int> nodes;
+      for (const Face& f : surface_faces)
+        for (int l : face_nodes(model_.elements[f.element].shape, f.face)) nodes.insert(model_.elements[f.element].nodes[l]);
+      for (int n : nodes) center += model_.coordinates[n];
+      center /= static_cast<double>(nodes.size());
+    }
+    for (const Face& f : surface_faces) {
+      FaceLoad face;
+      face.element = f.element;
+      face.local = face_nodes(model_.elements[f.element].shape, f.face);
+      Eigen::VectorXd tension(face.local.size());
+      for (std::size_t k = 0; k < face.local.size(); ++k) {
+        double factor = 1.0;
+        if (profile) {
+          const Eigen::Vector2d r = model_.coordinates[model_.elements[f.element].nodes[face.local[k]]] - center;
+          factor = profile->factor(std::atan2(r.y(), r.x()) * 180.0 / kPi);
+        }
+        tension(static_cast<Eigen::Index>(k)) = load.tension * factor;
+      }
+      face.t_start = Eigen::VectorXd::Zero(tension.size());
+      face.t_end = Eigen::VectorXd::Zero(tension.size());
+      (end ? face.t_end : face.t_start) = tension;
+      faces.push_back(face);
+    }
+  }
+  return faces;
+}
+
+void StaticAnalysis::prepare_step(int step) {
+  static const LoadState nothing;
+  const LoadState& before = step > 0 ? model_.steps[step - 1].loads : nothing;
+  const LoadState& now = model_.steps[step].loads;
+
+  std::vector<char> active(model_.dof_count(), 0);
+  for (const std::vector<int>& dofs : element_dofs_)
+    for (int d : dofs) active[d] = 1;
+  std::vector<char> free = active;
+  prescribed_.clear();
+  for (const auto& [dof, value] : now.prescribed) {
+    free[dof] = 0;
+    prescribed_.push_back({dof, u_[dof], value});
+  }
+  system_ = std::make_unique<SparseSystem>(element_dofs_, free);
+  free_dofs_ = system_->size();
+
+  forces_.clear();
+  std::set<int> force_dofs;
+  for (const auto& kv : before.forces) force_dofs.insert(kv.first);
+  for (const auto& kv : now.forces) force_dofs.insert(kv.first);
+  for (int dof : force_dofs) {
+    const auto b = before.forces.find(dof), n = now.forces.find(dof);
+    forces_.push_back({dof, b == before.forces.end() ? 0.0 : b->second, n == now.forces.end() ? 0.0 : n->second});
+  }
+
+  pressure_faces_.clear();
+  std::set<std::pair<int, int>> faces;
+  for (const auto& kv : before.pressures) faces.insert(kv.first);
+  for (const auto& kv : now.pressures) faces.insert(kv.first);
+  for (const auto& key : faces) {
+    FaceLoad f;
+    f.element = key.first;
+    f.local = face_nodes(model_.elements[key.first].shape, key.second);
+    const auto b = before.pressures.find(key), n = now.pressures.find(key);
+    f.start = b == before.pressures.end() ? 0.0 : b->second;
+    f.end = n == now.pressures.end() ? 0.0 : n->second;
+    pressure_faces_.push_back(f);
+  }
+
+  laplace_faces_ = laplace_faces(before, false);
+  for (FaceLoad& f : laplace_faces(now, true)) laplace_faces_.push_back(std::move(f));
+}
+
+void StaticAnalysis::apply_prescribed(Eigen::VectorXd& u, double lambda) const {
+  for (const Ramp& r : prescribed_) u[r.dof] = ramp(r.start, r.end, lambda);
+}
+
+StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, double lambda, bool tangent) {
+  const int n_elements = static_cast<int>(elements_.size());
+  int failures = 0;
+#pragma omp parallel for schedule(static) reduction(+ : failures)
+  for (int e = 0; e < n_elements; ++e) {
+    const std::vector<int>& dofs = element_dofs_[e];
+    NodeMatrix ue(static_cast<Eigen::Index>(dofs.size() / 2), 2);
+    for (Eigen::Index k = 0; k < ue.rows(); ++k) ue.row(k) << u[dofs[2 * k]], u[dofs[2 * k + 1]];
+    if (!elements_[e].internal_force(ue, element_force_[e], tangent ? &element_tangent_[e] : nullptr)) ++failures;
+  }
+  Evaluation ev;
+  if (failures > 0) return ev;
+
+  residual_.setZero(model_.dof_count());
+  if (tangent) system_->set_zero();
+  for (int e = 0; e < n_elements; ++e) {
+    const std::vector<int>& dofs = element_dofs_[e];
+    for (std::size_t k = 0; k < dofs.size(); ++k) residual_[dofs[k]] += element_force_[e][static_cast<Eigen::Index>(k)];
+    if (tangent) system_->add(e, element_tangent_[e]);
+  }
+
+  f_ext_.setZero(model_.dof_count());
+  for (const Ramp& r : forces_) f_ext_[r.dof] += ramp(r.start, r.end, lambda);
+
+  // Face loads act on the current configuration; their stiffness enters with a minus
+  // sign because R = f_int - f_ext.
+  auto face_load = [&](const FaceLoad& f, bool laplace) {
+    const std::vector<int>& dofs = element_dofs_[f.element];
+    EdgeNodes x(static_cast<Eigen::Index>(f.local.size()), 2);
+    for (std::size_t k = 0; k < f.local.size(); ++k) {
+      const int d = dofs[2 * f.local[k]];
+      const int n = d / 2;
+      x.row(static_cast<Eigen::Index>(k)) << model_.coordinates[n].x() + u[d], model_.coordinates[n].y() + u[d + 1];
+    }
+    EdgeVector fe;
+    EdgeMatrix dfe;
+    if (laplace) {
+      const Eigen::VectorXd tension = f.t_start + lambda * (f.t_end - f.t_start);
+      laplace_membrane_load(x, tension, fe, tangent ? &dfe : nullptr);
+    } else {
+      follower_pressure_load(x, ramp(f.start, f.end, lambda), fe, tangent ? &dfe : nullptr);
+    }
+    const std::vector<int> local = local_dofs(f.local);
+    for (std::size_t k = 0; k < local.size(); ++k) f_ext_[dofs[local[k]]] += fe[static_cast<Eigen::Index>(k)];
+    if (tangent) {
+      const EdgeMatrix minus = -dfe;
+      system_->add(f.element, minus, local.data(), static_cast<int>(local.size()));
+    }
+  };
+  for (const FaceLoad& f : pressure_faces_) face_load(f, false);
+  for (const FaceLoad& f : laplace_faces_) face_load(f, true);
+
+  const double internal_norm = residual_.norm();
+  residual_ -= f_ext_;
+  double free_norm2 = 0.0;
+  for (int d = 0; d < model_.dof_count(); ++d)
+    if (system_->equation(d) >= 0) free_norm2 += residual_[d] * residual_[d];
+  ev.ok = std::isfinite(free_norm2);
+  ev.norm = std::sqrt(free_norm2);
+  ev.reference = std::max({f_ext_.norm(), internal_norm, 1e-300});
+  return ev;
+}
+
+StepResult StaticAnalysis::run_step(int step, const std::function<void(const std::string&)>& log) {
+  prepare_step(step);
+  const StepDef& s = model_.steps[step];
+  StepResult result;
+  double time = 0.0, dt = s.initial_dt;
+  const int n = system_->size();
+  Eigen::VectorXd rhs(n), du(n);
+
+  // One Newton solve of the increment ending at load fraction lambda; u is updated in place.
+  auto newton = [&](Eigen::VectorXd& u, double lambda, IncrementRecord& rec, bool first_of_step) {
+    Evaluation ev = evaluate(u, lambda, true);
+    if (!ev.ok) {
+      rec.note = "an element turned inside out (det F <= 0) under the prescribed displacement increment";
+      return false;
+    }
+    int rises = 0;
+    for (int it = 0;; ++it) {
+      const double relative = ev.norm / ev.reference;
+      rec.residual_norms.push_back(relative);
+      if (relative <= settings_.residual_tolerance) return true;
+      if (!std::isfinite(relative) || it >= settings_.max_iterations) {
+        rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
+        return false;
+      }
+      for (int d = 0; d < model_.dof_count(); ++d)
+        if (system_->equation(d) >= 0) rhs[system_->equation(d)] = -residual_[d];
+      if (!system_->solve(rhs, du)) {
+        if (first_of_step && it == 0)
+          throw std::runtime_error(
+              "the tangent stiffness is singular at the start of step " + std::to_string(step + 1) +
+              ": part of the model can move freely; fix rigid-body motions with *BOUNDARY");
+        rec.note = "singular tangent (a structural instability?)";
+        return false;
+      }
+      linear_solver_ = system_->solver_name();
+      Eigen::VectorXd full = Eigen::VectorXd::Zero(model_.dof_count());
+      for (int d = 0; d < model_.dof_count(); ++d)
+        if (system_->equation(d) >= 0) full[d] = du[system_->equation(d)];
+
+      // Backtracking line search on |R|: full step first, halved while it fails to
+      // reduce the residual (or inverts an element).
+      Eigen::VectorXd trial = u + full;
+      Evaluation next = evaluate(trial, lambda, true);
+      if (!next.ok || next.norm > ev.norm) {
+        bool found = false;
+        for (double eta = 0.5; eta > 0.01; eta *= 0.5) {
+          Eigen::VectorXd shorter = u + eta * full;
+          const Evaluation e2 = evaluate(shorter, lambda, false);
+          if (e2.ok && e2.norm < ev.norm) {
+            trial = shorter;
+            found = true;
+            break;
+          }
+        }
+        if (found) {
+          next = evaluate(trial, lambda, true);
+        } else if (!next.ok) {
+          rec.note = "every line-search step turns an element inside out";
+          return false;
+        } else {
+          next = evaluate(trial, lambda, true);  // accept the full step; Newton may rise before it falls
+        }
+      }
+      rises = next.norm > ev.norm ? rises + 1 : 0;
+      if (rises >= 6) {
+        rec.note = "residual diverging";
+        return false;
+      }
+      u = trial;
+      ev = next;
+    }
+  };
+
+  while (time < s.period * (1.0 - 1e-12)) {
+    if (result.increments >= s.max_increments) {
+      result.message = "reached the increment limit INC=" + std::to_string(s.max_increments) + " at step time " +
+                       std::to_string(time) + "; raise INC on *STEP";
+      return result;
+    }
+    if (s.period - (time + dt) < 1e-9 * s.period) dt = s.period - time;
+    dt = std::min(dt, s.period - time);
+    const double lambda = (time + dt) / s.period;
+    IncrementRecord rec;
+    rec.time = time + dt;
+    rec.dt = dt;
+    Eigen::VectorXd u = u_;
+    apply_prescribed(u, lambda);
+    rec.converged = newton(u, lambda, rec, time == 0.0 && result.cutbacks == 0);
+    result.records.push_back(rec);
+    result.newton_iterations += static_cast<int>(rec.residual_norms.size()) - 1;
+    std::ostringstream line;
+    line << "step " << step + 1 << " time " << rec.time << " dt " << dt << ": " << rec.residual_norms.size() - 1
+         << " iterations, residual " << rec.residual_norms.back() << (rec.converged ? "" : " (cut back: " + rec.note + ")");
+    log(line.str());
+    if (rec.converged) {
+      u_ = u;
+      last_lambda_ = lambda;
+      time += dt;
+      result.time_reached = time;
+      ++result.increments;
+      if (rec.residual_norms.size() <= 6) dt = std::min(1.5 * dt, s.max_dt);
+      continue;
+    }
+    ++result.cutbacks;
+    dt *= 0.25;
+    if (dt < s.min_dt * (1.0 - 1e-12)) {
+      result.message = "increment below the minimum " + std::to_string(s.min_dt) + " at step time " +
+                       std::to_string(time) + " (" + rec.note + ")";
+      return result;
+    }
+  }
+  result.converged = true;
+  return result;
+}
+
+FieldOutput StaticAnalysis::output() {
+  FieldOutput out;
+  out.displacement = u_;
+  evaluate(u_, last_lambda_, false);
+  out.reaction = residual_;
+  for (std::size_t e = 0; e < elements_.size(); ++e) {
+    const std::vector<int>& dofs = element_dofs_[e];
+    NodeMatrix ue(static_cast<Eigen::Index>(dofs.size() / 2), 2);
+    for (Eigen::Index k = 0; k < ue.rows(); ++k) ue.row(k) << u_[dofs[2 * k]], u_[dofs[2 * k + 1]];
+    out.element_states.push_back(elements_[e].state(ue));
+  }
+  // Nodal garment pressure: the Laplace load's nodal force over the node's consistent
+  // length, along the node's outward normal.
+  const int n_nodes = static_cast<int>(model_.coordinates.size());
+  out.laplace_pressure = Eigen::VectorXd::Zero(n_nodes);
+  Eigen::MatrixXd force = Eigen::MatrixXd::Zero(n_nodes, 2), normal = Eigen::MatrixXd::Zero(n_nodes, 2);
+  Eigen::VectorXd length = Eigen::VectorXd::Zero(n_nodes);
+  for (const FaceLoad& f : laplace_faces_) {
+    const ElementDef& e = model_.elements[f.element];
+    EdgeNodes x(static_cast<Eigen::Index>(f.local.size()), 2);
+    for (std::size_t k = 0; k < f.local.size(); ++k) {
+      const int node = e.nodes[f.local[k]];
+      x.row(static_cast<Eigen::Index>(k)) = (model_.coordinates[node] + u_.segment<2>(2 * node)).transpose();
+    }
+    EdgeVector fe;
+    laplace_membrane_load(x, f.t_start + last_lambda_ * (f.t_end - f.t_start), fe, nullptr);
+    Eigen::VectorXd w;
+    EdgeNodes nw;
+    face_weights(x, w, nw);
+    for (std::size_t k = 0; k < f.local.size(); ++k) {
+      const int node = e.nodes[f.local[k]];
+      const auto kk = static_cast<Eigen::Index>(k);
+      force.row(node) += fe.segment<2>(2 * kk).transpose();
+      normal.row(node) += nw.row(kk);
+      length[node] += w[kk];
+    }
+  }
+  for (int node = 0; node < n_nodes; ++node)
+    if (length[node] > 0.0 && normal.row(node).norm() > 0.0)
+      out.laplace_pressure[node] = -force.row(node).dot(normal.row(node).normalized()) / length[node];
+  return out;
+}
+
+}  // namespace calfit

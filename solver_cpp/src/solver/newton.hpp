@@ -1,0 +1,96 @@
+// Quasi-static incremental solution of a Model: each step ramps its loads and
+// prescribed displacements over the step time; each increment is solved by
+// Newton-Raphson with the consistent tangent (internal + load stiffness) and a
+// backtracking line search on the residual norm; an increment that does not converge
+// is retried with a quarter of the time increment, down to the step's minimum
+// (the CalculiX *STATIC convention), after which the step is reported not converged.
+#pragma once
+
+#include "element/solid_element.hpp"
+#include "model/model.hpp"
+#include "solver/sparse_system.hpp"
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace calfit {
+
+struct IncrementRecord {
+  double time = 0, dt = 0;
+  bool converged = false;
+  std::vector<double> residual_norms;  // |R| / reference force, per Newton iteration
+  std::string note;                    // why it was cut back, if it was
+};
+
+struct StepResult {
+  bool converged = false;
+  double time_reached = 0.0;
+  int increments = 0, cutbacks = 0, newton_iterations = 0;
+  std::vector<IncrementRecord> records;
+  std::string message;
+};
+
+// Results of the last converged state, for the writers.
+struct FieldOutput {
+  Eigen::VectorXd displacement;                // 2 n_nodes
+  Eigen::VectorXd reaction;                    // 2 n_nodes: f_int - f_ext
+  std::vector<ElementState> element_states;
+  Eigen::VectorXd laplace_pressure;            // n_nodes: T / r applied (0 off the surface)
+};
+
+struct SolverSettings {
+  double residual_tolerance = 1e-9;  // |R| / reference force
+  int max_iterations = 25;
+  int threads = 0;  // 0: OpenMP default
+};
+
+class StaticAnalysis {
+public:
+  StaticAnalysis(const Model& model, SolverSettings settings);
+  StepResult run_step(int step, const std::function<void(const std::string&)>& log);
+  FieldOutput output();  // re-evaluates the residual for the reactions
+  int free_dof_count() const { return free_dofs_; }
+  const std::string& linear_solver() const { return linear_solver_; }
+
+private:
+  struct FaceLoad {
+    int element;
+    std::vector<int> local;  // element-local node indices along the face
+    double start = 0, end = 0;         // pressure (follower)
+    Eigen::VectorXd t_start, t_end;    // nodal tension (Laplace)
+  };
+  struct Ramp {
+    int dof;
+    double start, end;
+  };
+  struct Evaluation {
+    bool ok = false;
+    double norm = 0, reference = 0;
+  };
+
+  void prepare_step(int step);
+  // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
+  Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
+  void apply_prescribed(Eigen::VectorXd& u, double lambda) const;
+  std::vector<FaceLoad> laplace_faces(const LoadState& state, bool end) const;
+
+  const Model& model_;
+  SolverSettings settings_;
+  std::vector<SolidElement> elements_;
+  std::vector<std::vector<int>> element_dofs_;
+  Eigen::VectorXd u_;  // committed displacement
+  double last_lambda_ = 0.0;  // load fraction of u_ within its step
+  Eigen::VectorXd residual_, f_ext_;
+  std::unique_ptr<SparseSystem> system_;
+  std::vector<Ramp> prescribed_, forces_;
+  std::vector<FaceLoad> pressure_faces_, laplace_faces_;
+  int free_dofs_ = 0;
+  std::string linear_solver_ = "none";
+  // per-element buffers filled in parallel, scattered serially
+  std::vector<ElementVector> element_force_;
+  std::vector<ElementMatrix> element_tangent_;
+};
+
+}  // namespace calfit

@@ -1,0 +1,66 @@
+// The global tangent system of calfit-fe: numbering of the free degrees of freedom,
+// a compressed-column matrix whose pattern is built once from the element
+// connectivity, per-element scatter maps into its value array (so assembly is a
+// plain indexed add), and the direct solve: CHOLMOD supernodal LL^T when the
+// assembled tangent is symmetric positive definite, UMFPACK LU otherwise (follower
+// loads make it unsymmetric; a loss of definiteness near an instability too).
+#pragma once
+
+#include <Eigen/Sparse>
+#include <Eigen/CholmodSupport>
+#include <Eigen/UmfPackSupport>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace calfit {
+
+class SparseSystem {
+public:
+  // element_dofs[e]: global dofs of element e in its local order; free[dof]: unknown or prescribed.
+  SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free);
+
+  int size() const { return static_cast<int>(matrix_.rows()); }
+  int equation(int dof) const { return equation_[dof]; }  // -1 when prescribed
+  void set_zero();
+  // Adds the block K (local dofs `local` of element e, rows and columns) to the matrix.
+  template <typename Block>
+  void add(int element, const Block& K, const int* local = nullptr, int n_local = -1);
+
+  // Factorizes the current matrix and solves A x = b. Returns false when singular.
+  bool solve(const Eigen::VectorXd& b, Eigen::VectorXd& x);
+  const std::string& solver_name() const { return solver_name_; }
+  bool symmetric() const;
+
+private:
+  std::vector<int> equation_;
+  std::vector<std::vector<int>> element_dofs_;
+  std::vector<std::vector<int>> positions_;  // per element: m x m entries into valuePtr, -1 when prescribed
+  std::vector<int> transpose_position_;      // entry (r, c) -> entry (c, r)
+  Eigen::SparseMatrix<double> matrix_;
+  std::unique_ptr<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>> cholesky_;
+  std::unique_ptr<Eigen::UmfPackLU<Eigen::SparseMatrix<double>>> lu_;
+  std::string solver_name_ = "none";
+};
+
+template <typename Block>
+void SparseSystem::add(int element, const Block& K, const int* local, int n_local) {
+  const std::vector<int>& pos = positions_[element];
+  const int m = static_cast<int>(element_dofs_[element].size());
+  double* values = matrix_.valuePtr();
+  if (!local) {
+    for (int j = 0; j < m; ++j)
+      for (int i = 0; i < m; ++i) {
+        const int p = pos[i + m * j];
+        if (p >= 0) values[p] += K(i, j);
+      }
+    return;
+  }
+  for (int j = 0; j < n_local; ++j)
+    for (int i = 0; i < n_local; ++i) {
+      const int p = pos[local[i] + m * local[j]];
+      if (p >= 0) values[p] += K(i, j);
+    }
+}
+
+}  // namespace calfit
