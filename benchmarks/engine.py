@@ -1,0 +1,185 @@
+"""Speed and memory of calfit-fe on the leg-like slice, and the same deck in CalculiX.
+
+    cd /work/main && .venv/bin/python benchmarks/engine.py [--runs 5] [--ccx-runs 5] [--no-ccx]
+                                                          [--dofs 1000,3000,...,200000] [--threads N]
+
+1. The leg-like slice at the size of the second paper (about 5,500 T6 elements, about
+   25,000 DOF; that paper reports about 1,200 s per FE solve): median wall time of
+   calfit-fe over --runs runs, the median of CalculiX (`ccx -i`, single thread, the same
+   standard-keyword deck) in the same run, and their ratio (target: calfit-fe at least
+   10x faster; target: under 0.5 s).
+2. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
+   process (os.wait4 resource usage of that child, i.e. /usr/bin/time -v's "Maximum
+   resident set size"; target: under 1 GiB at 200k DOF).
+
+The deck comes from orchestrator.meshing.leg_slice_deck (Table 2 materials of Avril et
+al., bones clamped, 20 mmHg follower pressure on the skin). This script prints; it never
+asserts wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from orchestrator.engine import find_engine  # noqa: E402
+from orchestrator.meshing import leg_slice_deck, leg_slice_mesh, leg_slice_mesh_for_dof  # noqa: E402
+
+PAPER_SECONDS = 1200.0  # second paper, per FE solve of its ~25k-DOF model
+TARGET_25K_S = 0.5
+TARGET_SPEEDUP = 10.0
+TARGET_200K_BYTES = 1 << 30
+DEFAULT_DOFS = (1_000, 3_000, 10_000, 25_000, 50_000, 100_000, 200_000)
+
+
+# A small launcher process measures the engine: the kernel counts a child's peak RSS from
+# the moment it is forked, so forking the engine straight from this (large) Python process
+# would report at least this process's own RSS. The launcher (python -S, a few MiB) forks
+# and execs the command, waits with os.wait4 and prints the child's rusage as JSON.
+_LAUNCHER = r"""
+import json, os, signal, sys, time
+out, cwd, limit, argv = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4:]
+t0 = time.perf_counter()
+pid = os.fork()
+if pid == 0:
+    os.chdir(cwd)
+    fd = os.open(os.path.join(cwd, "run.log"), os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    os.dup2(fd, 1); os.dup2(fd, 2)
+    try:
+        os.execvp(argv[0], argv)
+    finally:
+        os._exit(127)
+signal.signal(signal.SIGALRM, lambda *_: os.kill(pid, signal.SIGKILL))
+signal.alarm(limit)
+_, status, ru = os.wait4(pid, 0)
+wall = time.perf_counter() - t0
+with open(out, "w") as f:
+    json.dump({"wall_s": wall, "peak_rss": ru.ru_maxrss * 1024, "exit": os.waitstatus_to_exitcode(status),
+               "cpu_s": ru.ru_utime + ru.ru_stime}, f)
+"""
+
+
+def run_measured(cmd: list[str], cwd: Path, timeout: float, env: dict | None = None) -> dict:
+    """Run cmd in cwd; wall time, peak RSS (bytes) of that process (os.wait4), exit code."""
+    result = cwd / "rusage.json"
+    launcher = [sys.executable, "-S", "-c", _LAUNCHER, str(result), str(cwd), str(int(timeout)), *cmd]
+    proc = subprocess.run(launcher, env=env, timeout=timeout + 60, capture_output=True, text=True)
+    if proc.returncode != 0 or not result.is_file():
+        return {"wall_s": float("nan"), "peak_rss": float("nan"), "exit": -1, "cpu_s": float("nan")}
+    return json.loads(result.read_text())
+
+
+def run_engine(deck: Path, threads: int | None, timeout: float) -> dict:
+    outdir = deck.parent / "out"
+    cmd = [str(find_engine()), str(deck), "-o", str(outdir), "--quiet"]
+    if threads:
+        cmd += ["--threads", str(threads)]
+    res = run_measured(cmd, deck.parent, timeout)
+    summary = outdir / "summary.json"
+    if summary.is_file():
+        s = json.loads(summary.read_text())
+        res["status"] = s.get("status")
+        res["engine_wall_s"] = s.get("wall_time_s")
+        res["newton"] = sum(st.get("newton_iterations", 0) for st in s.get("steps", []))
+        res["increments"] = sum(st.get("n_increments", 0) for st in s.get("steps", []))
+        res["linear_solver"] = s.get("linear_solver")
+    return res
+
+
+def run_ccx(deck: Path, timeout: float) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS="1", CCX_NPROC_STIFFNESS="1", CCX_NPROC_EQUATION_SOLVER="1")
+    return run_measured(["ccx", "-i", deck.stem], deck.parent, timeout, env)
+
+
+def fmt_bytes(n: float) -> str:
+    return f"{n / 2**20:8.1f} MiB"
+
+
+def paper_size(args, root: Path) -> None:
+    mesh = leg_slice_mesh(5500, order=2)
+    print(f"leg-like slice at the second paper's size: {len(mesh.elements)} CPE6 elements, "
+          f"{len(mesh.nodes)} nodes, {mesh.n_dof} DOF")
+    fe_times, rss = [], []
+    for k in range(args.runs):
+        d = root / f"fe{k}"
+        d.mkdir()
+        leg_slice_deck(d / "leg.inp", mesh=mesh, include_mesh=False)
+        r = run_engine(d / "leg.inp", args.threads, args.timeout)
+        if r["exit"] != 0:
+            print(f"  calfit-fe run {k}: exit {r['exit']} (see {d / 'run.log'}):")
+            print("   ", (d / "run.log").read_text()[-1500:])
+            return
+        fe_times.append(r["wall_s"])
+        rss.append(r["peak_rss"])
+        last = r
+    fe_med = statistics.median(fe_times)
+    print(f"  calfit-fe  median wall {fe_med:8.3f} s over {args.runs} runs "
+          f"(min {min(fe_times):.3f}, max {max(fe_times):.3f}); peak RSS {fmt_bytes(max(rss))}; "
+          f"{last.get('increments')} increments, {last.get('newton')} Newton iterations, "
+          f"solver {last.get('linear_solver')}    target < {TARGET_25K_S} s")
+    print(f"  the second paper: about {PAPER_SECONDS:.0f} s per solve -> {PAPER_SECONDS / fe_med:,.0f}x")
+    if args.no_ccx or shutil.which("ccx") is None:
+        print("  ccx: skipped" + ("" if args.no_ccx else " (not installed)"))
+        return
+    ccx_times = []
+    for k in range(args.ccx_runs):
+        d = root / f"ccx{k}"
+        d.mkdir()
+        leg_slice_deck(d / "leg.inp", mesh=mesh, include_mesh=False)
+        r = run_ccx(d / "leg.inp", args.timeout)
+        if r["exit"] != 0:
+            print(f"  ccx run {k}: exit {r['exit']}")
+            return
+        ccx_times.append(r["wall_s"])
+    ccx_med = statistics.median(ccx_times)
+    print(f"  ccx 2.20   median wall {ccx_med:8.3f} s over {args.ccx_runs} runs (single thread), same deck")
+    print(f"  ratio ccx / calfit-fe = {ccx_med / fe_med:6.1f}x    target >= {TARGET_SPEEDUP:.0f}x")
+
+
+def scaling(args, root: Path) -> None:
+    print("\nscaling on the leg-like slice (CPE6): one calfit-fe process per size")
+    print(f"  {'target DOF':>10} {'DOF':>8} {'elements':>9} {'wall s':>9} {'peak RSS':>13} {'status':>14} {'Newton':>6}")
+    for n in args.dofs:
+        mesh = leg_slice_mesh_for_dof(n, order=2)
+        d = root / f"scale{n}"
+        d.mkdir()
+        leg_slice_deck(d / "leg.inp", mesh=mesh, include_mesh=False)
+        r = run_engine(d / "leg.inp", args.threads, args.timeout)
+        note = ""
+        if abs(mesh.n_dof - 25_000) < 5_000:
+            note = f"   target < {TARGET_25K_S} s"
+        if mesh.n_dof > 150_000:
+            note = f"   target peak < {fmt_bytes(TARGET_200K_BYTES).strip()}"
+        status = r.get("status") or f"exit {r['exit']}"
+        print(f"  {n:>10} {mesh.n_dof:>8} {len(mesh.elements):>9} {r['wall_s']:>9.3f} {fmt_bytes(r['peak_rss']):>13} "
+              f"{status:>14} {r.get('newton', '-'):>6}{note}", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--ccx-runs", type=int, default=5)
+    ap.add_argument("--no-ccx", action="store_true")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--timeout", type=float, default=1800.0)
+    ap.add_argument("--dofs", type=lambda s: [int(x) for x in s.split(",")], default=list(DEFAULT_DOFS))
+    args = ap.parse_args()
+    print(f"calfit-fe: {find_engine()}; machine: {os.cpu_count()} logical CPUs")
+    with tempfile.TemporaryDirectory(prefix="calfit-bench-") as tmp:
+        root = Path(tmp)
+        paper_size(args, root)
+        scaling(args, root)
+
+
+if __name__ == "__main__":
+    main()
