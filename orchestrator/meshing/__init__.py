@@ -8,6 +8,7 @@ counter-clockwise in deck coordinates, face numbering, set names) are in mesh.py
 """
 
 from .curves import Curve, SpacingRules
+from .labels import interface_curves, mesh_from_labels, region_image
 from .leg_slice import (
     DEFAULT_MATERIALS,
     DEFAULT_PRESSURE_MPA,
@@ -18,7 +19,7 @@ from .leg_slice import (
     leg_slice_mesh,
     leg_slice_mesh_for_dof,
 )
-from .mesh import Mesh, corner_angles_deg, signed_areas, tissue_name
+from .mesh import Mesh, corner_angles_deg, read_include, signed_areas, tissue_name
 from .triangulate import BONE_KEY_OFFSET, MeshingError, mesh_curves
 
 __all__ = [
@@ -32,11 +33,15 @@ __all__ = [
     "SpacingRules",
     "corner_angles_deg",
     "elements_for_dof",
+    "interface_curves",
     "leg_slice_deck",
     "leg_slice_geometry",
     "leg_slice_mesh",
     "leg_slice_mesh_for_dof",
     "mesh_curves",
+    "mesh_from_labels",
+    "read_include",
+    "region_image",
     "signed_areas",
     "tissue_name",
 ]

@@ -74,16 +74,23 @@ def mesh_curves(
     first_area = tissue_area / n_elements
     limits = spacing_limits(curves, rules, search_radius=3.0 * _edge_length(first_area) / rules.feature_factor)
 
-    tried: list[tuple[float, int, dict]] = []
+    history: list[tuple[float, int, dict]] = []  # every run
+    secant: list[tuple[float, int, dict]] = []  # runs with the current boundary limits
     max_area = first_area
+    relax = 1.0  # grows when the boundary limits alone give too many elements
     for _ in range(max_iterations):
-        result = _refine(curves, classify, limits, max_area, min_angle_deg)
+        relaxed = [np.maximum(limit * relax, rules.min_spacing) for limit in limits]
+        result = _refine(curves, classify, relaxed, max_area, min_angle_deg)
         count = len(result["triangles"])
-        tried.append((max_area, count, result))
+        history.append((max_area, count, result))
+        secant.append(history[-1])
         if abs(count - n_elements) <= count_tolerance * n_elements:
             break
-        max_area = _next_area(tried, n_elements)
-    best_area, best_count, best = min(tried, key=lambda t: abs(t[1] - n_elements))
+        if len(secant) >= 2 and count > n_elements and max_area > secant[-2][0] and count >= 0.98 * secant[-2][1]:
+            relax *= 1.3
+            secant = secant[-1:]
+        max_area = _next_area(secant, n_elements)
+    best_area, best_count, best = min(history, key=lambda t: abs(t[1] - n_elements))
     if abs(best_count - n_elements) > 0.1 * n_elements and not accept_closest:
         raise MeshingError(
             f"could not mesh with {n_elements} elements (closest: {best_count} with maximum area "

@@ -1,0 +1,212 @@
+"""Image-to-mesh: a conforming triangle mesh of the soft tissues from a label image.
+
+Labels: 0 background, 1 fat (with skin), 2 muscle, 3 bone, >= 4 muscle compartments;
+pixel size (row, column) in mm. Positions are in the image frame of DESIGN.md: pixel
+(i, j) covers [j dx, (j+1) dx] x [i dy, (i+1) dy], centre ((j + 0.5) dx, (i + 0.5) dy).
+
+Method.
+1. Clean-up: keep the largest connected leg (labels > 0), give enclosed background
+   and components smaller than `min_component_pixels` the label of the nearest kept
+   pixel, turn bone pixels that touch the background into fat (the skin covers the
+   bones), and number the bone components by decreasing area (BONE1 the largest).
+2. Interfaces: every pixel edge between two different regions is a boundary edge.
+   Chains of such edges between junctions (pixel corners where three regions meet,
+   or where the pair of regions changes) form the interface curves, whose vertices
+   are the midpoints of the pixel edges: along a two-region interface this is
+   exactly the sub-pixel contour that skimage.measure.find_contours draws at level
+   0.5 on either region's mask, but each interface exists once, and at triple points
+   the curves meet at the shared pixel corner (marching squares on each mask
+   separately would leave a gap there). Curves are smoothed with a Gaussian of
+   `smoothing_pixels` samples, junction end points fixed.
+3. The curves go to triangulate.mesh_curves (resampling to the element size with
+   area-preserving vertex placement, Triangle with minimum angle and maximum area,
+   element-count targeting, node sets and skin surface).
+Bones and background are holes. Sets: FAT, MUSCLE, COMPARTMENTk elements; BONE1..,
+BONES, SKIN_NODES and tissue-interface node sets (e.g. FAT_MUSCLE); surface SKIN.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from .curves import Curve, SpacingRules, smooth_points
+from .mesh import Mesh
+from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
+
+BONE_LABEL = 3
+
+
+def mesh_from_labels(
+    labels: np.ndarray,
+    pixel_size_mm: Sequence[float],
+    n_elements: int = 400,
+    order: int = 1,
+    min_angle_deg: float = 25.0,
+    smoothing_pixels: float = 1.0,
+    min_component_pixels: int = 20,
+) -> Mesh:
+    """Mesh the tissues of `labels` with about n_elements CPE3 (order 1) or CPE6 (order 2).
+
+    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary).
+    """
+    row_mm, col_mm = _pixel_size(pixel_size_mm)
+    regions = region_image(labels, min_component_pixels)
+    curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
+    rules = SpacingRules(min_spacing=min(row_mm, col_mm))
+
+    def classify(points: np.ndarray) -> np.ndarray:
+        return _lookup(regions, (row_mm, col_mm), points)
+
+    return mesh_curves(curves, classify, n_elements, order=order, min_angle_deg=min_angle_deg, rules=rules)
+
+
+def _pixel_size(pixel_size_mm: Sequence[float]) -> tuple[float, float]:
+    size = tuple(float(v) for v in np.ravel(pixel_size_mm))
+    if len(size) != 2 or not all(np.isfinite(v) and v > 0 for v in size):
+        raise ValueError(f"pixel size must be two positive numbers (row, column) in mm, not {pixel_size_mm!r}")
+    return size  # type: ignore[return-value]
+
+
+def region_image(labels: np.ndarray, min_component_pixels: int = 20) -> np.ndarray:
+    """Cleaned region keys per pixel: 0 background, tissue labels, BONE_KEY_OFFSET + k for bone k."""
+    labels = np.asarray(labels)
+    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer) and not np.all(labels == np.round(labels)):
+        raise ValueError("labels must be a 2-D image of integer labels")
+    if labels.min() < 0:
+        raise ValueError("labels must be non-negative (0 background, 1 fat, 2 muscle, 3 bone, >= 4 compartments)")
+    regions = labels.astype(np.int64)
+    leg, count = ndimage.label(regions > 0)
+    if count == 0:
+        raise ValueError("the label image is empty: no fat, muscle or bone pixel")
+    sizes = np.bincount(leg.ravel())
+    sizes[0] = 0
+    regions[leg != np.argmax(sizes)] = 0
+    leg_mask = regions > 0
+    enclosed = ndimage.binary_fill_holes(leg_mask) & ~leg_mask
+    regions = _take_nearest(regions, enclosed)
+    # The skin covers the bones: a bone pixel touching the background becomes fat.
+    background = regions == 0
+    touching = (regions == BONE_LABEL) & ndimage.binary_dilation(background)
+    regions[touching] = 1
+    for _ in range(3):
+        small = np.zeros(regions.shape, dtype=bool)
+        for value in np.unique(regions):
+            if value == 0:
+                continue
+            components, n = ndimage.label(regions == value)
+            component_sizes = np.bincount(components.ravel())
+            tiny = np.flatnonzero(component_sizes < min_component_pixels)
+            tiny = tiny[tiny > 0]
+            if n and len(tiny):
+                small |= np.isin(components, tiny)
+        if not small.any():
+            break
+        regions = _take_nearest(regions, small)
+    if not np.any([is_tissue(int(v)) for v in np.unique(regions)]):
+        raise ValueError("the label image has no soft tissue (labels 1, 2 or >= 4) to mesh")
+    bones, n_bones = ndimage.label(regions == BONE_LABEL)
+    if n_bones:
+        bone_sizes = np.bincount(bones.ravel())[1:]
+        rank = np.empty(n_bones, dtype=np.int64)
+        rank[np.argsort(-bone_sizes, kind="stable")] = np.arange(1, n_bones + 1)
+        regions[bones > 0] = BONE_KEY_OFFSET + rank[bones[bones > 0] - 1]
+    return regions
+
+
+def _take_nearest(regions: np.ndarray, replace: np.ndarray) -> np.ndarray:
+    """Give each pixel in `replace` the value of the nearest pixel not in `replace`."""
+    if not replace.any():
+        return regions
+    _, (rows, cols) = ndimage.distance_transform_edt(replace, return_indices=True)
+    out = regions.copy()
+    out[replace] = regions[rows[replace], cols[replace]]
+    return out
+
+
+def _lookup(regions: np.ndarray, pixel_size: tuple[float, float], points: np.ndarray) -> np.ndarray:
+    """Region key of the pixel containing each point (0 outside the image)."""
+    rows = np.floor(points[:, 1] / pixel_size[0]).astype(np.int64)
+    cols = np.floor(points[:, 0] / pixel_size[1]).astype(np.int64)
+    inside = (rows >= 0) & (rows < regions.shape[0]) & (cols >= 0) & (cols < regions.shape[1])
+    keys = np.zeros(len(points), dtype=np.int64)
+    keys[inside] = regions[rows[inside], cols[inside]]
+    return keys
+
+
+def interface_curves(regions: np.ndarray, pixel_size: tuple[float, float], smoothing_pixels: float = 1.0) -> list[Curve]:
+    """The interfaces of a region image that border at least one tissue, as smoothed curves (mm)."""
+    padded = np.pad(regions, 1)
+    width = padded.shape[1] + 1  # corners per row of the padded image
+
+    # Pixel edges between different regions. Padded pixel (i, j) spans corners (i, j)..(i+1, j+1).
+    rows, cols = np.nonzero(padded[1:, :] != padded[:-1, :])  # between (r, c) and (r + 1, c)
+    horizontal = (
+        np.column_stack([(rows + 1) * width + cols, (rows + 1) * width + cols + 1]),
+        np.column_stack([padded[rows, cols], padded[rows + 1, cols]]),
+    )
+    rows, cols = np.nonzero(padded[:, 1:] != padded[:, :-1])  # between (r, c) and (r, c + 1)
+    vertical = (
+        np.column_stack([rows * width + cols + 1, (rows + 1) * width + cols + 1]),
+        np.column_stack([padded[rows, cols], padded[rows, cols + 1]]),
+    )
+    corners = np.vstack([horizontal[0], vertical[0]])
+    sides = np.sort(np.vstack([horizontal[1], vertical[1]]), axis=1)
+    keep = np.array([is_tissue(int(a)) or is_tissue(int(b)) for a, b in sides]) if len(sides) else np.zeros(0, bool)
+    corners, sides = corners[keep], sides[keep]
+    pair_code = sides[:, 0] * (BONE_KEY_OFFSET * 2) + sides[:, 1]
+
+    incident: dict[int, list[int]] = {}
+    for edge, (a, b) in enumerate(corners.tolist()):
+        incident.setdefault(a, []).append(edge)
+        incident.setdefault(b, []).append(edge)
+    junctions = {
+        corner
+        for corner, edges in incident.items()
+        if len(edges) != 2 or pair_code[edges[0]] != pair_code[edges[1]]
+    }
+
+    def corner_position(corner: int) -> np.ndarray:
+        i, j = divmod(corner, width)
+        return np.array([(j - 1) * pixel_size[1], (i - 1) * pixel_size[0]])
+
+    def edge_midpoint(edge: int) -> np.ndarray:
+        return 0.5 * (corner_position(corners[edge, 0]) + corner_position(corners[edge, 1]))
+
+    visited = np.zeros(len(corners), dtype=bool)
+    curves: list[Curve] = []
+
+    def walk(start_corner: int, first_edge: int) -> tuple[list[int], int]:
+        chain, corner, edge = [], start_corner, first_edge
+        while True:
+            visited[edge] = True
+            chain.append(edge)
+            a, b = corners[edge]
+            corner = b if a == corner else a
+            if corner in junctions:
+                return chain, corner
+            following = [e for e in incident[corner] if e != edge]
+            edge = following[0]
+            if visited[edge]:
+                return chain, corner
+
+    for junction in sorted(junctions):
+        for first in incident[junction]:
+            if visited[first]:
+                continue
+            chain, end = walk(junction, first)
+            points = np.vstack(
+                [corner_position(junction)] + [edge_midpoint(e) for e in chain] + [corner_position(end)]
+            )
+            points = smooth_points(points, closed=False, sigma=smoothing_pixels)
+            curves.append(Curve(points, False, (int(sides[first, 0]), int(sides[first, 1]))))
+    for first in range(len(corners)):
+        if visited[first]:
+            continue
+        chain, _ = walk(int(corners[first, 0]), first)
+        points = np.vstack([edge_midpoint(e) for e in chain])
+        points = smooth_points(points, closed=True, sigma=smoothing_pixels)
+        curves.append(Curve(points, True, (int(sides[first, 0]), int(sides[first, 1]))))
+    return curves
