@@ -58,18 +58,18 @@ def test_reference_reproduces_issue_values(kv, p, value):
 
 @pytest.mark.parametrize("kv,p,value", ISSUE_VALUES)
 def test_engine_outer_displacement(tmp_path, kv, p, value):
-    """T6, 8 x 16 quarter mesh: u_r at every outer node within 2e-5 of |u_r(2)|."""
+    """T6, 16 x 32 quarter mesh: u_r at every outer node within 1e-5 of |u_r(2)| (discretisation ~1e-6)."""
     law = Law("AVRIL", (1.0, kv))
     ref = annulus(law, p=p)
-    mesh, run = run_annulus(tmp_path, 8, 2, law, p)
+    mesh, run = run_annulus(tmp_path, 16, 2, law, p)
     u = run.u()
     outer = mesh.nsets["OUTER"]
     X = mesh.nodes[outer]
     ur = np.sum(u[outer] * X, axis=1) / np.hypot(X[:, 0], X[:, 1])
     ut = (u[outer, 1] * X[:, 0] - u[outer, 0] * X[:, 1]) / np.hypot(X[:, 0], X[:, 1])
-    assert np.abs(ur - ref.u_r(2.0)).max() < 2e-5 * abs(value)
-    assert np.abs(ut).max() < 2e-5 * abs(value)  # axisymmetric: no tangential motion
-    assert np.mean(ur) == pytest.approx(value, rel=2e-5)
+    assert np.abs(ur - ref.u_r(2.0)).max() < 1e-5 * abs(value)
+    assert np.abs(ut).max() < 1e-5 * abs(value)  # axisymmetric: no tangential motion
+    assert np.mean(ur) == pytest.approx(value, rel=1e-5)
 
 
 def _rate(tmp_path, order, levels, kv=10.0, p=0.5):

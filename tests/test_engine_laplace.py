@@ -38,7 +38,7 @@ def _run_ring(tmp_path, order, outer, nr=4, nt=48, tension=T):
 
 @pytest.mark.parametrize("order", [1, 2], ids=["CPE3", "CPE6"])
 def test_circle_pressure_is_tension_over_deformed_radius(tmp_path, order):
-    mesh, run = _run_ring(tmp_path, order, (2.0, 2.0), nr=4 if order == 2 else 8, nt=48 if order == 2 else 96)
+    mesh, run = _run_ring(tmp_path, order, (2.0, 2.0), nr=6 if order == 2 else 12, nt=48 if order == 2 else 128)
     ref = annulus(LAW, p=0.0, tension=T)
     u = run.u()
     vtu = run.vtu(1)
@@ -51,9 +51,10 @@ def test_circle_pressure_is_tension_over_deformed_radius(tmp_path, order):
     assert np.abs(lp[outer] - T / ref.r(2.0)).max() < 2e-3 * T / 2.0
     # The displacement is the closed-form one with p = T / r(2).
     e, nrm = l2_error(mesh, u, ref.u_xy)
-    assert e / nrm < (2e-3 if order == 1 else 2e-4)
+    tol = 5e-3 if order == 1 else 5e-4  # a few times the discretisation error
+    assert e / nrm < tol
     ur = np.sum(u[outer] * mesh.nodes[outer], axis=1) / 2.0
-    assert np.mean(ur) == pytest.approx(float(ref.u_r(2.0)), rel=(2e-3 if order == 1 else 2e-4))
+    assert np.mean(ur) == pytest.approx(float(ref.u_r(2.0)), rel=tol)
 
 
 def deformed_curvature(points: np.ndarray) -> np.ndarray:
