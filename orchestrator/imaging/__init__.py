@@ -1,0 +1,1 @@
+"""Imaging room: read case folders, align, segment, warp, contour mismatch, digital image correlation."""

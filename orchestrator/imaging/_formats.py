@@ -1,0 +1,137 @@
+"""Image file formats of a case folder: read one 2D slice and its pixel spacing.
+
+PNG and TIFF (8 or 16 bit, grey), NumPy ``.npy``, DICOM (``PixelSpacing`` and
+the rescale slope/intercept from the header, via pydicom) and NIfTI (``zooms``
+from the header, via nibabel; array axis 0 is taken as rows, axis 1 as
+columns, as nibabel stores it, with no reorientation). Every failure is a
+`CaseError` naming the file and the fix.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CaseError
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".dcm", ".nii", ".nii.gz")
+_GREY_FIX = "save it as a single-channel (greyscale) 8 or 16-bit image"
+
+
+@dataclass(frozen=True)
+class SliceFile:
+    """One 2D image read from a file, with the pixel spacing its header gives (None if none)."""
+
+    path: Path
+    pixels: np.ndarray
+    header_pixel_size_mm: tuple[float, float] | None
+
+
+def file_suffix(path: Path) -> str:
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
+def read_slice(path: Path) -> SliceFile:
+    """Read a 2D slice; raise CaseError on anything unreadable or not 2D."""
+    suffix = file_suffix(path)
+    readers = {".png": _read_png, ".tif": _read_tiff, ".tiff": _read_tiff, ".npy": _read_npy,
+               ".dcm": _read_dicom, ".nii": _read_nifti, ".nii.gz": _read_nifti}
+    if suffix not in readers:
+        raise CaseError(path, f"the format '{suffix}' is not supported", "use PNG, TIFF, .npy, DICOM (.dcm) or NIfTI (.nii/.nii.gz)")
+    pixels, spacing = readers[suffix](path)
+    pixels = _as_2d(path, pixels)
+    if not np.issubdtype(pixels.dtype, np.number) or np.issubdtype(pixels.dtype, np.complexfloating):
+        raise CaseError(path, f"holds {pixels.dtype} values, not real numbers", _GREY_FIX)
+    if not np.all(np.isfinite(pixels)):
+        raise CaseError(path, "holds NaN or infinite pixel values", "replace them with finite grey levels")
+    if min(pixels.shape) < 16:
+        raise CaseError(path, f"is only {pixels.shape[0]}x{pixels.shape[1]} pixels", "give the full slice")
+    return SliceFile(path, pixels, spacing)
+
+
+def _as_2d(path: Path, pixels: np.ndarray) -> np.ndarray:
+    pixels = np.asarray(pixels)
+    if pixels.ndim == 3 and pixels.shape[-1] in (3, 4) and file_suffix(path) in (".png", ".tif", ".tiff"):
+        rgb = pixels[..., :3]
+        if pixels.shape[-1] == 4 and np.any(pixels[..., 3] != pixels[..., 3].max()):
+            raise CaseError(path, "has a transparent alpha channel", _GREY_FIX)
+        if np.any(rgb != rgb[..., :1]):
+            raise CaseError(path, "is a colour image", _GREY_FIX)
+        pixels = rgb[..., 0]
+    squeezed = np.squeeze(pixels) if pixels.ndim > 2 else pixels
+    if squeezed.ndim != 2:
+        raise CaseError(path, f"holds an array of shape {pixels.shape}, not one 2D slice",
+                        "extract the single slice at the largest calf perimeter and save it alone")
+    return squeezed
+
+
+def _failed(path: Path, kind: str, exc: Exception) -> CaseError:
+    reason = str(exc).strip().rstrip(".").splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return CaseError(path, f"cannot be read as {kind} ({reason})", f"re-export it as a valid {kind} file")
+
+
+def _read_png(path: Path):
+    from skimage import io
+
+    try:
+        pixels = io.imread(path)
+    except Exception as exc:  # any decoder failure is a bad file
+        raise _failed(path, "PNG", exc) from exc
+    return pixels, None
+
+
+def _read_tiff(path: Path):
+    import tifffile
+
+    try:
+        pixels = tifffile.imread(path)
+    except Exception as exc:
+        raise _failed(path, "TIFF", exc) from exc
+    return pixels, None
+
+
+def _read_npy(path: Path):
+    try:
+        pixels = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        raise _failed(path, "NumPy .npy", exc) from exc
+    return pixels, None
+
+
+def _read_dicom(path: Path):
+    import pydicom
+
+    try:
+        dataset = pydicom.dcmread(path)
+        pixels = dataset.pixel_array.astype(float)
+    except Exception as exc:
+        raise _failed(path, "DICOM", exc) from exc
+    pixels = pixels * float(getattr(dataset, "RescaleSlope", 1.0)) + float(getattr(dataset, "RescaleIntercept", 0.0))
+    spacing = getattr(dataset, "PixelSpacing", None)
+    header = (float(spacing[0]), float(spacing[1])) if spacing is not None and len(spacing) == 2 else None
+    return pixels, header
+
+
+def _read_nifti(path: Path):
+    import nibabel
+
+    try:
+        volume = nibabel.load(path)
+        pixels = np.asarray(volume.dataobj, dtype=float)
+        zooms = volume.header.get_zooms()
+    except Exception as exc:
+        raise _failed(path, "NIfTI", exc) from exc
+    header = (float(zooms[0]), float(zooms[1])) if len(zooms) >= 2 else None
+    return pixels, header
+
+
+def write_png16(path: Path, pixels: np.ndarray) -> None:
+    """Write a uint16 or uint8 greyscale PNG, bit-exact."""
+    from skimage import io
+
+    if pixels.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"PNG pixels must be uint8 or uint16, got {pixels.dtype}")
+    io.imsave(path, pixels, check_contrast=False)

@@ -1,0 +1,347 @@
+"""Read and write a case folder (DESIGN.md, "The case folder").
+
+A case is ``case.toml`` + the unloaded image I0 + the loaded image I1, with an
+optional label map of I0 (0 background, 1 fat with skin, 2 muscle, 3 bone,
+labels >= 4 are muscle compartments) and optional measured displacements
+``points.csv`` (x_mm,y_mm,ux_mm,uy_mm[,sigma_mm], image frame of I0, tissue
+relative to bones). Images may be PNG/TIFF, ``.npy``, DICOM or NIfTI.
+
+Reading checks everything before returning and raises one `CaseError` (one
+sentence: file, what is wrong, the fix) at the first problem; it never writes.
+Writing goes to a temporary sibling folder renamed into place at the end, so a
+case folder is either complete or absent.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import shutil
+import tempfile
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
+from .errors import CaseError
+
+FAT, MUSCLE, BONE = 1, 2, 3
+FIRST_COMPARTMENT = 4
+PIXEL_SIZE_RTOL = 0.01
+POINTS_COLUMNS = ("x_mm", "y_mm", "ux_mm", "uy_mm")
+DEFAULT_TENSION_REL_UNCERTAINTY = 0.10
+
+_TOML_SCHEMA = {
+    "case": {"name", "pixel_size_mm"},
+    "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
+    "landmarks": None,  # any name
+}
+
+
+@dataclass(frozen=True)
+class DisplacementPoints:
+    """Measured displacements at points: positions and displacements in mm (N, 2), sigma in mm (N,) or None."""
+
+    position_mm: np.ndarray
+    displacement_mm: np.ndarray
+    sigma_mm: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.position_mm)
+
+
+@dataclass(frozen=True)
+class Case:
+    """A validated case folder. Images are float64 (H, W); pixel_size_mm is (row, column)."""
+
+    folder: Path
+    name: str
+    pixel_size_mm: tuple[float, float]
+    unloaded: np.ndarray
+    loaded: np.ndarray
+    tension_N_per_mm: float
+    tension_rel_uncertainty: float
+    labels: np.ndarray | None = None
+    points: DisplacementPoints | None = None
+    landmarks: dict[str, tuple[float, float]] = field(default_factory=dict)
+    files: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.unloaded.shape
+
+    @property
+    def extent_mm(self) -> tuple[float, float]:
+        """(width along x, height along y) of the image in mm."""
+        return self.shape[1] * self.pixel_size_mm[1], self.shape[0] * self.pixel_size_mm[0]
+
+
+# --------------------------------------------------------------------- reading
+
+
+def read_case(folder: str | os.PathLike) -> Case:
+    """Read and validate a case folder; raise CaseError naming the file and the fix."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaseError(folder, "is not a folder", "give the path of a case folder holding case.toml and the two images")
+    toml_path = folder / "case.toml"
+    settings = _read_toml(toml_path)
+    unloaded = read_slice(_find_file(folder, "unloaded", required=True))
+    loaded = read_slice(_find_file(folder, "loaded", required=True))
+    if loaded.pixels.shape != unloaded.pixels.shape:
+        raise CaseError(loaded.path, f"is {_dims(loaded.pixels)} pixels but {unloaded.path.name} is {_dims(unloaded.pixels)}",
+                        "export both slices with the same matrix size and field of view")
+    pixel_size = _pixel_size(toml_path, settings.get("case", {}), (unloaded, loaded))
+    shape = unloaded.pixels.shape
+    extent = (shape[1] * pixel_size[1], shape[0] * pixel_size[0])
+
+    labels_path = _find_file(folder, "labels", required=False)
+    labels = _read_labels(labels_path, shape, unloaded.path.name) if labels_path else None
+    points_path = folder / "points.csv"
+    points = _read_points(points_path, extent) if points_path.exists() else None
+    garment = settings.get("garment")
+    if garment is None:
+        raise CaseError(toml_path, "has no [garment] table", "add [garment] with tension_N_per_mm = <force per unit width>")
+    tension = _positive_number(toml_path, garment, "garment", "tension_N_per_mm", required=True)
+    rel = _positive_number(toml_path, garment, "garment", "tension_rel_uncertainty", required=False, allow_zero=True)
+    landmarks = _landmarks(toml_path, settings.get("landmarks", {}), extent)
+    name = settings.get("case", {}).get("name", folder.name)
+    if not isinstance(name, str) or not name.strip():
+        raise CaseError(toml_path, "[case] name is not a non-empty string", 'write name = "volunteer-01" under [case]')
+
+    files = {"toml": toml_path, "unloaded": unloaded.path, "loaded": loaded.path}
+    if labels_path:
+        files["labels"] = labels_path
+    if points is not None:
+        files["points"] = points_path
+    return Case(folder=folder, name=name, pixel_size_mm=pixel_size,
+                unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
+                tension_N_per_mm=tension,
+                tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else rel,
+                labels=labels, points=points, landmarks=landmarks, files=files)
+
+
+def _dims(pixels: np.ndarray) -> str:
+    return f"{pixels.shape[0]}x{pixels.shape[1]}"
+
+
+def _read_toml(path: Path) -> dict:
+    if not path.is_file():
+        raise CaseError(path, "is missing", "create it with a [case] table (name, pixel_size_mm) and a [garment] table")
+    try:
+        settings = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise CaseError(path, f"is not valid TOML ({exc})", "fix the syntax (tables in [brackets], key = value)") from exc
+    for table, value in settings.items():
+        if table not in _TOML_SCHEMA:
+            raise CaseError(path, f"has an unknown table or key '{table}'", f"use only the tables {', '.join(f'[{t}]' for t in _TOML_SCHEMA)}")
+        if not isinstance(value, dict):
+            raise CaseError(path, f"'{table}' is not a table", f"write it as a [{table}] table")
+        allowed = _TOML_SCHEMA[table]
+        unknown = sorted(set(value) - allowed) if allowed is not None else []
+        if unknown:
+            raise CaseError(path, f"[{table}] has an unknown key '{unknown[0]}'", f"use only {', '.join(sorted(allowed))}")
+    return settings
+
+
+def _find_file(folder: Path, stem: str, required: bool) -> Path | None:
+    found = sorted(p for p in folder.iterdir()
+                   if p.is_file() and file_suffix(p) in IMAGE_SUFFIXES and p.name.lower() == stem + file_suffix(p))
+    if len(found) > 1:
+        raise CaseError(found[1], f"competes with {found[0].name} as the {stem} image", "keep only one of them in the folder")
+    if not found and required:
+        raise CaseError(folder / f"{stem}.png", "is missing",
+                        f"put the {stem} slice in the case folder as {stem}.png (or .tif, .npy, .dcm, .nii)")
+    return found[0] if found else None
+
+
+def _pixel_size(toml_path: Path, case_table: dict, slices: tuple[SliceFile, ...]) -> tuple[float, float]:
+    declared = case_table.get("pixel_size_mm")
+    if declared is not None:
+        if (not isinstance(declared, list) or len(declared) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in declared)):
+            raise CaseError(toml_path, f"[case] pixel_size_mm = {declared!r} is not two positive numbers",
+                            "write pixel_size_mm = [row_mm, column_mm], e.g. [0.36, 0.36]")
+        declared = (float(declared[0]), float(declared[1]))
+    headers = [(s.path, s.header_pixel_size_mm) for s in slices if s.header_pixel_size_mm is not None]
+    for path, spacing in headers:
+        if not all(math.isfinite(v) and v > 0 for v in spacing):
+            raise CaseError(path, f"has an invalid pixel spacing {spacing} in its header", "fix the header or re-export the slice")
+        reference = declared if declared is not None else headers[0][1]
+        if not np.allclose(spacing, reference, rtol=PIXEL_SIZE_RTOL, atol=0):
+            source = f"case.toml says {list(reference)}" if declared is not None else f"{headers[0][0].name} says {list(reference)}"
+            raise CaseError(path, f"header gives a pixel spacing of {[round(v, 6) for v in spacing]} mm but {source}",
+                            "correct pixel_size_mm in case.toml or use slices from the same acquisition")
+    if declared is not None:
+        return declared
+    if headers:
+        return headers[0][1]
+    raise CaseError(toml_path, "[case] pixel_size_mm is missing and the images carry no spacing",
+                    "add pixel_size_mm = [row_mm, column_mm] under [case]")
+
+
+def _read_labels(path: Path, shape: tuple[int, int], image_name: str) -> np.ndarray:
+    labels = read_slice(path).pixels
+    if labels.shape != shape:
+        raise CaseError(path, f"is {_dims(labels)} pixels but {image_name} is {shape[0]}x{shape[1]}",
+                        f"segment {image_name} itself (or run `calfit segment`) so that the label map matches it")
+    if not np.all(labels == np.round(labels)) or labels.min() < 0:
+        raise CaseError(path, "holds values that are not non-negative integers",
+                        "store labels 0 background, 1 fat, 2 muscle, 3 bone (4 and up for compartments)")
+    labels = labels.astype(np.int32)
+    tissues = {"fat (label 1)": labels == FAT, "muscle (label 2 or compartments >= 4)": (labels == MUSCLE) | (labels >= FIRST_COMPARTMENT),
+               "bone (label 3)": labels == BONE}
+    for tissue, mask in tissues.items():
+        if not mask.any():
+            raise CaseError(path, f"has no {tissue} pixels", "segment the slice again so that fat, muscle and bone are all labelled")
+    return labels
+
+
+def _read_points(path: Path, extent: tuple[float, float]) -> DisplacementPoints:
+    fix = f"write a header {','.join(POINTS_COLUMNS)}[,sigma_mm] and one point per line in mm"
+    try:
+        with path.open(newline="", encoding="utf-8") as stream:
+            rows = [row for row in csv.reader(stream) if any(cell.strip() for cell in row)]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise CaseError(path, f"cannot be read as CSV ({exc})", fix) from exc
+    if not rows:
+        raise CaseError(path, "is empty", fix + " (or delete the file)")
+    header = tuple(cell.strip() for cell in rows[0])
+    if header not in (POINTS_COLUMNS, POINTS_COLUMNS + ("sigma_mm",)):
+        raise CaseError(path, f"has the header {','.join(header)}", fix)
+    if len(rows) == 1:
+        raise CaseError(path, "has a header but no points", fix + " (or delete the file)")
+    values = np.empty((len(rows) - 1, len(header)))
+    for index, row in enumerate(rows[1:]):
+        line = index + 2
+        if len(row) != len(header):
+            raise CaseError(path, f"line {line} has {len(row)} fields instead of {len(header)}", fix)
+        for column, cell in enumerate(row):
+            try:
+                values[index, column] = float(cell)
+            except ValueError:
+                raise CaseError(path, f"line {line}: '{cell.strip()}' is not a number", fix) from None
+    where_bad = ~np.isfinite(values).all(axis=1)
+    if where_bad.any():
+        raise CaseError(path, f"line {int(np.argmax(where_bad)) + 2} holds a NaN or infinite value", "give finite numbers")
+    outside = (values[:, 0] < 0) | (values[:, 0] > extent[0]) | (values[:, 1] < 0) | (values[:, 1] > extent[1])
+    if outside.any():
+        raise CaseError(path, f"line {int(np.argmax(outside)) + 2} lies outside the image ({extent[0]:.1f} x {extent[1]:.1f} mm)",
+                        "give positions in mm from the top-left corner of the unloaded image")
+    sigma = None
+    if len(header) == 5:
+        sigma = values[:, 4]
+        if (sigma <= 0).any():
+            raise CaseError(path, f"line {int(np.argmax(sigma <= 0)) + 2} has sigma_mm <= 0", "give positive uncertainties in mm")
+    return DisplacementPoints(values[:, :2].copy(), values[:, 2:4].copy(), sigma)
+
+
+def _positive_number(path: Path, table: dict, table_name: str, key: str, required: bool, allow_zero: bool = False):
+    value = table.get(key)
+    if value is None:
+        if required:
+            raise CaseError(path, f"[{table_name}] {key} is missing", f"add {key} = <number> under [{table_name}]")
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (value > 0 or (allow_zero and value == 0))
+    if not ok:
+        raise CaseError(path, f"[{table_name}] {key} = {value!r} is not a {'non-negative' if allow_zero else 'positive'} number",
+                        f"give {key} as a number")
+    return float(value)
+
+
+def _landmarks(path: Path, table: dict, extent: tuple[float, float]) -> dict[str, tuple[float, float]]:
+    landmarks = {}
+    for name, value in table.items():
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+            raise CaseError(path, f"landmark '{name}' = {value!r} is not a pair of numbers", f"write {name} = [x_mm, y_mm]")
+        x, y = float(value[0]), float(value[1])
+        if not (0 <= x <= extent[0] and 0 <= y <= extent[1]):
+            raise CaseError(path, f"landmark '{name}' at ({x}, {y}) mm lies outside the image ({extent[0]:.1f} x {extent[1]:.1f} mm)",
+                            "give landmarks in mm from the top-left corner of the unloaded image (x right, y down)")
+        landmarks[name] = (x, y)
+    return landmarks
+
+
+# --------------------------------------------------------------------- writing
+
+
+def to_uint16(images: list[np.ndarray], full_scale: int = 60000) -> tuple[list[np.ndarray], float]:
+    """Scale float images by one common factor to uint16 (so their grey levels stay comparable)."""
+    peak = max(float(np.max(image)) for image in images)
+    scale = full_scale / peak if peak > 0 else 1.0
+    return [np.clip(np.round(image * scale), 0, 65535).astype(np.uint16) for image in images], scale
+
+
+def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndarray, loaded: np.ndarray,
+                      pixel_size_mm: tuple[float, float], tension_N_per_mm: float,
+                      tension_rel_uncertainty: float = DEFAULT_TENSION_REL_UNCERTAINTY,
+                      labels: np.ndarray | None = None, points: DisplacementPoints | None = None,
+                      landmarks: dict[str, tuple[float, float]] | None = None, overwrite: bool = False) -> Path:
+    """Write a complete case folder atomically (temporary sibling, then rename). Returns the folder.
+
+    Float images are scaled by one common factor to 16-bit PNG; uint8/uint16 images are written as they are.
+    """
+    folder = Path(folder)
+    if folder.exists() and not overwrite:
+        raise FileExistsError(f"{folder} already exists; choose another folder or pass overwrite=True")
+    if unloaded.shape != loaded.shape or (labels is not None and labels.shape != unloaded.shape):
+        raise ValueError("unloaded, loaded and labels must have the same shape")
+    if unloaded.dtype in (np.uint8, np.uint16) and loaded.dtype == unloaded.dtype:
+        pngs = [unloaded, loaded]
+    else:
+        pngs, _ = to_uint16([np.asarray(unloaded, float), np.asarray(loaded, float)])
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        (staging / "case.toml").write_text(_case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {}),
+                                           encoding="utf-8")
+        write_png16(staging / "unloaded.png", pngs[0])
+        write_png16(staging / "loaded.png", pngs[1])
+        if labels is not None:
+            write_png16(staging / "labels.png", np.asarray(labels).astype(np.uint8))
+        if points is not None:
+            _write_points(staging / "points.csv", points)
+        replace_folder(staging, folder)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return folder
+
+
+def replace_folder(staging: Path, folder: Path) -> None:
+    """Move a fully written staging folder to its final place, replacing an old one only at the very end."""
+    if folder.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+        os.rename(folder, old / folder.name)
+        os.rename(staging, folder)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(staging, folder)
+
+
+def _case_toml(name, pixel_size_mm, tension, rel, landmarks) -> str:
+    lines = ["[case]", f"name = {_toml_string(name)}",
+             f"pixel_size_mm = [{float(pixel_size_mm[0])!r}, {float(pixel_size_mm[1])!r}]  # row, column", "",
+             "[garment]", f"tension_N_per_mm = {float(tension)!r}", f"tension_rel_uncertainty = {float(rel)!r}"]
+    if landmarks:
+        lines += ["", "[landmarks]  # mm, image frame of the unloaded image (x right, y down)"]
+        lines += [f"{key} = [{float(x)!r}, {float(y)!r}]" for key, (x, y) in landmarks.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _toml_string(text: str) -> str:
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _write_points(path: Path, points: DisplacementPoints) -> None:
+    header = list(POINTS_COLUMNS) + (["sigma_mm"] if points.sigma_mm is not None else [])
+    columns = [points.position_mm, points.displacement_mm] + ([points.sigma_mm[:, None]] if points.sigma_mm is not None else [])
+    with path.open("w", newline="", encoding="utf-8") as stream:
+        writer = csv.writer(stream)
+        writer.writerow(header)
+        for row in np.hstack(columns):
+            writer.writerow([repr(float(v)) for v in row])

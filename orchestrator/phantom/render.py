@@ -1,0 +1,148 @@
+"""Render the unloaded and loaded images of the phantom calf.
+
+The unloaded image samples the material intensity i(X) (see `appearance`) at
+the pixels. The loaded image is made by inverse warping, the converse of the
+warping of the first paper (section 2.1.2): a material point X moves to
+x = X + u(X) and then, with an optional rigid scanner motion, to
+y = R (x - c) + c + t. The loaded grey level at a scanner pixel y is the
+material intensity at X(y), found by undoing the rigid motion and solving
+X + u(X) = x by the fixed-point iteration X <- x - u(X), which converges
+while |grad u| < 1 (any physical compression). The texture therefore moves
+with the tissue, while the bias field and the noise stay with the scanner.
+
+Each pixel averages `supersampling`^2 sub-pixel samples (partial volume),
+so boundaries are not aligned with the pixel grid and the images are not
+made by the same interpolation the identification uses (no inverse crime).
+
+`displacement` is a callable u(x_mm, y_mm) -> (ux_mm, uy_mm) on arrays in the
+image frame of the unloaded image, or a (2, H, W) field on its pixel grid
+(interpolated bilinearly, held constant beyond the edge). The engine that
+computes u from material parameters is not called here: callers pass its
+interpolated nodal field as such a callable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from ..imaging.frame import DisplacementFn, RigidMotion, mm_to_index, pixel_centres_mm
+from .appearance import T1Contrast, TextureField, add_rician_noise, bias_field
+from .geometry import CalfGeometry
+
+FIXED_POINT_TOLERANCE_MM = 1e-6
+FIXED_POINT_MAX_ITERATIONS = 200
+
+
+@dataclass
+class CalfPhantom:
+    """A calf slice (geometry + T1 appearance) seen by a scanner with the given matrix and pixel size."""
+
+    geometry: CalfGeometry = field(default_factory=CalfGeometry)
+    contrast: T1Contrast = field(default_factory=T1Contrast)
+    image_shape: tuple[int, int] = (420, 420)
+    pixel_size_mm: tuple[float, float] = (0.36, 0.36)
+    supersampling: int = 3
+
+    def __post_init__(self):
+        self.texture = TextureField(self.extent_mm, self.contrast.texture_correlation_mm, self.contrast.texture_seed)
+        self._base, self._amplitude = self.contrast.tables()
+
+    @property
+    def extent_mm(self) -> tuple[float, float]:
+        """(width along x, height along y) of the field of view in mm."""
+        return self.image_shape[1] * self.pixel_size_mm[1], self.image_shape[0] * self.pixel_size_mm[0]
+
+    def intensity_at(self, x, y) -> np.ndarray:
+        """Noise- and bias-free grey level of the material points X = (x, y) (mm), texture included."""
+        tissue = self.geometry.tissue_at(x, y)
+        return self._base[tissue] * (1.0 + self._amplitude[tissue] * self.texture(x, y))
+
+    def labels(self, compartments: bool = False) -> np.ndarray:
+        """Ground-truth label map of the unloaded image (pixel centres)."""
+        return self.geometry.labels_at(*pixel_centres_mm(self.image_shape, self.pixel_size_mm), compartments=compartments)
+
+
+def render_unloaded(phantom: CalfPhantom, noise_seed: int | None = 0) -> np.ndarray:
+    """The unloaded image I0 (float, fat ~ 1). noise_seed=None gives the noiseless image."""
+    return _render(phantom, lambda x, y: (x, y), noise_seed)
+
+
+def make_loaded_image(phantom: CalfPhantom, displacement, rigid: RigidMotion | None = None,
+                      noise_seed: int | None = 1) -> np.ndarray:
+    """The loaded image I1 of the phantom deformed by `displacement` (mm) and moved by `rigid`, by inverse warping."""
+    displacement_fn = as_displacement_fn(displacement, phantom.pixel_size_mm)
+    return _render(phantom, lambda x, y: material_points(x, y, displacement_fn, rigid), noise_seed)
+
+
+def loaded_labels(phantom: CalfPhantom, displacement, rigid: RigidMotion | None = None,
+                  compartments: bool = False) -> np.ndarray:
+    """Ground-truth label map of the loaded image (pixel centres)."""
+    displacement_fn = as_displacement_fn(displacement, phantom.pixel_size_mm)
+    X, Y = material_points(*pixel_centres_mm(phantom.image_shape, phantom.pixel_size_mm), displacement_fn, rigid)
+    return phantom.geometry.labels_at(X, Y, compartments=compartments)
+
+
+def material_points(x_scanner, y_scanner, displacement_fn: DisplacementFn, rigid: RigidMotion | None = None):
+    """Material points X whose deformed and moved position is the scanner point y: solve X + u(X) = rigid^-1(y)."""
+    x, y = (x_scanner, y_scanner) if rigid is None else rigid.inverse().apply(x_scanner, y_scanner)
+    X, Y = np.array(x, float), np.array(y, float)
+    for _ in range(FIXED_POINT_MAX_ITERATIONS):
+        ux, uy = displacement_fn(X, Y)
+        X_new, Y_new = x - ux, y - uy
+        change = max(np.max(np.abs(X_new - X)), np.max(np.abs(Y_new - Y)))
+        X, Y = X_new, Y_new
+        if change < FIXED_POINT_TOLERANCE_MM:
+            return X, Y
+    raise ValueError("x = X + u(X) could not be inverted (the fixed point did not converge); "
+                     "the displacement field folds the tissue or varies too fast (|grad u| must stay below 1)")
+
+
+def as_displacement_fn(displacement, pixel_size_mm: tuple[float, float]) -> DisplacementFn:
+    """A callable u(x, y) from a callable or from a (2, H, W) field on the pixel grid (bilinear, constant beyond the edge)."""
+    if callable(displacement):
+        return displacement
+    field_mm = np.asarray(displacement, dtype=float)
+    if field_mm.ndim != 3 or field_mm.shape[0] != 2:
+        raise ValueError(f"a displacement field must have shape (2, H, W), got {field_mm.shape}")
+
+    def interpolated(x, y):
+        rows, cols = mm_to_index(x, y, pixel_size_mm)
+        coordinates = np.stack([np.ravel(rows), np.ravel(cols)])
+        return tuple(ndimage.map_coordinates(component, coordinates, order=1, mode="nearest").reshape(np.shape(x))
+                     for component in field_mm)
+
+    return interpolated
+
+
+def _render(phantom: CalfPhantom, to_material, noise_seed: int | None) -> np.ndarray:
+    """Average the material intensity over sub-pixel samples of each scanner pixel, then apply bias and noise."""
+    n = phantom.supersampling
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    x_centre, y_centre = pixel_centres_mm(phantom.image_shape, phantom.pixel_size_mm)
+    dy, dx = phantom.pixel_size_mm
+    x = np.broadcast_to(x_centre[..., None, None] + offsets[None, :] * dx, (*phantom.image_shape, n, n))
+    y = np.broadcast_to(y_centre[..., None, None] + offsets[:, None] * dy, (*phantom.image_shape, n, n))
+    X, Y = to_material(np.ascontiguousarray(x), np.ascontiguousarray(y))
+    signal = phantom.intensity_at(X, Y).mean(axis=(-2, -1))
+    signal *= bias_field(x_centre, y_centre, phantom.extent_mm, phantom.contrast.bias_amplitude)
+    if noise_seed is None:
+        return signal
+    return add_rician_noise(signal, phantom.contrast.noise_sigma, np.random.default_rng(noise_seed))
+
+
+def bone_clamped_compression(geometry: CalfGeometry, strain: float = 0.025, ramp_mm: float = 8.0) -> DisplacementFn:
+    """An analytic stand-in for the engine: a radial shrink towards the leg centre, u = -strain (X - c) w(X),
+    with w rising smoothly (C1) from 0 on the bones to 1 at `ramp_mm` from them, so the bones stay clamped
+    as in the first paper's boundary conditions (section 2.2.2). |grad u| < 1 for strain < 0.05."""
+    cx, cy = geometry.shape.centre_mm
+
+    def displacement(x, y):
+        distance = np.minimum(geometry.tibia.radial_excess(x, y), geometry.fibula.radial_excess(x, y))
+        t = np.clip(distance / ramp_mm, 0.0, 1.0)
+        weight = t * t * (3.0 - 2.0 * t)
+        return -strain * (x - cx) * weight, -strain * (y - cy) * weight
+
+    return displacement
