@@ -73,7 +73,8 @@ def _pixel_size(pixel_size_mm: Sequence[float]) -> tuple[float, float]:
 def region_image(labels: np.ndarray, min_component_pixels: int = 20) -> np.ndarray:
     """Cleaned region keys per pixel: 0 background, tissue labels, BONE_KEY_OFFSET + k for bone k."""
     labels = np.asarray(labels)
-    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer) and not np.all(labels == np.round(labels)):
+    integral = np.issubdtype(labels.dtype, np.integer) or (labels.size and np.all(labels == np.round(labels)))
+    if labels.ndim != 2 or not integral:
         raise ValueError("labels must be a 2-D image of integer labels")
     if labels.min() < 0:
         raise ValueError("labels must be non-negative (0 background, 1 fat, 2 muscle, 3 bone, >= 4 compartments)")

@@ -117,7 +117,7 @@ def _next_area(tried: list[tuple[float, int, dict]], target: int) -> float:
 
 def _tissue_area(curves: list[Curve], classify) -> float:
     """Area of the tissue faces of the dense curves (unrefined triangulation)."""
-    vertices, segments, markers = _graph([c.points if not c.closed else c.points for c in curves], curves)
+    vertices, segments, markers = _graph([c.points for c in curves], curves)
     raw = triangle.triangulate({"vertices": vertices, "segments": segments, "segment_markers": markers}, "pQ")
     labels = _face_labels(raw, classify, curves)
     areas = np.abs(signed_areas(raw["vertices"], raw["triangles"]))
