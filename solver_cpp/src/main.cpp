@@ -92,6 +92,7 @@ int main(int argc, char** argv) {
 
   RunSummary summary;
   summary.deck = args.deck;
+  summary.parse_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   summary.n_nodes = static_cast<int>(model.coordinates.size());
   summary.n_elements = static_cast<int>(model.elements.size());
   summary.n_dof = model.dof_count();
@@ -117,9 +118,12 @@ int main(int argc, char** argv) {
       const std::string stem = "step-" + std::to_string(k + 1);
       step.vtu = stem + ".vtu";
       step.table = stem + ".u.npy";
+      const auto output_start = std::chrono::steady_clock::now();
       const FieldOutput fields = analysis.output();
       write_vtu((std::filesystem::path(args.outdir) / step.vtu).string(), model, fields);
       write_displacement_table((std::filesystem::path(args.outdir) / step.table).string(), model, fields.displacement);
+      summary.output_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - output_start).count();
+      summary.timings = analysis.timings();
       const bool ok = step.result.converged;
       summary.steps.push_back(step);
       if (!ok) {

@@ -158,6 +158,9 @@ void write_summary(const std::string& path, const RunSummary& s) {
     out << "{\n  \"deck\": " << json_string(s.deck) << ",\n  \"status\": " << json_string(s.status)
         << ",\n  \"converged\": " << (s.status == "converged" ? "true" : "false") << ",\n  \"exit_code\": " << s.exit_code
         << ",\n  \"message\": " << json_string(s.message) << ",\n  \"wall_time_s\": " << json_number(s.wall_time_s)
+        << ",\n  \"time_s\": {\"parse\": " << json_number(s.parse_s) << ", \"assembly\": "
+        << json_number(s.timings.assembly_s) << ", \"factorization\": " << json_number(s.timings.factorization_s)
+        << ", \"output\": " << json_number(s.output_s) << "}"
         << ",\n  \"n_nodes\": " << s.n_nodes << ",\n  \"n_elements\": " << s.n_elements << ",\n  \"n_dof\": " << s.n_dof
         << ",\n  \"n_free_dof\": " << s.n_free_dof << ",\n  \"threads\": " << s.threads
         << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"steps\": [";

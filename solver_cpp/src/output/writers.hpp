@@ -21,7 +21,8 @@ struct StepSummary {
 struct RunSummary {
   std::string deck, status, message, linear_solver;
   int exit_code = 0;
-  double wall_time_s = 0;
+  double wall_time_s = 0, parse_s = 0, output_s = 0;
+  Timings timings;
   int n_nodes = 0, n_elements = 0, n_dof = 0, n_free_dof = 0, threads = 0;
   std::vector<StepSummary> steps;
 };

@@ -4,6 +4,7 @@
 #include "load/edge_loads.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <set>
 #include <sstream>
@@ -19,6 +20,19 @@ namespace {
 constexpr double kPi = 3.14159265358979323846;
 
 double ramp(double start, double end, double lambda) { return start + lambda * (end - start); }
+
+// Adds the wall time of its scope to a counter.
+class ScopedTimer {
+public:
+  explicit ScopedTimer(double& total) : total_(total), start_(std::chrono::steady_clock::now()) {}
+  ~ScopedTimer() { total_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count(); }
+  ScopedTimer(const ScopedTimer&) = delete;
+  ScopedTimer& operator=(const ScopedTimer&) = delete;
+
+private:
+  double& total_;
+  std::chrono::steady_clock::time_point start_;
+};
 
 // Face-local dof indices (2 per node) into the element's dof list.
 std::vector<int> local_dofs(const std::vector<int>& local_nodes) {
@@ -140,6 +154,7 @@ void StaticAnalysis::apply_prescribed(Eigen::VectorXd& u, double lambda) const {
 }
 
 StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, double lambda, bool tangent) {
+  const ScopedTimer timer(timings_.assembly_s);
   const int n_elements = static_cast<int>(elements_.size());
   int failures = 0;
 #pragma omp parallel for schedule(static) reduction(+ : failures)
@@ -228,7 +243,12 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       }
       for (int d = 0; d < model_.dof_count(); ++d)
         if (system_->equation(d) >= 0) rhs[system_->equation(d)] = -residual_[d];
-      if (!system_->solve(rhs, du)) {
+      bool solved;
+      {
+        const ScopedTimer timer(timings_.factorization_s);
+        solved = system_->solve(rhs, du);
+      }
+      if (!solved) {
         if (first_of_step && it == 0)
           throw std::runtime_error(
               "the tangent stiffness is singular at the start of step " + std::to_string(step + 1) +

@@ -24,6 +24,11 @@ struct IncrementRecord {
   std::string note;                    // why it was cut back, if it was
 };
 
+// Wall time spent in the parts of the solution, for the summary and benchmarks.
+struct Timings {
+  double assembly_s = 0, factorization_s = 0;
+};
+
 struct StepResult {
   bool converged = false;
   double time_reached = 0.0;
@@ -53,6 +58,7 @@ public:
   FieldOutput output();  // re-evaluates the residual for the reactions
   int free_dof_count() const { return free_dofs_; }
   const std::string& linear_solver() const { return linear_solver_; }
+  const Timings& timings() const { return timings_; }
 
 private:
   struct FaceLoad {
@@ -88,6 +94,7 @@ private:
   std::vector<FaceLoad> pressure_faces_, laplace_faces_;
   int free_dofs_ = 0;
   std::string linear_solver_ = "none";
+  Timings timings_;
   // per-element buffers filled in parallel, scattered serially
   std::vector<ElementVector> element_force_;
   std::vector<ElementMatrix> element_tangent_;

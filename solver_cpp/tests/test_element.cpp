@@ -1,0 +1,160 @@
+// Element and load unit tests: element tangent against central finite differences of
+// the element residual (T3, T6, both rules), zero residual under rigid motion,
+// objectivity of the internal force, load stiffness of the follower pressure and of
+// the Laplace-law membrane against finite differences, and p = T/R on a circle.
+#include "check.hpp"
+#include "element/solid_element.hpp"
+#include "load/edge_loads.hpp"
+#include "material/laws.hpp"
+
+#include <cmath>
+#include <memory>
+
+using namespace calfit;
+
+namespace {
+
+const double kPi = std::acos(-1.0);
+
+NodeMatrix reference_nodes(ElementShape shape) {
+  NodeMatrix X(node_count(shape), 2);
+  X.topRows(3) << 0.1, 0.2, 1.3, 0.1, 0.4, 1.1;
+  if (shape == ElementShape::T6) {
+    X.row(3) = 0.5 * (X.row(0) + X.row(1)) + Eigen::RowVector2d(0.02, -0.03);  // curved edge
+    X.row(4) = 0.5 * (X.row(1) + X.row(2));
+    X.row(5) = 0.5 * (X.row(2) + X.row(0));
+  }
+  return X;
+}
+
+NodeMatrix some_displacement(int n) {
+  NodeMatrix u(n, 2);
+  for (int a = 0; a < n; ++a) u.row(a) << 0.05 * std::sin(1.0 + a), 0.04 * std::cos(2.0 * a);
+  return u;
+}
+
+void element_tests(const Material& material, ElementShape shape, int degree) {
+  const NodeMatrix X = reference_nodes(shape);
+  const SolidElement element(shape, X, material, 1.7, degree);
+  const int n = node_count(shape);
+  const NodeMatrix u = some_displacement(n);
+  ElementVector f;
+  ElementMatrix K;
+  CHECK(element.internal_force(u, f, &K));
+
+  // Tangent = d f / d u by central differences.
+  const double h = 1e-6;
+  double worst = 0.0;
+  for (int b = 0; b < 2 * n; ++b) {
+    NodeMatrix up = u, um = u;
+    up(b / 2, b % 2) += h;
+    um(b / 2, b % 2) -= h;
+    ElementVector fp, fm;
+    element.internal_force(up, fp, nullptr);
+    element.internal_force(um, fm, nullptr);
+    worst = std::max(worst, ((fp - fm) / (2 * h) - K.col(b)).cwiseAbs().maxCoeff());
+  }
+  CHECK(worst <= 1e-6 * K.cwiseAbs().maxCoeff());
+
+  // Rigid motion: rotation by 0.7 rad and translation give no internal force.
+  Eigen::Matrix2d R;
+  R << std::cos(0.7), -std::sin(0.7), std::sin(0.7), std::cos(0.7);
+  NodeMatrix rigid(n, 2);
+  for (int a = 0; a < n; ++a) rigid.row(a) = (R * X.row(a).transpose() - X.row(a).transpose()).transpose() +
+                                             Eigen::RowVector2d(0.3, -0.2);
+  ElementVector f_rigid;
+  CHECK(element.internal_force(rigid, f_rigid, nullptr));
+  CHECK(f_rigid.cwiseAbs().maxCoeff() <= 1e-12 * std::max(1.0, f.cwiseAbs().maxCoeff()));
+
+  // Objectivity: x -> R x rotates every nodal force by R.
+  NodeMatrix rotated(n, 2);
+  for (int a = 0; a < n; ++a)
+    rotated.row(a) = (R * (X.row(a) + u.row(a)).transpose()).transpose() - X.row(a);
+  ElementVector f_rot;
+  CHECK(element.internal_force(rotated, f_rot, nullptr));
+  double off = 0.0;
+  for (int a = 0; a < n; ++a) off = std::max(off, (f_rot.segment<2>(2 * a) - R * f.segment<2>(2 * a)).cwiseAbs().maxCoeff());
+  CHECK(off <= 1e-10 * f.cwiseAbs().maxCoeff());
+}
+
+template <typename Load>
+void edge_stiffness_test(int n_nodes, Load load) {
+  EdgeNodes x(n_nodes, 2);
+  if (n_nodes == 2) {
+    x << 0.0, 0.0, 1.0, 0.3;
+  } else {
+    x << 0.0, 0.0, 0.55, 0.25, 1.0, 0.3;
+  }
+  EdgeVector f;
+  EdgeMatrix df;
+  load(x, f, &df);
+  const double h = 1e-7;
+  double worst = 0.0;
+  for (int b = 0; b < 2 * n_nodes; ++b) {
+    EdgeNodes xp = x, xm = x;
+    xp(b / 2, b % 2) += h;
+    xm(b / 2, b % 2) -= h;
+    EdgeVector fp, fm;
+    load(xp, fp, nullptr);
+    load(xm, fm, nullptr);
+    worst = std::max(worst, ((fp - fm) / (2 * h) - df.col(b)).cwiseAbs().maxCoeff());
+  }
+  CHECK(worst <= 1e-6 * std::max(1.0, df.cwiseAbs().maxCoeff()));
+}
+
+// A circle of radius R split into quadratic arcs: the Laplace load's nodal pressure
+// (force / consistent length along the normal) tends to T / R.
+double circle_pressure_error(int n_faces, double R, double T) {
+  const int n_nodes = 2 * n_faces;
+  std::vector<Eigen::Vector2d> x(n_nodes);
+  for (int k = 0; k < n_nodes; ++k) x[k] = R * Eigen::Vector2d(std::cos(2 * kPi * k / n_nodes), std::sin(2 * kPi * k / n_nodes));
+  std::vector<Eigen::Vector2d> force(n_nodes, Eigen::Vector2d::Zero());
+  std::vector<double> length(n_nodes, 0.0);
+  for (int face = 0; face < n_faces; ++face) {
+    const int ids[3] = {2 * face, 2 * face + 1, (2 * face + 2) % n_nodes};
+    EdgeNodes xe(3, 2);
+    for (int k = 0; k < 3; ++k) xe.row(k) = x[ids[k]].transpose();
+    EdgeVector fe;
+    laplace_membrane_load(xe, Eigen::Vector3d::Constant(T), fe, nullptr);
+    Eigen::VectorXd w;
+    EdgeNodes nw;
+    face_weights(xe, w, nw);
+    for (int k = 0; k < 3; ++k) {
+      force[ids[k]] += fe.segment<2>(2 * k);
+      length[ids[k]] += w[k];
+    }
+  }
+  double worst = 0.0;
+  for (int k = 0; k < n_nodes; ++k) {
+    const double p = -force[k].dot(x[k].normalized()) / length[k];
+    worst = std::max(worst, std::abs(p - T / R) / (T / R));
+  }
+  return worst;
+}
+
+}  // namespace
+
+int main() {
+  const SplitHyperelastic neo_hooke(std::make_shared<ReducedPolynomialIsochoric>(std::vector<double>{1.0, 0.3}),
+                                    std::make_shared<PolynomialVolumetric>(std::vector<double>{0.1}));
+  const StVenantKirchhoff svk(5.0, 0.3);
+  for (const Material* m : {static_cast<const Material*>(&neo_hooke), static_cast<const Material*>(&svk)}) {
+    element_tests(*m, ElementShape::T3, 1);
+    element_tests(*m, ElementShape::T6, 2);
+    element_tests(*m, ElementShape::T6, 4);
+  }
+  for (int n : {2, 3}) {
+    edge_stiffness_test(n, [](const EdgeNodes& x, EdgeVector& f, EdgeMatrix* df) { follower_pressure_load(x, 0.7, f, df); });
+    edge_stiffness_test(n, [n](const EdgeNodes& x, EdgeVector& f, EdgeMatrix* df) {
+      Eigen::VectorXd T(n);
+      for (int k = 0; k < n; ++k) T[k] = 0.2 + 0.1 * k;  // a tension profile
+      laplace_membrane_load(x, T, f, df);
+    });
+  }
+  // Pressure T/R on a circle, converging with refinement.
+  const double coarse = circle_pressure_error(16, 50.0, 0.16), fine = circle_pressure_error(64, 50.0, 0.16);
+  std::cout << "Laplace p vs T/R, relative error: 16 faces " << coarse << ", 64 faces " << fine << '\n';
+  CHECK(fine < 1e-3);
+  CHECK(fine < coarse);
+  return calfit::testing::tally().finish();
+}
