@@ -7,6 +7,8 @@
 #include "output/writers.hpp"
 #include "solver/newton.hpp"
 
+#include <dlfcn.h>
+
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
@@ -58,6 +60,13 @@ bool parse_arguments(int argc, char** argv, Arguments& args) {
   return !args.deck.empty();
 }
 
+// --threads also bounds the BLAS under CHOLMOD; OpenBLAS exposes its setter as a C
+// symbol, looked up at run time so that another BLAS links too.
+void set_blas_threads(int threads) {
+  using Setter = void (*)(int);
+  if (void* symbol = dlsym(RTLD_DEFAULT, "openblas_set_num_threads")) reinterpret_cast<Setter>(symbol)(threads);
+}
+
 std::string default_outdir(const std::string& deck) {
   std::filesystem::path p(deck);
   if (p.extension() == ".inp") p.replace_extension();
@@ -74,6 +83,7 @@ int main(int argc, char** argv) {
     return kUsage;
   }
   if (args.outdir.empty()) args.outdir = default_outdir(args.deck);
+  if (args.threads > 0) set_blas_threads(args.threads);
   const auto start = std::chrono::steady_clock::now();
   auto log = [&](const std::string& line) {
     if (!args.quiet) std::cout << line << '\n';

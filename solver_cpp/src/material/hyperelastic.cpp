@@ -78,21 +78,23 @@ void SplitHyperelastic::stress(const Mat3& C, Mat3& S, Mat6* tangent) const {
   S = 2.0 * (d.first(0) * A[0] + d.first(1) * A[1] + d.first(2) * A[2]);
   if (!tangent) return;
 
+  // Av(m, a) = A_m in Voigt position a, so that sum_mn psi_mn A_m (x) A_n = Av^T psi Av.
+  Eigen::Matrix<double, 3, 6> Av;
+  for (int m = 0; m < 3; ++m)
+    for (int a = 0; a < 6; ++a) Av(m, a) = A[m](kVoigtI[a], kVoigtJ[a]);
   Mat6& D = *tangent;
+  D.noalias() = Av.transpose() * d.second * Av;
   for (int a = 0; a < 6; ++a) {
     const int i = kVoigtI[a], j = kVoigtJ[a];
     for (int b = 0; b < 6; ++b) {
       const int k = kVoigtI[b], l = kVoigtJ[b];
-      double value = 0.0;
-      for (int m = 0; m < 3; ++m)
-        for (int n = 0; n < 3; ++n) value += d.second(m, n) * A[m](i, j) * A[n](k, l);
       const double sym_identity = 0.5 * (delta(i, k) * delta(j, l) + delta(i, l) * delta(j, k));
-      value += d.first(1) * (delta(i, j) * delta(k, l) - sym_identity);
-      value += d.first(2) * I3 *
-               (Cinv(i, j) * Cinv(k, l) - 0.5 * (Cinv(i, k) * Cinv(j, l) + Cinv(i, l) * Cinv(j, k)));
-      D(a, b) = 4.0 * value;
+      D(a, b) += d.first(1) * (delta(i, j) * delta(k, l) - sym_identity) +
+                 d.first(2) * I3 *
+                     (Cinv(i, j) * Cinv(k, l) - 0.5 * (Cinv(i, k) * Cinv(j, l) + Cinv(i, l) * Cinv(j, k)));
     }
   }
+  D *= 4.0;
 }
 
 StVenantKirchhoff::StVenantKirchhoff(double young, double poisson)

@@ -2,6 +2,7 @@
 #include "output/writers.hpp"
 
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -56,11 +57,42 @@ std::string json_number(double v) {
 
 constexpr int kVtkTriangle = 5, kVtkQuadraticTriangle = 22;
 
-void data_array(std::ostream& out, const char* name, int components, const std::vector<double>& values) {
-  out << "        <DataArray type=\"Float64\" Name=\"" << name << "\" NumberOfComponents=\"" << components
-      << "\" format=\"ascii\">\n";
-  for (std::size_t i = 0; i < values.size(); ++i) out << values[i] << ((i + 1) % components == 0 ? '\n' : ' ');
-  out << "        </DataArray>\n";
+std::string base64(const std::string& bytes) {
+  static const char* table = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out;
+  out.reserve((bytes.size() + 2) / 3 * 4);
+  std::size_t i = 0;
+  for (; i + 2 < bytes.size(); i += 3) {
+    const unsigned v = (static_cast<unsigned char>(bytes[i]) << 16) | (static_cast<unsigned char>(bytes[i + 1]) << 8) |
+                       static_cast<unsigned char>(bytes[i + 2]);
+    out += table[(v >> 18) & 63];
+    out += table[(v >> 12) & 63];
+    out += table[(v >> 6) & 63];
+    out += table[v & 63];
+  }
+  if (i < bytes.size()) {
+    const bool two = i + 1 < bytes.size();
+    const unsigned v = (static_cast<unsigned char>(bytes[i]) << 16) |
+                       (two ? static_cast<unsigned char>(bytes[i + 1]) << 8 : 0u);
+    out += table[(v >> 18) & 63];
+    out += table[(v >> 12) & 63];
+    out += two ? table[(v >> 6) & 63] : '=';
+    out += '=';
+  }
+  return out;
+}
+
+// One VTK XML DataArray in "binary" format: base64 of a UInt64 byte count followed by
+// the little-endian values (the layout ParaView and meshio read).
+template <typename T>
+void data_array(std::ostream& out, const char* vtk_type, const char* name, int components, const std::vector<T>& values) {
+  const std::uint64_t size = values.size() * sizeof(T);
+  std::string bytes(reinterpret_cast<const char*>(&size), sizeof(size));
+  bytes.append(reinterpret_cast<const char*>(values.data()), size);
+  out << "        <DataArray type=\"" << vtk_type << "\"";
+  if (name) out << " Name=\"" << name << "\"";
+  out << " NumberOfComponents=\"" << components << "\" format=\"binary\">\n" << base64(bytes)
+      << "\n        </DataArray>\n";
 }
 
 std::vector<double> voigt6(const Mat3& s) { return {s(0, 0), s(1, 1), s(2, 2), s(0, 1), s(1, 2), s(0, 2)}; }
@@ -69,21 +101,28 @@ std::vector<double> voigt6(const Mat3& s) { return {s(0, 0), s(1, 1), s(2, 2), s
 
 void write_vtu(const std::string& path, const Model& model, const FieldOutput& fields) {
   const std::size_t n_nodes = model.coordinates.size(), n_elements = model.elements.size();
-  std::vector<double> displacement, point_stress(6 * n_nodes, 0.0), point_pressure(n_nodes, 0.0), laplace;
+  std::vector<double> points, displacement, point_stress(6 * n_nodes, 0.0), point_pressure(n_nodes, 0.0), laplace;
   std::vector<double> count(n_nodes, 0.0), cell_stress, cell_pressure, cell_J, material;
+  std::vector<std::int64_t> connectivity, offsets;
+  std::vector<std::uint8_t> types;
   for (std::size_t n = 0; n < n_nodes; ++n) {
+    points.insert(points.end(), {model.coordinates[n].x(), model.coordinates[n].y(), 0.0});
     displacement.insert(displacement.end(), {fields.displacement[2 * n], fields.displacement[2 * n + 1], 0.0});
     laplace.push_back(fields.laplace_pressure[static_cast<Eigen::Index>(n)]);
   }
   for (std::size_t e = 0; e < n_elements; ++e) {
+    const ElementDef& element = model.elements[e];
     const ElementState& s = fields.element_states[e];
     const std::vector<double> v = voigt6(s.cauchy);
     const double pressure = -s.cauchy.trace() / 3.0;
     cell_stress.insert(cell_stress.end(), v.begin(), v.end());
     cell_pressure.push_back(pressure);
     cell_J.push_back(s.J);
-    material.push_back(model.sections[model.elements[e].section].material + 1);
-    for (int node : model.elements[e].nodes) {
+    material.push_back(model.sections[element.section].material + 1);
+    connectivity.insert(connectivity.end(), element.nodes.begin(), element.nodes.end());
+    offsets.push_back(static_cast<std::int64_t>(connectivity.size()));
+    types.push_back(element.shape == ElementShape::T3 ? kVtkTriangle : kVtkQuadraticTriangle);
+    for (int node : element.nodes) {
       for (int k = 0; k < 6; ++k) point_stress[6 * node + k] += v[k];
       point_pressure[node] += pressure;
       count[node] += 1.0;
@@ -96,35 +135,26 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
   }
 
   write_atomically(path, [&](std::ostream& out) {
-    out << std::setprecision(12);
-    out << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"0.1\" byte_order=\"LittleEndian\">\n"
-        << "  <UnstructuredGrid>\n    <Piece NumberOfPoints=\"" << n_nodes << "\" NumberOfCells=\"" << n_elements
-        << "\">\n      <Points>\n        <DataArray type=\"Float64\" NumberOfComponents=\"3\" format=\"ascii\">\n";
-    for (const Eigen::Vector2d& x : model.coordinates) out << x.x() << ' ' << x.y() << " 0\n";
-    out << "        </DataArray>\n      </Points>\n      <Cells>\n"
-        << "        <DataArray type=\"Int64\" Name=\"connectivity\" format=\"ascii\">\n";
-    for (const ElementDef& e : model.elements) {
-      for (int node : e.nodes) out << node << ' ';
-      out << '\n';
-    }
-    out << "        </DataArray>\n        <DataArray type=\"Int64\" Name=\"offsets\" format=\"ascii\">\n";
-    std::size_t offset = 0;
-    for (const ElementDef& e : model.elements) out << (offset += e.nodes.size()) << '\n';
-    out << "        </DataArray>\n        <DataArray type=\"UInt8\" Name=\"types\" format=\"ascii\">\n";
-    for (const ElementDef& e : model.elements)
-      out << (e.shape == ElementShape::T3 ? kVtkTriangle : kVtkQuadraticTriangle) << '\n';
-    out << "        </DataArray>\n      </Cells>\n      <PointData>\n";
-    data_array(out, "displacement", 3, displacement);
-    data_array(out, "cauchy_stress", 6, point_stress);
-    data_array(out, "pressure", 1, point_pressure);
-    data_array(out, "laplace_pressure", 1, laplace);
+    out << "<?xml version=\"1.0\"?>\n<VTKFile type=\"UnstructuredGrid\" version=\"1.0\" byte_order=\"LittleEndian\""
+        << " header_type=\"UInt64\">\n  <UnstructuredGrid>\n    <Piece NumberOfPoints=\"" << n_nodes
+        << "\" NumberOfCells=\"" << n_elements << "\">\n      <Points>\n";
+    data_array(out, "Float64", nullptr, 3, points);
+    out << "      </Points>\n      <Cells>\n";
+    data_array(out, "Int64", "connectivity", 1, connectivity);
+    data_array(out, "Int64", "offsets", 1, offsets);
+    data_array(out, "UInt8", "types", 1, types);
+    out << "      </Cells>\n      <PointData>\n";
+    data_array(out, "Float64", "displacement", 3, displacement);
+    data_array(out, "Float64", "cauchy_stress", 6, point_stress);
+    data_array(out, "Float64", "pressure", 1, point_pressure);
+    data_array(out, "Float64", "laplace_pressure", 1, laplace);
     out << "      </PointData>\n      <CellData>\n";
-    data_array(out, "cauchy_stress", 6, cell_stress);
-    data_array(out, "pressure", 1, cell_pressure);
-    data_array(out, "J", 1, cell_J);
-    data_array(out, "material_id", 1, material);
+    data_array(out, "Float64", "cauchy_stress", 6, cell_stress);
+    data_array(out, "Float64", "pressure", 1, cell_pressure);
+    data_array(out, "Float64", "J", 1, cell_J);
+    data_array(out, "Float64", "material_id", 1, material);
     out << "      </CellData>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n";
-  });
+  }, true);
 }
 
 void write_displacement_table(const std::string& path, const Model& model, const Eigen::VectorXd& u) {
