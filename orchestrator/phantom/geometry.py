@@ -238,22 +238,27 @@ class CalfGeometry:
 
     # -- queries at points --------------------------------------------------
 
+    def layers(self, x, y) -> list[tuple[Tissue, np.ndarray]]:
+        """(tissue, signed distance in mm, negative inside) of each part at the points, in painting order:
+        a later layer covers an earlier one. The distance is radial for star-shaped parts (close to the normal
+        distance for these round shapes), so renderers can draw boundaries with sub-sample precision."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        muscle = self.muscle_outer.radial_excess(x, y)
+        layers = [(Tissue.SKIN, self.skin.radial_excess(x, y)), (Tissue.FAT, self.skin_inner.radial_excess(x, y)),
+                  (Tissue.FASCIA, self.fascia.radial_excess(x, y)), (Tissue.MUSCLE, muscle),
+                  (Tissue.FASCIA, np.maximum(muscle, self._septum_distance(x, y) - self.shape.fascia_mm / 2))]
+        for vein in self.veins:
+            distance = np.hypot(x - vein.centre[0], y - vein.centre[1]) - vein.radius_mm
+            layers.append((Tissue.SUPERFICIAL_VEIN if vein.superficial else Tissue.DEEP_VEIN, distance))
+        for bone, marrow in ((self.tibia, self.tibia_marrow), (self.fibula, self.fibula_marrow)):
+            layers += [(Tissue.CORTEX, bone.radial_excess(x, y)), (Tissue.MARROW, marrow.radial_excess(x, y))]
+        return layers
+
     def tissue_at(self, x, y) -> np.ndarray:
         """Fine tissue class (`Tissue`) at material points (mm), same shape as x."""
-        x, y = np.asarray(x, float), np.asarray(y, float)
-        tissue = np.full(x.shape, Tissue.BACKGROUND, dtype=np.uint8)
-        tissue[self.skin.contains(x, y)] = Tissue.SKIN
-        tissue[self.skin_inner.contains(x, y)] = Tissue.FAT
-        tissue[self.fascia.contains(x, y)] = Tissue.FASCIA
-        muscle = self.muscle_outer.contains(x, y)
-        tissue[muscle] = Tissue.MUSCLE
-        septum = muscle & (self._septum_distance(x, y) < self.shape.fascia_mm / 2)
-        tissue[septum] = Tissue.FASCIA
-        for vein in self.veins:
-            tissue[vein.contains(x, y)] = Tissue.SUPERFICIAL_VEIN if vein.superficial else Tissue.DEEP_VEIN
-        for bone, marrow in ((self.tibia, self.tibia_marrow), (self.fibula, self.fibula_marrow)):
-            tissue[bone.contains(x, y)] = Tissue.CORTEX
-            tissue[marrow.contains(x, y)] = Tissue.MARROW
+        tissue = np.full(np.shape(x), Tissue.BACKGROUND, dtype=np.uint8)
+        for kind, distance in self.layers(x, y):
+            tissue[distance < 0] = kind
         return tissue
 
     def labels_at(self, x, y, compartments: bool = False) -> np.ndarray:

@@ -10,9 +10,13 @@ X + u(X) = x by the fixed-point iteration X <- x - u(X), which converges
 while |grad u| < 1 (any physical compression). The texture therefore moves
 with the tissue, while the bias field and the noise stay with the scanner.
 
-Each pixel averages `supersampling`^2 sub-pixel samples (partial volume),
-so boundaries are not aligned with the pixel grid and the images are not
-made by the same interpolation the identification uses (no inverse crime).
+The scanner is modelled as MR acquisition is: the material intensity is
+sampled on a grid `supersampling` times finer than the pixels and only the
+k-space of the pixel grid is kept (with a Tukey apodisation against Gibbs
+ringing), which band-limits the image like a real reconstruction. Boundaries
+are therefore blurred over about a pixel, not aligned with the pixel grid,
+and the images are not made by the interpolation the identification uses
+(no inverse crime).
 
 `displacement` is a callable u(x_mm, y_mm) -> (ux_mm, uy_mm) on arrays in the
 image frame of the unloaded image, or a (2, H, W) field on its pixel grid
@@ -55,10 +59,18 @@ class CalfPhantom:
         """(width along x, height along y) of the field of view in mm."""
         return self.image_shape[1] * self.pixel_size_mm[1], self.image_shape[0] * self.pixel_size_mm[0]
 
-    def intensity_at(self, x, y) -> np.ndarray:
-        """Noise- and bias-free grey level of the material points X = (x, y) (mm), texture included."""
-        tissue = self.geometry.tissue_at(x, y)
-        return self._base[tissue] * (1.0 + self._amplitude[tissue] * self.texture(x, y))
+    def intensity_at(self, x, y, edge_mm: float = 0.0) -> np.ndarray:
+        """Noise- and bias-free grey level of the material points X = (x, y) (mm), texture included.
+
+        With edge_mm > 0 each part is painted over the previous ones with a coverage rising linearly from 0 to 1
+        across edge_mm of its boundary (anti-aliasing: a boundary moves continuously, not by whole samples)."""
+        texture = self.texture(x, y)
+        value = np.zeros(np.shape(x))
+        for tissue, distance in self.geometry.layers(x, y):
+            coverage = np.clip(0.5 - distance / edge_mm, 0.0, 1.0) if edge_mm > 0 else (distance < 0).astype(float)
+            tissue_value = self._base[tissue] * (1.0 + self._amplitude[tissue] * texture)
+            value += coverage * (tissue_value - value)
+        return value
 
     def labels(self, compartments: bool = False) -> np.ndarray:
         """Ground-truth label map of the unloaded image (pixel centres)."""
@@ -118,19 +130,40 @@ def as_displacement_fn(displacement, pixel_size_mm: tuple[float, float]) -> Disp
 
 
 def _render(phantom: CalfPhantom, to_material, noise_seed: int | None) -> np.ndarray:
-    """Average the material intensity over sub-pixel samples of each scanner pixel, then apply bias and noise."""
+    """Sample the material intensity on a grid `supersampling` times finer than the pixels, keep the k-space
+    of the pixel grid (what an MR scanner acquires; Tukey-apodised against Gibbs ringing), then bias and noise."""
     n = phantom.supersampling
-    offsets = (np.arange(n) + 0.5) / n - 0.5
-    x_centre, y_centre = pixel_centres_mm(phantom.image_shape, phantom.pixel_size_mm)
+    if n < 1 or n % 2 == 0:
+        raise ValueError("supersampling must be an odd positive integer (so that a fine sample sits at each pixel centre)")
+    height, width = phantom.image_shape
     dy, dx = phantom.pixel_size_mm
-    x = np.broadcast_to(x_centre[..., None, None] + offsets[None, :] * dx, (*phantom.image_shape, n, n))
-    y = np.broadcast_to(y_centre[..., None, None] + offsets[:, None] * dy, (*phantom.image_shape, n, n))
-    X, Y = to_material(np.ascontiguousarray(x), np.ascontiguousarray(y))
-    signal = phantom.intensity_at(X, Y).mean(axis=(-2, -1))
+    fine_rows, fine_cols = np.indices((height * n, width * n), dtype=float)
+    X, Y = to_material((fine_cols + 0.5) * dx / n, (fine_rows + 0.5) * dy / n)
+    fine = phantom.intensity_at(X, Y, edge_mm=min(dx, dy) / n)
+    signal = _keep_pixel_bandwidth(np.roll(fine, (-(n // 2), -(n // 2)), axis=(0, 1)), (height, width))
+    x_centre, y_centre = pixel_centres_mm(phantom.image_shape, phantom.pixel_size_mm)
     signal *= bias_field(x_centre, y_centre, phantom.extent_mm, phantom.contrast.bias_amplitude)
     if noise_seed is None:
         return signal
     return add_rician_noise(signal, phantom.contrast.noise_sigma, np.random.default_rng(noise_seed))
+
+
+def _keep_pixel_bandwidth(fine: np.ndarray, shape: tuple[int, int], taper: float = 0.5) -> np.ndarray:
+    """Down-sample a finely sampled image (whose sample 0 of each block is the pixel centre) by truncating its
+    spectrum to the frequencies of the coarse grid, with a Tukey window of the given taper fraction."""
+    spectrum = np.fft.fftshift(np.fft.fft2(fine))
+    centre = [size // 2 for size in fine.shape]
+    crop = tuple(slice(c - s // 2, c - s // 2 + s) for c, s in zip(centre, shape))
+    window = np.outer(_tukey(shape[0], taper), _tukey(shape[1], taper))
+    coarse = np.fft.ifft2(np.fft.ifftshift(spectrum[crop] * window)).real
+    return coarse * (shape[0] * shape[1]) / fine.size
+
+
+def _tukey(size: int, taper: float) -> np.ndarray:
+    """Tukey window over the centred frequencies: flat in the middle, cosine tapers over `taper` of the band."""
+    position = np.abs(np.arange(size) - size // 2) / (size / 2)
+    edge = 1.0 - taper
+    return np.where(position <= edge, 1.0, 0.5 * (1.0 + np.cos(np.pi * (position - edge) / taper)))
 
 
 def bone_clamped_compression(geometry: CalfGeometry, strain: float = 0.025, ramp_mm: float = 8.0) -> DisplacementFn:
