@@ -409,7 +409,7 @@ def test_leg_slice_deck_has_materials_sections_clamps_and_skin_pressure(tmp_path
     assert "*SOLID SECTION, ELSET=MUSCLE, MATERIAL=MUSCLE" in blocks
     assert blocks["*BOUNDARY"] == [["BONES", "1", "2"]]
     assert blocks["*STEP, NLGEOM, INC=100"] == []
-    assert blocks["*STATIC"] == [["0.25", "1", "0.0001", "1"]]
+    assert blocks["*STATIC"] == [["1", "1", "0.0001", "1"]]
     loads = blocks["*DLOAD"]
     assert len(loads) == len(mesh.skin_faces)
     assert [[int(e), int(k[1:])] for e, k, _ in loads] == (mesh.skin_faces + [1, 0]).tolist()

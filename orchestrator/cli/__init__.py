@@ -1,0 +1,34 @@
+"""The `calfit` command line: one module per subcommand, each with `add_arguments`
+and `run` (returns the exit code). Progress and logs go to stderr; with --json a
+command prints one JSON object on stdout and nothing else there.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from . import _demo, _solve
+
+COMMANDS = {
+    "demo": _demo,
+    "solve": _solve,
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="calfit",
+        description="Identify calf soft-tissue properties from MRI under a compression garment, "
+        "and compute the pressure it transmits (finite-element engine calfit-fe).",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, module in COMMANDS.items():
+        sub = commands.add_parser(name, help=module.HELP, description=module.__doc__)
+        module.add_arguments(sub)
+        sub.set_defaults(handler=module.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.handler(args) or 0)

@@ -1,0 +1,7 @@
+"""`python -m orchestrator.cli` runs the `calfit` command line."""
+
+import sys
+
+from . import main
+
+sys.exit(main())

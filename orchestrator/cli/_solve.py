@@ -1,0 +1,64 @@
+"""Run calfit-fe on one deck and print its result summary.
+
+    calfit solve DECK.inp [-o OUTDIR] [--threads N] [--timeout S] [--json]
+
+Exit code: 0 converged, 2 bad deck (the engine's FILE:LINE message on stderr),
+3 not converged (the last converged state is written), 4 engine failure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from ..results import EngineResults
+from ..runner import DeckRejected, EngineFailed, run_engine
+
+HELP = "run the FE engine on one deck and summarize the result"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("deck", help="input deck (.inp)")
+    parser.add_argument("-o", "--out", help="output folder (default: DECK without .inp, plus .out)")
+    parser.add_argument("--threads", type=int, default=None, help="engine threads (default: all cores)")
+    parser.add_argument("--timeout", type=float, default=3600.0, help="seconds before the run is stopped")
+    parser.add_argument("--json", action="store_true", help="print the engine's summary.json on stdout")
+
+
+def describe(results: EngineResults) -> str:
+    """Human-readable summary of a run: status, size, Newton histories, extremes."""
+    s = results.summary
+    lines = [
+        f"status      {s['status']}  ({s['wall_time_s']:.3f} s, linear solver {s['linear_solver']})",
+        f"model       {s['n_nodes']} nodes, {s['n_elements']} elements, {s['n_free_dof']} free of {s['n_dof']} DOF",
+    ]
+    for step in s["steps"]:
+        lines.append(
+            f"step {step['step']}      {step['status']}: {step['n_increments']} increments, "
+            f"{step['n_cutbacks']} cut-backs, {step['newton_iterations']} Newton iterations"
+        )
+        for inc in step["increments"]:
+            history = " ".join(f"{r:.1e}" for r in inc["residual_norms"])
+            lines.append(f"  t={inc['time']:<8.4g} |R|/|F|: {history}{'' if inc['converged'] else '  (cut back)'}")
+    u = results.displacement()
+    lines.append(f"max |u|     {float((u**2).sum(axis=1).max() ** 0.5):.6g}")
+    lines.append(f"results     {results.outdir}")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        outcome = run_engine(args.deck, args.out, threads=args.threads, timeout_s=args.timeout, echo=not args.json)
+    except DeckRejected as error:
+        print(error, file=sys.stderr)
+        return 2
+    except EngineFailed as error:
+        print(error, file=sys.stderr)
+        return 4
+    results = EngineResults(outcome.outdir)
+    if args.json:
+        print(json.dumps(results.summary))
+    else:
+        print(describe(results))
+    return 0 if outcome.converged else 3

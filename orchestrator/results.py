@@ -1,0 +1,55 @@
+"""Read what calfit-fe wrote into an output folder (formats: solver_cpp/README.md).
+
+summary.json (status, increments, Newton residual histories, timings), the nodal
+displacement table step-N.u.npy (node id, X, Y, u_x, u_y) and, on demand, the VTU of a
+step through meshio (stress, pressure, J and material per element).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+
+class ResultsError(RuntimeError):
+    pass
+
+
+@dataclass
+class EngineResults:
+    outdir: Path
+
+    @cached_property
+    def summary(self) -> dict:
+        path = self.outdir / "summary.json"
+        if not path.is_file():
+            raise ResultsError(f"{path} does not exist: the engine wrote no results there")
+        return json.loads(path.read_text())
+
+    @property
+    def n_steps(self) -> int:
+        return len(self.summary["steps"])
+
+    def table(self, step: int | None = None) -> np.ndarray:
+        """(n_nodes, 5) array: node id, X, Y, u_x, u_y at the end of `step` (default: last)."""
+        step = self.n_steps if step is None else step
+        path = self.outdir / f"step-{step}.u.npy"
+        if not path.is_file():
+            raise ResultsError(f"{path} does not exist (the run has {self.n_steps} step(s))")
+        return np.load(path)
+
+    def displacement(self, step: int | None = None) -> np.ndarray:
+        return self.table(step)[:, 3:5]
+
+    def mesh(self, step: int | None = None):
+        import meshio
+
+        step = self.n_steps if step is None else step
+        return meshio.read(self.outdir / f"step-{step}.vtu")
+
+    def residual_histories(self) -> list[list[float]]:
+        return [inc["residual_norms"] for s in self.summary["steps"] for inc in s["increments"]]
