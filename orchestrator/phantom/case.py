@@ -1,0 +1,101 @@
+"""Write a phantom case folder, with its ground truth kept apart.
+
+The case folder is what a user would bring (DESIGN.md, "The case folder"):
+case.toml with the five landmarks of the first paper, unloaded.png and
+loaded.png (16-bit), labels.png (by default the segmentation of the unloaded
+image, as a user would make it, not the phantom's exact labels) and
+optionally points.csv (the true displacement at grid points in the tissue,
+plus Gaussian measurement noise of sigma_mm).
+
+The truth goes to a separate folder (default: a sibling `<case>.truth`):
+truth.json (phantom parameters, rigid motion, noise seeds, description of the
+displacement), displacement_mm.npy ((2, H, W) on the pixels of the unloaded
+image, mm), and the exact label maps of both images. Both folders are staged
+in temporary siblings and renamed into place only when complete.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..imaging._formats import write_png16
+from ..imaging.case import DisplacementPoints, replace_folder, write_case_folder
+from ..imaging.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
+from ..imaging.segment import segment_t1
+from .render import CalfPhantom, as_displacement_fn, bone_clamped_compression, loaded_labels, make_loaded_image, render_unloaded
+
+
+def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *, rigid: RigidMotion | None = None,
+               truth_folder=None, name: str = "phantom-calf", tension_N_per_mm: float = 0.16,
+               tension_rel_uncertainty: float = 0.10, labels: str | None = "segmented", points_spacing_mm: float | None = None,
+               points_sigma_mm: float = 0.05, noise_seeds: tuple[int, int] = (0, 1), description: str = "",
+               overwrite: bool = False) -> tuple[Path, Path]:
+    """Render the phantom unloaded and loaded (displacement in mm, callable or (2, H, W); default a bone-clamped
+    radial compression) and write the case folder and the truth folder. Returns (case folder, truth folder).
+
+    labels: "segmented" (segment_t1 of the unloaded image), "truth" (exact phantom labels) or None (no labels.png).
+    points_spacing_mm: if given, write points.csv on a grid of that spacing inside the leg.
+    """
+    folder = Path(folder)
+    truth_folder = Path(truth_folder) if truth_folder is not None else folder.with_name(folder.name + ".truth")
+    for target in (folder, truth_folder):
+        if target.exists() and not overwrite:
+            raise FileExistsError(f"{target} already exists; choose another folder or pass overwrite=True")
+    if labels not in ("segmented", "truth", None):
+        raise ValueError("labels must be 'segmented', 'truth' or None")
+    phantom = phantom or CalfPhantom()
+    if displacement is None:
+        displacement = bone_clamped_compression(phantom.geometry)
+        description = description or "bone_clamped_compression(strain=0.025, ramp_mm=8)"
+    displacement_fn = as_displacement_fn(displacement, phantom.pixel_size_mm)
+
+    unloaded = render_unloaded(phantom, noise_seed=noise_seeds[0])
+    loaded = make_loaded_image(phantom, displacement_fn, rigid, noise_seed=noise_seeds[1])
+    true_labels = phantom.labels()
+    case_labels = {"segmented": lambda: segment_t1(unloaded, phantom.pixel_size_mm), "truth": lambda: true_labels,
+                   None: lambda: None}[labels]()
+    field = displacement_on_grid(displacement_fn, phantom.image_shape, phantom.pixel_size_mm)
+    points = (_grid_points(phantom, true_labels, displacement_fn, points_spacing_mm, points_sigma_mm, noise_seeds[1])
+              if points_spacing_mm else None)
+
+    truth_folder.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
+    try:
+        truth = {"case_folder": str(folder), "description": description,
+                 "shape": dataclasses.asdict(phantom.geometry.shape), "contrast": dataclasses.asdict(phantom.contrast),
+                 "image_shape": list(phantom.image_shape), "pixel_size_mm": list(phantom.pixel_size_mm),
+                 "supersampling": phantom.supersampling, "noise_seeds": list(noise_seeds),
+                 "rigid_motion": dataclasses.asdict(rigid) if rigid is not None else None,
+                 "landmarks": phantom.geometry.landmarks(), "displacement_file": "displacement_mm.npy",
+                 "labels_in_case": labels}
+        (staging / "truth.json").write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
+        np.save(staging / "displacement_mm.npy", field)
+        write_png16(staging / "labels_unloaded.png", true_labels.astype(np.uint8))
+        write_png16(staging / "labels_loaded.png", loaded_labels(phantom, displacement_fn, rigid).astype(np.uint8))
+        write_case_folder(folder, name=name, unloaded=unloaded, loaded=loaded, pixel_size_mm=phantom.pixel_size_mm,
+                          tension_N_per_mm=tension_N_per_mm, tension_rel_uncertainty=tension_rel_uncertainty,
+                          labels=case_labels, points=points, landmarks=phantom.geometry.landmarks(), overwrite=overwrite)
+        replace_folder(staging, truth_folder)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return folder, truth_folder
+
+
+def _grid_points(phantom, labels, displacement_fn, spacing_mm, sigma_mm, seed) -> DisplacementPoints:
+    """True displacements at grid points in fat and muscle, plus Gaussian noise of sigma_mm."""
+    x, y = pixel_centres_mm(phantom.image_shape, phantom.pixel_size_mm)
+    step = max(1, int(round(spacing_mm / phantom.pixel_size_mm[0])))
+    grid = np.zeros(labels.shape, bool)
+    grid[::step, ::step] = True
+    keep = grid & ((labels == 1) | (labels == 2))
+    px, py = x[keep], y[keep]
+    ux, uy = displacement_fn(px, py)
+    noise = np.random.default_rng(seed + 1000).normal(0.0, sigma_mm, (px.size, 2))
+    return DisplacementPoints(np.stack([px, py], axis=1), np.stack([ux, uy], axis=1) + noise, np.full(px.size, sigma_mm))
