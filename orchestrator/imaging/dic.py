@@ -41,6 +41,7 @@ from .frame import index_to_mm
 SEARCH_FACTOR = 4
 GAUSS_NEWTON_ITERATIONS = 20
 GAUSS_NEWTON_TOLERANCE_PX = 1e-4
+MAX_REFINEMENT_PX = 3.0   # Gauss-Newton may leave the integer peak of a ridge-shaped ZNCC, not wander off
 
 
 @dataclass(frozen=True)
@@ -127,8 +128,9 @@ def _correlate_window(reference, deformed, spline, grad_rows, grad_cols, row, co
                       peak_row + _parabola_offset(score[:, peak_col], peak_row) + top - r0])
     window = (slice(r0, r0 + window_px), slice(c0, c0 + window_px))
     refined = _inverse_compositional(template, grad_cols[window], grad_rows[window], spline, r0, c0, start)
-    if refined is None or np.max(np.abs(refined[0] - start)) > 1.0:
-        return start, float(score[peak_row, peak_col]), np.inf, np.inf
+    peak_score = float(score[peak_row, peak_col])
+    if refined is None or np.max(np.abs(refined[0] - start)) > MAX_REFINEMENT_PX or refined[1] < peak_score:
+        return start, peak_score, np.inf, np.inf
     return refined
 
 
