@@ -1,0 +1,87 @@
+"""Timings of the imaging room on the 420x420 phantom calf (0.36 mm pixels). Prints figures, asserts nothing.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/imaging.py
+
+Lines: phantom rendering, segmentation (segment_t1), bone alignment, one warp
++ contour mismatch evaluation (the inner loop of the identification, first
+paper section 2.2.5; target under 20 ms), one DIC pass with 16x16 and 64x64
+windows (second paper section 3.1), and meshing from labels when
+orchestrator.meshing provides mesh_from_labels. Each figure is the best of
+several repeats (the minimum is the least disturbed by other processes).
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+
+import numpy as np
+
+from orchestrator.imaging.align import align_on_bones
+from orchestrator.imaging.dic import correlate, roi_centres
+from orchestrator.imaging.frame import RigidMotion, displacement_on_grid
+from orchestrator.imaging.mismatch import ContourMismatch
+from orchestrator.imaging.segment import segment_t1
+from orchestrator.imaging.warp import warp_image
+from orchestrator.phantom import CalfPhantom, bone_clamped_compression, make_loaded_image, render_unloaded
+
+
+def best_of(function, repeats: int = 5) -> tuple[float, object]:
+    """(seconds of the fastest call, its result)."""
+    best, result = np.inf, None
+    for _ in range(repeats):
+        start = time.perf_counter()
+        result = function()
+        best = min(best, time.perf_counter() - start)
+    return best, result
+
+
+def line(what: str, seconds: float, note: str = "") -> None:
+    print(f"{what:<48s} {seconds * 1e3:9.1f} ms  {note}")
+
+
+def main() -> None:
+    phantom = CalfPhantom()
+    pixel = phantom.pixel_size_mm
+    compression = bone_clamped_compression(phantom.geometry)
+    seconds, unloaded = best_of(lambda: render_unloaded(phantom, noise_seed=0), 1)
+    line("phantom: render unloaded (420x420)", seconds)
+    seconds, loaded = best_of(lambda: make_loaded_image(phantom, compression, RigidMotion(2.0, (1.0, -0.5), (75.6, 75.6)), 1), 1)
+    line("phantom: render loaded by inverse warping", seconds)
+
+    seconds, labels = best_of(lambda: segment_t1(unloaded, pixel))
+    line("segmentation (segment_t1)", seconds)
+    seconds, motion = best_of(lambda: align_on_bones(unloaded, loaded, pixel, labels_unloaded=labels), 3)
+    line("rigid alignment on the bones", seconds, f"angle {motion.angle_deg:.3f} deg (true 2.000)")
+
+    straight = make_loaded_image(phantom, compression, noise_seed=2)
+    labels_loaded = segment_t1(straight, pixel)
+    field = displacement_on_grid(compression, unloaded.shape, pixel)
+    seconds, mismatch = best_of(lambda: ContourMismatch(labels, labels_loaded, pixel))
+    line("contour mismatch set-up (once per case)", seconds)
+    seconds, result = best_of(lambda: (warp_image(straight, field, pixel), mismatch(field))[1], 20)
+    line("one warp + mismatch evaluation (420x420)", seconds, f"M = {result.value_mm2:.1f} mm^2, target < 20 ms")
+    seconds, _ = best_of(lambda: mismatch(field), 20)
+    line("  of which the mismatch M(u) alone", seconds)
+
+    marks = phantom.geometry.landmarks()
+    vessels = [marks["great_saphenous"], marks["small_saphenous"], marks["deep_veins"]]
+    centres = roi_centres(labels, pixel, spacing_mm=5.0, vessels_mm=vessels)
+    seconds, dic = best_of(lambda: correlate(unloaded, straight, centres, pixel, window_px=16), 2)
+    line(f"DIC pass, {len(centres)} windows 16x16 on skin/fascia/vessels", seconds,
+         f"{int(dic.reliable().sum())} reliable")
+    seconds, dic = best_of(lambda: correlate(unloaded, straight, centres, pixel, window_px=64), 1)
+    line(f"DIC pass, {len(centres)} windows 64x64", seconds, f"{int(dic.reliable().sum())} reliable")
+
+    try:
+        meshing = importlib.import_module("orchestrator.meshing")
+    except ImportError:
+        meshing = None
+    if meshing is not None and hasattr(meshing, "mesh_from_labels"):
+        for elements in (400, 5500):
+            seconds, mesh = best_of(lambda: meshing.mesh_from_labels(labels, pixel, n_elements=elements), 1)
+            line(f"meshing from labels, about {elements} T3", seconds)
+
+
+if __name__ == "__main__":
+    main()
