@@ -93,6 +93,7 @@ def run_engine(deck: Path, threads: int | None, timeout: float) -> dict:
         res["newton"] = sum(st.get("newton_iterations", 0) for st in s.get("steps", []))
         res["increments"] = sum(st.get("n_increments", 0) for st in s.get("steps", []))
         res["linear_solver"] = s.get("linear_solver")
+        res["threads"] = s.get("threads")
     return res
 
 
@@ -126,7 +127,7 @@ def paper_size(args, root: Path) -> None:
     print(f"  calfit-fe  median wall {fe_med:8.3f} s over {args.runs} runs "
           f"(min {min(fe_times):.3f}, max {max(fe_times):.3f}); peak RSS {fmt_bytes(max(rss))}; "
           f"{last.get('increments')} increments, {last.get('newton')} Newton iterations, "
-          f"solver {last.get('linear_solver')}    target < {TARGET_25K_S} s")
+          f"solver {last.get('linear_solver')}, {last.get('threads')} thread(s)    target < {TARGET_25K_S} s")
     print(f"  the second paper: about {PAPER_SECONDS:.0f} s per solve -> {PAPER_SECONDS / fe_med:,.0f}x")
     if args.no_ccx or shutil.which("ccx") is None:
         print("  ccx: skipped" + ("" if args.no_ccx else " (not installed)"))
@@ -143,7 +144,26 @@ def paper_size(args, root: Path) -> None:
         ccx_times.append(r["wall_s"])
     ccx_med = statistics.median(ccx_times)
     print(f"  ccx 2.20   median wall {ccx_med:8.3f} s over {args.ccx_runs} runs (single thread), same deck")
+    agreement(root / "fe0", root / "ccx0")
     print(f"  ratio ccx / calfit-fe = {ccx_med / fe_med:6.1f}x    target >= {TARGET_SPEEDUP:.0f}x")
+
+
+def agreement(fe_dir: Path, ccx_dir: Path) -> None:
+    """Max nodal displacement difference calfit-fe vs ccx on the benchmark deck."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from engine_run import parse_ccx_dat
+
+    table = sorted((fe_dir / "out").glob("step-*.u.npy"))
+    dat = ccx_dir / "leg.dat"
+    if not table or not dat.is_file():
+        return
+    import numpy as np
+
+    u = np.load(table[-1])
+    disp = parse_ccx_dat(dat)
+    u_ccx = np.array([disp[int(i)][:2] for i in u[:, 0]])
+    scale = np.abs(u_ccx).max()
+    print(f"  agreement: max |u_fe - u_ccx| = {np.abs(u[:, 3:5] - u_ccx).max() / scale:.2e} of max |u| = {scale:.4g} mm")
 
 
 def scaling(args, root: Path) -> None:
