@@ -229,6 +229,9 @@ def test_dic_16_pixel_windows_within_a_tenth_of_a_pixel_where_texture_exists(ima
     assert reliable.sum() > 0.75 * len(centres)
     assert np.max(_errors_px(result)[reliable]) < 0.1
     assert result.search_px == 64
+    points = result.to_points()   # the rows of a points.csv
+    assert len(points) == reliable.sum()
+    np.testing.assert_allclose(points.sigma_mm, result.uncertainty_px[reliable] * PIXEL)
 
 
 def test_dic_confidence_is_low_without_texture(imaging_dic_pair):

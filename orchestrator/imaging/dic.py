@@ -37,6 +37,7 @@ from skimage.feature import match_template
 
 from .case import DisplacementPoints
 from .frame import index_to_mm
+from .mismatch import FAT, MUSCLE, contour_pixels, tissue_mask
 
 SEARCH_FACTOR = 4
 GAUSS_NEWTON_ITERATIONS = 20
@@ -57,6 +58,7 @@ class DICResult:
     anisotropy: np.ndarray        # (N,) ratio of the largest to the smallest standard deviation; large along a lone edge
     window_px: int
     search_px: int
+    pixel_size_mm: tuple[float, float]
 
     def reliable(self, min_confidence: float = 0.9, max_uncertainty_px: float = 0.05, max_anisotropy: float = 3.0) -> np.ndarray:
         """Windows with a good match (ZNCC), a small predicted uncertainty, and texture in both directions
@@ -66,8 +68,8 @@ class DICResult:
     def to_points(self, min_confidence: float = 0.9, max_uncertainty_px: float = 0.05, max_anisotropy: float = 3.0) -> DisplacementPoints:
         """The reliable windows as measured displacements (the rows of a points.csv), sigma from the uncertainty."""
         keep = self.reliable(min_confidence, max_uncertainty_px, max_anisotropy)
-        pixel = float(np.sqrt(np.prod(np.abs(self.displacement_mm[keep] / self.displacement_px[keep]), axis=1)).mean()) if keep.any() else 1.0
-        return DisplacementPoints(self.position_mm[keep].copy(), self.displacement_mm[keep].copy(), self.uncertainty_px[keep] * pixel)
+        pixel_mm = float(np.sqrt(self.pixel_size_mm[0] * self.pixel_size_mm[1]))
+        return DisplacementPoints(self.position_mm[keep].copy(), self.displacement_mm[keep].copy(), self.uncertainty_px[keep] * pixel_mm)
 
 
 def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_size_mm, *, window_px: int = 16,
@@ -94,7 +96,8 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     x, y = index_to_mm(centre_rc[:, 0], centre_rc[:, 1], pixel_size_mm)
     dy, dx = pixel_size_mm
     return DICResult(centre_rc, np.stack([x, y], axis=1), displacement, displacement * np.array([dx, dy]),
-                     np.clip(confidence, 0.0, 1.0), uncertainty, anisotropy, window_px, search_px)
+                     np.clip(confidence, 0.0, 1.0), uncertainty, anisotropy, window_px, search_px,
+                     (float(dy), float(dx)))
 
 
 def spline_gradient(image: np.ndarray, step: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
@@ -211,8 +214,6 @@ def roi_centres(labels: np.ndarray, pixel_size_mm, spacing_mm: float = 5.0, *, s
                 vessels_mm=()) -> np.ndarray:
     """Window centres on the regions of interest of section 3.1: the skin (leg outline), the fascia
     (fat/muscle interface) every `spacing_mm` along them, and the given vessel positions (x, y) in mm."""
-    from .mismatch import FAT, contour_pixels, tissue_mask, MUSCLE
-
     leg = labels > 0
     picked = []
     if skin:
