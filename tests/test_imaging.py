@@ -70,7 +70,7 @@ def test_warp_undoes_the_phantom_deformation(imaging_phantom, imaging_compressio
     leg = imaging_phantom.labels() > 0
     before = np.sqrt(np.mean((loaded - unloaded)[leg] ** 2))
     after = np.sqrt(np.mean((warped - unloaded)[leg] ** 2))
-    assert after < 0.25 * before   # measured: 0.06 -> 0.012
+    assert after < 0.25 * before   # measured: rms 0.22 -> 0.016 (fat = 1)
 
 
 def test_warp_labels_is_nearest_neighbour():
@@ -250,7 +250,8 @@ def test_dic_confidence_is_low_without_texture(imaging_dic_pair):
 
 
 def test_dic_with_realistic_noise_and_64_pixel_windows(imaging_phantom, imaging_unloaded):
-    """Default noise (sigma 0.015): 16x16 windows are noise-limited (measured rms 0.05 px over reliable windows);
+    """Default noise (sigma 0.015): 16x16 windows are noise-limited (measured rms 0.06 px, largest 0.18 px, over the
+    243 reliable of 282 windows);
     64x64 windows average it out but feel the curvature of the field (measured largest error 0.13 px)."""
     loaded = make_loaded_image(imaging_phantom, smooth_field, noise_seed=22)
     labels = imaging_phantom.labels()
