@@ -2,7 +2,9 @@
 
 summary.json (status, increments, Newton residual histories, timings), the nodal
 displacement table step-N.u.npy (node id, X, Y, u_x, u_y) and, on demand, the VTU of a
-step through meshio (stress, pressure, J and material per element).
+step through meshio (stress, pressure, J and material per element). The hydrostatic
+pressure that the first paper maps (Avril et al. sec. 3.2, Fig. 5) is the VTU's
+`pressure` = -tr(sigma)/3, per node (nodal average) or per element, in MPa.
 """
 
 from __future__ import annotations
@@ -50,6 +52,24 @@ class EngineResults:
 
         step = self.n_steps if step is None else step
         return meshio.read(self.outdir / f"step-{step}.vtu")
+
+    def point_field(self, name: str, step: int | None = None) -> np.ndarray:
+        """A point-data array of the step's VTU (e.g. "pressure", MPa), in deck node order."""
+        mesh = self.mesh(step)
+        if name not in mesh.point_data:
+            raise ResultsError(f"{self.outdir}: the VTU has no point field {name!r} (it has {sorted(mesh.point_data)})")
+        return np.asarray(mesh.point_data[name], float).squeeze()
+
+    def cell_field(self, name: str, step: int | None = None) -> np.ndarray:
+        """A cell-data array of the step's VTU (e.g. "pressure", "J", "material_id"), in deck element order."""
+        mesh = self.mesh(step)
+        if name not in mesh.cell_data:
+            raise ResultsError(f"{self.outdir}: the VTU has no cell field {name!r} (it has {sorted(mesh.cell_data)})")
+        return np.asarray(mesh.cell_data[name][0], float).squeeze()
+
+    @property
+    def total_newton_iterations(self) -> int:
+        return sum(int(step["newton_iterations"]) for step in self.summary["steps"])
 
     def residual_histories(self) -> list[list[float]]:
         return [inc["residual_norms"] for s in self.summary["steps"] for inc in s["increments"]]

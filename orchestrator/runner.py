@@ -97,3 +97,308 @@ def run_engine(
         reason = f"signal {-returncode}" if returncode < 0 else f"exit code {returncode}"
         raise EngineFailed(f"calfit-fe failed on {deck} ({reason}): {stderr.strip()}")
     return EngineOutcome(deck, outdir, returncode == 0, returncode, elapsed, stdout, stderr)
+
+
+# --- evaluations: cache, run log, parallel execution ---------------------------------------------
+#
+# An evaluation is one deck run through the engine and scored by an objective
+# (orchestrator.objectives). Its key is the SHA-256 of the deck, the mesh it includes and the
+# objective's fingerprint (decks.deck_key). Every finished evaluation, failed or not, is
+# appended as one JSON line to RUN_DIR/evaluations.jsonl (parameters, status, cost, outputs,
+# time) the moment it finishes; an `Evaluator` opened on the same run folder reads that log
+# back as its cache, so a command interrupted and started again replays the finished
+# evaluations from the log and launches the engine only for the others. The engine runs in
+# a job folder under RUN_DIR/jobs (removed afterwards) with one thread (--threads 1): the
+# parallelism is across evaluations, in a local process pool (`workers`) or on a Dask
+# distributed cluster (`scheduler` address).
+
+import json
+import os
+import shutil
+import tempfile
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from .decks import DeckError, deck_key
+from .results import EngineResults
+
+LOG_NAME = "evaluations.jsonl"
+PROGRESS_MIN_BATCH = 8   # smaller batches (one LM Jacobian) finish too fast to need a progress line
+OK, NOT_CONVERGED, BAD_DECK, ENGINE_FAILED, TIMEOUT = "ok", "not_converged", "bad_deck", "engine_failed", "timeout"
+FAILED_STATUSES = (NOT_CONVERGED, BAD_DECK, ENGINE_FAILED, TIMEOUT)
+
+
+class EvaluationLog:
+    """The append-only JSON-lines log of a run's evaluations, read back as a cache by key.
+
+    A line cut short by a kill (no final newline) is dropped when the log is opened, so the
+    next append starts on a clean line."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.records: dict[str, dict] = {}
+        if self.path.is_file():
+            data = self.path.read_bytes()
+            complete = data[: data.rfind(b"\n") + 1]
+            if len(complete) != len(data):
+                with open(self.path, "r+b") as stream:
+                    stream.truncate(len(complete))
+            for number, line in enumerate(complete.decode().splitlines(), start=1):
+                if line.strip():
+                    try:
+                        record = json.loads(line)
+                    except json.JSONDecodeError:
+                        raise ValueError(f"{self.path}:{number}: not a JSON line; remove that line or the run folder") from None
+                    self.records[record["key"]] = record
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._stream = open(self.path, "a", encoding="utf-8")
+
+    def append(self, record: dict) -> None:
+        self._stream.write(json.dumps(record, separators=(",", ":")) + "\n")
+        self._stream.flush()
+        self.records[record["key"]] = record
+
+    def close(self) -> None:
+        self._stream.close()
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+
+@dataclass(frozen=True)
+class EngineTask:
+    """One evaluation to run anywhere: the deck, the mesh it includes, where to work."""
+
+    key: str
+    theta: tuple[float, ...]
+    options: dict
+    tag: str
+    deck_text: str
+    mesh_text: str
+    mesh_sha: str
+    scratch: str
+    timeout_s: float
+    threads: int
+    keep_job: bool = False
+
+
+def _scratch_folder(preferred: str) -> Path:
+    try:
+        folder = Path(preferred)
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:   # a remote Dask worker without the run folder: its own temporary folder
+        folder = Path(tempfile.gettempdir()) / "calfit-jobs"
+        folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def _mesh_file(scratch: Path, task: EngineTask) -> Path:
+    target = scratch / "meshes" / f"{task.mesh_sha[:24]}.inp"
+    if not target.is_file():
+        target.parent.mkdir(parents=True, exist_ok=True)
+        temporary = target.with_name(f"{target.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        temporary.write_text(task.mesh_text)
+        temporary.replace(target)
+    return target
+
+
+def execute_task(task: EngineTask, objective) -> dict:
+    """Run one evaluation (in a worker): write the deck, run calfit-fe, score it. Never raises for an
+    engine failure: the record's status says what happened and `message` quotes the engine."""
+    start = time.perf_counter()
+    scratch = _scratch_folder(task.scratch)
+    job = scratch / task.key
+    record = {"key": task.key, "theta": list(task.theta), "options": task.options, "tag": task.tag,
+              "status": OK, "cost": None, "outputs": {}, "message": "", "newton_iterations": None}
+    try:
+        job.mkdir(parents=True, exist_ok=True)
+        mesh = _mesh_file(scratch, task)
+        link = job / "mesh.inp"
+        if not link.exists():
+            os.symlink(mesh, link)
+        deck = job / "deck.inp"
+        deck.write_text(task.deck_text)
+        outcome = run_engine(deck, job / "out", threads=task.threads, timeout_s=task.timeout_s)
+        results = EngineResults(outcome.outdir)
+        record["newton_iterations"] = results.total_newton_iterations
+        if not outcome.converged:
+            record["status"] = NOT_CONVERGED
+            record["message"] = (f"no convergence (exit 3): reached load fraction "
+                                 f"{results.summary['steps'][-1].get('time_reached', 'unknown')}")
+        else:
+            record["outputs"] = objective.outputs(results.displacement(), outcome.outdir)
+            record["cost"] = float(record["outputs"].pop("cost"))
+    except DeckRejected as error:
+        record.update(status=BAD_DECK, message=str(error))
+    except EngineFailed as error:
+        record.update(status=TIMEOUT if "timeout" in str(error) else ENGINE_FAILED, message=str(error))
+    finally:
+        if not task.keep_job:
+            shutil.rmtree(job, ignore_errors=True)
+    record["time_s"] = time.perf_counter() - start
+    record["finished_at"] = time.time()
+    return record
+
+
+_WORKER_OBJECTIVE = None
+
+
+def _install_objective(objective) -> None:
+    global _WORKER_OBJECTIVE
+    _WORKER_OBJECTIVE = objective
+
+
+def _execute_in_pool(task: EngineTask) -> dict:
+    return execute_task(task, _WORKER_OBJECTIVE)
+
+
+class Progress:
+    """A small progress line on stderr: done/total, cached, failed, rate; redrawn at most 5 times a second
+    on a terminal, printed every 10% otherwise; silent when disabled."""
+
+    def __init__(self, total: int, label: str, enabled: bool = True):
+        self.total, self.label, self.enabled = total, label, enabled and total > 0
+        self.done = self.cached = self.failed = 0
+        self.start = self._last = time.perf_counter()
+        self._tty = sys.stderr.isatty()
+        self._next_fraction = 0.1
+
+    def update(self, *, cached: bool = False, failed: bool = False) -> None:
+        self.done += 1
+        self.cached += cached
+        self.failed += failed
+        now = time.perf_counter()
+        if not self.enabled:
+            return
+        if self._tty and (now - self._last > 0.2 or self.done == self.total):
+            sys.stderr.write("\r" + self._line(now))
+            sys.stderr.flush()
+            self._last = now
+        elif not self._tty and self.done >= self._next_fraction * self.total:
+            sys.stderr.write(self._line(now) + "\n")
+            self._next_fraction = np.floor(self.done / self.total * 10 + 1) / 10
+
+    def _line(self, now: float) -> str:
+        width = 24
+        filled = int(width * self.done / self.total)
+        rate = (self.done - self.cached) / max(now - self.start, 1e-9)
+        return (f"{self.label:<14} [{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
+                f"({self.cached} from log, {self.failed} failed, {rate:.1f} runs/s)")
+
+    def close(self) -> None:
+        if self.enabled and self._tty:
+            sys.stderr.write("\n")
+            sys.stderr.flush()
+
+
+class Evaluator:
+    """Evaluate a model's parameter vectors with an objective, cached by deck key and logged in run_dir.
+
+    model: has `deck(theta, **options) -> str`, `mesh_text`, `mesh_sha`; objective: has
+    `outputs(nodal_u, outdir) -> dict` (with "cost") and `fingerprint`. workers: local processes
+    (1 = in this process); scheduler: a Dask distributed address (then workers is ignored).
+    `launched` counts the engine runs of this session (not those replayed from the log)."""
+
+    def __init__(self, model, objective, run_dir: str | Path, *, workers: int = 1, scheduler: str | None = None,
+                 timeout_s: float = 120.0, threads: int = 1, progress: bool = True, keep_jobs: bool = False):
+        self.model, self.objective = model, objective
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.log = EvaluationLog(self.run_dir / LOG_NAME)
+        self.workers, self.scheduler = max(1, int(workers)), scheduler
+        self.timeout_s, self.threads, self.progress, self.keep_jobs = timeout_s, threads, progress, keep_jobs
+        self.launched = 0
+        self.replayed = 0
+        self._pool = None
+        self._client = None
+        self._remote_objective = None
+
+    # -- backends --
+    def _submit(self, tasks: list[EngineTask]) -> Iterable[dict]:
+        """Yield the records of tasks as they finish."""
+        if self.scheduler:
+            yield from self._submit_dask(tasks)
+        elif self.workers == 1:
+            for task in tasks:
+                yield execute_task(task, self.objective)
+        else:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(max_workers=self.workers, initializer=_install_objective,
+                                                 initargs=(self.objective,))
+            pending: set[Future] = {self._pool.submit(_execute_in_pool, task) for task in tasks}
+            while pending:
+                finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    yield future.result()
+
+    def _submit_dask(self, tasks: list[EngineTask]) -> Iterable[dict]:
+        from distributed import Client, as_completed
+
+        if self._client is None:
+            self._client = Client(self.scheduler, timeout=30, set_as_default=False)
+            self._remote_objective = self._client.scatter(self.objective, broadcast=True, hash=False)
+        futures = [self._client.submit(execute_task, task, self._remote_objective, pure=False) for task in tasks]
+        for future in as_completed(futures):
+            yield future.result()
+
+    def task(self, theta: Sequence[float], options: dict | None = None, tag: str = "") -> EngineTask | dict:
+        """The task of theta, or the record of a deck that cannot even be rendered (status bad_deck)."""
+        options = dict(options or {})
+        theta = tuple(float(v) for v in theta)
+        try:
+            text = self.model.deck(theta, **options)
+        except DeckError as error:
+            key = deck_key(json.dumps([theta, options]), self.model.mesh_sha, self.objective.fingerprint)
+            return {"key": key, "theta": list(theta), "options": options, "tag": tag, "status": BAD_DECK, "cost": None,
+                    "outputs": {}, "message": str(error), "newton_iterations": None, "time_s": 0.0,
+                    "finished_at": time.time()}
+        key = deck_key(text, self.model.mesh_sha, self.objective.fingerprint)
+        return EngineTask(key, theta, options, tag, text, self.model.mesh_text, self.model.mesh_sha,
+                          str(self.run_dir / "jobs"), self.timeout_s, self.threads, self.keep_jobs)
+
+    def evaluate(self, thetas: Sequence[Sequence[float]], *, options: dict | None = None, tag: str = "",
+                 label: str | None = None) -> list[dict]:
+        """Records (see execute_task) of every theta, in order; the finished ones come from the log."""
+        items = [self.task(theta, options, tag) for theta in thetas]
+        keys = [item.key for item in items]
+        progress = Progress(len(items), label or tag or "evaluations", self.progress and len(items) >= PROGRESS_MIN_BATCH)
+        todo: dict[str, EngineTask] = {}
+        for item in items:
+            if item.key in self.log.records or item.key in todo:
+                continue
+            if isinstance(item, dict):
+                self.log.append(item)
+            else:
+                todo[item.key] = item
+        for key in keys:
+            if key in self.log.records and key not in todo:
+                self.replayed += 1
+                progress.update(cached=True, failed=self.log.records[key]["status"] != OK)
+        try:
+            for record in self._submit(list(todo.values())):
+                self.launched += 1
+                self.log.append(record)
+                progress.update(failed=record["status"] != OK)
+        finally:
+            progress.close()
+        return [self.log.records[key] for key in keys]
+
+    def __call__(self, theta: Sequence[float], **options) -> dict:
+        return self.evaluate([theta], options=options, label=None)[0]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        self.log.close()
+
+    def __enter__(self) -> "Evaluator":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

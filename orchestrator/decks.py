@@ -1,0 +1,107 @@
+"""Input decks for calfit-fe, rendered from the jinja2 templates in `templates/` (StrictUndefined:
+a variable the caller forgets is an error, never an empty string in a deck).
+
+Two templates are in use: `leg_laplace.inp.j2`, the leg slice of the first paper (Avril et al.):
+clamped bones (sec. 2.2.2), the compressible neo-Hookean law W = C10 (I1bar - 3) + Kv [(J^2 - 1)/2
+- ln J] per tissue (eq. 2, keyword `*HYPERELASTIC, AVRIL`) and the garment pressure p = T / r of
+the Laplace law on the skin (eq. 1, `*LAPLACE PRESSURE`), with the `tension_profile` effect as a
+template variable; and `disk.inp.j2`, the disk under radial load of the second paper (Bouten and
+Drapier, sec. 3.4), an annulus clamped inside and pressed outside, linear elastic (`*ELASTIC`)
+or Mooney-Rivlin. The mesh is not in the deck: it is `*INCLUDE`d from `mesh.inp` beside it, so
+that one mesh serves thousands of decks. A deck's identity (cache key) is the SHA-256 of its
+text and of the mesh it includes (`deck_key`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+from typing import Iterable, Mapping, Sequence
+
+import jinja2
+
+TEMPLATE_DIR_ENV = "CALFIT_TEMPLATES"
+MESH_INCLUDE_NAME = "mesh.inp"
+ONE_INCREMENT = (1.0, 1.0, 1e-4, 1.0)  # initial dt, period, min dt, max dt: cut back only when needed
+KPA_PER_MPA = 1e3
+
+
+class DeckError(ValueError):
+    """A deck cannot be rendered from the given values (a missing variable, a non-positive constant)."""
+
+
+def template_dir() -> Path:
+    """The folder of the *.inp.j2 templates: $CALFIT_TEMPLATES, else `templates/` of the checkout."""
+    override = os.environ.get(TEMPLATE_DIR_ENV)
+    folder = Path(override) if override else Path(__file__).resolve().parent.parent / "templates"
+    if not folder.is_dir():
+        raise DeckError(f"deck templates not found in {folder}; set {TEMPLATE_DIR_ENV} to the calfit templates/ folder")
+    return folder
+
+
+def _environment() -> jinja2.Environment:
+    return jinja2.Environment(loader=jinja2.FileSystemLoader(str(template_dir())), undefined=jinja2.StrictUndefined,
+                              keep_trailing_newline=True, autoescape=False)
+
+
+def render(template_name: str, **variables) -> str:
+    """Render one template; an undefined variable raises DeckError naming the template."""
+    try:
+        return _environment().get_template(template_name).render(**variables)
+    except jinja2.UndefinedError as error:
+        raise DeckError(f"template {template_name}: {error}; pass it to decks.render") from None
+    except jinja2.TemplateNotFound:
+        raise DeckError(f"template {template_name} is not in {template_dir()}") from None
+
+
+def numbers(values: Iterable[float]) -> str:
+    """A data line of numbers with 10 significant digits."""
+    return ", ".join(f"{float(v):.10g}" for v in values)
+
+
+def _positive(name: str, values: Sequence[float]) -> None:
+    for value in values:
+        if not float(value) > 0.0:
+            raise DeckError(f"{name} must be positive, got {value!r}")
+
+
+def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tension_N_per_mm: float, *,
+                     tension_profile: Sequence[tuple[float, float]] | None = None,
+                     static: Sequence[float] = ONE_INCREMENT, max_increments: int = 50, description: str = "") -> str:
+    """The leg slice under the Laplace-law garment (Avril et al. eqs. 1-2).
+
+    materials: element set -> (law, constants in MPa), e.g. {"FAT": ("AVRIL", (C10, Kv))}.
+    tension_profile: the `tension_profile` effect, (angle in degrees, factor) pairs; None = constant T.
+    """
+    _positive("the garment tension", [tension_N_per_mm])
+    rows = []
+    for elset, (law, constants) in materials.items():
+        _positive(f"the constants of {elset}", constants)
+        rows.append({"name": elset, "elset": elset, "law": law, "constants": numbers(constants)})
+    profile = [(f"{a:.10g}", f"{f:.10g}") for a, f in tension_profile] if tension_profile else []
+    return render("leg_laplace.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
+                  tension=f"{tension_N_per_mm:.10g}", tension_profile=profile, static=numbers(static),
+                  max_increments=max_increments)
+
+
+def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_faces: Sequence[tuple[int, int]], *,
+              static: Sequence[float] = (0.5, 1.0, 1e-4, 0.5), max_increments: int = 50, description: str = "") -> str:
+    """The disk under radial load (Bouten and Drapier sec. 3.4). law: "ELASTIC" (constants E, nu) or a
+    *HYPERELASTIC option such as "MOONEY-RIVLIN" (C10, C01, D1); outer_faces: 1-based (element, face)."""
+    if law == "ELASTIC":
+        _positive("Young's modulus", constants[:1])
+    else:
+        _positive(f"the {law} constants", [c for c in constants if c != 0.0])
+    return render("disk.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME,
+                  material={"law": law, "constants": numbers(constants)}, pressure=f"{pressure_MPa:.10g}",
+                  outer_faces=list(outer_faces), static=numbers(static), max_increments=max_increments)
+
+
+def text_sha256(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def deck_key(deck_text: str, mesh_sha: str, outputs_fingerprint: str = "") -> str:
+    """Cache key of an evaluation: the deck, the mesh it includes and what is extracted from the results."""
+    return text_sha256("\n".join((deck_text, mesh_sha, outputs_fingerprint)))[:32]

@@ -1,0 +1,218 @@
+"""The forward model: parameters -> deck -> calfit-fe -> nodal displacement -> displacement anywhere.
+
+A model (`LegModel`, `DiskModel`) turns a parameter vector theta into the text of a deck
+(`orchestrator.decks`) for its mesh. The engine gives the nodal displacement u_a; the
+displacement at any point x of the reference configuration is the finite-element
+interpolation u(x) = sum_a N_a(x) u_a on the triangle that holds x (barycentric coordinates
+L1, L2, L3; T3: N_a = L_a; T6 with straight sides: N_a = L_a (2 L_a - 1) at the corners and
+4 L_a L_b at the mid-side nodes). `MeshInterpolator` assembles these weights once into a
+sparse matrix W, so that u at all the pixels of an image is one product W u: this is the
+u(x) of the warping I(x) = I1(x + u(x)) (Avril et al. sec. 2.1.2) and of the displacement
+residual at DIC points (Bouten and Drapier eq. 2). Points outside the mesh (background,
+bone holes) take the displacement of the nearest point of the nearest element (the bones'
+boundary is clamped, so bone pixels get u = 0).
+
+Parameters of the leg model (Avril et al. Table 1 order): C10 of fat, C10 of muscle, Kv of
+fat, Kv of muscle, in kPa (decks are in MPa).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from .decks import KPA_PER_MPA, disk_deck, leg_laplace_deck, text_sha256
+from .meshing import Mesh
+
+LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")
+# Avril et al. Table 2, central values (kPa): the phantom's default truth and the fits' usual start.
+TABLE2_CENTRAL_KPA = (4.5, 11.2, 106.0, 69.5)
+# Range of Monte-Carlo draws (kPa): around the spread of Avril et al. Table 1, widened.
+LEG_BOUNDS_KPA = ((1.0, 20.0), (3.0, 30.0), (30.0, 250.0), (20.0, 200.0))
+CANDIDATE_ELEMENTS = 8   # nearest element centroids searched for the triangle holding a point
+INSIDE_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class ParameterSpace:
+    """Named parameters with the box where Monte-Carlo draws are made (same units as theta)."""
+
+    names: tuple[str, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    units: str = "kPa"
+
+    def __post_init__(self):
+        if not (len(self.names) == len(self.lower) == len(self.upper)):
+            raise ValueError("a parameter space needs one lower and one upper bound per parameter")
+        if any(not 0 < lo < hi for lo, hi in zip(self.lower, self.upper)):
+            raise ValueError(f"bounds must satisfy 0 < lower < upper, got {list(zip(self.lower, self.upper))}")
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def draw(self, count: int, rng: np.random.Generator, lower=None, upper=None) -> np.ndarray:
+        """count uniform draws in the box (or in [lower, upper])."""
+        lo = np.asarray(self.lower if lower is None else lower, float)
+        hi = np.asarray(self.upper if upper is None else upper, float)
+        return lo + (hi - lo) * rng.random((count, self.size))
+
+    def as_dict(self, theta) -> dict[str, float]:
+        return {name: float(value) for name, value in zip(self.names, theta)}
+
+
+# --- interpolation of a nodal field --------------------------------------------------------------
+
+def _barycentric(nodes: np.ndarray, corners: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(..., 3) barycentric coordinates of points (..., 2) in triangles with corner indices (..., 3)."""
+    p1, p2, p3 = nodes[corners[..., 0]], nodes[corners[..., 1]], nodes[corners[..., 2]]
+    v1, v2, w = p2 - p1, p3 - p1, points - p1
+    det = v1[..., 0] * v2[..., 1] - v1[..., 1] * v2[..., 0]
+    l2 = (w[..., 0] * v2[..., 1] - w[..., 1] * v2[..., 0]) / det
+    l3 = (v1[..., 0] * w[..., 1] - v1[..., 1] * w[..., 0]) / det
+    return np.stack([1.0 - l2 - l3, l2, l3], axis=-1)
+
+
+def shape_functions(bary: np.ndarray, order: int) -> np.ndarray:
+    """(n, 3) or (n, 6) shape function values of T3 / straight-sided T6 at barycentric coordinates."""
+    if order == 1:
+        return bary
+    l1, l2, l3 = bary[:, 0], bary[:, 1], bary[:, 2]
+    return np.stack([l1 * (2 * l1 - 1), l2 * (2 * l2 - 1), l3 * (2 * l3 - 1), 4 * l1 * l2, 4 * l2 * l3, 4 * l3 * l1], axis=1)
+
+
+class MeshInterpolator:
+    """Finite-element interpolation of nodal fields of one mesh at fixed points: values = W @ nodal."""
+
+    def __init__(self, mesh: Mesh):
+        self.mesh = mesh
+        self._corners = mesh.elements[:, :3]
+        self._tree = cKDTree(mesh.nodes[self._corners].mean(axis=1))
+
+    def weights(self, points: np.ndarray) -> sparse.csr_matrix:
+        """Sparse (n_points, n_nodes) interpolation matrix at points (n, 2) in mm."""
+        points = np.asarray(points, float).reshape(-1, 2)
+        k = min(CANDIDATE_ELEMENTS, len(self._corners))
+        _, candidates = self._tree.query(points, k=k)
+        candidates = candidates.reshape(len(points), k)
+        bary = _barycentric(self.mesh.nodes, self._corners[candidates], points[:, None, :])   # (n, k, 3)
+        worst = bary.min(axis=2)
+        inside = worst >= -INSIDE_TOLERANCE
+        choice = np.where(inside.any(axis=1), inside.argmax(axis=1), worst.argmax(axis=1))
+        rows = np.arange(len(points))
+        element = candidates[rows, choice]
+        chosen = np.clip(bary[rows, choice], 0.0, None)   # outside: the nearest point of the element
+        chosen /= chosen.sum(axis=1, keepdims=True)
+        values = shape_functions(chosen, self.mesh.order)
+        columns = self.mesh.elements[element]
+        n_per_row = columns.shape[1]
+        return sparse.csr_matrix((values.ravel(), columns.ravel(), np.arange(0, values.size + 1, n_per_row)),
+                                 shape=(len(points), len(self.mesh.nodes)))
+
+    def pixel_weights(self, shape: tuple[int, int], pixel_size_mm: Sequence[float]) -> sparse.csr_matrix:
+        """Interpolation matrix at the pixel centres ((j + 0.5) dx, (i + 0.5) dy) of an image, row-major."""
+        dy, dx = (float(v) for v in pixel_size_mm)
+        rows, cols = np.indices(shape, dtype=float)
+        return self.weights(np.column_stack([((cols + 0.5) * dx).ravel(), ((rows + 0.5) * dy).ravel()]))
+
+
+def field_on_pixels(weights: sparse.csr_matrix, nodal: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(2, H, W) displacement on the pixel grid (component 0 along x) from a nodal (n, 2) field."""
+    values = weights @ np.asarray(nodal, float)
+    return np.ascontiguousarray(values.T.reshape(2, *shape))
+
+
+# --- models ----------------------------------------------------------------------------------------
+
+@dataclass
+class LegModel:
+    """The leg slice of Avril et al.: two tissues with the AVRIL law, clamped bones, Laplace garment."""
+
+    mesh: Mesh
+    tension_N_per_mm: float
+    tension_profile: Sequence[tuple[float, float]] | None = None
+    space: ParameterSpace = field(default_factory=lambda: ParameterSpace(
+        LEG_PARAMETERS, tuple(b[0] for b in LEG_BOUNDS_KPA), tuple(b[1] for b in LEG_BOUNDS_KPA)))
+
+    def __post_init__(self):
+        missing = {"FAT", "MUSCLE"} - set(self.mesh.element_sets())
+        if missing:
+            raise ValueError(f"the leg mesh has no {', '.join(sorted(missing))} elements; check the segmentation labels")
+        self.mesh_text = self.mesh.include_text()
+        self.mesh_sha = text_sha256(self.mesh_text)
+
+    def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None) -> str:
+        c10_fat, c10_muscle, kv_fat, kv_muscle = (float(v) / KPA_PER_MPA for v in theta)
+        tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
+        materials = {"FAT": ("AVRIL", (c10_fat, kv_fat)), "MUSCLE": ("AVRIL", (c10_muscle, kv_muscle))}
+        return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile,
+                                description=f"theta (kPa) = {list(map(float, theta))}, T = {tension:.6g} N/mm")
+
+
+def annulus_mesh(inner_radius_mm: float = 10.0, outer_radius_mm: float = 40.0, rings: int = 6,
+                 sectors: int = 36) -> Mesh:
+    """A structured T3 mesh of an annulus centred at the origin; node set BONES = the inner circle,
+    `skin_faces` (surface SKIN) = the outer circle. Elements are counter-clockwise in (x, y)."""
+    radii = np.linspace(inner_radius_mm, outer_radius_mm, rings + 1)
+    angles = np.linspace(0.0, 2 * np.pi, sectors, endpoint=False)
+    nodes = np.array([(r * np.cos(a), r * np.sin(a)) for r in radii for a in angles])
+    index = lambda ring, sector: ring * sectors + sector % sectors  # noqa: E731
+    elements, outer = [], []
+    for ring in range(rings):
+        for sector in range(sectors):
+            a, b = index(ring, sector), index(ring, sector + 1)
+            c, d = index(ring + 1, sector + 1), index(ring + 1, sector)
+            elements.append((a, d, c))
+            if ring == rings - 1:
+                outer.append((len(elements) - 1, 2))   # face 2 of (a, d, c) joins d to c: the outer circle
+            elements.append((a, c, b))
+    elements = np.array(elements, dtype=np.int64)
+    inner = np.arange(sectors)
+    return Mesh(nodes, elements, np.full(len(elements), 2), {"BONES": inner},
+                np.array(outer, dtype=np.int64), np.arange(rings * sectors, (rings + 1) * sectors))
+
+
+@dataclass
+class DiskModel:
+    """The disk under radial load of Bouten and Drapier (sec. 3.4): law ELASTIC (theta = E in kPa,
+    nu fixed) or MOONEY-RIVLIN (theta = C10, C01 in kPa, D1 fixed), outer pressure in kPa."""
+
+    law: str
+    pressure_kPa: float | None = None   # default: 3 kPa (ELASTIC, strains ~2 %, far from the St Venant-Kirchhoff
+                                        # limit point in compression) or 8 kPa (MOONEY-RIVLIN, finite strains ~10 %)
+    poisson: float = 0.3
+    d1_per_MPa: float = 20.0
+    mesh: Mesh = field(default_factory=annulus_mesh)
+
+    def __post_init__(self):
+        if self.law not in ("ELASTIC", "MOONEY-RIVLIN"):
+            raise ValueError(f"disk law must be ELASTIC or MOONEY-RIVLIN, not {self.law!r}")
+        if self.pressure_kPa is None:
+            self.pressure_kPa = 3.0 if self.law == "ELASTIC" else 8.0
+        names = ("E",) if self.law == "ELASTIC" else ("C10", "C01")
+        lower, upper = ((5.0,), (500.0,)) if self.law == "ELASTIC" else ((1.0, 1.0), (100.0, 100.0))
+        self.space = ParameterSpace(names, lower, upper)
+        self.mesh_text = self.mesh.include_text()
+        self.mesh_sha = text_sha256(self.mesh_text)
+
+    def deck(self, theta: Sequence[float]) -> str:
+        values = [float(v) / KPA_PER_MPA for v in theta]
+        constants = (values[0], self.poisson) if self.law == "ELASTIC" else (values[0], values[1], self.d1_per_MPa)
+        faces = [(int(e) + 1, int(k)) for e, k in self.mesh.skin_faces]
+        return disk_deck(self.law, constants, self.pressure_kPa / KPA_PER_MPA, faces,
+                         description=f"theta (kPa) = {list(map(float, theta))}")
+
+
+def write_mesh_include(model, folder: Path) -> Path:
+    """Write the model's mesh include into folder (atomically) and return its path."""
+    target = Path(folder) / "mesh.inp"
+    temporary = target.with_suffix(".inp.tmp")
+    temporary.write_text(model.mesh_text)
+    temporary.replace(target)
+    return target
