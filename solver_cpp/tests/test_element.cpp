@@ -3,6 +3,7 @@
 // objectivity of the internal force, load stiffness of the follower pressure and of
 // the Laplace-law membrane against finite differences, and p = T/R on a circle.
 #include "check.hpp"
+#include "element/mixed_element.hpp"
 #include "element/solid_element.hpp"
 #include "load/edge_loads.hpp"
 #include "material/laws.hpp"
@@ -33,6 +34,56 @@ NodeMatrix some_displacement(int n) {
   return u;
 }
 
+// Local unknowns: interleaved nodal displacements, then `pressures`.
+ElementVector unknowns(const NodeMatrix& u, const Eigen::VectorXd& pressures = Eigen::VectorXd()) {
+  ElementVector ue(2 * u.rows() + pressures.size());
+  for (Eigen::Index a = 0; a < u.rows(); ++a) ue.segment<2>(2 * a) = u.row(a).transpose();
+  ue.tail(pressures.size()) = pressures;
+  return ue;
+}
+
+// Tangent = d f / d(local unknowns) by central differences.
+void check_tangent(const Element& element, const ElementVector& ue) {
+  ElementVector f;
+  ElementMatrix K;
+  CHECK(element.internal_force(ue, f, &K));
+  const double h = 1e-6;
+  double worst = 0.0;
+  for (int b = 0; b < element.dof_count(); ++b) {
+    ElementVector up = ue, um = ue;
+    up[b] += h;
+    um[b] -= h;
+    ElementVector fp, fm;
+    element.internal_force(up, fp, nullptr);
+    element.internal_force(um, fm, nullptr);
+    worst = std::max(worst, ((fp - fm) / (2 * h) - K.col(b)).cwiseAbs().maxCoeff());
+  }
+  if (worst > 1e-6 * K.cwiseAbs().maxCoeff()) std::cerr << "tangent off by " << worst << '\n';
+  CHECK(worst <= 1e-6 * K.cwiseAbs().maxCoeff());
+  CHECK((K - K.transpose()).cwiseAbs().maxCoeff() <= 1e-10 * K.cwiseAbs().maxCoeff());  // hyperelastic: symmetric
+}
+
+void mixed_element_tests(const SplitHyperelastic& material, ElementShape shape, int degree) {
+  const NodeMatrix X = reference_nodes(shape);
+  const MixedElement element(shape, X, material, 1.3, degree);
+  const int n = node_count(shape);
+  Eigen::VectorXd p(element.pressure_count());
+  for (int k = 0; k < p.size(); ++k) p[k] = 0.3 - 0.2 * k;
+  check_tangent(element, unknowns(some_displacement(n), p));
+  // Rigid motion at zero pressure: no force and no volume-constraint residual.
+  Eigen::Matrix2d R;
+  R << std::cos(0.4), -std::sin(0.4), std::sin(0.4), std::cos(0.4);
+  NodeMatrix rigid(n, 2);
+  for (int a = 0; a < n; ++a) rigid.row(a) = (R * X.row(a).transpose() - X.row(a).transpose()).transpose();
+  ElementVector f;
+  CHECK(element.internal_force(unknowns(rigid, Eigen::VectorXd::Zero(p.size())), f, nullptr));
+  CHECK(f.cwiseAbs().maxCoeff() <= 1e-12);
+  // A constant pressure p0 in the undeformed element: Cauchy stress p0 I (plus nothing
+  // isochoric), so the element's written pressure -tr(sigma)/3 is -p0.
+  const ElementState s = element.state(unknowns(NodeMatrix::Zero(n, 2), Eigen::VectorXd::Constant(p.size(), 0.7)));
+  CHECK_NEAR(-s.cauchy.trace() / 3.0, -0.7, 1e-12);
+}
+
 void element_tests(const Material& material, ElementShape shape, int degree) {
   const NodeMatrix X = reference_nodes(shape);
   const SolidElement element(shape, X, material, 1.7, degree);
@@ -40,21 +91,8 @@ void element_tests(const Material& material, ElementShape shape, int degree) {
   const NodeMatrix u = some_displacement(n);
   ElementVector f;
   ElementMatrix K;
-  CHECK(element.internal_force(u, f, &K));
-
-  // Tangent = d f / d u by central differences.
-  const double h = 1e-6;
-  double worst = 0.0;
-  for (int b = 0; b < 2 * n; ++b) {
-    NodeMatrix up = u, um = u;
-    up(b / 2, b % 2) += h;
-    um(b / 2, b % 2) -= h;
-    ElementVector fp, fm;
-    element.internal_force(up, fp, nullptr);
-    element.internal_force(um, fm, nullptr);
-    worst = std::max(worst, ((fp - fm) / (2 * h) - K.col(b)).cwiseAbs().maxCoeff());
-  }
-  CHECK(worst <= 1e-6 * K.cwiseAbs().maxCoeff());
+  CHECK(element.internal_force(unknowns(u), f, &K));
+  check_tangent(element, unknowns(u));
 
   // Rigid motion: rotation by 0.7 rad and translation give no internal force.
   Eigen::Matrix2d R;
@@ -63,7 +101,7 @@ void element_tests(const Material& material, ElementShape shape, int degree) {
   for (int a = 0; a < n; ++a) rigid.row(a) = (R * X.row(a).transpose() - X.row(a).transpose()).transpose() +
                                              Eigen::RowVector2d(0.3, -0.2);
   ElementVector f_rigid;
-  CHECK(element.internal_force(rigid, f_rigid, nullptr));
+  CHECK(element.internal_force(unknowns(rigid), f_rigid, nullptr));
   CHECK(f_rigid.cwiseAbs().maxCoeff() <= 1e-12 * std::max(1.0, f.cwiseAbs().maxCoeff()));
 
   // Objectivity: x -> R x rotates every nodal force by R.
@@ -71,7 +109,7 @@ void element_tests(const Material& material, ElementShape shape, int degree) {
   for (int a = 0; a < n; ++a)
     rotated.row(a) = (R * (X.row(a) + u.row(a)).transpose()).transpose() - X.row(a);
   ElementVector f_rot;
-  CHECK(element.internal_force(rotated, f_rot, nullptr));
+  CHECK(element.internal_force(unknowns(rotated), f_rot, nullptr));
   double off = 0.0;
   for (int a = 0; a < n; ++a) off = std::max(off, (f_rot.segment<2>(2 * a) - R * f.segment<2>(2 * a)).cwiseAbs().maxCoeff());
   CHECK(off <= 1e-10 * f.cwiseAbs().maxCoeff());
@@ -142,6 +180,17 @@ int main() {
     element_tests(*m, ElementShape::T3, 1);
     element_tests(*m, ElementShape::T6, 2);
     element_tests(*m, ElementShape::T6, 4);
+  }
+  const SplitHyperelastic nearly_incompressible(
+      std::make_shared<MooneyRivlinIsochoric>(0.8, 0.2), std::make_shared<PolynomialVolumetric>(std::vector<double>{0.01}));
+  const SplitHyperelastic incompressible(std::make_shared<MooneyRivlinIsochoric>(0.8, 0.2),
+                                         std::make_shared<PolynomialVolumetric>(std::vector<double>{0.0}));
+  const SplitHyperelastic avril(std::make_shared<ReducedPolynomialIsochoric>(std::vector<double>{1.0}),
+                                std::make_shared<LogVolumetric>(50.0));
+  for (const SplitHyperelastic* m : {&nearly_incompressible, &incompressible, &avril}) {
+    mixed_element_tests(*m, ElementShape::T3, 1);
+    mixed_element_tests(*m, ElementShape::T6, 2);
+    mixed_element_tests(*m, ElementShape::T6, 4);
   }
   for (int n : {2, 3}) {
     edge_stiffness_test(n, [](const EdgeNodes& x, EdgeVector& f, EdgeMatrix* df) { follower_pressure_load(x, 0.7, f, df); });

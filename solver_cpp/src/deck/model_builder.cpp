@@ -205,16 +205,15 @@ private:
     needs_data(b);
     const std::string type = upper(b.required("TYPE"));
     ElementShape shape;
-    if (type == "CPE3") {
+    if (type == "CPE3" || type == "CPE3H") {
       shape = ElementShape::T3;
-    } else if (type == "CPE6") {
+    } else if (type == "CPE6" || type == "CPE6H") {
       shape = ElementShape::T6;
-    } else if (type == "CPE3H" || type == "CPE6H") {
-      throw DeckError(b.where, "hybrid u/p element " + type +
-                                   " is not available in this version of calfit-fe: use CPE3 or CPE6 with D1 > 0");
     } else {
-      throw DeckError(b.where, "unknown element type " + type + ": calfit-fe is plane strain (TYPE=CPE3 or CPE6)");
+      throw DeckError(b.where, "unknown element type " + type +
+                                   ": calfit-fe is plane strain (TYPE=CPE3, CPE6, or the hybrid CPE3H, CPE6H)");
     }
+    const bool hybrid = type.back() == 'H';
     const std::size_t n = static_cast<std::size_t>(node_count(shape));
     const std::optional<std::string> set = b.value("ELSET");
     for (const DataLine& line : b.data) {
@@ -227,6 +226,7 @@ private:
         throw DeckError(line.where, "element " + std::to_string(e.id) + " is defined twice");
       e.shape = shape;
       e.type = type;
+      e.hybrid = hybrid;
       e.where = line.where;
       for (std::size_t k = 1; k <= n; ++k) e.nodes.push_back(node(line.fields[k], line.where));
       if (std::set<int>(e.nodes.begin(), e.nodes.end()).size() != n)
@@ -627,9 +627,12 @@ private:
         throw DeckError(e.where, "element " + std::to_string(e.id) + " has no *SOLID SECTION (put it in an ELSET with one)");
       const SectionDef& s = model_.sections[e.section];
       const MaterialDef& m = model_.materials[s.material];
-      if (m.law->incompressible())
+      if (e.hybrid && !dynamic_cast<const SplitHyperelastic*>(m.law.get()))
+        throw DeckError(s.where, "hybrid element " + e.type + " needs a *HYPERELASTIC material (with a volumetric "
+                                 "part); material " + m.name + " is *ELASTIC");
+      if (!e.hybrid && m.law->incompressible())
         throw DeckError(s.where, "material " + m.name + " is incompressible (D = 0): displacement elements " + e.type +
-                                     " lock; give D1 > 0 (hybrid elements are not available in this version)");
+                                     " cannot represent it; use the hybrid " + e.type + "H or give D1 > 0");
       check_geometry(e);
     }
   }

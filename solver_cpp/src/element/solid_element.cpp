@@ -7,6 +7,27 @@ namespace {
 // Voigt positions of the in-plane components 11, 22, 12 in the 6x6 tangent.
 constexpr int kPlane[3] = {0, 1, 3};
 
+}  // namespace
+
+std::vector<ReferencePoint> reference_points(ElementShape shape, const NodeMatrix& X, double thickness,
+                                             int quadrature_degree, double* min_det) {
+  Eigen::VectorXd N;
+  Eigen::MatrixXd dN;
+  std::vector<ReferencePoint> points;
+  for (const QuadraturePoint& q : triangle_rule(quadrature_degree)) {
+    shape_functions(shape, q.xi, q.eta, N, dN);
+    const Eigen::Matrix2d J0 = X.transpose() * dN;  // dX/dxi
+    const double det = J0.determinant();
+    if (min_det) *min_det = points.empty() ? det : std::min(*min_det, det);
+    ReferencePoint p;
+    p.dN_dX = dN * J0.inverse();
+    p.L << 1.0 - q.xi - q.eta, q.xi, q.eta;
+    p.weight = q.weight * det * thickness;
+    points.push_back(p);
+  }
+  return points;
+}
+
 Eigen::Matrix2d deformation_gradient(const NodeMatrix& u, const NodeMatrix& dN_dX) {
   return Eigen::Matrix2d::Identity() + u.transpose() * dN_dX;
 }
@@ -17,81 +38,80 @@ Mat3 right_cauchy_green(const Eigen::Matrix2d& F) {
   return C;
 }
 
-}  // namespace
+Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> strain_operator(const Eigen::Matrix2d& F,
+                                                                                 const NodeMatrix& dN_dX) {
+  const int n = static_cast<int>(dN_dX.rows());
+  Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> B(3, 2 * n);
+  for (int a = 0; a < n; ++a) {
+    const double g1 = dN_dX(a, 0), g2 = dN_dX(a, 1);
+    for (int i = 0; i < 2; ++i) {
+      B(0, 2 * a + i) = F(i, 0) * g1;
+      B(1, 2 * a + i) = F(i, 1) * g2;
+      B(2, 2 * a + i) = F(i, 0) * g2 + F(i, 1) * g1;
+    }
+  }
+  return B;
+}
+
+void add_displacement_tangent(const ReferencePoint& p, const Eigen::Matrix2d& F, const Mat3& S, const Mat6& D,
+                              ElementMatrix& K) {
+  const int n = static_cast<int>(p.dN_dX.rows());
+  const auto B = strain_operator(F, p.dN_dX);
+  Eigen::Matrix3d D3;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) D3(r, c) = D(kPlane[r], kPlane[c]);
+  K.topLeftCorner(2 * n, 2 * n).noalias() += p.weight * B.transpose() * D3 * B;
+  const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6> G =
+      p.weight * p.dN_dX * S.topLeftCorner<2, 2>() * p.dN_dX.transpose();
+  for (int a = 0; a < n; ++a)
+    for (int b = 0; b < n; ++b) {
+      K(2 * a, 2 * b) += G(a, b);
+      K(2 * a + 1, 2 * b + 1) += G(a, b);
+    }
+}
+
+NodeMatrix nodal_displacements(const ElementVector& ue, int n_nodes) {
+  NodeMatrix u(n_nodes, 2);
+  for (int a = 0; a < n_nodes; ++a) u.row(a) << ue[2 * a], ue[2 * a + 1];
+  return u;
+}
 
 SolidElement::SolidElement(ElementShape shape, const NodeMatrix& X, const Material& material, double thickness,
                            int quadrature_degree)
-    : shape_(shape), material_(&material) {
-  Eigen::VectorXd N;
-  Eigen::MatrixXd dN;
-  bool first = true;
-  for (const QuadraturePoint& q : triangle_rule(quadrature_degree)) {
-    shape_functions(shape, q.xi, q.eta, N, dN);
-    const Eigen::Matrix2d J0 = X.transpose() * dN;  // dX/dxi
-    const double det = J0.determinant();
-    min_det_ = first ? det : std::min(min_det_, det);
-    first = false;
-    Point p;
-    p.dN_dX = dN * J0.inverse();
-    p.weight = q.weight * det * thickness;
-    points_.push_back(p);
-  }
-}
+    : shape_(shape), material_(&material), points_(reference_points(shape, X, thickness, quadrature_degree, &min_det_)) {}
 
 double SolidElement::reference_area() const {
   double area = 0.0;
-  for (const Point& p : points_) area += p.weight;
+  for (const ReferencePoint& p : points_) area += p.weight;
   return area;
 }
 
-bool SolidElement::internal_force(const NodeMatrix& u, ElementVector& f, ElementMatrix* K) const {
+bool SolidElement::internal_force(const ElementVector& ue, ElementVector& f, ElementMatrix* K) const {
   const int n = node_count(shape_);
+  const NodeMatrix u = nodal_displacements(ue, n);
   f.setZero(2 * n);
   if (K) K->setZero(2 * n, 2 * n);
   Mat3 S;
   Mat6 D;
-  for (const Point& p : points_) {
+  for (const ReferencePoint& p : points_) {
     const Eigen::Matrix2d F = deformation_gradient(u, p.dN_dX);
     if (F.determinant() <= 0.0) return false;
     material_->stress(right_cauchy_green(F), S, K ? &D : nullptr);
-    const Eigen::Matrix2d S2 = S.topLeftCorner<2, 2>();
-    const Eigen::Matrix2d P = F * S2;
+    const Eigen::Matrix2d P = F * S.topLeftCorner<2, 2>();
     for (int a = 0; a < n; ++a) f.segment<2>(2 * a) += p.weight * P * p.dN_dX.row(a).transpose();
-    if (!K) continue;
-
-    // B (3 x 2n): rows dE11, dE22, 2 dE12 per nodal displacement component.
-    Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> B(3, 2 * n);
-    for (int a = 0; a < n; ++a) {
-      const double g1 = p.dN_dX(a, 0), g2 = p.dN_dX(a, 1);
-      for (int i = 0; i < 2; ++i) {
-        B(0, 2 * a + i) = F(i, 0) * g1;
-        B(1, 2 * a + i) = F(i, 1) * g2;
-        B(2, 2 * a + i) = F(i, 0) * g2 + F(i, 1) * g1;
-      }
-    }
-    Eigen::Matrix3d D3;
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c) D3(r, c) = D(kPlane[r], kPlane[c]);
-    K->noalias() += p.weight * B.transpose() * D3 * B;
-    const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6> G =
-        p.weight * p.dN_dX * S2 * p.dN_dX.transpose();
-    for (int a = 0; a < n; ++a)
-      for (int b = 0; b < n; ++b) {
-        (*K)(2 * a, 2 * b) += G(a, b);
-        (*K)(2 * a + 1, 2 * b + 1) += G(a, b);
-      }
+    if (K) add_displacement_tangent(p, F, S, D, *K);
   }
   return true;
 }
 
-ElementState SolidElement::state(const NodeMatrix& u) const {
+ElementState SolidElement::state(const ElementVector& ue) const {
+  const NodeMatrix u = nodal_displacements(ue, node_count(shape_));
   ElementState out;
-  out.cauchy.setZero();
   out.J = 0.0;
   double volume = 0.0;
   Mat3 S;
   bool first = true;
-  for (const Point& p : points_) {
+  for (const ReferencePoint& p : points_) {
     const Eigen::Matrix2d F2 = deformation_gradient(u, p.dN_dX);
     Mat3 F = Mat3::Identity();
     F.topLeftCorner<2, 2>() = F2;

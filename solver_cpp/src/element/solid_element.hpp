@@ -7,51 +7,54 @@
 // (engineering shear) and D the material tangent (Voigt 11, 22, 12 block).
 #pragma once
 
+#include "element/element.hpp"
 #include "element/triangle.hpp"
-#include "material/material.hpp"
 
 #include <Eigen/Dense>
 #include <vector>
 
 namespace calfit {
 
-using NodeMatrix = Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::ColMajor, 6, 2>;      // nodes x 2
-using ElementVector = Eigen::Matrix<double, Eigen::Dynamic, 1, Eigen::ColMajor, 12, 1>;   // 2 nodes
-using ElementMatrix = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::ColMajor, 12, 12>;
-
-// State at the integration points, for output.
-struct ElementState {
-  Mat3 cauchy = Mat3::Zero();  // volume average of the Cauchy stress
-  double J = 1.0;              // volume average of det F
-  double min_J = 1.0;
+// Integration points of a T3/T6 in the reference configuration, shared by the
+// displacement and the mixed elements.
+struct ReferencePoint {
+  NodeMatrix dN_dX;       // nodes x 2
+  Eigen::Vector3d L;      // area coordinates (the P1 pressure shape functions)
+  double weight;          // quadrature weight x det J0 x thickness
 };
+std::vector<ReferencePoint> reference_points(ElementShape shape, const NodeMatrix& X, double thickness,
+                                             int quadrature_degree, double* min_det);
+Eigen::Matrix2d deformation_gradient(const NodeMatrix& u, const NodeMatrix& dN_dX);
+Mat3 right_cauchy_green(const Eigen::Matrix2d& F);
+// Rows dE11, dE22, 2 dE12 per nodal displacement component (3 x 2n).
+Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> strain_operator(const Eigen::Matrix2d& F,
+                                                                                 const NodeMatrix& dN_dX);
+// Adds w [B^T D B + geometric stiffness of S] into the displacement block of K.
+void add_displacement_tangent(const ReferencePoint& p, const Eigen::Matrix2d& F, const Mat3& S, const Mat6& D,
+                              ElementMatrix& K);
+// Nodal displacements (nodes x 2) from the interleaved local vector.
+NodeMatrix nodal_displacements(const ElementVector& ue, int n_nodes);
 
-class SolidElement {
+class SolidElement final : public Element {
 public:
   // X: reference coordinates of the element's nodes (nodes x 2).
   SolidElement(ElementShape shape, const NodeMatrix& X, const Material& material, double thickness,
                int quadrature_degree);
 
   ElementShape shape() const { return shape_; }
-  int dof_count() const { return 2 * node_count(shape_); }
+  int dof_count() const override { return 2 * node_count(shape_); }
   // Smallest det(dX/dxi) over the integration points, for mesh checks.
   double min_reference_jacobian() const { return min_det_; }
   double reference_area() const;
 
-  // Internal force f (dof_count) and, if K is given, the tangent, for nodal
-  // displacements u (nodes x 2). Returns false when det F <= 0 at a point.
-  bool internal_force(const NodeMatrix& u, ElementVector& f, ElementMatrix* K) const;
-  ElementState state(const NodeMatrix& u) const;
+  bool internal_force(const ElementVector& ue, ElementVector& f, ElementMatrix* K) const override;
+  ElementState state(const ElementVector& ue) const override;
 
 private:
-  struct Point {
-    Eigen::Matrix<double, Eigen::Dynamic, 2, Eigen::ColMajor, 6, 2> dN_dX;
-    double weight;  // quadrature weight x det J0 x thickness
-  };
   ElementShape shape_;
   const Material* material_;
-  std::vector<Point> points_;
-  double min_det_ = 0;
+  double min_det_ = 0;  // before points_: set while they are built
+  std::vector<ReferencePoint> points_;
 };
 
 }  // namespace calfit

@@ -66,13 +66,22 @@ double SplitHyperelastic::energy(const Mat3& C) const {
          vol_->evaluate(std::sqrt(I3)).U;
 }
 
-void SplitHyperelastic::stress(const Mat3& C, Mat3& S, Mat6* tangent) const {
+namespace {
+
+// U = 0: the isochoric response alone.
+class NoVolumetricEnergy final : public VolumetricEnergy {
+public:
+  VolumetricDerivatives evaluate(double) const override { return {}; }
+  std::string description() const override { return "none"; }
+};
+
+void invariant_stress(const IsochoricEnergy& iso, const VolumetricEnergy& vol, const Mat3& C, Mat3& S, Mat6* tangent) {
   const Mat3 I = Mat3::Identity();
   const double I1 = C.trace();
   const double I2 = 0.5 * (I1 * I1 - (C * C).trace());
   const double I3 = C.determinant();
   const Mat3 Cinv = C.inverse();
-  const InvariantDerivatives d = chain_rule(*iso_, *vol_, I1, I2, I3);
+  const InvariantDerivatives d = chain_rule(iso, vol, I1, I2, I3);
 
   const Mat3 A[3] = {I, I1 * I - C, I3 * Cinv};
   S = 2.0 * (d.first(0) * A[0] + d.first(1) * A[1] + d.first(2) * A[2]);
@@ -95,6 +104,31 @@ void SplitHyperelastic::stress(const Mat3& C, Mat3& S, Mat6* tangent) const {
     }
   }
   D *= 4.0;
+}
+
+}  // namespace
+
+void SplitHyperelastic::stress(const Mat3& C, Mat3& S, Mat6* tangent) const {
+  invariant_stress(*iso_, *vol_, C, S, tangent);
+}
+
+void SplitHyperelastic::isochoric_stress(const Mat3& C, Mat3& S, Mat6* tangent) const {
+  static const NoVolumetricEnergy none;
+  invariant_stress(*iso_, none, C, S, tangent);
+}
+
+double VolumetricEnergy::dilatation(double p) const {
+  if (is_constraint()) return 1.0;
+  double theta = 1.0;
+  for (int it = 0; it < 50; ++it) {
+    const VolumetricDerivatives u = evaluate(theta);
+    const double step = (u.dU - p) / u.d2U;
+    double next = theta - step;
+    if (next <= 0.0) next = 0.5 * theta;  // U is convex with U -> infinity as Theta -> 0
+    if (std::abs(next - theta) <= 1e-15 * theta) return next;
+    theta = next;
+  }
+  return theta;
 }
 
 StVenantKirchhoff::StVenantKirchhoff(double young, double poisson)

@@ -77,6 +77,14 @@ VolumetricDerivatives PolynomialVolumetric::evaluate(double J) const {
   return u;
 }
 
+double PolynomialVolumetric::dilatation(double p) const {
+  if (is_constraint()) return 1.0;
+  bool quadratic = true;
+  for (std::size_t k = 1; k < d_.size(); ++k) quadratic = quadratic && d_[k] == 0.0;
+  if (quadratic) return 1.0 + 0.5 * p * d_[0];  // U' = 2 (Theta - 1) / D1 = p
+  return VolumetricEnergy::dilatation(p);
+}
+
 std::string PolynomialVolumetric::description() const {
   std::ostringstream out;
   out << "polynomial volumetric (";
@@ -91,6 +99,12 @@ VolumetricDerivatives LogVolumetric::evaluate(double J) const {
   u.dU = k_ * (J - 1.0 / J);
   u.d2U = k_ * (1.0 + 1.0 / (J * J));
   return u;
+}
+
+double LogVolumetric::dilatation(double p) const {
+  if (is_constraint()) return 1.0;
+  const double q = p / k_;  // K (Theta - 1/Theta) = p: the positive root of Theta^2 - q Theta - 1
+  return 0.5 * (q + std::sqrt(q * q + 4.0));
 }
 
 std::string LogVolumetric::description() const {

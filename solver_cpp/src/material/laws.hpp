@@ -50,6 +50,7 @@ public:
   explicit PolynomialVolumetric(std::vector<double> d) : d_(std::move(d)) {}
   VolumetricDerivatives evaluate(double J) const override;
   bool is_constraint() const override { return d_.empty() || d_[0] == 0.0; }
+  double dilatation(double p) const override;
   std::string description() const override;
 
 private:
@@ -63,6 +64,7 @@ public:
   explicit LogVolumetric(double bulk) : k_(bulk) {}
   VolumetricDerivatives evaluate(double J) const override;
   bool is_constraint() const override { return k_ == 0.0; }
+  double dilatation(double p) const override;
   std::string description() const override;
 
 private:

@@ -53,6 +53,10 @@ public:
   virtual VolumetricDerivatives evaluate(double J) const = 0;
   // Incompressible limit: U is a constraint, not an energy (D1 = 0).
   virtual bool is_constraint() const { return false; }
+  // The dilatation Theta at which U'(Theta) = p, i.e. G'(p) for the Legendre transform
+  // G(p) = sup_Theta [p Theta - U(Theta)] that the mixed u/p element integrates; 1 for
+  // the incompressible constraint. Default: Newton's method from Theta = 1.
+  virtual double dilatation(double p) const;
   virtual std::string description() const = 0;
 };
 
@@ -68,6 +72,8 @@ public:
   std::string description() const override { return iso_->description() + " + " + vol_->description(); }
   const IsochoricEnergy& isochoric() const { return *iso_; }
   const VolumetricEnergy& volumetric() const { return *vol_; }
+  // Stress and tangent of W_iso alone (the mixed element adds p J C^-1 itself).
+  void isochoric_stress(const Mat3& C, Mat3& S, Mat6* tangent) const;
 
 private:
   std::shared_ptr<const IsochoricEnergy> iso_;

@@ -20,7 +20,8 @@ namespace calfit {
 struct ElementDef {
   int id = 0;
   ElementShape shape = ElementShape::T3;
-  std::string type;          // as in the deck: CPE3, CPE6
+  std::string type;          // as in the deck: CPE3, CPE6, CPE3H, CPE6H
+  bool hybrid = false;       // mixed u/p (the H types)
   std::vector<int> nodes;    // node indices
   int section = -1;
   SourceLocation where;      // the element's data line

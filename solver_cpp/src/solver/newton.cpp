@@ -1,6 +1,7 @@
 // Incremental Newton-Raphson solution: see newton.hpp.
 #include "solver/newton.hpp"
 
+#include "element/mixed_element.hpp"
 #include "load/edge_loads.hpp"
 
 #include <algorithm>
@@ -50,8 +51,13 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
 #ifdef _OPENMP
   if (settings_.threads > 0) omp_set_num_threads(settings_.threads);
 #endif
+  // Unknowns: the nodal displacements 0 .. 2 n_nodes - 1, then the pressures of the
+  // hybrid elements (one per corner node shared by CPE6H elements, one per CPE3H).
+  n_dofs_ = model.dof_count();
+  std::unordered_map<int, int> corner_pressure;
   for (const ElementDef& e : model.elements) {
     const SectionDef& s = model.sections[e.section];
+    const Material& law = *model.materials[s.material].law;
     const int degree = e.shape == ElementShape::T3 ? 1 : (s.full_integration ? 4 : 2);
     NodeMatrix X(node_count(e.shape), 2);
     std::vector<int> dofs;
@@ -60,10 +66,25 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
       dofs.push_back(2 * e.nodes[k]);
       dofs.push_back(2 * e.nodes[k] + 1);
     }
-    elements_.emplace_back(e.shape, X, *model.materials[s.material].law, s.thickness, degree);
+    if (!e.hybrid) {
+      elements_.push_back(std::make_unique<SolidElement>(e.shape, X, law, s.thickness, degree));
+    } else {
+      elements_.push_back(std::make_unique<MixedElement>(e.shape, X, dynamic_cast<const SplitHyperelastic&>(law),
+                                                         s.thickness, degree));
+      if (e.shape == ElementShape::T6) {
+        for (int k = 0; k < 3; ++k) {
+          const auto inserted = corner_pressure.emplace(e.nodes[k], n_dofs_);
+          if (inserted.second) ++n_dofs_;
+          dofs.push_back(inserted.first->second);
+        }
+      } else {
+        dofs.push_back(n_dofs_++);
+      }
+    }
     element_dofs_.push_back(std::move(dofs));
   }
-  u_.setZero(model.dof_count());
+  saddle_point_ = n_dofs_ > model.dof_count();
+  u_.setZero(n_dofs_);
   element_force_.resize(elements_.size());
   element_tangent_.resize(elements_.size());
 }
@@ -110,7 +131,7 @@ void StaticAnalysis::prepare_step(int step) {
   const LoadState& before = step > 0 ? model_.steps[step - 1].loads : nothing;
   const LoadState& now = model_.steps[step].loads;
 
-  std::vector<char> active(model_.dof_count(), 0);
+  std::vector<char> active(n_dofs_, 0);
   for (const std::vector<int>& dofs : element_dofs_)
     for (int d : dofs) active[d] = 1;
   std::vector<char> free = active;
@@ -119,7 +140,7 @@ void StaticAnalysis::prepare_step(int step) {
     free[dof] = 0;
     prescribed_.push_back({dof, u_[dof], value});
   }
-  system_ = std::make_unique<SparseSystem>(element_dofs_, free);
+  system_ = std::make_unique<SparseSystem>(element_dofs_, free, saddle_point_);
   free_dofs_ = system_->size();
 
   forces_.clear();
@@ -149,6 +170,13 @@ void StaticAnalysis::prepare_step(int step) {
   for (FaceLoad& f : laplace_faces(now, true)) laplace_faces_.push_back(std::move(f));
 }
 
+ElementVector StaticAnalysis::local_unknowns(const Eigen::VectorXd& u, int element) const {
+  const std::vector<int>& dofs = element_dofs_[element];
+  ElementVector ue(static_cast<Eigen::Index>(dofs.size()));
+  for (std::size_t k = 0; k < dofs.size(); ++k) ue[static_cast<Eigen::Index>(k)] = u[dofs[k]];
+  return ue;
+}
+
 void StaticAnalysis::apply_prescribed(Eigen::VectorXd& u, double lambda) const {
   for (const Ramp& r : prescribed_) u[r.dof] = ramp(r.start, r.end, lambda);
 }
@@ -159,15 +187,13 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   int failures = 0;
 #pragma omp parallel for schedule(static) reduction(+ : failures)
   for (int e = 0; e < n_elements; ++e) {
-    const std::vector<int>& dofs = element_dofs_[e];
-    NodeMatrix ue(static_cast<Eigen::Index>(dofs.size() / 2), 2);
-    for (Eigen::Index k = 0; k < ue.rows(); ++k) ue.row(k) << u[dofs[2 * k]], u[dofs[2 * k + 1]];
-    if (!elements_[e].internal_force(ue, element_force_[e], tangent ? &element_tangent_[e] : nullptr)) ++failures;
+    if (!elements_[e]->internal_force(local_unknowns(u, e), element_force_[e], tangent ? &element_tangent_[e] : nullptr))
+      ++failures;
   }
   Evaluation ev;
   if (failures > 0) return ev;
 
-  residual_.setZero(model_.dof_count());
+  residual_.setZero(n_dofs_);
   if (tangent) system_->set_zero();
   for (int e = 0; e < n_elements; ++e) {
     const std::vector<int>& dofs = element_dofs_[e];
@@ -175,7 +201,7 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
     if (tangent) system_->add(e, element_tangent_[e]);
   }
 
-  f_ext_.setZero(model_.dof_count());
+  f_ext_.setZero(n_dofs_);
   for (const Ramp& r : forces_) f_ext_[r.dof] += ramp(r.start, r.end, lambda);
 
   // Face loads act on the current configuration; their stiffness enters with a minus
@@ -209,7 +235,7 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   const double internal_norm = residual_.norm();
   residual_ -= f_ext_;
   double free_norm2 = 0.0;
-  for (int d = 0; d < model_.dof_count(); ++d)
+  for (int d = 0; d < n_dofs_; ++d)
     if (system_->equation(d) >= 0) free_norm2 += residual_[d] * residual_[d];
   ev.ok = std::isfinite(free_norm2);
   ev.norm = std::sqrt(free_norm2);
@@ -241,7 +267,7 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
         rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
         return false;
       }
-      for (int d = 0; d < model_.dof_count(); ++d)
+      for (int d = 0; d < n_dofs_; ++d)
         if (system_->equation(d) >= 0) rhs[system_->equation(d)] = -residual_[d];
       bool solved;
       {
@@ -257,8 +283,8 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
         return false;
       }
       linear_solver_ = system_->solver_name();
-      Eigen::VectorXd full = Eigen::VectorXd::Zero(model_.dof_count());
-      for (int d = 0; d < model_.dof_count(); ++d)
+      Eigen::VectorXd full = Eigen::VectorXd::Zero(n_dofs_);
+      for (int d = 0; d < n_dofs_; ++d)
         if (system_->equation(d) >= 0) full[d] = du[system_->equation(d)];
 
       // Backtracking line search on |R|: full step first, halved while it fails to
@@ -339,15 +365,12 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
 
 FieldOutput StaticAnalysis::output() {
   FieldOutput out;
-  out.displacement = u_;
+  const int n_displacements = model_.dof_count();
+  out.displacement = u_.head(n_displacements);
   evaluate(u_, last_lambda_, false);
-  out.reaction = residual_;
-  for (std::size_t e = 0; e < elements_.size(); ++e) {
-    const std::vector<int>& dofs = element_dofs_[e];
-    NodeMatrix ue(static_cast<Eigen::Index>(dofs.size() / 2), 2);
-    for (Eigen::Index k = 0; k < ue.rows(); ++k) ue.row(k) << u_[dofs[2 * k]], u_[dofs[2 * k + 1]];
-    out.element_states.push_back(elements_[e].state(ue));
-  }
+  out.reaction = residual_.head(n_displacements);
+  for (std::size_t e = 0; e < elements_.size(); ++e)
+    out.element_states.push_back(elements_[e]->state(local_unknowns(u_, static_cast<int>(e))));
   // Nodal garment pressure: the Laplace load's nodal force over the node's consistent
   // length, along the node's outward normal.
   const int n_nodes = static_cast<int>(model_.coordinates.size());

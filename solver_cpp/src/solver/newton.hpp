@@ -84,7 +84,11 @@ private:
 
   const Model& model_;
   SolverSettings settings_;
-  std::vector<SolidElement> elements_;
+  ElementVector local_unknowns(const Eigen::VectorXd& u, int element) const;
+
+  std::vector<std::unique_ptr<Element>> elements_;
+  int n_dofs_ = 0;            // displacements, then hybrid pressures
+  bool saddle_point_ = false;  // hybrid elements make the tangent indefinite
   std::vector<std::vector<int>> element_dofs_;
   Eigen::VectorXd u_;  // committed displacement
   double last_lambda_ = 0.0;  // load fraction of u_ within its step

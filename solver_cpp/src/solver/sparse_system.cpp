@@ -2,12 +2,14 @@
 #include "solver/sparse_system.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 
 namespace calfit {
 
-SparseSystem::SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free)
-    : equation_(free.size(), -1), element_dofs_(element_dofs) {
+SparseSystem::SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free,
+                           bool saddle_point)
+    : equation_(free.size(), -1), element_dofs_(element_dofs), saddle_point_(saddle_point) {
   int n = 0;
   for (std::size_t d = 0; d < free.size(); ++d)
     if (free[d]) equation_[d] = n++;
@@ -70,12 +72,42 @@ bool SparseSystem::symmetric() const {
   return asymmetry <= 1e-12 * largest;
 }
 
+bool SparseSystem::accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const {
+  return x.allFinite() && (matrix_ * x - b).norm() <= 1e-8 * std::max(b.norm(), 1e-300);
+}
+
+bool SparseSystem::solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+  if (!ldlt_) {
+    ldlt_ = std::make_unique<Eigen::CholmodDecomposition<Eigen::SparseMatrix<double>, Eigen::Lower>>();
+    ldlt_->setMode(Eigen::CholmodLDLt);
+    ldlt_->analyzePattern(matrix_);
+  }
+  ldlt_->factorize(matrix_);
+  if (ldlt_->info() != Eigen::Success) return false;
+  x = ldlt_->solve(b);
+  solver_name_ = "cholmod-ldlt";
+  return ldlt_->info() == Eigen::Success && accurate(b, x);
+}
+
+bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+  if (!lu_) {
+    lu_ = std::make_unique<Eigen::UmfPackLU<Eigen::SparseMatrix<double>>>();
+    lu_->analyzePattern(matrix_);
+  }
+  lu_->factorize(matrix_);
+  if (lu_->info() != Eigen::Success) return false;
+  x = lu_->solve(b);
+  solver_name_ = "umfpack";
+  return lu_->info() == Eigen::Success && x.allFinite();
+}
+
 bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (size() == 0) {
     x.resize(0);
     return true;
   }
-  if (symmetric()) {
+  const bool is_symmetric = symmetric();
+  if (!saddle_point_ && is_symmetric) {
     if (!cholesky_) {
       cholesky_ = std::make_unique<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>>();
       cholesky_->analyzePattern(matrix_);
@@ -87,15 +119,29 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       if (cholesky_->info() == Eigen::Success && x.allFinite()) return true;
     }
   }
-  if (!lu_) {
-    lu_ = std::make_unique<Eigen::UmfPackLU<Eigen::SparseMatrix<double>>>();
-    lu_->analyzePattern(matrix_);
+  if (saddle_point_ && is_symmetric && choice_ != Choice::Lu) {
+    if (choice_ == Choice::Ldlt) {
+      if (solve_ldlt(b, x)) return true;
+      choice_ = Choice::Lu;  // a zero pivot: D1 = 0 or an instability
+    } else {
+      using clock = std::chrono::steady_clock;
+      const auto t0 = clock::now();
+      Eigen::VectorXd x_ldlt;
+      const bool ldlt_ok = solve_ldlt(b, x_ldlt);
+      const auto t1 = clock::now();
+      const bool lu_ok = solve_lu(b, x);
+      const auto t2 = clock::now();
+      choice_ = ldlt_ok && (!lu_ok || t1 - t0 < t2 - t1) ? Choice::Ldlt : Choice::Lu;
+      if (choice_ == Choice::Ldlt) {
+        x = x_ldlt;
+        solver_name_ = "cholmod-ldlt";
+        return true;
+      }
+      solver_name_ = "umfpack";
+      return lu_ok;
+    }
   }
-  lu_->factorize(matrix_);
-  if (lu_->info() != Eigen::Success) return false;
-  x = lu_->solve(b);
-  solver_name_ = "umfpack";
-  return lu_->info() == Eigen::Success && x.allFinite();
+  return solve_lu(b, x);
 }
 
 }  // namespace calfit

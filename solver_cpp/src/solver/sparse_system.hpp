@@ -3,7 +3,10 @@
 // connectivity, per-element scatter maps into its value array (so assembly is a
 // plain indexed add), and the direct solve: CHOLMOD supernodal LL^T when the
 // assembled tangent is symmetric positive definite, UMFPACK LU otherwise (follower
-// loads make it unsymmetric; a loss of definiteness near an instability too).
+// loads make it unsymmetric; a loss of definiteness near an instability too). The
+// saddle-point systems of the hybrid elements are symmetric indefinite: on the first
+// solve both CHOLMOD's LDL^T (no pivoting: valid for the quasi-definite D1 > 0 case,
+// and checked by its residual) and UMFPACK are timed, and the faster valid one is kept.
 #pragma once
 
 #include <Eigen/Sparse>
@@ -18,7 +21,8 @@ namespace calfit {
 class SparseSystem {
 public:
   // element_dofs[e]: global dofs of element e in its local order; free[dof]: unknown or prescribed.
-  SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free);
+  SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free,
+               bool saddle_point = false);
 
   int size() const { return static_cast<int>(matrix_.rows()); }
   int equation(int dof) const { return equation_[dof]; }  // -1 when prescribed
@@ -40,7 +44,15 @@ private:
   Eigen::SparseMatrix<double> matrix_;
   std::unique_ptr<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>> cholesky_;
   std::unique_ptr<Eigen::UmfPackLU<Eigen::SparseMatrix<double>>> lu_;
+  std::unique_ptr<Eigen::CholmodDecomposition<Eigen::SparseMatrix<double>, Eigen::Lower>> ldlt_;
+  enum class Choice { Undecided, Ldlt, Lu };
+  bool saddle_point_ = false;
+  Choice choice_ = Choice::Undecided;
   std::string solver_name_ = "none";
+
+  bool solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x);
+  bool solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x);
+  bool accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const;
 };
 
 template <typename Block>
