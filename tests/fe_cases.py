@@ -28,6 +28,7 @@ class Mesh:
     nsets: dict[str, np.ndarray] = field(default_factory=dict)  # name -> 0-based node indices
     surfaces: dict[str, list[tuple[int, int]]] = field(default_factory=dict)  # name -> (elem idx, face 1..3)
     elsets: dict[str, np.ndarray] = field(default_factory=dict)  # name -> 0-based element indices
+    hybrid: bool = False  # mixed u/p elements CPE3H / CPE6H
 
     @property
     def order(self) -> int:
@@ -35,7 +36,7 @@ class Mesh:
 
     @property
     def etype(self) -> str:
-        return "CPE3" if self.order == 1 else "CPE6"
+        return ("CPE3" if self.order == 1 else "CPE6") + ("H" if self.hybrid else "")
 
     @property
     def n_dof(self) -> int:
@@ -168,6 +169,40 @@ def macneal_harder_patch(order: int) -> Mesh:
     return Mesh(nodes, np.array(elems), nsets={"BOUNDARY": np.flatnonzero(on_b), "INTERIOR": np.flatnonzero(~on_b)})
 
 
+COOK_CORNERS = np.array([(0.0, 0.0), (48.0, 44.0), (48.0, 60.0), (0.0, 44.0)])
+
+
+def cook_membrane(n: int, order: int, hybrid: bool = False) -> Mesh:
+    """Cook's membrane: the quadrilateral (0,0), (48,44), (48,60), (0,44) mapped from an
+    n x n grid. nsets LEFT (clamped edge), RIGHT (loaded edge, ordered bottom to top), TIP (48, 60)."""
+    P = COOK_CORNERS
+
+    def coords(s, t):
+        w = [(1 - s) * (1 - t), s * (1 - t), s * t, (1 - s) * t]
+        return sum(wk * P[k, 0] for k, wk in enumerate(w)), sum(wk * P[k, 1] for k, wk in enumerate(w))
+
+    nodes, elems, grid = _grid_triangles(n, n, order, coords)
+    m = order * n
+    right = np.flatnonzero(grid[:, 0] == m)
+    mesh = Mesh(nodes, elems, hybrid=hybrid)
+    mesh.nsets = {
+        "LEFT": np.flatnonzero(grid[:, 0] == 0),
+        "RIGHT": right[np.argsort(grid[right, 1])],
+        "TIP": np.flatnonzero((grid[:, 0] == m) & (grid[:, 1] == m)),
+    }
+    return mesh
+
+
+def edge_loads(order: int, n_segments: int, total: float) -> np.ndarray:
+    """Consistent nodal forces of a uniform traction of resultant `total` on a straight
+    edge of n_segments equal element faces (nodes ordered along the edge)."""
+    weights = np.array([0.5, 0.5]) if order == 1 else np.array([1.0, 4.0, 1.0]) / 6.0
+    forces = np.zeros(order * n_segments + 1)
+    for k in range(n_segments):
+        forces[order * k : order * k + order + 1] += weights * total / n_segments
+    return forces
+
+
 def ring(nr: int, nt: int, order: int, A: float = 1.0, outer=(2.0, 2.0), quarter: bool = False) -> Mesh:
     """Ring between the circle of radius A and the ellipse with semi-axes outer = (a, b).
 
@@ -247,6 +282,7 @@ def deck(
     *,
     fixed: list[tuple[str, int, int]] = (),
     prescribed: list[tuple[int | str, int, float]] = (),
+    cloads: list[tuple[int, int, float]] = (),
     pressure: list[tuple[str, float]] = (),
     laplace: list[tuple[str, float]] = (),
     static: tuple[float, float, float, float] = (0.1, 1.0, 1e-5, 0.1),
@@ -260,7 +296,8 @@ def deck(
     law: one Law for the whole mesh (elset EALL) or {elset: Law}. fixed: (nset or node
     index, first dof, last dof) fixed to zero before the step. prescribed: (node index or
     nset, dof, value) inside the step. pressure: (surface, p) follower *DLOAD. laplace:
-    (surface, T) the project keyword *LAPLACE PRESSURE (not CalculiX).
+    (surface, T) the project keyword *LAPLACE PRESSURE (not CalculiX). cloads: (node
+    index, dof, force) dead loads.
     """
     text = [f"*HEADING\n{heading}\n", mesh_text(mesh)]
     for s in sorted({s for s, _ in laplace}):  # *DLOAD lists element faces, ccx needs no surface
@@ -276,6 +313,8 @@ def deck(
     text.append(f"*STEP, NLGEOM, INC={inc}\n*STATIC\n" + ", ".join(fmt(v) for v in static) + "\n")
     if prescribed:
         text.append("*BOUNDARY\n" + "".join(f"{_ref(n)}, {d}, {d}, {fmt(v)}\n" for n, d, v in prescribed))
+    if cloads:
+        text.append("*CLOAD\n" + "".join(f"{n + 1}, {d}, {fmt(v)}\n" for n, d, v in cloads))
     for s, p in pressure:
         text.append(dload_text(mesh, s, p))
     for s, T in laplace:
