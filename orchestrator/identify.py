@@ -11,10 +11,10 @@ The optimizers work on x = ln(theta) (positive parameters, relative steps), thro
   evaluated in parallel; step (J^T J + lambda diag J^T J) dx = -J^T r, lambda divided by 3 on
   success and multiplied by 4 on failure.
 - `multistart`: Nelder-Mead from several initial values (Avril et al. Table 1).
-- `monte_carlo`: draws in a box, kept when the misfit is below a threshold; the ranges of the
-  kept draws are the parameter intervals and their midpoints the central values (sec. 2.2.6,
-  3.1, Table 2). A parameter whose kept draws fill most of the drawn range is poorly
-  identified (the first paper found the fat C10 weak).
+- `monte_carlo`: draws around the identified point, kept when the misfit is below a threshold;
+  the ranges of the kept draws are the parameter intervals and their midpoints the central
+  values (sec. 2.2.6, 3.1, Table 2). A parameter whose kept values span a wide range is
+  poorly identified (the first paper found the fat C10 weak).
 - `pressure_uncertainty`: N draws uniformly in the intervals, pressure at the landmarks:
   mean, standard deviation, coefficient of variation (sec. 4.2, Table 3); `tension_sensitivity`:
   central values with the garment tension +-10% (sec. 4.5, Table 4).
@@ -32,7 +32,9 @@ from scipy import optimize
 from .runner import OK, Evaluator
 
 FD_STEP = 1e-3           # forward-difference step in ln(theta): 0.1 %
-POORLY_IDENTIFIED_SPAN = 0.5   # kept draws span more than half the drawn range (in ln theta)
+MAX_EXPLORED_FACTOR = 2.0      # Monte-Carlo draws within best / 2 .. best * 2
+PROFILE_OFFSETS = np.array([-1.0, -0.5, -0.25, -0.125, 0.125, 0.25, 0.5, 1.0])   # in units of ln(max factor)
+POORLY_IDENTIFIED_RATIO = 1.5  # kept values span more than a factor 1.5 (upper / lower)
 
 
 @dataclass
@@ -87,7 +89,8 @@ def nelder_mead(evaluator: Evaluator, start: Sequence[float], *, xatol: float = 
 
 def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_iterations: int = 50,
                         xtol: float = 1e-4, ftol: float = 1e-10, lam: float = 1e-3) -> FitResult:
-    """Levenberg-Marquardt on the residual vector `outputs["residuals"]` of the evaluator's objective."""
+    """Levenberg-Marquardt on the residual vector `outputs["residuals"]` of the evaluator's objective
+    (chi^2 = r.r); the reported cost and history are the objective's own cost (F, eq. 2)."""
     launched0, replayed0, began = evaluator.launched, evaluator.replayed, time.perf_counter()
     x = np.log(np.asarray(start, float))
     p = len(x)
@@ -95,12 +98,11 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     def residuals(record: dict) -> np.ndarray | None:
         return np.asarray(record["outputs"]["residuals"]) if record["status"] == OK else None
 
-    first = evaluator(np.exp(x))
-    r = residuals(first)
+    current = evaluator(np.exp(x))
+    r = residuals(current)
     if r is None:
-        raise RuntimeError(f"the engine failed at the start point {list(start)}: {first['message']}")
-    cost, history = float(r @ r) / len(r), []
-    history.append(cost)
+        raise RuntimeError(f"the engine failed at the start point {list(start)}: {current['message']}")
+    chi2, history = float(r @ r), [float(current["cost"])]
     evaluations, converged, message, iteration = 1, False, "maximum number of iterations reached", 0
     for iteration in range(1, max_iterations + 1):
         probes = [np.exp(x + FD_STEP * np.eye(p)[j]) for j in range(p)]
@@ -118,12 +120,11 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
             trial = evaluator(np.exp(x + step))
             evaluations += 1
             r_trial = residuals(trial)
-            trial_cost = float(r_trial @ r_trial) / len(r_trial) if r_trial is not None else np.inf
-            if trial_cost < cost:
-                x, r, lam, improved = x + step, r_trial, max(lam / 3.0, 1e-12), True
-                relative_drop = (cost - trial_cost) / max(cost, 1e-300)
-                cost = trial_cost
-                history.append(cost)
+            trial_chi2 = float(r_trial @ r_trial) if r_trial is not None else np.inf
+            if trial_chi2 < chi2:
+                relative_drop = (chi2 - trial_chi2) / max(chi2, 1e-300)
+                x, r, chi2, current, lam, improved = x + step, r_trial, trial_chi2, trial, max(lam / 3.0, 1e-12), True
+                history.append(float(current["cost"]))
                 break
             lam *= 4.0
         if not improved:
@@ -132,10 +133,9 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
         if np.max(np.abs(step)) < xtol or relative_drop < ftol:
             converged, message = True, "step or misfit change below tolerance"
             break
-    # r has 2N entries (x and y at N points), so r.r / len(r) is F of Bouten and Drapier eq. 2 (sigma = 1 mm)
-    return FitResult("levenberg-marquardt", list(map(float, start)), np.exp(x).tolist(), cost, iteration, evaluations,
-                     evaluator.launched - launched0, evaluator.replayed - replayed0, time.perf_counter() - began, converged,
-                     message, history)
+    return FitResult("levenberg-marquardt", list(map(float, start)), np.exp(x).tolist(), float(current["cost"]),
+                     iteration, evaluations, evaluator.launched - launched0, evaluator.replayed - replayed0,
+                     time.perf_counter() - began, converged, message, history)
 
 
 def table1_starts(central: Sequence[float], spread: float = 0.1, extra: Sequence[Sequence[float]] = ()) -> list[list[float]]:
@@ -160,9 +160,11 @@ class MonteCarloResult:
     """Kept draws (misfit <= threshold) and the intervals they span (Avril et al. Table 2)."""
 
     names: list[str]
+    best: list[float]
+    best_cost: float
+    threshold: float
     draws: int
     failed: int
-    threshold: float
     box_lower: list[float]
     box_upper: list[float]
     lower: list[float]
@@ -173,34 +175,59 @@ class MonteCarloResult:
     samples: list[list[float]]
     costs: list[float | None]
     failures: list[dict]
+    wall_time_s: float
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
-def monte_carlo(evaluator: Evaluator, names: Sequence[str], box_lower: Sequence[float], box_upper: Sequence[float],
-                draws: int, threshold: float, seed: int = 0, log_uniform: bool = True) -> MonteCarloResult:
-    """Draw parameters in the box (log-uniform by default), keep those with misfit <= threshold."""
+def monte_carlo(evaluator: Evaluator, names: Sequence[str], best: Sequence[float], best_cost: float, *,
+                draws: int = 400, threshold: float | None = None, threshold_factor: float = 1.5, seed: int = 0,
+                max_factor: float = MAX_EXPLORED_FACTOR) -> MonteCarloResult:
+    """Monte-Carlo intervals around an identified point (Avril et al. sec. 2.2.6).
+
+    1. Profiles: the misfit along each parameter axis through `best`, at best * max_factor**s for
+       s in PROFILE_OFFSETS (one parallel batch); the box of the draws reaches, on each side, 1.5 times
+       the first offset whose misfit exceeds the threshold (at most max_factor).
+    2. `draws` log-uniform draws in that box (one parallel batch); those with misfit <= threshold
+       are kept, and their ranges (with the kept profile points) are the intervals.
+    A parameter is poorly identified when its kept values span more than POORLY_IDENTIFIED_RATIO
+    (upper / lower) or reach the edge of the explored range (best * max_factor**+-1).
+    """
+    began = time.perf_counter()
+    best = np.asarray(best, float)
+    threshold = float(threshold if threshold is not None else threshold_factor * best_cost)
+    p = len(best)
+    span = np.log(max_factor)
+    offsets = PROFILE_OFFSETS * span
+    profile_thetas = [best * np.exp(offset * np.eye(p)[j]) for j in range(p) for offset in offsets]
+    profile = evaluator.evaluate(profile_thetas, tag="profile", label="profiles")
+    profile_costs = np.array([_cost(rec) for rec in profile]).reshape(p, len(offsets))
+    box_low, box_high = np.empty(p), np.empty(p)
+    for j in range(p):
+        below = [o for o, c in zip(offsets, profile_costs[j]) if o < 0 and c > threshold]
+        above = [o for o, c in zip(offsets, profile_costs[j]) if o > 0 and c > threshold]
+        box_low[j] = max(1.5 * max(below), -span) if below else -span
+        box_high[j] = min(1.5 * min(above), span) if above else span
     rng = np.random.default_rng(seed)
-    lo, hi = np.log(box_lower) if log_uniform else np.asarray(box_lower), np.log(box_upper) if log_uniform else np.asarray(box_upper)
-    samples = lo + (hi - lo) * rng.random((draws, len(names)))
-    thetas = np.exp(samples) if log_uniform else samples
+    logs = np.log(best) + box_low + (box_high - box_low) * rng.random((draws, p))
+    thetas = np.exp(logs)
     records = evaluator.evaluate(thetas.tolist(), tag="monte-carlo", label="Monte-Carlo")
     costs = np.array([_cost(rec) for rec in records])
-    kept = costs <= threshold
+    all_thetas = np.vstack([thetas, np.array(profile_thetas), best[None, :]])
+    all_costs = np.concatenate([costs, profile_costs.ravel(), [best_cost]])
+    kept = all_costs <= threshold
+    lower, upper = all_thetas[kept].min(axis=0), all_thetas[kept].max(axis=0)
+    edge = (np.log(upper / best) >= span * 0.999) | (np.log(best / lower) >= span * 0.999)
+    poorly = [name for name, ratio, at_edge in zip(names, upper / lower, edge)
+              if ratio > POORLY_IDENTIFIED_RATIO or at_edge]
     failures = [{"theta": rec["theta"], "status": rec["status"], "message": rec["message"]}
-                for rec in records if rec["status"] != OK]
-    if kept.any():
-        lower, upper = thetas[kept].min(axis=0), thetas[kept].max(axis=0)
-        span = (np.log(upper) - np.log(lower)) / (np.log(box_upper) - np.log(box_lower))
-        poorly = [name for name, s in zip(names, span) if s > POORLY_IDENTIFIED_SPAN]
-    else:
-        lower = upper = np.full(len(names), np.nan)
-        poorly = list(names)
-    return MonteCarloResult(list(names), draws, len(failures), float(threshold), list(map(float, box_lower)),
-                            list(map(float, box_upper)), lower.tolist(), upper.tolist(), ((lower + upper) / 2).tolist(),
-                            int(kept.sum()), poorly, thetas.tolist(), [None if not np.isfinite(c) else float(c) for c in costs],
-                            failures)
+                for rec in profile + records if rec["status"] != OK]
+    return MonteCarloResult(list(names), best.tolist(), float(best_cost), threshold, draws, len(failures),
+                            (best * np.exp(box_low)).tolist(), (best * np.exp(box_high)).tolist(), lower.tolist(),
+                            upper.tolist(), ((lower + upper) / 2).tolist(), int(kept[:draws].sum()), poorly,
+                            thetas.tolist(), [None if not np.isfinite(c) else float(c) for c in costs], failures,
+                            time.perf_counter() - began)
 
 
 @dataclass

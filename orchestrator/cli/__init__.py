@@ -7,11 +7,16 @@ from __future__ import annotations
 
 import argparse
 
-from . import _demo, _solve
+from . import _demo, _identify, _montecarlo, _phantom, _pressures, _report, _solve
 
 COMMANDS = {
     "demo": _demo,
+    "phantom": _phantom,
     "solve": _solve,
+    "identify": _identify,
+    "montecarlo": _montecarlo,
+    "pressures": _pressures,
+    "report": _report,
 }
 
 

@@ -1,26 +1,39 @@
-"""The built-in demonstration: a leg-like calf slice (fat and muscle, clamped tibia
-and fibula) under a garment of tension T, with the Laplace law p = T / r on the skin
-(Avril et al. eq. 1) and the compressible neo-Hookean law of Avril et al. (eq. 2) at the
-central values of their Table 2. It writes the deck, solves it with calfit-fe and prints
-the result summary and the pressures transmitted to the tissues.
+"""The demonstration, end to end on a phantom case made by the engine:
 
-    calfit demo [--out DIR] [--elements N] [--order 1|2] [--tension T]
+    calfit demo [--out DIR] [--workers N]
+
+1. `calfit phantom`: a calf slice whose loaded image is computed by calfit-fe with the
+   Avril law at the central values of Avril et al. Table 2 and a garment of 0.16 N/mm
+   (about 20 mmHg), with image noise and noisy measured displacements (points.csv);
+2. `calfit identify --method lm --starts table1`: Levenberg-Marquardt on the displacement
+   residual F (Bouten and Drapier eq. 2) from the starts of Avril et al. Table 1;
+3. `calfit montecarlo`: intervals (Table 2) and which parameters are poorly identified;
+4. `calfit pressures`: the five landmark pressures, their spread (Table 3) and the garment
+   tension +-10 % (Table 4);
+5. `calfit report`: the HTML page; its path is printed last.
+The phantom and every evaluation are kept in DIR, so running the demo again resumes.
+
+`calfit demo --leg-slice` runs the earlier quick demonstration instead: the analytic leg slice
+solved once at the Table 2 central values, with the pressures it transmits.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
-import numpy as np
 
 from ..meshing import leg_slice_deck
+from ..pipeline import fit_summary, intervals_summary, pressure_summary, run_identify, run_montecarlo, run_pressures
+from ..report import write_report
 from ..results import EngineResults
 from ..runner import run_engine
+from ..study import PARAMETERS_FILE, make_phantom_case, read_json
 from ._solve import describe
 
-HELP = "solve the built-in leg slice end to end and print the result"
+HELP = "phantom case -> identification -> uncertainty -> HTML report (or --leg-slice: one solve)"
 
 # Avril et al. (2010), Table 2, central values, in MPa: (C10, Kv).
 TABLE2_CENTRAL = {"FAT": ("AVRIL", (4.5e-3, 106e-3)), "MUSCLE": ("AVRIL", (11.2e-3, 69.5e-3))}
@@ -28,28 +41,67 @@ KPA_PER_MPA = 1e3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="demo-out", help="folder for the deck and results (default: demo-out)")
-    parser.add_argument("--elements", type=int, default=5500, help="number of elements (default 5500, as paper 2)")
-    parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="1: CPE3, 2: CPE6 (default)")
-    parser.add_argument(
-        "--tension", type=float, default=0.16, help="garment tension in N/mm (default 0.16, about 20 mmHg)"
-    )
+    parser.add_argument("--out", default="demo-out", help="folder for the case, the run and the report (default demo-out)")
+    parser.add_argument("--workers", type=int, default=2, help="engine evaluations in parallel (default 2)")
+    parser.add_argument("--draws", type=int, default=400, help="Monte-Carlo draws (default 400)")
+    parser.add_argument("--leg-slice", action="store_true", help="only solve the analytic leg slice once")
+    parser.add_argument("--elements", type=int, default=5500, help="--leg-slice: number of elements (default 5500)")
+    parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="--leg-slice: 1: CPE3, 2: CPE6 (default)")
+    parser.add_argument("--tension", type=float, default=0.16, help="garment tension in N/mm (default 0.16, about 20 mmHg)")
 
 
 def run(args: argparse.Namespace) -> int:
+    return run_leg_slice(args) if args.leg_slice else run_full(args)
+
+
+def _say(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def run_full(args: argparse.Namespace) -> int:
+    began = time.perf_counter()
+    out = Path(args.out)
+    case_dir, truth_dir, run_dir = out / "case", out / "case.truth", out / "run"
+    if not (case_dir / "case.toml").is_file():
+        _say(f"[1/5] phantom case made by the engine -> {case_dir}")
+        make_phantom_case(case_dir, truth_dir, tension_N_per_mm=args.tension, overwrite=True)
+    else:
+        _say(f"[1/5] reusing the phantom case in {case_dir}")
+    truth = read_json(truth_dir / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
+    _say("[2/5] identification: Levenberg-Marquardt on F from the starts of Table 1")
+    identification = run_identify(case_dir, run_dir, method="lm", objective="displacement", starts="table1",
+                                  workers=args.workers)
+    names = identification["parameters"]
+    _say("[3/5] Monte-Carlo intervals")
+    montecarlo = run_montecarlo(run_dir, draws=args.draws, workers=args.workers)
+    _say("[4/5] landmark pressures: 30 draws in the intervals, tension +-10 %")
+    pressures = run_pressures(run_dir, workers=args.workers)
+    _say("[5/5] report")
+    page = write_report(run_dir, truth)
+    best = identification["best"]
+    print(fit_summary(best, names))
+    print("truth:      " + ", ".join(f"{n} = {truth[n]:.3f}" for n in names) + " kPa")
+    print("error:      " + ", ".join(f"{n} {100 * (v - truth[n]) / truth[n]:+.1f} %" for n, v in zip(names, best["theta"])))
+    print("\n".join(intervals_summary(montecarlo)))
+    print("\n".join(pressure_summary(pressures)))
+    print(f"demo finished in {time.perf_counter() - began:.0f} s")
+    print(f"report: {page}")
+    return 0
+
+
+def run_leg_slice(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     deck = out / "leg_slice.inp"
-    print(f"writing {deck} ({args.elements} elements, garment tension {args.tension} N/mm)", file=sys.stderr)
+    _say(f"writing {deck} ({args.elements} elements, garment tension {args.tension} N/mm)")
     leg_slice_deck(deck, n_elements=args.elements, order=args.order, materials=TABLE2_CENTRAL,
                    laplace_tension=args.tension)
     outcome = run_engine(deck, out / "results", threads=None, echo=True)
     results = EngineResults(outcome.outdir)
     print(describe(results))
-    mesh = results.mesh()
-    pressure = np.asarray(mesh.cell_data["pressure"][0]).ravel() * KPA_PER_MPA
-    material = np.asarray(mesh.cell_data["material_id"][0]).ravel().astype(int)
-    skin = np.asarray(mesh.point_data["laplace_pressure"]).ravel() * KPA_PER_MPA
+    pressure = results.cell_field("pressure") * KPA_PER_MPA
+    material = results.cell_field("material_id").astype(int)
+    skin = results.point_field("laplace_pressure") * KPA_PER_MPA
     for index, name in enumerate(TABLE2_CENTRAL, start=1):
         p = pressure[material == index]
         print(f"{name.lower():<11} hydrostatic pressure {p.min():.2f} .. {p.max():.2f} kPa (mean {p.mean():.2f})")

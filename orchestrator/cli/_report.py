@@ -1,0 +1,34 @@
+"""Write the HTML report of a run (figures as Avril et al. Figs. 1, 2, 4, 5 and Tables 1-4).
+
+    calfit report RUN_DIR [--truth TRUTH_DIR]
+
+Needs identification.json, montecarlo.json and pressures.json in RUN_DIR. With --truth (a phantom's
+truth folder) the true parameters are shown beside the intervals. Prints the page's path.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ..report import write_report
+from ..study import PARAMETERS_FILE, RunFolderError, read_json
+from ._common import fail
+
+HELP = "write the run's HTML report with its figures and tables"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run_dir", help="run folder")
+    parser.add_argument("--truth", help="truth folder of a phantom case (shows the true parameters)")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        truth = (read_json(Path(args.truth) / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
+                 if args.truth else None)
+        page = write_report(args.run_dir, truth)
+    except (RunFolderError, ValueError, RuntimeError) as error:
+        return fail(str(error))
+    print(page)
+    return 0

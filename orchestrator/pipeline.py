@@ -1,0 +1,119 @@
+"""The stages of a run, each reading and writing JSON files in the run folder (what the CLI calls).
+
+identify (RUN_DIR/identification.json): Nelder-Mead or Levenberg-Marquardt from one start or
+from the starts of Avril et al. Table 1, on the contour mismatch M (sec. 2.2.5) or the
+displacement residual F (Bouten and Drapier eq. 2); montecarlo (montecarlo.json): intervals
+around the best fit (Table 2); pressures (pressures.json): landmark pressures over draws in the
+intervals and with the tension +-10 % (Tables 3 and 4). Every engine evaluation goes through
+one `runner.Evaluator` per stage on the run's log (evaluations.jsonl), so any stage interrupted
+and started again resumes without repeating an evaluation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .forward import TABLE2_CENTRAL_KPA
+from .identify import levenberg_marquardt, monte_carlo, multistart, nelder_mead, pressure_uncertainty, table1_starts
+from .runner import LOG_NAME, EvaluationLog, Evaluator
+from .study import RunSetup, load_run, prepare_run, read_json, write_json
+
+OBJECTIVES = ("mismatch", "displacement")
+
+
+def choose_objective(setup: RunSetup, objective: str, method: str) -> str:
+    if objective == "auto":
+        objective = "displacement" if (method == "lm" or setup.case.points is not None) else "mismatch"
+    if method == "lm" and objective != "displacement":
+        raise ValueError("Levenberg-Marquardt needs a residual vector: use --objective displacement (points.csv)")
+    return objective
+
+
+def _objective(setup: RunSetup, name: str):
+    return setup.mismatch_objective() if name == "mismatch" else setup.displacement_objective()
+
+
+def run_identify(case_dir, run_dir, *, method: str = "nm", objective: str = "auto", start: Sequence[float] | None = None,
+                 starts: str = "one", n_elements: int = 400, workers: int = 1, scheduler: str | None = None,
+                 timeout_s: float = 120.0, progress: bool = True) -> dict:
+    """Prepare (or reload) the run folder and identify; returns and writes identification.json."""
+    run_dir = Path(run_dir)
+    setup = load_run(run_dir) if (run_dir / "setup.json").is_file() else prepare_run(case_dir, run_dir, n_elements=n_elements)
+    objective = choose_objective(setup, objective, method)
+    start = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
+    start_points = table1_starts(start) if starts == "table1" else [start]
+    with Evaluator(setup.model, _objective(setup, objective), run_dir, workers=workers, scheduler=scheduler,
+                   timeout_s=timeout_s, progress=progress) as evaluator:
+        if method == "lm":
+            fits = [levenberg_marquardt(evaluator, s) for s in start_points]
+        else:
+            fits = multistart(evaluator, start_points)
+    best = min(fits, key=lambda fit: fit.cost)
+    result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
+              "parameters": list(setup.model.space.names), "units": setup.model.space.units,
+              "best": best.as_dict(), "fits": [fit.as_dict() for fit in fits],
+              "engine_runs_total": len(EvaluationLog(run_dir / LOG_NAME))}
+    write_json(run_dir / "identification.json", result)
+    return result
+
+
+def run_montecarlo(run_dir, *, draws: int = 400, threshold: float | None = None, threshold_factor: float = 1.5,
+                   seed: int = 0, workers: int = 1, scheduler: str | None = None, timeout_s: float = 120.0,
+                   progress: bool = True) -> dict:
+    run_dir = Path(run_dir)
+    setup = load_run(run_dir)
+    identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
+    best = identification["best"]
+    with Evaluator(setup.model, _objective(setup, identification["objective"]), run_dir, workers=workers,
+                   scheduler=scheduler, timeout_s=timeout_s, progress=progress) as evaluator:
+        result = monte_carlo(evaluator, identification["parameters"], best["theta"], best["cost"], draws=draws,
+                             threshold=threshold, threshold_factor=threshold_factor, seed=seed).as_dict()
+    write_json(run_dir / "montecarlo.json", result)
+    return result
+
+
+def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, scheduler: str | None = None,
+                  timeout_s: float = 120.0, progress: bool = True) -> dict:
+    run_dir = Path(run_dir)
+    setup = load_run(run_dir)
+    montecarlo = read_json(run_dir / "montecarlo.json", "calfit montecarlo RUN_DIR")
+    objective = setup.pressure_objective()
+    with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
+                   progress=progress) as evaluator:
+        stats = pressure_uncertainty(evaluator, objective.names, montecarlo["lower"], montecarlo["upper"],
+                                     montecarlo["central"], setup.case.tension_N_per_mm, draws=draws,
+                                     tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
+    result = stats.as_dict()
+    write_json(run_dir / "pressures.json", result)
+    return result
+
+
+def pressure_summary(result: dict) -> list[str]:
+    """Human lines of Table 3 and Table 4."""
+    lines = [f"{'landmark':<18} {'mean kPa':>9} {'std':>6} {'CV %':>6} | {'T':>6} {'T+10%':>7} {'T-10%':>7}"]
+    for k, name in enumerate(result["landmarks"]):
+        lines.append(f"{name:<18} {result['mean_kPa'][k]:9.2f} {result['std_kPa'][k]:6.2f} {result['cv_percent'][k]:6.1f} | "
+                     f"{result['central_kPa'][k]:6.2f} {result['plus_kPa'][k]:7.2f} {result['minus_kPa'][k]:7.2f}")
+    return lines
+
+
+def intervals_summary(result: dict) -> list[str]:
+    lines = [f"{'parameter':<12} {'lower':>8} {'upper':>8} {'central':>8}  identification"]
+    for k, name in enumerate(result["names"]):
+        flag = "POOR" if name in result["poorly_identified"] else "good"
+        lines.append(f"{name:<12} {result['lower'][k]:8.2f} {result['upper'][k]:8.2f} {result['central'][k]:8.2f}  {flag}")
+    return lines
+
+
+def fit_summary(fit: dict, names: Sequence[str]) -> str:
+    values = ", ".join(f"{n} = {v:.3f}" for n, v in zip(names, fit["theta"]))
+    return (f"{fit['method']}: {values} kPa; misfit {fit['cost']:.5g}; {fit['iterations']} iterations, "
+            f"{fit['evaluations']} evaluations, {fit['engine_runs']} engine runs ({fit['from_log']} from the log), "
+            f"{fit['wall_time_s']:.1f} s")
+
+
+def relative_errors(theta: Sequence[float], truth: Sequence[float]) -> np.ndarray:
+    return np.abs(np.asarray(theta) - np.asarray(truth)) / np.asarray(truth)

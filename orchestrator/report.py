@@ -1,0 +1,197 @@
+"""The report of a run: one HTML page with PNG figures and the analogues of the first paper's tables.
+
+Figures (drawn with numpy + scikit-image, written by imageio): the two images (Avril et al.
+Fig. 1), the segmentation with the mesh (Fig. 2), the warped image I(x) = I1(x + u(x)) at the
+identified parameters beside the target I0 with the map of the contour distances d_k (Fig. 4,
+sec. 2.2.5), and the hydrostatic pressure -tr(sigma)/3 at the central values with the five
+landmarks (Fig. 5). Tables: the identifications from the start points (Table 1), the
+Monte-Carlo intervals and which parameters are poorly identified (Table 2), the landmark
+pressures with their spread over draws in the intervals (Table 3) and with the garment
+tension +-10 % (Table 4). The page is written to a temporary name and renamed.
+"""
+
+from __future__ import annotations
+
+import html
+import shutil
+import tempfile
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+from skimage.draw import line as draw_line, disk as draw_disk
+
+from .forward import MeshInterpolator, field_on_pixels, write_mesh_include
+from .imaging.warp import warp_image
+from .results import EngineResults
+from .runner import run_engine
+from .study import load_run, read_json
+
+MMHG_PER_KPA = 7.50062
+LABEL_COLOURS = np.array([[0, 0, 0], [235, 200, 120], [190, 70, 60], [240, 240, 240]] + [[150, 60, 90]] * 8, np.uint8)
+RAMP = np.array([[48, 18, 59], [40, 120, 250], [30, 210, 160], [160, 250, 60], [250, 190, 40], [200, 30, 10]], float)
+
+
+def colour_ramp(values: np.ndarray, low: float, high: float) -> np.ndarray:
+    """RGB uint8 of values on a blue-green-red ramp between low and high."""
+    t = np.clip((np.asarray(values, float) - low) / max(high - low, 1e-12), 0.0, 1.0) * (len(RAMP) - 1)
+    rgb = np.stack([np.interp(t, np.arange(len(RAMP)), RAMP[:, k]) for k in range(3)], axis=-1)
+    return rgb.astype(np.uint8)
+
+
+def grey(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image, float)
+    low, high = np.percentile(image, [1, 99.5])
+    g = (np.clip((image - low) / max(high - low, 1e-12), 0, 1) * 255).astype(np.uint8)
+    return np.repeat(g[..., None], 3, axis=2)
+
+
+def colour_bar(low: float, high: float, height: int, width: int = 16) -> np.ndarray:
+    values = np.linspace(high, low, height)[:, None].repeat(width, axis=1)
+    return colour_ramp(values, low, high)
+
+
+def draw_mesh(canvas: np.ndarray, mesh, pixel_size_mm, colour=(20, 20, 20)) -> np.ndarray:
+    dy, dx = pixel_size_mm
+    rc = np.column_stack([mesh.nodes[:, 1] / dy - 0.5, mesh.nodes[:, 0] / dx - 0.5]).round().astype(int)
+    h, w = canvas.shape[:2]
+    for tri in mesh.elements[:, :3]:
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            rr, cc = draw_line(*rc[tri[a]], *rc[tri[b]])
+            keep = (rr >= 0) & (rr < h) & (cc >= 0) & (cc < w)
+            canvas[rr[keep], cc[keep]] = colour
+    return canvas
+
+
+def mark(canvas: np.ndarray, positions_mm, pixel_size_mm, colour=(255, 255, 255)) -> np.ndarray:
+    dy, dx = pixel_size_mm
+    for number, (x, y) in enumerate(positions_mm, start=1):
+        rr, cc = draw_disk((y / dy - 0.5, x / dx - 0.5), 4 + 0 * number, shape=canvas.shape[:2])
+        canvas[rr, cc] = (0, 0, 0)
+        rr, cc = draw_disk((y / dy - 0.5, x / dx - 0.5), 2.5, shape=canvas.shape[:2])
+        canvas[rr, cc] = colour
+    return canvas
+
+
+def _side_by_side(*panels: np.ndarray, gap: int = 6) -> np.ndarray:
+    height = max(p.shape[0] for p in panels)
+    parts = []
+    for panel in panels:
+        padded = np.full((height, panel.shape[1], 3), 255, np.uint8)
+        padded[: panel.shape[0]] = panel
+        parts += [padded, np.full((height, gap, 3), 255, np.uint8)]
+    return np.concatenate(parts[:-1], axis=1)
+
+
+def _table(header: list[str], rows: list[list]) -> str:
+    def cell(value):
+        return f"{value:.4g}" if isinstance(value, float) else html.escape(str(value))
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in row) + "</tr>" for row in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def central_solution(setup, theta, folder: Path) -> EngineResults:
+    """Solve the run's model at theta, keeping the VTU (pressure field) in folder."""
+    folder.mkdir(parents=True, exist_ok=True)
+    write_mesh_include(setup.model, folder)
+    deck = folder / "deck.inp"
+    deck.write_text(setup.model.deck(theta))
+    outcome = run_engine(deck, folder / "out", threads=1, timeout_s=300)
+    if not outcome.converged:
+        raise RuntimeError(f"the engine did not converge at the central values {list(theta)}")
+    return EngineResults(outcome.outdir)
+
+
+def write_report(run_dir: str | Path, truth: dict | None = None) -> Path:
+    """Write RUN_DIR/report/index.html (and its PNGs) from the run's JSON files; returns the page's path."""
+    run_dir = Path(run_dir)
+    setup = load_run(run_dir)
+    identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
+    montecarlo = read_json(run_dir / "montecarlo.json", "calfit montecarlo RUN_DIR")
+    pressures = read_json(run_dir / "pressures.json", "calfit pressures RUN_DIR")
+    final = run_dir / "report"
+    staging = Path(tempfile.mkdtemp(prefix=".report.", dir=run_dir))
+    case, px = setup.case, setup.case.pixel_size_mm
+    names = identification["parameters"]
+    theta = identification["best"]["theta"]
+
+    iio.imwrite(staging / "images.png", _side_by_side(grey(case.unloaded), grey(case.loaded)))
+    labels_rgb = LABEL_COLOURS[np.clip(setup.labels_unloaded, 0, len(LABEL_COLOURS) - 1)].copy()
+    iio.imwrite(staging / "segmentation_mesh.png", draw_mesh(labels_rgb, setup.mesh, px))
+
+    nodal = central_solution(setup, theta, staging / "identified").displacement()
+    mismatch = setup.mismatch_objective()
+    field = field_on_pixels(mismatch.weights, nodal, case.shape)
+    result = mismatch.mismatch(field)
+    warped = warp_image(setup.loaded_aligned, field, px)
+    d_max = float(np.nanmax(result.distance_mm)) if np.isfinite(result.distance_mm).any() else 1.0
+    d_map = grey(case.unloaded) // 3
+    on = np.isfinite(result.distance_mm)
+    d_map[on] = colour_ramp(result.distance_mm[on], 0.0, d_max)
+    iio.imwrite(staging / "warped_dk.png", _side_by_side(grey(warped), grey(case.unloaded), d_map,
+                                                         colour_bar(0.0, d_max, case.shape[0])))
+
+    central = montecarlo["central"]
+    results = central_solution(setup, central, staging / "central")
+    weights = MeshInterpolator(setup.mesh).pixel_weights(case.shape, px)
+    pressure = (weights @ results.point_field("pressure")).reshape(case.shape) * 1e3
+    inside = setup.labels_unloaded > 0
+    inside &= setup.labels_unloaded != 3
+    low, high = np.percentile(pressure[inside], [1, 99])
+    p_map = np.full((*case.shape, 3), 255, np.uint8)
+    p_map[inside] = colour_ramp(pressure[inside], low, high)
+    landmarks = [case.landmarks[name] for name in pressures["landmarks"]]
+    iio.imwrite(staging / "pressure.png", _side_by_side(mark(p_map, landmarks, px), colour_bar(low, high, case.shape[0])))
+
+    fits = identification["fits"]
+    table1 = _table(["start " + n for n in names] + ["misfit"] + ["found " + n for n in names] + ["iterations", "engine runs"],
+                    [f["start"] + [f["cost"]] + f["theta"] + [f["iterations"], f["engine_runs"]] for f in fits])
+    poorly = montecarlo["poorly_identified"]
+    rows2 = [["lower bound"] + montecarlo["lower"], ["upper bound"] + montecarlo["upper"],
+             ["central value"] + montecarlo["central"], ["identified"] + theta]
+    if truth:
+        rows2.append(["truth (phantom)"] + [truth[n] for n in names])
+    rows2.append(["identification"] + ["POOR" if n in poorly else "good" for n in names])
+    table2 = _table([""] + [f"{n} (kPa)" for n in names], rows2)
+    table3 = _table(["landmark", "mean (kPa)", "mean (mmHg)", "std (kPa)", "CV (%)"],
+                    [[n, m, m * MMHG_PER_KPA, s, c] for n, m, s, c in
+                     zip(pressures["landmarks"], pressures["mean_kPa"], pressures["std_kPa"], pressures["cv_percent"])])
+    table4 = _table(["landmark", "pressure (kPa)", "T +10 % (kPa)", "deviation (%)", "T -10 % (kPa)", "deviation (%)"],
+                    [[n, b, p, dp, m, dm] for n, b, p, dp, m, dm in
+                     zip(pressures["landmarks"], pressures["central_kPa"], pressures["plus_kPa"],
+                         pressures["plus_deviation_percent"], pressures["minus_kPa"], pressures["minus_deviation_percent"])])
+    failures = montecarlo["failed"] + pressures["failed"]
+    poorly_text = (f"Poorly identified: <b>{', '.join(poorly)}</b> (their accepted values span more than a factor "
+                   f"1.5 or reach the edge of the explored range); the pressures below carry that uncertainty."
+                   if poorly else "All parameters are well identified (accepted values within a factor 1.5).")
+    page = f"""<!doctype html><html><head><meta charset="utf-8"><title>calfit report: {html.escape(case.name)}</title>
+<style>body{{font-family:sans-serif;max-width:1400px;margin:2em}} table{{border-collapse:collapse;margin:1em 0}}
+td,th{{border:1px solid #999;padding:3px 8px;text-align:right}} img{{max-width:100%}}</style></head><body>
+<h1>calfit report: {html.escape(case.name)}</h1>
+<p>Case <code>{html.escape(str(case.folder))}</code>; garment tension {case.tension_N_per_mm:g} N/mm;
+mesh {len(setup.mesh.elements)} {setup.mesh.element_type} elements; objective {html.escape(identification['objective'])},
+method {html.escape(identification['method'])}; {identification['engine_runs_total']} engine runs in the log,
+{failures} failed evaluation(s) recorded (not converged, bad deck or timeout).</p>
+<h2>Images (unloaded I0, loaded I1)</h2><img src="images.png">
+<h2>Segmentation and mesh</h2><img src="segmentation_mesh.png">
+<h2>Warped image at the identified parameters, target I0, contour distances d_k (0 to {d_max:.2f} mm)</h2>
+<p>M = sum d_k^2 = {result.value_mm2:.1f} mm^2 over {result.contour_pixel_count} contour pixels (rms {result.rms_mm:.3f} mm).</p>
+<img src="warped_dk.png">
+<h2>Hydrostatic pressure at the central values ({low:.2f} to {high:.2f} kPa), landmarks 1-5</h2><img src="pressure.png">
+<h2>Table 1: identification from several starting points</h2>{table1}
+<h2>Table 2: parameter intervals (Monte-Carlo, misfit below {montecarlo['threshold']:.4g}, {montecarlo['accepted']} of {montecarlo['draws']} draws kept)</h2>
+{table2}<p>{poorly_text}</p>
+<h2>Table 3: landmark pressures over {pressures['draws']} draws in the intervals</h2>{table3}
+<h2>Table 4: garment tension +-{100 * pressures['tension_rel']:.0f} %</h2>{table4}
+</body></html>
+"""
+    (staging / "index.html").write_text(page, encoding="utf-8")
+    for sub in ("identified", "central"):
+        shutil.rmtree(staging / sub, ignore_errors=True)
+    if final.exists():
+        old = run_dir / f".report.old.{np.random.default_rng().integers(1 << 30)}"
+        final.rename(old)
+        shutil.rmtree(old, ignore_errors=True)
+    staging.rename(final)
+    return final / "index.html"

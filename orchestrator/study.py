@@ -1,0 +1,174 @@
+"""From a case folder to a run folder, and phantom cases made by the engine.
+
+`prepare_run` does once what every later command of a run needs (DESIGN.md data flow):
+read the case, segment I0 if the case has no labels, align the loaded image on the bones
+(rigid motion, Bouten and Drapier sec. 3.1), segment the aligned loaded image, mesh the
+labels of I0 (400 T3 elements by default, Avril et al. sec. 2.2.1), and stores the labels, the
+motion and the mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then
+renamed). `load_run` gives them back with the model and the objectives, so that `calfit
+identify`, `montecarlo`, `pressures` and `report` all see the same mesh.
+
+`make_phantom_case` writes a phantom case whose loaded image is made by the engine: the
+phantom's exact labels are meshed finely (T6, 2,000 elements by default: not the mesh of the
+fit, so no inverse crime), the leg model is solved at the chosen parameters, its displacement
+is interpolated on the pixels and the phantom renders the loaded image by inverse warping
+(`orchestrator.phantom.write_case`); the true parameters go to the truth folder only.
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
+from .imaging.align import align_on_bones, resample_rigid
+from .imaging.case import Case, read_case
+from .imaging.frame import RigidMotion
+from .imaging.segment import segment_t1
+from .meshing import Mesh, mesh_from_labels
+from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure
+
+SETUP_ARRAYS = "setup.npz"
+SETUP_JSON = "setup.json"
+PARAMETERS_FILE = "parameters.json"
+
+
+class RunFolderError(ValueError):
+    """A run folder is missing a file that an earlier command writes."""
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(text, encoding="utf-8")
+    temporary.replace(path)
+
+
+def write_json(path: Path, data: dict) -> None:
+    _atomic_write_text(Path(path), json.dumps(data, indent=2) + "\n")
+
+
+def read_json(path: Path, made_by: str) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise RunFolderError(f"{path} does not exist: run `{made_by}` first")
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
+def _mesh_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
+    arrays = {"nodes": mesh.nodes, "elements": mesh.elements, "element_regions": mesh.element_regions,
+              "skin_faces": mesh.skin_faces, "skin_loop": mesh.skin_loop}
+    arrays.update({f"set_{name}": np.asarray(ids) for name, ids in mesh.node_sets.items()})
+    return arrays
+
+
+def _mesh_from_arrays(arrays) -> Mesh:
+    sets = {key[4:]: arrays[key] for key in arrays.files if key.startswith("set_")}
+    return Mesh(arrays["nodes"], arrays["elements"], arrays["element_regions"], sets, arrays["skin_faces"],
+                arrays["skin_loop"])
+
+
+@dataclass
+class RunSetup:
+    """Everything a run needs, rebuilt identically by every command."""
+
+    run_dir: Path
+    case: Case
+    labels_unloaded: np.ndarray
+    labels_loaded: np.ndarray
+    loaded_aligned: np.ndarray
+    motion: RigidMotion
+    mesh: Mesh
+    model: LegModel
+
+    def mismatch_objective(self) -> ContourMismatchObjective:
+        return ContourMismatchObjective(self.mesh, self.labels_unloaded, self.labels_loaded, self.case.pixel_size_mm)
+
+    def displacement_objective(self) -> DisplacementResidualObjective:
+        points = self.case.points
+        if points is None:
+            raise RunFolderError(f"{self.case.folder} has no points.csv: the displacement residual (F, LM) needs "
+                                 "measured displacements; use --objective mismatch or add points.csv")
+        return DisplacementResidualObjective(self.mesh, points.position_mm, points.displacement_mm, points.sigma_mm)
+
+    def pressure_objective(self) -> LandmarkPressure:
+        if not self.case.landmarks:
+            raise RunFolderError(f"{self.case.folder / 'case.toml'} has no [landmarks] table: add the positions "
+                                 "(mm, image frame of I0) where pressures are wanted")
+        return LandmarkPressure(self.mesh, self.case.landmarks)
+
+
+def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 400, order: int = 1,
+                align: bool = True) -> RunSetup:
+    """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
+    case = read_case(case_dir)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    labels_unloaded = case.labels if case.labels is not None else segment_t1(case.unloaded, case.pixel_size_mm)
+    motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded)
+              if align else RigidMotion())
+    loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
+    labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
+    mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order)
+    temporary = run_dir / f".{SETUP_ARRAYS}.tmp.npz"
+    np.savez_compressed(temporary, labels_unloaded=labels_unloaded, labels_loaded=labels_loaded,
+                        loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))
+    temporary.replace(run_dir / SETUP_ARRAYS)
+    write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
+                                      "order": order, "rigid_motion": {"angle_deg": motion.angle_deg,
+                                                                       "translation_mm": list(motion.translation_mm),
+                                                                       "centre_mm": list(motion.centre_mm)}})
+    return load_run(run_dir)
+
+
+def load_run(run_dir: str | Path) -> RunSetup:
+    run_dir = Path(run_dir)
+    info = read_json(run_dir / SETUP_JSON, "calfit identify CASE_DIR --out RUN_DIR")
+    case = read_case(info["case_dir"])
+    with np.load(run_dir / SETUP_ARRAYS) as arrays:
+        mesh = _mesh_from_arrays(arrays)
+        labels_unloaded, labels_loaded = arrays["labels_unloaded"], arrays["labels_loaded"]
+        loaded_aligned = arrays["loaded_aligned"]
+    motion = RigidMotion(info["rigid_motion"]["angle_deg"], tuple(info["rigid_motion"]["translation_mm"]),
+                         tuple(info["rigid_motion"]["centre_mm"]))
+    return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
+                    LegModel(mesh, case.tension_N_per_mm))
+
+
+def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None, *,
+                      theta_kPa: Sequence[float] = TABLE2_CENTRAL_KPA, tension_N_per_mm: float = 0.16,
+                      n_elements: int = 2000, order: int = 2, points_spacing_mm: float | None = 6.0,
+                      points_sigma_mm: float = 0.02, noise_seeds: tuple[int, int] = (0, 1), rigid: RigidMotion | None = None,
+                      overwrite: bool = False) -> tuple[Path, Path]:
+    """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text)."""
+    from .phantom import CalfPhantom, write_case
+    from .results import EngineResults
+    from .runner import run_engine
+
+    phantom = CalfPhantom()
+    mesh = mesh_from_labels(phantom.labels(), phantom.pixel_size_mm, n_elements=n_elements, order=order)
+    model = LegModel(mesh, tension_N_per_mm)
+    with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:
+        write_mesh_include(model, Path(scratch))
+        deck = Path(scratch) / "deck.inp"
+        deck.write_text(model.deck(theta_kPa))
+        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
+        if not outcome.converged:
+            raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa; "
+                               "choose stiffer parameters or a smaller tension")
+        nodal = EngineResults(outcome.outdir).displacement()
+    weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
+    field = field_on_pixels(weights, nodal, phantom.image_shape)
+    truth = {"parameters_kPa": dict(zip(LEG_PARAMETERS, map(float, theta_kPa))), "tension_N_per_mm": tension_N_per_mm,
+             "law": "AVRIL (Avril et al. eq. 2)", "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type},
+             "max_displacement_mm": float(np.abs(field).max())}
+    case, truth_dir = write_case(folder, phantom, field, rigid=rigid, truth_folder=truth_folder,
+                                 tension_N_per_mm=tension_N_per_mm, points_spacing_mm=points_spacing_mm,
+                                 points_sigma_mm=points_sigma_mm, noise_seeds=noise_seeds,
+                                 description=json.dumps(truth), overwrite=overwrite)
+    write_json(Path(truth_dir) / PARAMETERS_FILE, truth)
+    return Path(case), Path(truth_dir)
