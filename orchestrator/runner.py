@@ -340,7 +340,7 @@ class Evaluator:
             self._client = Client(self.scheduler, timeout=30, set_as_default=False)
             self._remote_objective = self._client.scatter(self.objective, broadcast=True, hash=False)
         futures = [self._client.submit(execute_task, task, self._remote_objective, pure=False) for task in tasks]
-        for future in as_completed(futures):
+        for future in as_completed(futures, loop=self._client.loop):
             yield future.result()
 
     def task(self, theta: Sequence[float], options: dict | None = None, tag: str = "") -> EngineTask | dict:
@@ -362,16 +362,16 @@ class Evaluator:
                  label: str | None = None) -> list[dict]:
         """Records (see execute_task) of every theta, in order; the finished ones come from the log."""
         items = [self.task(theta, options, tag) for theta in thetas]
-        keys = [item.key for item in items]
+        keys = [item["key"] if isinstance(item, dict) else item.key for item in items]
         progress = Progress(len(items), label or tag or "evaluations", self.progress and len(items) >= PROGRESS_MIN_BATCH)
         todo: dict[str, EngineTask] = {}
-        for item in items:
-            if item.key in self.log.records or item.key in todo:
+        for key, item in zip(keys, items):
+            if key in self.log.records or key in todo:
                 continue
-            if isinstance(item, dict):
+            if isinstance(item, dict):   # not even rendered: recorded as it is, no engine launch
                 self.log.append(item)
             else:
-                todo[item.key] = item
+                todo[key] = item
         for key in keys:
             if key in self.log.records and key not in todo:
                 self.replayed += 1
