@@ -3,6 +3,7 @@
 // objectivity of the internal force, load stiffness of the follower pressure and of
 // the Laplace-law membrane against finite differences, and p = T/R on a circle.
 #include "check.hpp"
+#include "contact/node_to_segment.hpp"
 #include "element/mixed_element.hpp"
 #include "element/solid_element.hpp"
 #include "load/edge_loads.hpp"
@@ -170,9 +171,56 @@ double circle_pressure_error(int n_faces, double R, double T) {
   return worst;
 }
 
+// Contact: the complex-step tangent against central differences, for a penetrating
+// slave node, frictionless and sticking / slipping with friction.
+void contact_tests() {
+  ContactLaw law{1e3, 0.0, 0.0};
+  Eigen::VectorXd x(10);
+  // Master segment (0,0)-(1,0.1): outward normal n = (t_y, -t_x), about (0.1, -1), so
+  // the master body lies above the segment (y = 0.04 at x = 0.4): a slave at y = 0.06
+  // penetrates, one at y = -0.02 is outside.
+  x << 0.4, 0.06, 0.0, 0.0, 1.0, 0.1, -0.05, 0.0, 0.95, 0.1;
+  for (int variant = 0; variant < 3; ++variant) {
+    ContactHistory h;
+    int n = 6;
+    if (variant > 0) {
+      law = ContactLaw{1e3, 0.3, variant == 1 ? 1e4 : 1e2};  // stick (stiff) or slip (soft)
+      h = ContactHistory{true, 0, 0.35, 2.0};
+      n = 10;
+    }
+    const Eigen::VectorXd xe = x.head(n);
+    Eigen::VectorXd r;
+    Eigen::MatrixXd K;
+    const ContactPoint p = contact_element(xe, law, h, 0, 0.2, r, &K);
+    CHECK(p.touching);
+    CHECK(p.gap < 0.0);
+    const double step = 1e-7;
+    double worst = 0.0;
+    for (int j = 0; j < n; ++j) {
+      Eigen::VectorXd xp = xe, xm = xe, rp, rm;
+      xp[j] += step;
+      xm[j] -= step;
+      contact_element(xp, law, h, 0, 0.2, rp, nullptr);
+      contact_element(xm, law, h, 0, 0.2, rm, nullptr);
+      worst = std::max(worst, ((rp - rm) / (2 * step) - K.col(j)).cwiseAbs().maxCoeff());
+    }
+    if (worst > 1e-5 * K.cwiseAbs().maxCoeff()) std::cerr << "contact tangent off by " << worst << " variant " << variant << '\n';
+    CHECK(worst <= 1e-5 * K.cwiseAbs().maxCoeff());
+    // Action and reaction: the contact forces sum to zero.
+    CHECK(std::abs(r[0] + r[2] + r[4] + (n > 6 ? r[6] + r[8] : 0.0)) < 1e-12);
+    CHECK(std::abs(r[1] + r[3] + r[5] + (n > 6 ? r[7] + r[9] : 0.0)) < 1e-12);
+  }
+  // A slave outside the master body carries no force.
+  Eigen::VectorXd outside(6), r;
+  outside << 0.4, -0.02, 0.0, 0.0, 1.0, 0.1;
+  CHECK(!contact_element(outside, ContactLaw{1e3, 0, 0}, ContactHistory{}, 0, 0.2, r, nullptr).touching);
+  CHECK(r.cwiseAbs().maxCoeff() == 0.0);
+}
+
 }  // namespace
 
 int main() {
+  contact_tests();
   const SplitHyperelastic neo_hooke(std::make_shared<ReducedPolynomialIsochoric>(std::vector<double>{1.0, 0.3}),
                                     std::make_shared<PolynomialVolumetric>(std::vector<double>{0.1}));
   const StVenantKirchhoff svk(5.0, 0.3);

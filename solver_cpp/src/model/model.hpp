@@ -3,6 +3,7 @@
 // Indices are 0-based positions in the vectors; ids are the deck's numbers.
 #pragma once
 
+#include "contact/node_to_segment.hpp"
 #include "deck/deck_reader.hpp"
 #include "element/triangle.hpp"
 #include "material/material.hpp"
@@ -56,6 +57,21 @@ struct TensionProfile {
   double factor(double theta_degrees) const;
 };
 
+struct InteractionDef {
+  std::string name;
+  ContactLaw law;
+  bool has_behavior = false;
+  SourceLocation where;
+};
+
+// Penalty contact between the nodes of a slave surface and the faces of a master
+// surface (*CONTACT PAIR); active in the steps where `active` says so (*MODEL CHANGE).
+struct ContactPairDef {
+  int slave = -1, master = -1;  // surface indices
+  int interaction = -1;
+  SourceLocation where;
+};
+
 struct LaplaceLoad {
   double tension = 0.0;  // force per unit length
   int profile = -1;      // index into Model::profiles, -1 for constant tension
@@ -68,6 +84,7 @@ struct LoadState {
   std::map<int, double> forces;                   // dof -> concentrated force
   std::map<std::pair<int, int>, double> pressures;  // (element, face) -> follower pressure
   std::map<int, LaplaceLoad> laplace;             // surface index -> garment tension
+  std::vector<char> contact_active;               // per contact pair
 };
 
 struct StepDef {
@@ -91,6 +108,8 @@ struct Model {
   std::vector<MaterialDef> materials;
   std::vector<SectionDef> sections;
   std::vector<TensionProfile> profiles;
+  std::vector<InteractionDef> interactions;
+  std::vector<ContactPairDef> contact_pairs;
   std::vector<StepDef> steps;
 
   int dof_count() const { return 2 * static_cast<int>(coordinates.size()); }

@@ -103,6 +103,9 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
   const std::size_t n_nodes = model.coordinates.size(), n_elements = model.elements.size();
   std::vector<double> points, displacement, point_stress(6 * n_nodes, 0.0), point_pressure(n_nodes, 0.0), laplace;
   std::vector<double> count(n_nodes, 0.0), cell_stress, cell_pressure, cell_J, material;
+  const std::vector<double> contact_pressure(fields.contact_pressure.data(),
+                                             fields.contact_pressure.data() + fields.contact_pressure.size());
+  const std::vector<double> contact_shear(fields.contact_shear.data(), fields.contact_shear.data() + fields.contact_shear.size());
   std::vector<std::int64_t> connectivity, offsets;
   std::vector<std::uint8_t> types;
   for (std::size_t n = 0; n < n_nodes; ++n) {
@@ -148,6 +151,8 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
     data_array(out, "Float64", "cauchy_stress", 6, point_stress);
     data_array(out, "Float64", "pressure", 1, point_pressure);
     data_array(out, "Float64", "laplace_pressure", 1, laplace);
+    data_array(out, "Float64", "contact_pressure", 1, contact_pressure);
+    data_array(out, "Float64", "contact_shear", 1, contact_shear);
     out << "      </PointData>\n      <CellData>\n";
     data_array(out, "Float64", "cauchy_stress", 6, cell_stress);
     data_array(out, "Float64", "pressure", 1, cell_pressure);

@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <map>
 #include <set>
 #include <sstream>
 #include <stdexcept>
@@ -85,6 +86,7 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
   }
   saddle_point_ = n_dofs_ > model.dof_count();
   u_.setZero(n_dofs_);
+  build_contacts();
   element_force_.resize(elements_.size());
   element_tangent_.resize(elements_.size());
 }
@@ -134,13 +136,14 @@ void StaticAnalysis::prepare_step(int step) {
   std::vector<char> active(n_dofs_, 0);
   for (const std::vector<int>& dofs : element_dofs_)
     for (int d : dofs) active[d] = 1;
-  std::vector<char> free = active;
+  current_step_ = step;
+  free_ = active;
   prescribed_.clear();
   for (const auto& [dof, value] : now.prescribed) {
-    free[dof] = 0;
+    free_[dof] = 0;
     prescribed_.push_back({dof, u_[dof], value});
   }
-  system_ = std::make_unique<SparseSystem>(element_dofs_, free, saddle_point_);
+  rebuild_system({});
   free_dofs_ = system_->size();
 
   forces_.clear();
@@ -170,6 +173,111 @@ void StaticAnalysis::prepare_step(int step) {
   for (FaceLoad& f : laplace_faces(now, true)) laplace_faces_.push_back(std::move(f));
 }
 
+void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
+  std::vector<std::vector<int>> dofs = element_dofs_;
+  system_contact_dofs_.clear();
+  for (const ContactElement& c : contact) {
+    dofs.push_back(c.dofs);
+    system_contact_dofs_.push_back(c.dofs);
+  }
+  system_ = std::make_unique<SparseSystem>(dofs, free_, saddle_point_);
+}
+
+void StaticAnalysis::build_contacts() {
+  for (std::size_t k = 0; k < model_.contact_pairs.size(); ++k) {
+    const ContactPairDef& pair = model_.contact_pairs[k];
+    ContactState state;
+    state.pair = static_cast<int>(k);
+    state.law = model_.interactions[pair.interaction].law;
+    std::map<int, double> slave_weight;
+    for (const Face& f : model_.surfaces[pair.slave]) {
+      const ElementDef& e = model_.elements[f.element];
+      const std::vector<int> local = face_nodes(e.shape, f.face);
+      EdgeNodes X(static_cast<Eigen::Index>(local.size()), 2);
+      for (std::size_t j = 0; j < local.size(); ++j) X.row(static_cast<Eigen::Index>(j)) = model_.coordinates[e.nodes[local[j]]].transpose();
+      Eigen::VectorXd w;
+      EdgeNodes normals;
+      face_weights(X, w, normals);
+      const double thickness = model_.sections[e.section].thickness;
+      for (std::size_t j = 0; j < local.size(); ++j) slave_weight[e.nodes[local[j]]] += thickness * w[static_cast<Eigen::Index>(j)];
+    }
+    for (const auto& [node, weight] : slave_weight) {
+      state.slave_nodes.push_back(node);
+      state.slave_weight.push_back(weight);
+    }
+    state.master_weight.assign(model_.coordinates.size(), 0.0);
+    for (const Face& f : model_.surfaces[pair.master]) {
+      const ElementDef& e = model_.elements[f.element];
+      const std::vector<int> local = face_nodes(e.shape, f.face);
+      for (std::size_t j = 0; j + 1 < local.size(); ++j) {
+        const int a = e.nodes[local[j]], b = e.nodes[local[j + 1]];
+        state.segments.push_back({a, b});
+        const double half = 0.5 * (model_.coordinates[b] - model_.coordinates[a]).norm();
+        state.master_weight[a] += half;
+        state.master_weight[b] += half;
+      }
+    }
+    state.history.assign(state.slave_nodes.size(), ContactHistory{});
+    state.trial = state.history;
+    state.points.assign(state.slave_nodes.size(), ContactPoint{});
+    contacts_.push_back(std::move(state));
+  }
+}
+
+void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, std::vector<ContactElement>& elements) {
+  auto position = [&](int node) {
+    return Eigen::Vector2d(model_.coordinates[node].x() + u[2 * node], model_.coordinates[node].y() + u[2 * node + 1]);
+  };
+  const LoadState& loads = model_.steps[current_step_].loads;
+  for (ContactState& c : contacts_) {
+    const bool active = loads.contact_active[c.pair] != 0;
+    for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
+      c.trial[i] = ContactHistory{};
+      c.points[i] = ContactPoint{};
+      if (!active) continue;
+      const int slave = c.slave_nodes[i];
+      const Eigen::Vector2d xs = position(slave);
+      // Closest master segment (distance to the segment, clamped projection).
+      int best = -1;
+      double best_distance = 0.0;
+      for (std::size_t k = 0; k < c.segments.size(); ++k) {
+        const Eigen::Vector2d a = position(c.segments[k][0]), b = position(c.segments[k][1]);
+        const Eigen::Vector2d d = b - a;
+        const double s = std::clamp((xs - a).dot(d) / d.squaredNorm(), 0.0, 1.0);
+        const double distance = (xs - a - s * d).norm();
+        if (best < 0 || distance < best_distance) {
+          best = static_cast<int>(k);
+          best_distance = distance;
+        }
+      }
+      if (best < 0) continue;
+      const ContactHistory& h = c.history[i];
+      std::vector<int> nodes = {slave, c.segments[best][0], c.segments[best][1]};
+      if (c.law.friction > 0.0 && h.touching) {
+        nodes.push_back(c.segments[h.segment][0]);
+        nodes.push_back(c.segments[h.segment][1]);
+      }
+      Eigen::VectorXd x(2 * nodes.size()), r;
+      for (std::size_t k = 0; k < nodes.size(); ++k) x.segment<2>(2 * static_cast<Eigen::Index>(k)) = position(nodes[k]);
+      Eigen::MatrixXd K;
+      const ContactPoint point = contact_element(x, c.law, h, best, c.slave_weight[i], r, tangent ? &K : nullptr);
+      c.points[i] = point;
+      if (!point.touching) continue;
+      c.trial[i] = ContactHistory{true, point.segment, point.xi, point.shear};
+      ContactElement element;
+      for (std::size_t k = 0; k < nodes.size(); ++k) {
+        element.dofs.push_back(2 * nodes[k]);
+        element.dofs.push_back(2 * nodes[k] + 1);
+      }
+      for (std::size_t k = 0; k < element.dofs.size(); ++k) residual_[element.dofs[k]] += r[static_cast<Eigen::Index>(k)];
+      if (tangent) {
+        element.K = std::move(K);
+        elements.push_back(std::move(element));
+      }
+    }
+  }
+}
+
 ElementVector StaticAnalysis::local_unknowns(const Eigen::VectorXd& u, int element) const {
   const std::vector<int>& dofs = element_dofs_[element];
   ElementVector ue(static_cast<Eigen::Index>(dofs.size()));
@@ -194,7 +302,22 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   if (failures > 0) return ev;
 
   residual_.setZero(n_dofs_);
+  // Contact first: new contact couplings change the matrix pattern before assembly.
+  std::vector<ContactElement> contact;
+  if (!contacts_.empty()) {
+    contact_residual(u, tangent, contact);
+    if (tangent) {
+      std::vector<std::vector<int>> couplings;
+      for (const ContactElement& c : contact) couplings.push_back(c.dofs);
+      if (couplings != system_contact_dofs_) rebuild_system(contact);
+    }
+  }
+  // The reference force of the convergence test is the internal force of the bodies;
+  // contact forces balance it and would otherwise vanish from it at equilibrium.
+  const double contact_norm = residual_.norm();
   if (tangent) system_->set_zero();
+  for (std::size_t c = 0; c < contact.size() && tangent; ++c)
+    system_->add(n_elements + static_cast<int>(c), contact[c].K);
   for (int e = 0; e < n_elements; ++e) {
     const std::vector<int>& dofs = element_dofs_[e];
     for (std::size_t k = 0; k < dofs.size(); ++k) residual_[dofs[k]] += element_force_[e][static_cast<Eigen::Index>(k)];
@@ -232,7 +355,8 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   for (const FaceLoad& f : pressure_faces_) face_load(f, false);
   for (const FaceLoad& f : laplace_faces_) face_load(f, true);
 
-  const double internal_norm = residual_.norm();
+
+  const double internal_norm = std::max(residual_.norm(), contact_norm);
   residual_ -= f_ext_;
   double free_norm2 = 0.0;
   for (int d = 0; d < n_dofs_; ++d)
@@ -344,6 +468,7 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     log(line.str());
     if (rec.converged) {
       u_ = u;
+      for (ContactState& c : contacts_) c.history = c.trial;
       last_lambda_ = lambda;
       time += dt;
       result.time_reached = time;
@@ -400,6 +525,31 @@ FieldOutput StaticAnalysis::output() {
   for (int node = 0; node < n_nodes; ++node)
     if (length[node] > 0.0 && normal.row(node).norm() > 0.0)
       out.laplace_pressure[node] = -force.row(node).dot(normal.row(node).normalized()) / length[node];
+
+  // Contact tractions: as computed on the slave nodes, and on the master nodes the
+  // slave forces they receive over their tributary length.
+  out.contact_pressure = Eigen::VectorXd::Zero(n_nodes);
+  out.contact_shear = Eigen::VectorXd::Zero(n_nodes);
+  for (const ContactState& c : contacts_) {
+    Eigen::VectorXd master_normal = Eigen::VectorXd::Zero(n_nodes), master_shear = Eigen::VectorXd::Zero(n_nodes);
+    for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
+      const ContactPoint& p = c.points[i];
+      if (!p.touching) continue;
+      out.contact_pressure[c.slave_nodes[i]] = p.pressure;
+      out.contact_shear[c.slave_nodes[i]] = p.shear;
+      const double xi = std::clamp(p.xi, 0.0, 1.0), w = c.slave_weight[i];
+      const auto& seg = c.segments[p.segment];
+      master_normal[seg[0]] += (1.0 - xi) * p.pressure * w;
+      master_normal[seg[1]] += xi * p.pressure * w;
+      master_shear[seg[0]] += (1.0 - xi) * p.shear * w;
+      master_shear[seg[1]] += xi * p.shear * w;
+    }
+    for (int node = 0; node < n_nodes; ++node)
+      if (c.master_weight[node] > 0.0) {
+        out.contact_pressure[node] = master_normal[node] / c.master_weight[node];
+        out.contact_shear[node] = -master_shear[node] / c.master_weight[node];
+      }
+  }
   return out;
 }
 

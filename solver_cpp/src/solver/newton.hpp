@@ -10,6 +10,7 @@
 #include "model/model.hpp"
 #include "solver/sparse_system.hpp"
 
+#include <array>
 #include <functional>
 #include <memory>
 #include <string>
@@ -43,6 +44,7 @@ struct FieldOutput {
   Eigen::VectorXd reaction;                    // 2 n_nodes: f_int - f_ext
   std::vector<ElementState> element_states;
   Eigen::VectorXd laplace_pressure;            // n_nodes: T / r applied (0 off the surface)
+  Eigen::VectorXd contact_pressure, contact_shear;  // n_nodes: on slave and master nodes of contact pairs
 };
 
 struct SolverSettings {
@@ -76,7 +78,27 @@ private:
     double norm = 0, reference = 0;
   };
 
+  // One contact pair: its slave nodes, master segments and the friction history.
+  struct ContactState {
+    int pair = -1;
+    ContactLaw law;
+    std::vector<int> slave_nodes;
+    std::vector<double> slave_weight;          // tributary length x thickness
+    std::vector<std::array<int, 2>> segments;  // master sub-segments, counter-clockwise
+    std::vector<double> master_weight;         // per node: tributary length (for output)
+    std::vector<ContactHistory> history, trial;
+    std::vector<ContactPoint> points;
+  };
+  struct ContactElement {
+    std::vector<int> dofs;
+    Eigen::MatrixXd K;
+  };
+
   void prepare_step(int step);
+  void build_contacts();
+  // Adds the contact forces at u to residual_; collects contact elements for the tangent.
+  void contact_residual(const Eigen::VectorXd& u, bool tangent, std::vector<ContactElement>& elements);
+  void rebuild_system(const std::vector<ContactElement>& contact);
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   void apply_prescribed(Eigen::VectorXd& u, double lambda) const;
@@ -87,6 +109,10 @@ private:
   ElementVector local_unknowns(const Eigen::VectorXd& u, int element) const;
 
   std::vector<std::unique_ptr<Element>> elements_;
+  std::vector<ContactState> contacts_;
+  int current_step_ = 0;
+  std::vector<char> free_;
+  std::vector<std::vector<int>> system_contact_dofs_;  // contact couplings in system_'s pattern
   int n_dofs_ = 0;            // displacements, then hybrid pressures
   bool saddle_point_ = false;  // hybrid elements make the tangent indefinite
   std::vector<std::vector<int>> element_dofs_;
