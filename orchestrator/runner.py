@@ -152,16 +152,20 @@ class EvaluationLog:
                     except json.JSONDecodeError:
                         raise ValueError(f"{self.path}:{number}: not a JSON line; remove that line or the run folder") from None
                     self.records[record["key"]] = record
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = open(self.path, "a", encoding="utf-8")
+        self._stream = None   # opened on the first append
 
     def append(self, record: dict) -> None:
+        if self._stream is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._stream = open(self.path, "a", encoding="utf-8")
         self._stream.write(json.dumps(record, separators=(",", ":")) + "\n")
         self._stream.flush()
         self.records[record["key"]] = record
 
     def close(self) -> None:
-        self._stream.close()
+        if self._stream is not None:
+            self._stream.close()
+            self._stream = None
 
     def __len__(self) -> int:
         return len(self.records)
