@@ -2,16 +2,21 @@
 // Contact Mechanics, 2nd ed., sec. 9.1-9.2; the garment-skin contact of the second
 // paper, sec. 2.5: penalty normal contact, friction coefficient mu).
 //
-// A slave node s of tributary length w meets a straight master segment (m1, m2) with
-// unit tangent t = (x2 - x1)/L and outward normal n = (t_y, -t_x) (master faces run
-// counter-clockwise around their body). Gap g = (x_s - x1) . n, projection
-// xi = (x_s - x1) . t / L. Normal traction p_N = K <-g> (CalculiX PRESSURE-OVERCLOSURE=
-// LINEAR with slope K). Friction: the slip increment is the tangential motion of the
-// slave relative to the master material point it touched at the last converged state
-// (segment o1-o2 at xi_n), dg_T = (x_s - x_o(xi_n)) . t; trial traction
+// A slave node s of tributary length w meets a master segment (a, b). Faceted masters
+// make the contact normal jump from one segment to the next, and Newton then chatters
+// between them; the master is therefore given a continuous normal field, interpolated
+// linearly from nodal normals n_a, n_b (each the normalized sum of the rotated adjacent
+// segment vectors, rot(v) = (v_y, -v_x): outward for faces running counter-clockwise
+// around their body): N(xi) = (1 - xi) n_a + xi n_b, with the contact point
+// x_c = x_a + xi (x_b - x_a) solving (x_s - x_c) x N(xi) = 0 (a quadratic in xi, solved
+// by Newton's method from the straight projection). Gap g = (x_s - x_c) . N / |N|,
+// normal traction p_N = K <-g> (CalculiX PRESSURE-OVERCLOSURE=LINEAR, slope K).
+// Friction: the slip increment is the tangential motion of the slave relative to the
+// master material point it touched at the last converged state (segment o1-o2 at
+// xi_n), dg_T = (x_s - x_o(xi_n)) . t, t = (-N_y, N_x)/|N|; trial traction
 // t_T = t_T,n - lambda dg_T (lambda the stick slope), returned onto |t_T| <= mu p_N.
-// The traction p_N n + t_T t acts on the slave and its opposite on the master,
-// distributed with (1 - xi, xi).
+// The traction p_N n + t_T t acts on the slave, its opposite on a and b with weights
+// (1 - xi, xi).
 //
 // The local residual is written once, templated on the scalar, and its exact tangent
 // is obtained by complex-step differentiation (Squire & Trapp 1998): every operation
@@ -44,9 +49,12 @@ struct ContactPoint {
   double xi = 0, gap = 0, pressure = 0, shear = 0;
 };
 
-// Nodes of the local contact element: slave, m1, m2 and, with friction, o1, o2 (the
-// segment touched at the last converged state; may coincide with m1, m2).
-// x: positions (2 per node). Writes the residual contribution r (2 per node).
+// Nodes of the local contact element, in this order: slave, a, b, the node before a
+// on the master (a itself at an open end), the node after b (b itself at an open end),
+// and, with friction and a previous contact, o1, o2 (the segment touched at the last
+// converged state). x: positions (2 per node); writes the residual r (2 per node).
+constexpr int kContactNodes = 5, kFrictionNodes = 7;
+
 template <typename T>
 ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, const ContactHistory& history,
                               int segment, double weight, T* r) {
@@ -55,25 +63,39 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
   auto node = [&](int k) { return V(x[2 * k], x[2 * k + 1]); };
   // Eigen's dot() conjugates its left operand; the complex step needs the plain product.
   auto dot = [](const V& a, const V& b) { return T(a.x() * b.x() + a.y() * b.y()); };
-  const V xs = node(0), x1 = node(1), x2 = node(2);
-  const V d = x2 - x1;
-  const T length = sqrt(dot(d, d));
-  const V t = d / length;
-  const V n(t.y(), -t.x());
-  const T gap = dot(xs - x1, n);
-  const T xi = dot(xs - x1, t) / length;
+  auto cross = [](const V& a, const V& b) { return T(a.x() * b.y() - a.y() * b.x()); };
+  auto rot = [](const V& v) { return V(v.y(), -v.x()); };
+  auto unit = [&](const V& v) { return V(v / sqrt(dot(v, v))); };
   for (int k = 0; k < 2 * n_nodes; ++k) r[k] = T(0);
+
+  const V xs = node(0), xa = node(1), xb = node(2);
+  const V d = xb - xa;
+  const V na = unit(rot(xa - node(3)) + rot(d));
+  const V nb = unit(rot(d) + rot(node(4) - xb));
+  const V m = nb - na;
+  const V rel = xs - xa;
+  T xi = dot(rel, d) / dot(d, d);
+  for (int it = 0; it < 8; ++it) {  // (rel - xi d) x (na + xi m) = 0
+    const V arm = rel - xi * d, normal = na + xi * m;
+    const T f = cross(arm, normal);
+    const T df = cross(-d, normal) + cross(arm, m);
+    xi -= f / df;
+  }
+  const V normal = na + xi * m;
+  const V n = normal / sqrt(dot(normal, normal));
+  const V t(-n.y(), n.x());
+  const T gap = dot(rel - xi * d, n);
 
   ContactPoint out;
   out.segment = segment;
   out.xi = std::real(xi);
   out.gap = std::real(gap);
-  if (std::real(gap) >= 0.0) return out;
+  if (std::real(gap) >= 0.0 || std::real(xi) < -0.5 || std::real(xi) > 1.5) return out;
   out.touching = true;
   const T pressure = -law.penalty * gap;
   T shear(0);
-  if (law.friction > 0.0 && history.touching && n_nodes == 5) {
-    const V xo = (1.0 - history.xi) * node(3) + history.xi * node(4);
+  if (law.friction > 0.0 && history.touching && n_nodes == kFrictionNodes) {
+    const V xo = (1.0 - history.xi) * node(5) + history.xi * node(6);
     const T trial = history.shear - law.stick_slope * dot(xs - xo, t);
     const double limit = law.friction * std::real(pressure);
     if (std::abs(std::real(trial)) <= limit) {
@@ -86,13 +108,12 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
   out.shear = std::real(shear);
   // Traction on the slave; residual = -(force on the node).
   const V traction = (pressure * n + shear * t) * weight;
-  const T xi_c = std::real(xi) < 0 ? T(0) : (std::real(xi) > 1 ? T(1) : xi);
   r[0] -= traction.x();
   r[1] -= traction.y();
-  r[2] += (1.0 - xi_c) * traction.x();
-  r[3] += (1.0 - xi_c) * traction.y();
-  r[4] += xi_c * traction.x();
-  r[5] += xi_c * traction.y();
+  r[2] += (1.0 - xi) * traction.x();
+  r[3] += (1.0 - xi) * traction.y();
+  r[4] += xi * traction.x();
+  r[5] += xi * traction.y();
   return out;
 }
 

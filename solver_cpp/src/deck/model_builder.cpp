@@ -563,11 +563,6 @@ private:
   void contact_pair(const KeywordBlock& b) {
     b.allow_only({"INTERACTION", "TYPE"});
     model_data(b);
-    // The penalty node-to-segment kernel is in place and unit-tested, but faceted master
-    // surfaces make the contact force jump between segments and Newton chatter; until
-    // the smoothed master normal lands, decks with contact are refused, not run badly.
-    throw DeckError(b.where, "*CONTACT PAIR (explicit garment contact) is not available in this version of "
-                             "calfit-fe; use *LAPLACE PRESSURE for the garment");
     const std::string type = upper(b.value("TYPE").value_or("NODE TO SURFACE"));
     if (type != "NODE TO SURFACE" && type != "SURFACE TO SURFACE")
       throw DeckError(b.where, "TYPE=" + type + " is not supported: use NODE TO SURFACE or SURFACE TO SURFACE");

@@ -217,6 +217,16 @@ void StaticAnalysis::build_contacts() {
         state.master_weight[b] += half;
       }
     }
+    std::map<int, int> starting_at, ending_at;
+    for (std::size_t s = 0; s < state.segments.size(); ++s) {
+      starting_at[state.segments[s][0]] = static_cast<int>(s);
+      ending_at[state.segments[s][1]] = static_cast<int>(s);
+    }
+    for (const auto& seg : state.segments) {
+      const auto before = ending_at.find(seg[0]), after = starting_at.find(seg[1]);
+      state.previous.push_back(before == ending_at.end() ? -1 : before->second);
+      state.next.push_back(after == starting_at.end() ? -1 : after->second);
+    }
     state.history.assign(state.slave_nodes.size(), ContactHistory{});
     state.trial = state.history;
     state.points.assign(state.slave_nodes.size(), ContactPoint{});
@@ -237,30 +247,51 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       if (!active) continue;
       const int slave = c.slave_nodes[i];
       const Eigen::Vector2d xs = position(slave);
-      // Closest master segment (distance to the segment, clamped projection).
-      int best = -1;
+      // Closest master segment by straight distance; then, among it and its neighbours,
+      // the one whose smoothed projection falls inside it.
+      int nearest = -1;
       double best_distance = 0.0;
       for (std::size_t k = 0; k < c.segments.size(); ++k) {
         const Eigen::Vector2d a = position(c.segments[k][0]), b = position(c.segments[k][1]);
         const Eigen::Vector2d d = b - a;
         const double s = std::clamp((xs - a).dot(d) / d.squaredNorm(), 0.0, 1.0);
         const double distance = (xs - a - s * d).norm();
-        if (best < 0 || distance < best_distance) {
-          best = static_cast<int>(k);
+        if (nearest < 0 || distance < best_distance) {
+          nearest = static_cast<int>(k);
           best_distance = distance;
         }
       }
-      if (best < 0) continue;
+      if (nearest < 0) continue;
       const ContactHistory& h = c.history[i];
-      std::vector<int> nodes = {slave, c.segments[best][0], c.segments[best][1]};
-      if (c.law.friction > 0.0 && h.touching) {
-        nodes.push_back(c.segments[h.segment][0]);
-        nodes.push_back(c.segments[h.segment][1]);
+      auto element_nodes = [&](int k) {
+        const auto& seg = c.segments[k];
+        std::vector<int> nodes = {slave, seg[0], seg[1], c.previous[k] >= 0 ? c.segments[c.previous[k]][0] : seg[0],
+                                  c.next[k] >= 0 ? c.segments[c.next[k]][1] : seg[1]};
+        if (c.law.friction > 0.0 && h.touching) {
+          nodes.push_back(c.segments[h.segment][0]);
+          nodes.push_back(c.segments[h.segment][1]);
+        }
+        return nodes;
+      };
+      auto positions = [&](const std::vector<int>& nodes) {
+        Eigen::VectorXd x(2 * nodes.size());
+        for (std::size_t k = 0; k < nodes.size(); ++k) x.segment<2>(2 * static_cast<Eigen::Index>(k)) = position(nodes[k]);
+        return x;
+      };
+      int best = nearest;
+      for (int k : {nearest, c.previous[nearest], c.next[nearest]}) {
+        if (k < 0) continue;
+        Eigen::VectorXd scratch;
+        const ContactPoint probe = contact_element(positions(element_nodes(k)), c.law, h, k, c.slave_weight[i], scratch, nullptr);
+        if (probe.xi >= 0.0 && probe.xi <= 1.0) {
+          best = k;
+          break;
+        }
       }
-      Eigen::VectorXd x(2 * nodes.size()), r;
-      for (std::size_t k = 0; k < nodes.size(); ++k) x.segment<2>(2 * static_cast<Eigen::Index>(k)) = position(nodes[k]);
+      const std::vector<int> nodes = element_nodes(best);
+      Eigen::VectorXd r;
       Eigen::MatrixXd K;
-      const ContactPoint point = contact_element(x, c.law, h, best, c.slave_weight[i], r, tangent ? &K : nullptr);
+      const ContactPoint point = contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r, tangent ? &K : nullptr);
       c.points[i] = point;
       if (!point.touching) continue;
       c.trial[i] = ContactHistory{true, point.segment, point.xi, point.shear};

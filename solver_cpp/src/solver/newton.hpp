@@ -85,6 +85,7 @@ private:
     std::vector<int> slave_nodes;
     std::vector<double> slave_weight;          // tributary length x thickness
     std::vector<std::array<int, 2>> segments;  // master sub-segments, counter-clockwise
+    std::vector<int> previous, next;           // neighbouring segment of each (-1 at an open end)
     std::vector<double> master_weight;         // per node: tributary length (for output)
     std::vector<ContactHistory> history, trial;
     std::vector<ContactPoint> points;
