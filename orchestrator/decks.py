@@ -14,6 +14,7 @@ text and of the mesh it includes (`deck_key`).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from pathlib import Path
@@ -41,7 +42,13 @@ def template_dir() -> Path:
 
 
 def _environment() -> jinja2.Environment:
-    return jinja2.Environment(loader=jinja2.FileSystemLoader(str(template_dir())), undefined=jinja2.StrictUndefined,
+    return _environment_for(template_dir())
+
+
+@functools.lru_cache(maxsize=4)
+def _environment_for(folder: Path) -> jinja2.Environment:
+    """One environment per template folder: jinja2 then compiles each template once."""
+    return jinja2.Environment(loader=jinja2.FileSystemLoader(str(folder)), undefined=jinja2.StrictUndefined,
                               keep_trailing_newline=True, autoescape=False)
 
 

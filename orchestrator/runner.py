@@ -80,15 +80,25 @@ def run_engine(
         ]
         for reader in readers:
             reader.start()
-        try:
-            returncode = process.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
+        # A watchdog kills the engine at the deadline; wait() blocks in waitpid meanwhile, so a short run
+        # is seen the moment it ends (Popen.wait(timeout) polls with sleeps of up to 50 ms).
+        expired = threading.Event()
+
+        def stop() -> None:
+            expired.set()
             process.kill()
-            process.wait()
-            raise EngineFailed(f"calfit-fe on {deck} ran past its {timeout_s:g} s timeout and was stopped") from None
+
+        watchdog = threading.Timer(timeout_s, stop)
+        watchdog.daemon = True
+        watchdog.start()
+        try:
+            returncode = process.wait()
         finally:
+            watchdog.cancel()
             for reader in readers:
                 reader.join(timeout=5.0)
+        if expired.is_set():
+            raise EngineFailed(f"calfit-fe on {deck} ran past its {timeout_s:g} s timeout and was stopped")
     stdout, stderr = "".join(out), "".join(err)
     elapsed = time.perf_counter() - start
     if returncode == 2:
