@@ -48,7 +48,9 @@ struct FieldOutput {
 };
 
 struct SolverSettings {
-  double residual_tolerance = 1e-9;  // |R| / reference force
+  double residual_tolerance = 1e-9;    // |R| / reference force
+  double floor_tolerance = 1e-6;       // ... accepted above 1e-9 only if also
+  double correction_tolerance = 1e-10;  // |du|_inf <= this x |u|_inf
   int max_iterations = 25;
   int threads = 0;  // 0: OpenMP default
 };
