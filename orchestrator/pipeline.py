@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 
 from .forward import TABLE2_CENTRAL_KPA
-from .identify import levenberg_marquardt, monte_carlo, multistart, nelder_mead, pressure_uncertainty, table1_starts
+from .identify import levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .study import RunSetup, load_run, prepare_run, read_json, write_json
 
