@@ -11,14 +11,24 @@ cannot time a process out, so it is not used here).
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable, Sequence
 
+import numpy as np
+
+from .decks import DeckError, deck_key
 from .engine import find_engine
+from .results import EngineResults
 
 DEFAULT_TIMEOUT_S = 600.0
 
@@ -122,17 +132,6 @@ def run_engine(
 # parallelism is across evaluations, in a local process pool (`workers`) or on a Dask
 # distributed cluster (`scheduler` address).
 
-import json
-import os
-import shutil
-import tempfile
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from typing import Iterable, Sequence
-
-import numpy as np
-
-from .decks import DeckError, deck_key
-from .results import EngineResults
 
 LOG_NAME = "evaluations.jsonl"
 PROGRESS_MIN_BATCH = 8   # smaller batches (one LM Jacobian) finish too fast to need a progress line
