@@ -33,12 +33,19 @@ class DeckError(ValueError):
 
 
 def template_dir() -> Path:
-    """The folder of the *.inp.j2 templates: $CALFIT_TEMPLATES, else `templates/` of the checkout."""
+    """The folder of the *.inp.j2 templates: $CALFIT_TEMPLATES, else `templates/` of the
+    checkout (editable installs), else the copy CMake installs in the package (wheels)."""
     override = os.environ.get(TEMPLATE_DIR_ENV)
-    folder = Path(override) if override else Path(__file__).resolve().parent.parent / "templates"
-    if not folder.is_dir():
-        raise DeckError(f"deck templates not found in {folder}; set {TEMPLATE_DIR_ENV} to the calfit templates/ folder")
-    return folder
+    if override:
+        candidates = [Path(override)]
+    else:
+        candidates = [Path(__file__).resolve().parent.parent / "templates", Path(__file__).resolve().parent / "templates"]
+    for folder in candidates:
+        if folder.is_dir():
+            return folder
+    raise DeckError(
+        f"deck templates not found in {candidates[0]}; set {TEMPLATE_DIR_ENV} to the calfit templates/ folder"
+    )
 
 
 def _environment() -> jinja2.Environment:
@@ -103,6 +110,37 @@ def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_f
     return render("disk.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME,
                   material={"law": law, "constants": numbers(constants)}, pressure=f"{pressure_MPa:.10g}",
                   outer_faces=list(outer_faces), static=numbers(static), max_increments=max_increments)
+
+
+RELEASE_STATIC = (0.1, 1.0, 1e-5, 0.25)  # the band closes onto the skin in several increments
+INFLATE_STATIC = (0.25, 1.0, 1e-4, 0.5)
+GARMENT_PENALTY_MPA_PER_MM = 1.0  # penalty K: p / K = 3e-3 mm overclosure at 20 mmHg, 100x a kPa tissue / mm element
+GARMENT_STICK_SLOPE_MPA_PER_MM = 1.0
+
+
+def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band, leg, *, friction_mu: float = 0.0,
+                     penalty: float = GARMENT_PENALTY_MPA_PER_MM, stick_slope: float = GARMENT_STICK_SLOPE_MPA_PER_MM,
+                     inflate_static: Sequence[float] = INFLATE_STATIC, release_static: Sequence[float] = RELEASE_STATIC,
+                     max_increments: int = 200, description: str = "") -> str:
+    """The leg slice under the explicit garment band of the second paper (Bouten and Drapier sec. 2.5,
+    Fig. 2): step 1 inflates the band (`orchestrator.meshing.garment_band(leg)`) by its internal
+    pressure with the contact pair removed, step 2 adds the skin/band contact (penalty `penalty`,
+    Coulomb friction `friction_mu` with stick slope `stick_slope`, 0 = frictionless) and releases
+    the pressure. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
+    The mesh include (mesh.inp) is `band.include_text(leg)`."""
+    _positive("the penalty slope and stick slope", [penalty, stick_slope])
+    if friction_mu < 0.0:
+        raise DeckError(f"the friction coefficient must be >= 0, got {friction_mu!r}")
+    rows = []
+    for elset, (law, constants) in materials.items():
+        _positive(f"the constants of {elset}", constants)
+        rows.append({"name": elset, "elset": elset, "law": law, "constants": numbers(constants)})
+    return render("leg_garment.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
+                  band_constants=numbers((band.C10, band.D1)), penalty=f"{penalty:.10g}",
+                  friction_mu=float(friction_mu), stick_slope=f"{stick_slope:.10g}",
+                  inflation_pressure=f"{band.inflation_pressure_MPa:.10g}", inflate_faces=band.deck_inner_faces(leg),
+                  inflate_static=numbers(inflate_static), release_static=numbers(release_static),
+                  max_increments=max_increments)
 
 
 def text_sha256(text: str) -> str:

@@ -101,7 +101,8 @@ std::vector<double> voigt6(const Mat3& s) { return {s(0, 0), s(1, 1), s(2, 2), s
 
 void write_vtu(const std::string& path, const Model& model, const FieldOutput& fields) {
   const std::size_t n_nodes = model.coordinates.size(), n_elements = model.elements.size();
-  std::vector<double> points, displacement, point_stress(6 * n_nodes, 0.0), point_pressure(n_nodes, 0.0), laplace;
+  std::vector<double> points, displacement, reaction, point_stress(6 * n_nodes, 0.0), point_pressure(n_nodes, 0.0),
+      laplace;
   std::vector<double> count(n_nodes, 0.0), cell_stress, cell_pressure, cell_J, material;
   const std::vector<double> contact_pressure(fields.contact_pressure.data(),
                                              fields.contact_pressure.data() + fields.contact_pressure.size());
@@ -111,6 +112,7 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
   for (std::size_t n = 0; n < n_nodes; ++n) {
     points.insert(points.end(), {model.coordinates[n].x(), model.coordinates[n].y(), 0.0});
     displacement.insert(displacement.end(), {fields.displacement[2 * n], fields.displacement[2 * n + 1], 0.0});
+    reaction.insert(reaction.end(), {fields.reaction[2 * n], fields.reaction[2 * n + 1], 0.0});
     laplace.push_back(fields.laplace_pressure[static_cast<Eigen::Index>(n)]);
   }
   for (std::size_t e = 0; e < n_elements; ++e) {
@@ -148,6 +150,7 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
     data_array(out, "UInt8", "types", 1, types);
     out << "      </Cells>\n      <PointData>\n";
     data_array(out, "Float64", "displacement", 3, displacement);
+    data_array(out, "Float64", "reaction", 3, reaction);
     data_array(out, "Float64", "cauchy_stress", 6, point_stress);
     data_array(out, "Float64", "pressure", 1, point_pressure);
     data_array(out, "Float64", "laplace_pressure", 1, laplace);
