@@ -230,7 +230,7 @@ def execute_task(task: EngineTask, objective) -> dict:
         mesh = _mesh_file(scratch, task)
         link = job / "mesh.inp"
         if not link.exists():
-            os.symlink(mesh, link)
+            os.symlink(Path(mesh).resolve(), link)  # a relative target would resolve from the job folder
         deck = job / "deck.inp"
         deck.write_text(task.deck_text)
         outcome = run_engine(deck, job / "out", threads=task.threads, timeout_s=task.timeout_s)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,3 +132,12 @@ def test_dask_cluster_gives_the_same_costs_as_the_local_pool(leg_model, tmp_path
     assert [record["status"] for record in remote] == [OK] * 3
     assert [record["cost"] for record in remote] == local
     assert os.listdir(tmp_path / "dask" / "jobs") == ["meshes"]   # job folders are removed after scoring
+
+
+def test_relative_run_folder_works_from_any_working_directory(leg_model, tmp_path, monkeypatch):
+    # `calfit demo` passes a run folder relative to the user's working directory; the job
+    # folder's link to the shared mesh must still resolve.
+    monkeypatch.chdir(tmp_path)
+    with Evaluator(leg_model, skin_objective(leg_model), Path("relative-run"), progress=False) as evaluator:
+        record = evaluator(TABLE2_CENTRAL_KPA)
+    assert record["status"] == OK, record["message"]
