@@ -67,33 +67,12 @@ bool MixedElement::internal_force(const ElementVector& ue, ElementVector& f, Ele
 
 ElementState MixedElement::state(const ElementVector& ue) const {
   const int n = node_count(shape_);
-  const NodeMatrix u = nodal_displacements(ue, n);
   const Eigen::VectorXd pressures = ue.segment(2 * n, pressure_count());
-  ElementState out;
-  out.J = 0.0;
-  double volume = 0.0;
-  Mat3 S;
-  bool first = true;
-  for (const ReferencePoint& q : points_) {
-    const Eigen::Matrix2d F2 = deformation_gradient(u, q.dN_dX);
-    Mat3 F = Mat3::Identity();
-    F.topLeftCorner<2, 2>() = F2;
-    const double J = F2.determinant();
-    out.min_J = first ? J : std::min(out.min_J, J);
-    first = false;
-    if (J <= 0.0) continue;
-    const Mat3 C = right_cauchy_green(F2);
+  return average_state(points_, nodal_displacements(ue, n), [&](const ReferencePoint& q, const Mat3& C) {
+    Mat3 S;
     material_->isochoric_stress(C, S, nullptr);
-    S += pressure_shape(q).dot(pressures) * J * C.inverse();
-    out.cauchy += q.weight * (F * S * F.transpose()) / J;
-    out.J += q.weight * J;
-    volume += q.weight;
-  }
-  if (volume > 0.0) {
-    out.cauchy /= volume;
-    out.J /= volume;
-  }
-  return out;
+    return Mat3(S + pressure_shape(q).dot(pressures) * std::sqrt(C.determinant()) * C.inverse());
+  });
 }
 
 }  // namespace calfit

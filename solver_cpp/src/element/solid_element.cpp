@@ -105,30 +105,11 @@ bool SolidElement::internal_force(const ElementVector& ue, ElementVector& f, Ele
 }
 
 ElementState SolidElement::state(const ElementVector& ue) const {
-  const NodeMatrix u = nodal_displacements(ue, node_count(shape_));
-  ElementState out;
-  out.J = 0.0;
-  double volume = 0.0;
-  Mat3 S;
-  bool first = true;
-  for (const ReferencePoint& p : points_) {
-    const Eigen::Matrix2d F2 = deformation_gradient(u, p.dN_dX);
-    Mat3 F = Mat3::Identity();
-    F.topLeftCorner<2, 2>() = F2;
-    const double J = F2.determinant();
-    out.min_J = first ? J : std::min(out.min_J, J);
-    first = false;
-    if (J <= 0.0) continue;
-    material_->stress(right_cauchy_green(F2), S, nullptr);
-    out.cauchy += p.weight * (F * S * F.transpose()) / J;
-    out.J += p.weight * J;
-    volume += p.weight;
-  }
-  if (volume > 0.0) {
-    out.cauchy /= volume;
-    out.J /= volume;
-  }
-  return out;
+  return average_state(points_, nodal_displacements(ue, node_count(shape_)), [this](const ReferencePoint&, const Mat3& C) {
+    Mat3 S;
+    material_->stress(C, S, nullptr);
+    return S;
+  });
 }
 
 }  // namespace calfit

@@ -35,6 +35,34 @@ void add_displacement_tangent(const ReferencePoint& p, const Eigen::Matrix2d& F,
 // Nodal displacements (nodes x 2) from the interleaved local vector.
 NodeMatrix nodal_displacements(const ElementVector& ue, int n_nodes);
 
+// Volume averages of the Cauchy stress sigma = F S F^T / J and of J over the points;
+// second_pk(point, C) gives the second Piola-Kirchhoff stress S at a point.
+template <typename SecondPK>
+ElementState average_state(const std::vector<ReferencePoint>& points, const NodeMatrix& u, SecondPK second_pk) {
+  ElementState out;
+  out.J = 0.0;
+  double volume = 0.0;
+  bool first = true;
+  for (const ReferencePoint& p : points) {
+    const Eigen::Matrix2d F2 = deformation_gradient(u, p.dN_dX);
+    Mat3 F = Mat3::Identity();
+    F.topLeftCorner<2, 2>() = F2;
+    const double J = F2.determinant();
+    out.min_J = first ? J : std::min(out.min_J, J);
+    first = false;
+    if (J <= 0.0) continue;
+    const Mat3 S = second_pk(p, right_cauchy_green(F2));
+    out.cauchy += p.weight * (F * S * F.transpose()) / J;
+    out.J += p.weight * J;
+    volume += p.weight;
+  }
+  if (volume > 0.0) {
+    out.cauchy /= volume;
+    out.J /= volume;
+  }
+  return out;
+}
+
 class SolidElement final : public Element {
 public:
   // X: reference coordinates of the element's nodes (nodes x 2).
