@@ -8,6 +8,7 @@ counter-clockwise in deck coordinates, face numbering, set names) are in mesh.py
 """
 
 from .curves import Curve, SpacingRules
+from .garment import GarmentBand, band_constants_for_tension, band_hoop_tension, garment_band
 from .labels import interface_curves, mesh_from_labels, region_image
 from .leg_slice import (
     DEFAULT_MATERIALS,
@@ -28,11 +29,15 @@ __all__ = [
     "DEFAULT_MATERIALS",
     "DEFAULT_PRESSURE_MPA",
     "LegSliceGeometry",
+    "GarmentBand",
     "Mesh",
     "MeshingError",
     "SpacingRules",
     "corner_angles_deg",
+    "band_constants_for_tension",
+    "band_hoop_tension",
     "elements_for_dof",
+    "garment_band",
     "interface_curves",
     "leg_slice_deck",
     "leg_slice_geometry",
