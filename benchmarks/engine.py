@@ -8,7 +8,12 @@
    calfit-fe over --runs runs, the median of CalculiX (`ccx -i`, single thread, the same
    standard-keyword deck) in the same run, and their ratio (target: calfit-fe at least
    10x faster; target: under 0.5 s).
-2. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
+2. The same slice nearly incompressible (NEO HOOKE, D1 for nu = 0.499, CPE6H Taylor-Hood
+   elements): median wall time and its DOF count (displacement and pressure).
+3. The leg slice under the explicit garment band (orchestrator.meshing.garment_band,
+   templates/leg_garment.inp.j2: inflate, then contact + release; frictionless), --garment-elements
+   T6 elements: median wall time and DOF count.
+4. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
    process (os.wait4 resource usage of that child, i.e. /usr/bin/time -v's "Maximum
    resident set size"; target: under 1 GiB at 200k DOF).
 
@@ -30,10 +35,22 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from orchestrator.engine import find_engine  # noqa: E402
-from orchestrator.meshing import leg_slice_deck, leg_slice_mesh, leg_slice_mesh_for_dof  # noqa: E402
+from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck  # noqa: E402
+from orchestrator.meshing import (  # noqa: E402
+    DEFAULT_MATERIALS,
+    garment_band,
+    leg_slice_deck,
+    leg_slice_mesh,
+    leg_slice_mesh_for_dof,
+)
+from orchestrator.meshing.garment import neo_hooke_D1  # noqa: E402
+
+NEARLY_INCOMPRESSIBLE_NU = 0.499
 
 PAPER_SECONDS = 1200.0  # second paper, per FE solve of its ~25k-DOF model
 TARGET_25K_S = 0.5
@@ -166,6 +183,63 @@ def agreement(fe_dir: Path, ccx_dir: Path) -> None:
     print(f"  agreement: max |u_fe - u_ccx| = {np.abs(u[:, 3:5] - u_ccx).max() / scale:.2e} of max |u| = {scale:.4g} mm")
 
 
+def _median_runs(args, root: Path, name: str, write_deck) -> tuple[list[float], dict] | None:
+    """Run the deck that write_deck(folder) writes --runs times; None (and the log) on a failure."""
+    times, last = [], {}
+    for k in range(args.runs):
+        d = root / f"{name}{k}"
+        d.mkdir()
+        deck = write_deck(d)
+        last = run_engine(deck, args.threads, args.timeout)
+        if last["exit"] != 0:
+            print(f"  {name} run {k}: exit {last['exit']} (see {d / 'run.log'}):")
+            print("   ", (d / "run.log").read_text()[-1500:])
+            return None
+        times.append(last["wall_s"])
+    return times, last
+
+
+def _report(label: str, times: list[float], last: dict, n_dof: int) -> None:
+    print(f"  {label}: {n_dof} DOF, median wall {statistics.median(times):8.3f} s over {len(times)} runs "
+          f"(min {min(times):.3f}, max {max(times):.3f}); {last.get('increments')} increments, "
+          f"{last.get('newton')} Newton iterations, solver {last.get('linear_solver')}")
+
+
+def nearly_incompressible(args, root: Path) -> None:
+    mesh = leg_slice_mesh(5500, order=2)
+    materials = {name: ("NEO HOOKE", (C10, neo_hooke_D1(C10, NEARLY_INCOMPRESSIBLE_NU)))
+                 for name, (_, (C10, _)) in DEFAULT_MATERIALS.items()}
+    n_pressure = len(np.unique(mesh.elements[:, :3]))
+
+    def write(folder: Path) -> Path:
+        leg_slice_deck(folder / "leg.inp", mesh=mesh, include_mesh=False, materials=materials)
+        text = (folder / "leg.inp").read_text().replace("TYPE=CPE6,", "TYPE=CPE6H,")
+        (folder / "leg.inp").write_text(text)
+        return folder / "leg.inp"
+
+    print(f"\nleg-like slice, nearly incompressible (nu = {NEARLY_INCOMPRESSIBLE_NU}), CPE6H")
+    result = _median_runs(args, root, "hybrid", write)
+    if result:
+        _report(f"CPE6H ({mesh.n_dof} displacement + {n_pressure} pressure)", *result, mesh.n_dof + n_pressure)
+
+
+def explicit_garment(args, root: Path) -> None:
+    leg = leg_slice_mesh(args.garment_elements, order=2)
+    band = garment_band(leg)
+    n_dof = leg.n_dof + 2 * len(band.nodes)
+
+    def write(folder: Path) -> Path:
+        (folder / MESH_INCLUDE_NAME).write_text(band.include_text(leg))
+        (folder / "leg.inp").write_text(leg_garment_deck(DEFAULT_MATERIALS, band, leg))
+        return folder / "leg.inp"
+
+    print(f"\nleg-like slice under the explicit garment band ({len(leg.elements)} CPE6 + {len(band.elements)} band "
+          f"elements; inflate, contact + release, frictionless)")
+    result = _median_runs(args, root, "garment", write)
+    if result:
+        _report("explicit garment", *result, n_dof)
+
+
 def scaling(args, root: Path) -> None:
     print("\nscaling on the leg-like slice (CPE6): one calfit-fe process per size")
     print(f"  {'target DOF':>10} {'DOF':>8} {'elements':>9} {'wall s':>9} {'peak RSS':>13} {'status':>14} {'Newton':>6}")
@@ -192,12 +266,15 @@ def main() -> None:
     ap.add_argument("--no-ccx", action="store_true")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--timeout", type=float, default=1800.0)
+    ap.add_argument("--garment-elements", type=int, default=1000, help="T6 elements of the garment case")
     ap.add_argument("--dofs", type=lambda s: [int(x) for x in s.split(",")], default=list(DEFAULT_DOFS))
     args = ap.parse_args()
     print(f"calfit-fe: {find_engine()}; machine: {os.cpu_count()} logical CPUs")
     with tempfile.TemporaryDirectory(prefix="calfit-bench-") as tmp:
         root = Path(tmp)
         paper_size(args, root)
+        nearly_incompressible(args, root)
+        explicit_garment(args, root)
         scaling(args, root)
 
 

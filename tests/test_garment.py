@@ -12,8 +12,11 @@ while the face means and the displacements agree. Convexity is judged on the DEF
 the signed curvature kappa = (x' y'' - y' x'') / |x'|^3 of the skin loop (Gaussian derivatives,
 loop counter-clockwise in deck coordinates, so convex <=> kappa > 0).
 
-Measured (leg slice, 1,000 T6 elements, band 0.5 mm, design T = 0.16 N/mm at stretch 1.15): see the
-test docstrings.
+Measured (leg slice, 1,000 T6 elements, band 0.5 mm, design T = 0.16 N/mm at stretch 1.15):
+T = 0.1489 +- 0.0009 N/mm; all 82 skin faces convex; face-mean contact pressure / Laplace - 1 from
+-0.020 to +0.015 (mean -0.008). Friction mu = 0.3: |delta p| / mean |p| over 994 tissue cells mean
+0.043, max 0.30; band tension varies by 9.5% around the leg. The dented leg (concave stretch) does
+not converge in the engine's inflation step yet (xfail).
 """
 
 from __future__ import annotations
@@ -147,8 +150,8 @@ def test_inflated_band_clears_the_skin(frictionless):
 
 
 def test_frictionless_garment_agrees_with_laplace_law_on_convex_skin(frictionless, leg, tmp_path):
-    """Measured: T = 0.150 N/mm (design 0.16; the tissue yields), uniform within 1% around the
-    leg; the whole skin is convex and face-mean contact pressures match T / r within 2.7%."""
+    """Measured: T = 0.149 N/mm (design 0.16; the tissue yields), uniform within 1% around the
+    leg; the whole skin is convex and face-mean contact pressures match T / r within 2.1%."""
     T = frictionless.tension
     assert T.std() < 0.02 * T.mean()  # frictionless: no tangential traction, T constant
     assert 0.8 * frictionless.band.design_tension_N_per_mm < T.mean() < frictionless.band.design_tension_N_per_mm
@@ -168,6 +171,8 @@ def test_frictionless_garment_agrees_with_laplace_law_on_convex_skin(frictionles
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="calfit-fe does not converge in step 1 (inflation) of the dented leg: "
+                   "residual stays at 1 down to dt = 2.4e-4, CHOLMOD 'not positive definite' (see the report)")
 def test_band_bridges_a_concave_stretch(tmp_path):
     """The dented leg: the band lifts off the concave stretch (contact_pressure = 0) where the
     Laplace model, with r < 0 there, pulls the skin outwards (laplace_pressure < 0)."""
