@@ -80,6 +80,7 @@ bool SparseSystem::solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (!ldlt_) {
     ldlt_ = std::make_unique<Eigen::CholmodDecomposition<Eigen::SparseMatrix<double>, Eigen::Lower>>();
     ldlt_->setMode(Eigen::CholmodLDLt);
+    ldlt_->cholmod().print = 1;
     ldlt_->analyzePattern(matrix_);
   }
   ldlt_->factorize(matrix_);
@@ -110,6 +111,7 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (!saddle_point_ && is_symmetric) {
     if (!cholesky_) {
       cholesky_ = std::make_unique<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>>();
+      cholesky_->cholmod().print = 1;  // errors only: a lost definiteness is handled by UMFPACK
       cholesky_->analyzePattern(matrix_);
     }
     cholesky_->factorize(matrix_);
