@@ -37,6 +37,19 @@ private:
   std::chrono::steady_clock::time_point start_;
 };
 
+// Calls fn(key, start, end) for every key loaded before or now, where start and end
+// point to the values at the two ends of the step (nullptr: not loaded, i.e. zero).
+template <typename Map, typename Fn>
+void for_each_ramp(const Map& before, const Map& now, Fn fn) {
+  std::set<typename Map::key_type> keys;
+  for (const auto& kv : before) keys.insert(kv.first);
+  for (const auto& kv : now) keys.insert(kv.first);
+  for (const auto& key : keys) {
+    const auto b = before.find(key), n = now.find(key);
+    fn(key, b == before.end() ? nullptr : &b->second, n == now.end() ? nullptr : &n->second);
+  }
+}
+
 // Face-local dof indices (2 per node) into the element's dof list.
 std::vector<int> local_dofs(const std::vector<int>& local_nodes) {
   std::vector<int> dofs;
@@ -92,8 +105,8 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
   element_tangent_.resize(elements_.size());
 }
 
-std::vector<StaticAnalysis::FaceLoad> StaticAnalysis::laplace_faces(const LoadState& state, bool end) const {
-  std::vector<FaceLoad> faces;
+std::map<std::pair<int, int>, Eigen::VectorXd> StaticAnalysis::laplace_tensions(const LoadState& state) const {
+  std::map<std::pair<int, int>, Eigen::VectorXd> tensions;  // (element, face) -> nodal tension
   for (const auto& [surface, load] : state.laplace) {
     const std::vector<Face>& surface_faces = model_.surfaces[surface];
     Eigen::Vector2d center = Eigen::Vector2d::Zero();
@@ -108,25 +121,21 @@ std::vector<StaticAnalysis::FaceLoad> StaticAnalysis::laplace_faces(const LoadSt
       center /= static_cast<double>(nodes.size());
     }
     for (const Face& f : surface_faces) {
-      FaceLoad face;
-      face.element = f.element;
-      face.local = face_nodes(model_.elements[f.element].shape, f.face);
-      Eigen::VectorXd tension(face.local.size());
-      for (std::size_t k = 0; k < face.local.size(); ++k) {
+      const std::vector<int> local = face_nodes(model_.elements[f.element].shape, f.face);
+      Eigen::VectorXd tension(local.size());
+      for (std::size_t k = 0; k < local.size(); ++k) {
         double factor = 1.0;
         if (profile) {
-          const Eigen::Vector2d r = model_.coordinates[model_.elements[f.element].nodes[face.local[k]]] - center;
+          const Eigen::Vector2d r = model_.coordinates[model_.elements[f.element].nodes[local[k]]] - center;
           factor = profile->factor(std::atan2(r.y(), r.x()) * 180.0 / kPi);
         }
         tension(static_cast<Eigen::Index>(k)) = load.tension * factor;
       }
-      face.t_start = Eigen::VectorXd::Zero(tension.size());
-      face.t_end = Eigen::VectorXd::Zero(tension.size());
-      (end ? face.t_end : face.t_start) = tension;
-      faces.push_back(face);
+      Eigen::VectorXd& total = tensions[{f.element, f.face}];
+      total = total.size() ? Eigen::VectorXd(total + tension) : tension;  // two surfaces may share a face
     }
   }
-  return faces;
+  return tensions;
 }
 
 void StaticAnalysis::prepare_step(int step) {
@@ -148,30 +157,34 @@ void StaticAnalysis::prepare_step(int step) {
   free_dofs_ = system_->size();
 
   forces_.clear();
-  std::set<int> force_dofs;
-  for (const auto& kv : before.forces) force_dofs.insert(kv.first);
-  for (const auto& kv : now.forces) force_dofs.insert(kv.first);
-  for (int dof : force_dofs) {
-    const auto b = before.forces.find(dof), n = now.forces.find(dof);
-    forces_.push_back({dof, b == before.forces.end() ? 0.0 : b->second, n == now.forces.end() ? 0.0 : n->second});
-  }
+  for_each_ramp(before.forces, now.forces, [&](int dof, const double* start, const double* end) {
+    forces_.push_back({dof, start ? *start : 0.0, end ? *end : 0.0});
+  });
 
-  pressure_faces_.clear();
-  std::set<std::pair<int, int>> faces;
-  for (const auto& kv : before.pressures) faces.insert(kv.first);
-  for (const auto& kv : now.pressures) faces.insert(kv.first);
-  for (const auto& key : faces) {
+  auto face_load = [&](const std::pair<int, int>& key) {
     FaceLoad f;
     f.element = key.first;
     f.local = face_nodes(model_.elements[key.first].shape, key.second);
-    const auto b = before.pressures.find(key), n = now.pressures.find(key);
-    f.start = b == before.pressures.end() ? 0.0 : b->second;
-    f.end = n == now.pressures.end() ? 0.0 : n->second;
-    pressure_faces_.push_back(f);
-  }
+    return f;
+  };
+  pressure_faces_.clear();
+  for_each_ramp(before.pressures, now.pressures,
+                [&](const std::pair<int, int>& key, const double* start, const double* end) {
+                  FaceLoad f = face_load(key);
+                  f.start = start ? *start : 0.0;
+                  f.end = end ? *end : 0.0;
+                  pressure_faces_.push_back(f);
+                });
 
-  laplace_faces_ = laplace_faces(before, false);
-  for (FaceLoad& f : laplace_faces(now, true)) laplace_faces_.push_back(std::move(f));
+  laplace_faces_.clear();
+  for_each_ramp(laplace_tensions(before), laplace_tensions(now),
+                [&](const std::pair<int, int>& key, const Eigen::VectorXd* start, const Eigen::VectorXd* end) {
+                  FaceLoad f = face_load(key);
+                  const Eigen::Index n = static_cast<Eigen::Index>(f.local.size());
+                  f.t_start = start ? *start : Eigen::VectorXd::Zero(n);
+                  f.t_end = end ? *end : Eigen::VectorXd::Zero(n);
+                  laplace_faces_.push_back(f);
+                });
 }
 
 void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
@@ -311,6 +324,17 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
   }
 }
 
+EdgeNodes StaticAnalysis::face_positions(const FaceLoad& f, const Eigen::VectorXd& u) const {
+  const std::vector<int>& nodes = model_.elements[f.element].nodes;
+  EdgeNodes x(static_cast<Eigen::Index>(f.local.size()), 2);
+  for (std::size_t k = 0; k < f.local.size(); ++k) {
+    const int node = nodes[f.local[k]];
+    x.row(static_cast<Eigen::Index>(k)) << model_.coordinates[node].x() + u[2 * node],
+        model_.coordinates[node].y() + u[2 * node + 1];
+  }
+  return x;
+}
+
 ElementVector StaticAnalysis::local_unknowns(const Eigen::VectorXd& u, int element) const {
   const std::vector<int>& dofs = element_dofs_[element];
   ElementVector ue(static_cast<Eigen::Index>(dofs.size()));
@@ -364,17 +388,11 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   // sign because R = f_int - f_ext.
   auto face_load = [&](const FaceLoad& f, bool laplace) {
     const std::vector<int>& dofs = element_dofs_[f.element];
-    EdgeNodes x(static_cast<Eigen::Index>(f.local.size()), 2);
-    for (std::size_t k = 0; k < f.local.size(); ++k) {
-      const int d = dofs[2 * f.local[k]];
-      const int n = d / 2;
-      x.row(static_cast<Eigen::Index>(k)) << model_.coordinates[n].x() + u[d], model_.coordinates[n].y() + u[d + 1];
-    }
+    const EdgeNodes x = face_positions(f, u);
     EdgeVector fe;
     EdgeMatrix dfe;
     if (laplace) {
-      const Eigen::VectorXd tension = f.t_start + lambda * (f.t_end - f.t_start);
-      laplace_membrane_load(x, tension, fe, tangent ? &dfe : nullptr);
+      laplace_membrane_load(x, f.tension(lambda), fe, tangent ? &dfe : nullptr);
     } else {
       follower_pressure_load(x, ramp(f.start, f.end, lambda), fe, tangent ? &dfe : nullptr);
     }
@@ -387,7 +405,6 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   };
   for (const FaceLoad& f : pressure_faces_) face_load(f, false);
   for (const FaceLoad& f : laplace_faces_) face_load(f, true);
-
 
   const double internal_norm = std::max(residual_.norm(), contact_norm);
   residual_ -= f_ext_;
@@ -544,13 +561,9 @@ FieldOutput StaticAnalysis::output() {
   Eigen::VectorXd length = Eigen::VectorXd::Zero(n_nodes);
   for (const FaceLoad& f : laplace_faces_) {
     const ElementDef& e = model_.elements[f.element];
-    EdgeNodes x(static_cast<Eigen::Index>(f.local.size()), 2);
-    for (std::size_t k = 0; k < f.local.size(); ++k) {
-      const int node = e.nodes[f.local[k]];
-      x.row(static_cast<Eigen::Index>(k)) = (model_.coordinates[node] + u_.segment<2>(2 * node)).transpose();
-    }
+    const EdgeNodes x = face_positions(f, u_);
     EdgeVector fe;
-    laplace_membrane_load(x, f.t_start + last_lambda_ * (f.t_end - f.t_start), fe, nullptr);
+    laplace_membrane_load(x, f.tension(last_lambda_), fe, nullptr);
     Eigen::VectorXd w;
     EdgeNodes nw;
     face_weights(x, w, nw);

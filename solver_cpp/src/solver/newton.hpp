@@ -7,11 +7,13 @@
 #pragma once
 
 #include "element/solid_element.hpp"
+#include "load/edge_loads.hpp"
 #include "model/model.hpp"
 #include "solver/sparse_system.hpp"
 
 #include <array>
 #include <functional>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -70,6 +72,7 @@ private:
     std::vector<int> local;  // element-local node indices along the face
     double start = 0, end = 0;         // pressure (follower)
     Eigen::VectorXd t_start, t_end;    // nodal tension (Laplace)
+    Eigen::VectorXd tension(double lambda) const { return t_start + lambda * (t_end - t_start); }
   };
   struct Ramp {
     int dof;
@@ -105,7 +108,9 @@ private:
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   void apply_prescribed(Eigen::VectorXd& u, double lambda) const;
-  std::vector<FaceLoad> laplace_faces(const LoadState& state, bool end) const;
+  // Nodal garment tension of every face of the Laplace-loaded surfaces: (element, face) -> T.
+  std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state) const;
+  EdgeNodes face_positions(const FaceLoad& f, const Eigen::VectorXd& u) const;
 
   const Model& model_;
   SolverSettings settings_;
