@@ -9,7 +9,6 @@ printed time), which is how the CalculiX cross-checks read CalculiX.
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -19,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from orchestrator.engine import find_engine
+from orchestrator.results import EngineResults, ResultsError
 
 ENGINE_TIMEOUT_S = 300.0
 
@@ -38,16 +38,10 @@ class EngineRun:
         return self.table[:, 3:5]
 
     def vtu(self, step: int = 1):
-        import meshio
-
-        return meshio.read(self.outdir / f"step-{step}.vtu")
+        return EngineResults(self.outdir).mesh(step)
 
     def residual_histories(self) -> list[list[float]]:
-        out = []
-        for step in (self.summary or {}).get("steps", []):
-            for inc in step.get("increments", []):
-                out.append(list(inc.get("residual_norms", [])))
-        return out
+        return EngineResults(self.outdir).residual_histories() if self.summary else []
 
 
 def run_engine(
@@ -68,13 +62,14 @@ def run_engine(
     outdir = workdir / f"{name}.out"
     cmd = [str(find_engine()), str(deck_path), "-o", str(outdir), "--quiet", *extra_args]
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=workdir)
-    summary = None
+    summary, table = None, None
     if (outdir / "summary.json").is_file():
-        summary = json.loads((outdir / "summary.json").read_text())
-    table = None
-    npys = sorted(outdir.glob("step-*.u.npy"), key=lambda p: int(p.name.split("-")[1].split(".")[0]))
-    if npys:
-        table = np.load(npys[-1])
+        results = EngineResults(outdir)
+        summary = results.summary
+        try:
+            table = results.table()
+        except ResultsError:  # a run that failed before writing its first step
+            table = None
     return EngineRun(proc.returncode, proc.stdout, proc.stderr, outdir, deck_path, summary, table)
 
 
