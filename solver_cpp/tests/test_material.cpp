@@ -35,8 +35,8 @@ std::vector<Law> laws() {
   };
 }
 
-// Voigt order 11, 22, 33, 12, 23, 13.
-constexpr int I[6] = {0, 1, 2, 0, 1, 0}, J[6] = {0, 1, 2, 1, 2, 2};
+constexpr const int* I = kVoigtI;
+constexpr const int* J = kVoigtJ;
 
 Mat3 symmetric_perturbation(int a, double h) {
   Mat3 d = Mat3::Zero();

@@ -6,11 +6,10 @@ namespace {
 
 // d(J C^-1)/dE in Voigt form (Holzapfel eq. 6.166 with dJ/dC = J C^-1 / 2).
 Mat6 jacobian_inverse_tangent(const Mat3& Cinv, double J) {
-  static const int I[6] = {0, 1, 2, 0, 1, 0}, K[6] = {0, 1, 2, 1, 2, 2};
   Mat6 D;
   for (int a = 0; a < 6; ++a)
     for (int b = 0; b < 6; ++b) {
-      const int i = I[a], j = K[a], k = I[b], l = K[b];
+      const int i = kVoigtI[a], j = kVoigtJ[a], k = kVoigtI[b], l = kVoigtJ[b];
       D(a, b) = J * (Cinv(i, j) * Cinv(k, l) - (Cinv(i, k) * Cinv(j, l) + Cinv(i, l) * Cinv(j, k)));
     }
   return D;

@@ -16,9 +16,6 @@
 namespace calfit {
 namespace {
 
-constexpr int kVoigtI[6] = {0, 1, 2, 0, 1, 0};
-constexpr int kVoigtJ[6] = {0, 1, 2, 1, 2, 2};
-
 double delta(int i, int j) { return i == j ? 1.0 : 0.0; }
 
 struct InvariantDerivatives {

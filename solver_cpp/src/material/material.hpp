@@ -20,6 +20,10 @@ namespace calfit {
 using Mat3 = Eigen::Matrix3d;
 using Mat6 = Eigen::Matrix<double, 6, 6>;
 
+// Tensor indices (i, j) of Voigt position a = 0..5: 11, 22, 33, 12, 23, 13.
+constexpr int kVoigtI[6] = {0, 1, 2, 0, 1, 0};
+constexpr int kVoigtJ[6] = {0, 1, 2, 1, 2, 2};
+
 class Material {
 public:
   virtual ~Material() = default;
