@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
@@ -80,23 +81,58 @@ def _positive(name: str, values: Sequence[float]) -> None:
             raise DeckError(f"{name} must be positive, got {value!r}")
 
 
+@dataclass(frozen=True)
+class StepEffects:
+    """The effect catalog's step keywords of a leg deck (solver_cpp/README.md, project keywords); the
+    defaults leave the baseline model of Avril et al. unchanged.
+
+    volume_changes: (element set, relative volume change dv of its stress-free state) pairs, `*VOLUME CHANGE`;
+    axial_stretch: lambda_z of generalized plane strain, `*AXIAL STRETCH` (None: plane strain, lambda_z = 1);
+    rigid_motions: (node set, u_x mm, u_y mm, angle degrees), `*RIGID MOTION` of a bone;
+    fourier_profile: (k, a_k, b_k) of the garment tension factor 1 + sum a_k cos k theta + b_k sin k theta
+    (`*TENSION PROFILE, TYPE=FOURIER`);
+    sensitivities: data lines of `*SENSITIVITY` (du/dtheta of the converged state, engine-computed).
+    """
+
+    volume_changes: tuple[tuple[str, float], ...] = ()
+    axial_stretch: float | None = None
+    rigid_motions: tuple[tuple[str, float, float, float], ...] = ()
+    fourier_profile: tuple[tuple[int, float, float], ...] = ()
+    sensitivities: tuple[str, ...] = ()
+
+
 def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tension_N_per_mm: float, *,
-                     tension_profile: Sequence[tuple[float, float]] | None = None,
+                     tension_profile: Sequence[tuple[float, float]] | None = None, effects: StepEffects = StepEffects(),
                      static: Sequence[float] = ONE_INCREMENT, max_increments: int = 50, description: str = "") -> str:
     """The leg slice under the Laplace-law garment (Avril et al. eqs. 1-2).
 
-    materials: element set -> (law, constants in MPa), e.g. {"FAT": ("AVRIL", (C10, Kv))}.
-    tension_profile: the `tension_profile` effect, (angle in degrees, factor) pairs; None = constant T.
+    materials: element set -> (law, constants in MPa), e.g. {"FAT": ("AVRIL", (C10, Kv))}; a third AVRIL
+    constant is C20 (>= 0, the `stiffening` effect).
+    tension_profile: (angle in degrees, factor) pairs of a tabulated tension; None = constant T.
+    effects: the step keywords of the effect catalog (`orchestrator.effects`).
     """
     _positive("the garment tension", [tension_N_per_mm])
+    if tension_profile and effects.fourier_profile:
+        raise DeckError("give the garment tension profile either as a table or as Fourier coefficients, not both")
     rows = []
     for elset, (law, constants) in materials.items():
-        _positive(f"the constants of {elset}", constants)
+        _positive(f"the constants of {elset}", constants[:2])
+        if any(float(c) < 0.0 for c in constants[2:]):
+            raise DeckError(f"the higher-order constants of {elset} must be >= 0, got {list(constants[2:])}")
         rows.append({"name": elset, "elset": elset, "law": law, "constants": numbers(constants)})
+    if effects.axial_stretch is not None:
+        _positive("the axial stretch", [effects.axial_stretch])
+    for elset, dv in effects.volume_changes:
+        if not float(dv) > -1.0:
+            raise DeckError(f"the volume change of {elset} must be > -1 (a relative change), got {dv!r}")
     profile = [(f"{a:.10g}", f"{f:.10g}") for a, f in tension_profile] if tension_profile else []
     return render("leg_laplace.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
-                  tension=f"{tension_N_per_mm:.10g}", tension_profile=profile, static=numbers(static),
-                  max_increments=max_increments)
+                  tension=f"{tension_N_per_mm:.10g}", tension_profile=profile,
+                  fourier_profile=[(int(k), numbers((a, b))) for k, a, b in effects.fourier_profile],
+                  volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.volume_changes],
+                  axial_stretch=None if effects.axial_stretch is None else f"{float(effects.axial_stretch):.10g}",
+                  rigid_motions=[(nset, numbers((ux, uy, angle))) for nset, ux, uy, angle in effects.rigid_motions],
+                  sensitivities=list(effects.sensitivities), static=numbers(static), max_increments=max_increments)
 
 
 def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_faces: Sequence[tuple[int, int]], *,

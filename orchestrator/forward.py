@@ -40,22 +40,54 @@ INSIDE_TOLERANCE = 1e-9
 
 @dataclass(frozen=True)
 class ParameterSpace:
-    """Named parameters with the box where Monte-Carlo draws are made (same units as theta)."""
+    """Named parameters with the box where Monte-Carlo draws are made (same units as theta).
+
+    Material constants are positive and the optimizers move them in ln(theta) (relative steps); effect
+    parameters (`linear`) are zero when the effect is off and may be negative, so they move in
+    theta / scale. `to_x` / `from_x` are that change of variables, one place for every optimizer."""
 
     names: tuple[str, ...]
     lower: tuple[float, ...]
     upper: tuple[float, ...]
     units: str = "kPa"
+    linear: tuple[bool, ...] = ()
+    scale: tuple[float, ...] = ()
+    unit_of: tuple[str, ...] = ()
 
     def __post_init__(self):
-        if not (len(self.names) == len(self.lower) == len(self.upper)):
+        n = len(self.names)
+        if not (n == len(self.lower) == len(self.upper)):
             raise ValueError("a parameter space needs one lower and one upper bound per parameter")
-        if any(not 0 < lo < hi for lo, hi in zip(self.lower, self.upper)):
-            raise ValueError(f"bounds must satisfy 0 < lower < upper, got {list(zip(self.lower, self.upper))}")
+        object.__setattr__(self, "linear", tuple(self.linear) or (False,) * n)
+        object.__setattr__(self, "scale", tuple(self.scale) or (1.0,) * n)
+        object.__setattr__(self, "unit_of", tuple(self.unit_of) or (self.units,) * n)
+        if not (len(self.linear) == len(self.scale) == len(self.unit_of) == n):
+            raise ValueError("linear, scale and unit_of need one entry per parameter")
+        for name, lo, hi, linear in zip(self.names, self.lower, self.upper, self.linear):
+            if not (lo < hi and (linear or lo > 0)):
+                raise ValueError(f"bounds of {name} must satisfy {'' if linear else '0 < '}lower < upper, got ({lo}, {hi})")
 
     @property
     def size(self) -> int:
         return len(self.names)
+
+    def to_x(self, theta) -> np.ndarray:
+        theta = np.asarray(theta, float)
+        linear, scale = np.array(self.linear), np.array(self.scale)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(linear, theta / scale, np.log(np.where(linear, 1.0, theta)))
+
+    def from_x(self, x) -> np.ndarray:
+        x = np.asarray(x, float)
+        linear, scale = np.array(self.linear), np.array(self.scale)
+        return np.where(linear, x * scale, np.exp(np.where(linear, 0.0, x)))
+
+    def clip(self, theta) -> np.ndarray:
+        """theta inside the bounds of the linear parameters (a positive constant needs no clipping in ln theta)."""
+        theta = np.asarray(theta, float).copy()
+        linear = np.array(self.linear)
+        theta[linear] = np.clip(theta[linear], np.array(self.lower)[linear], np.array(self.upper)[linear])
+        return theta
 
     def draw(self, count: int, rng: np.random.Generator, lower=None, upper=None) -> np.ndarray:
         """count uniform draws in the box (or in [lower, upper])."""
@@ -65,6 +97,10 @@ class ParameterSpace:
 
     def as_dict(self, theta) -> dict[str, float]:
         return {name: float(value) for name, value in zip(self.names, theta)}
+
+    def join(self, other: "ParameterSpace") -> "ParameterSpace":
+        return ParameterSpace(self.names + other.names, self.lower + other.lower, self.upper + other.upper, self.units,
+                              self.linear + other.linear, self.scale + other.scale, self.unit_of + other.unit_of)
 
 
 # --- interpolation of a nodal field --------------------------------------------------------------
@@ -130,29 +166,101 @@ def field_on_pixels(weights: sparse.csr_matrix, nodal: np.ndarray, shape: tuple[
 
 # --- models ----------------------------------------------------------------------------------------
 
+def _effect_space(names: Sequence[str], element_sets: Sequence[str], node_sets: Sequence[str]) -> ParameterSpace:
+    from .effects import effect
+
+    parameters = [p for name in names for p in effect(name).parameters(element_sets, node_sets)]
+    return ParameterSpace(tuple(p.name for p in parameters), tuple(p.lower for p in parameters),
+                          tuple(p.upper for p in parameters), "", (True,) * len(parameters),
+                          tuple(p.scale for p in parameters), tuple(p.unit for p in parameters))
+
+
 @dataclass
 class LegModel:
-    """The leg slice of Avril et al.: two tissues with the AVRIL law, clamped bones, Laplace garment."""
+    """The leg slice of Avril et al.: two tissues with the AVRIL law, clamped bones, Laplace garment;
+    optionally with effects of the catalog (`orchestrator.effects`).
+
+    theta = (C10_fat, C10_muscle, Kv_fat, Kv_muscle) in kPa, then the parameters of `effects` in catalog
+    order; `fixed_effects` are switched on at given values and not fitted (how a case with a hidden effect
+    is made); with `engine_sensitivities` the deck asks calfit-fe for du/dtheta of every parameter of theta
+    (`*SENSITIVITY`), which the objectives turn into the Jacobian of their residuals. All muscle element sets
+    (MUSCLE, or COMPARTMENTk when the labels have compartments) share the muscle constants unless the
+    `compartments` effect separates them."""
 
     mesh: Mesh
     tension_N_per_mm: float
     tension_profile: Sequence[tuple[float, float]] | None = None
-    space: ParameterSpace = field(default_factory=lambda: ParameterSpace(
-        LEG_PARAMETERS, tuple(b[0] for b in LEG_BOUNDS_KPA), tuple(b[1] for b in LEG_BOUNDS_KPA)))
+    effects: tuple[str, ...] = ()
+    fixed_effects: dict = field(default_factory=dict)
+    engine_sensitivities: bool = False
 
     def __post_init__(self):
-        missing = {"FAT", "MUSCLE"} - set(self.mesh.element_sets())
-        if missing:
-            raise ValueError(f"the leg mesh has no {', '.join(sorted(missing))} elements; check the segmentation labels")
+        from .effects import muscle_sets
+
+        sets = self.mesh.element_sets()
+        self.muscle_sets = muscle_sets(list(sets))
+        if "FAT" not in sets or not self.muscle_sets:
+            missing = ", ".join(n for n, ok in (("FAT", "FAT" in sets), ("MUSCLE", bool(self.muscle_sets))) if not ok)
+            raise ValueError(f"the leg mesh has no {missing} elements; check the segmentation labels")
+        self.effects = tuple(self.effects)
+        overlap = set(self.effects) & set(self.fixed_effects)
+        if overlap:
+            raise ValueError(f"effects {sorted(overlap)} are both fitted and fixed")
+        base = ParameterSpace(LEG_PARAMETERS, tuple(b[0] for b in LEG_BOUNDS_KPA), tuple(b[1] for b in LEG_BOUNDS_KPA))
+        self.space = base.join(_effect_space(self.effects, list(sets), list(self.mesh.node_sets)))
+        _effect_space(list(self.fixed_effects), list(sets), list(self.mesh.node_sets))  # checks they fit the mesh
         self.mesh_text = self.mesh.include_text()
         self.mesh_sha = text_sha256(self.mesh_text)
 
+    def start(self, base_kPa: Sequence[float] = TABLE2_CENTRAL_KPA) -> list[float]:
+        """A start point: the base constants, every effect parameter at zero (effect off)."""
+        return [float(v) for v in base_kPa] + [0.0] * (self.space.size - len(LEG_PARAMETERS))
+
+    def deck_state(self, theta: Sequence[float]):
+        """The materials and step keywords of theta, with the *SENSITIVITY lines of every parameter."""
+        from .effects import LegDeckState, effect
+
+        theta = [float(v) for v in theta]
+        if len(theta) != self.space.size:
+            raise ValueError(f"theta has {len(theta)} values; this model has {self.space.size}: {self.space.names}")
+        c10_fat, c10_muscle, kv_fat, kv_muscle = (v / KPA_PER_MPA for v in theta[:4])
+        state = LegDeckState({"FAT": [c10_fat, kv_fat, 0.0], **{m: [c10_muscle, kv_muscle, 0.0] for m in self.muscle_sets}})
+        for j, (name, elsets) in enumerate((("C10_fat", ["FAT"]), ("C10_muscle", self.muscle_sets),
+                                            ("Kv_fat", ["FAT"]), ("Kv_muscle", self.muscle_sets))):
+            constant = "C10" if j < 2 else "KV"
+            state.sensitivity[name] = [(f"MATERIAL, {elset}, {constant}", 1.0 / KPA_PER_MPA) for elset in elsets]
+        values = dict(zip(self.space.names[4:], theta[4:]))
+        for name in self.effects:
+            item = effect(name)
+            item.apply(state, {p.name: values[p.name] for p in item.parameters(list(state.constants), list(self.mesh.node_sets))})
+        for name, fixed in self.fixed_effects.items():
+            effect(name).apply(state, dict(fixed))
+        # the compartments effect scales C10 of a compartment by (1 + c): du/dC10_muscle gets that factor
+        for elset in self.muscle_sets:
+            factor = state.constants[elset][0] / c10_muscle
+            state.sensitivity["C10_muscle"] = [(line, f * (factor if line == f"MATERIAL, {elset}, C10" else 1.0))
+                                               for line, f in state.sensitivity["C10_muscle"]]
+        return state
+
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None) -> str:
-        c10_fat, c10_muscle, kv_fat, kv_muscle = (float(v) / KPA_PER_MPA for v in theta)
+        from .decks import StepEffects
+
+        state = self.deck_state(theta)
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
-        materials = {"FAT": ("AVRIL", (c10_fat, kv_fat)), "MUSCLE": ("AVRIL", (c10_muscle, kv_muscle))}
-        return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile,
-                                description=f"theta (kPa) = {list(map(float, theta))}, T = {tension:.6g} N/mm")
+        lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
+        effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,
+                              tuple((n, *m) for n, m in state.rigid_motions.items()),
+                              tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
+                              tuple(lines) if self.engine_sensitivities else ())
+        stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
+        materials = {elset: ("AVRIL", tuple(c) if stiffening else tuple(c[:2])) for elset, c in state.constants.items()}
+        return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
+                                description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")
+
+    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]]]:
+        """Parameter name -> (engine sensitivity name, factor) pairs: du/dtheta_j = sum factor * du/d(line)."""
+        state = self.deck_state(theta)
+        return {name: [(line.replace(", ", ":"), f) for line, f in state.sensitivity[name]] for name in self.space.names}
 
 
 def annulus_mesh(inner_radius_mm: float = 10.0, outer_radius_mm: float = 40.0, rings: int = 6,

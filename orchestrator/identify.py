@@ -1,14 +1,16 @@
 """Identification of material parameters and the uncertainty of what they predict.
 
-The optimizers work on x = ln(theta) (positive parameters, relative steps), through an
+The optimizers work on x = ln(theta) for the positive material constants (relative steps) and on
+x = theta / scale for the additive effect parameters (`forward.ParameterSpace.to_x`), through an
 `runner.Evaluator`, so that every engine run is cached and logged:
 
 - `nelder_mead`: minimise a scalar misfit (Avril et al. sec. 2.2.5: M(theta); or F(theta) of
   Bouten and Drapier eq. 2), scipy's Nelder-Mead; a failed engine run (no convergence, ...)
   counts as +inf and the simplex moves away from it.
 - `levenberg_marquardt`: minimise F = r.r / (2N) over the residual vector r(theta) (Bouten and
-  Drapier sec. 2.6), the Jacobian J_ij = dr_i / dx_j by forward differences, its p columns
-  evaluated in parallel; step (J^T J + lambda diag J^T J) dx = -J^T r, lambda divided by 3 on
+  Drapier sec. 2.6), the Jacobian J_ij = dr_i / dx_j from the engine's sensitivities du/dtheta when
+  the evaluation carries them (`outputs["jacobian"]`, one engine run per iteration), otherwise by
+  forward differences, its p columns evaluated in parallel; step (J^T J + lambda diag J^T J) dx = -J^T r, lambda divided by 3 on
   success and multiplied by 4 on failure.
 - `multistart`: Nelder-Mead from several initial values (Avril et al. Table 1).
 - `monte_carlo`: draws around the identified point, kept when the misfit is below a threshold;
@@ -62,11 +64,52 @@ def _cost(record: dict) -> float:
     return float(record["cost"]) if record["status"] == OK else np.inf
 
 
+def parameter_space(evaluator: Evaluator):
+    """The evaluator's model's parameter space (ln theta for all parameters when the model has none)."""
+    from .forward import ParameterSpace
+
+    space = getattr(evaluator.model, "space", None)
+    return space if isinstance(space, ParameterSpace) else None
+
+
+def _to_x(space, theta) -> np.ndarray:
+    return space.to_x(theta) if space is not None else np.log(np.asarray(theta, float))
+
+
+def _from_x(space, x) -> np.ndarray:
+    return space.clip(space.from_x(x)) if space is not None else np.exp(np.asarray(x, float))
+
+
+def _dtheta_dx(space, theta) -> np.ndarray:
+    """d theta / d x per parameter: theta for ln theta, scale for the additive parameters."""
+    theta = np.asarray(theta, float)
+    if space is None:
+        return theta
+    return np.where(np.array(space.linear), np.array(space.scale), theta)
+
+
+def residual_jacobian(model, record: dict, theta) -> np.ndarray | None:
+    """dr/dtheta (n_residuals x p) from the engine sensitivities of an evaluation record: the objective stores
+    dr/d(engine parameter) (`outputs["sensitivity"]`), the model says how its parameters map onto the engine's
+    (`sensitivity_map`: du/dtheta_j = sum factor x du/d(engine name)). None when either is missing."""
+    stored = record["outputs"].get("sensitivity") if record["status"] == OK else None
+    mapping = getattr(model, "sensitivity_map", None)
+    if not stored or mapping is None:
+        return None
+    columns = []
+    for name, terms in mapping(theta).items():
+        if any(line not in stored for line, _ in terms):
+            return None
+        columns.append(sum(factor * np.asarray(stored[line], float) for line, factor in terms))
+    return np.column_stack(columns)
+
+
 def nelder_mead(evaluator: Evaluator, start: Sequence[float], *, xatol: float = 2e-3, fatol: float = 1e-6,
                 max_evaluations: int = 400, initial_step: float = 0.15) -> FitResult:
     """Nelder-Mead in ln(theta) from `start`; initial simplex: each parameter +initial_step (15 %)."""
     launched0, replayed0, began = evaluator.launched, evaluator.replayed, time.perf_counter()
-    x0 = np.log(np.asarray(start, float))
+    space = parameter_space(evaluator)
+    x0 = _to_x(space, start)
     simplex = np.vstack([x0] + [x0 + initial_step * np.eye(len(x0))[j] for j in range(len(x0))])
     history: list[float] = []
     calls = 0
@@ -74,7 +117,7 @@ def nelder_mead(evaluator: Evaluator, start: Sequence[float], *, xatol: float = 
     def misfit(x):
         nonlocal calls
         calls += 1
-        value = _cost(evaluator(np.exp(x)))
+        value = _cost(evaluator(_from_x(space, x)))
         if not history or value < history[-1]:
             history.append(value)
         return value
@@ -82,7 +125,7 @@ def nelder_mead(evaluator: Evaluator, start: Sequence[float], *, xatol: float = 
     result = optimize.minimize(misfit, x0, method="Nelder-Mead",
                                options={"xatol": xatol, "fatol": fatol, "maxfev": max_evaluations,
                                         "initial_simplex": simplex})
-    return FitResult("nelder-mead", list(map(float, start)), np.exp(result.x).tolist(), float(result.fun),
+    return FitResult("nelder-mead", list(map(float, start)), _from_x(space, result.x).tolist(), float(result.fun),
                      int(result.nit), calls, evaluator.launched - launched0, evaluator.replayed - replayed0,
                      time.perf_counter() - began, bool(result.success), str(result.message), history)
 
@@ -92,32 +135,41 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     """Levenberg-Marquardt on the residual vector `outputs["residuals"]` of the evaluator's objective
     (chi^2 = r.r); the reported cost and history are the objective's own cost (F, eq. 2)."""
     launched0, replayed0, began = evaluator.launched, evaluator.replayed, time.perf_counter()
-    x = np.log(np.asarray(start, float))
+    space = parameter_space(evaluator)
+    x = _to_x(space, start)
     p = len(x)
 
     def residuals(record: dict) -> np.ndarray | None:
         return np.asarray(record["outputs"]["residuals"]) if record["status"] == OK else None
 
-    current = evaluator(np.exp(x))
+    def engine_jacobian(record: dict, at_x: np.ndarray) -> np.ndarray | None:
+        """dr/dx from the engine's du/dtheta (chain rule through theta(x)), when the record has it."""
+        theta = _from_x(space, at_x)
+        jacobian = residual_jacobian(evaluator.model, record, theta)
+        return None if jacobian is None else jacobian * _dtheta_dx(space, theta)[None, :]
+
+    current = evaluator(_from_x(space, x))
     r = residuals(current)
     if r is None:
         raise RuntimeError(f"the engine failed at the start point {list(start)}: {current['message']}")
     chi2, history = float(r @ r), [float(current["cost"])]
     evaluations, converged, message, iteration = 1, False, "maximum number of iterations reached", 0
     for iteration in range(1, max_iterations + 1):
-        probes = [np.exp(x + FD_STEP * np.eye(p)[j]) for j in range(p)]
-        records = evaluator.evaluate(probes, tag="lm-jacobian", label=f"LM Jacobian {iteration}")
-        evaluations += p
-        columns = [residuals(rec) for rec in records]
-        if any(c is None for c in columns):
-            raise RuntimeError("the engine failed in a finite-difference probe: "
-                               + "; ".join(rec["message"] for rec in records if rec["status"] != OK))
-        J = np.column_stack([(c - r) / FD_STEP for c in columns])
+        J = engine_jacobian(current, x)
+        if J is None:
+            probes = [_from_x(space, x + FD_STEP * np.eye(p)[j]) for j in range(p)]
+            records = evaluator.evaluate(probes, tag="lm-jacobian", label=f"LM Jacobian {iteration}")
+            evaluations += p
+            columns = [residuals(rec) for rec in records]
+            if any(c is None for c in columns):
+                raise RuntimeError("the engine failed in a finite-difference probe: "
+                                   + "; ".join(rec["message"] for rec in records if rec["status"] != OK))
+            J = np.column_stack([(c - r) / FD_STEP for c in columns])
         gradient, normal = J.T @ r, J.T @ J
         improved = False
         while lam < 1e12:
             step = np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient)
-            trial = evaluator(np.exp(x + step))
+            trial = evaluator(_from_x(space, x + step))
             evaluations += 1
             r_trial = residuals(trial)
             trial_chi2 = float(r_trial @ r_trial) if r_trial is not None else np.inf
@@ -133,7 +185,7 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
         if np.max(np.abs(step)) < xtol or relative_drop < ftol:
             converged, message = True, "step or misfit change below tolerance"
             break
-    return FitResult("levenberg-marquardt", list(map(float, start)), np.exp(x).tolist(), float(current["cost"]),
+    return FitResult("levenberg-marquardt", list(map(float, start)), _from_x(space, x).tolist(), float(current["cost"]),
                      iteration, evaluations, evaluator.launched - launched0, evaluator.replayed - replayed0,
                      time.perf_counter() - began, converged, message, history)
 
@@ -196,6 +248,11 @@ def monte_carlo(evaluator: Evaluator, names: Sequence[str], best: Sequence[float
     """
     began = time.perf_counter()
     best = np.asarray(best, float)
+    space = parameter_space(evaluator)
+    if space is not None and any(space.linear):
+        raise ValueError("Monte-Carlo intervals are drawn in ln(theta) around positive constants; the effect "
+                         f"parameters {[n for n, lin in zip(space.names, space.linear) if lin]} are additive: "
+                         "fix them at their identified values (a model with fixed_effects) before `calfit montecarlo`")
     threshold = float(threshold if threshold is not None else threshold_factor * best_cost)
     p = len(best)
     span = np.log(max_factor)

@@ -80,7 +80,16 @@ class DisplacementResidualObjective:
         return float(np.sum((simulated - self.measured_mm) ** 2) / (2 * len(self.measured_mm)))
 
     def outputs(self, nodal_u: np.ndarray, outdir: Path) -> dict:
-        return {"cost": self.cost(nodal_u), "residuals": self.residuals(nodal_u).tolist()}
+        """Cost and residuals; with the engine's sensitivities (a deck with *SENSITIVITY), also
+        dr/d(engine parameter) = W du/dtheta / sigma per engine parameter name."""
+        from .results import EngineResults
+
+        out = {"cost": self.cost(nodal_u), "residuals": self.residuals(nodal_u).tolist()}
+        sensitivities = EngineResults(Path(outdir)).sensitivities()
+        if sensitivities:
+            out["sensitivity"] = {name: ((self.weights @ du) / self.sigma_mm[:, None]).ravel().tolist()
+                                  for name, du in sensitivities.items()}
+        return out
 
 
 class LandmarkPressure:

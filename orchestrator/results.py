@@ -67,6 +67,17 @@ class EngineResults:
             raise ResultsError(f"{self.outdir}: the VTU has no cell field {name!r} (it has {sorted(mesh.cell_data)})")
         return np.asarray(mesh.cell_data[name][0], float).squeeze()
 
+    def sensitivities(self) -> dict[str, np.ndarray]:
+        """Engine name (e.g. "MATERIAL:MUSCLE:C10") -> (n_nodes, 2) du/dtheta of the last step, for a deck
+        with *SENSITIVITY; empty otherwise."""
+        out = {}
+        for entry in self.summary.get("sensitivities", []):
+            path = self.outdir / entry["file"]
+            if not path.is_file():
+                raise ResultsError(f"{path} does not exist although summary.json lists it")
+            out[entry["name"]] = np.load(path)[:, 3:5]
+        return out
+
     @property
     def total_newton_iterations(self) -> int:
         return sum(int(step["newton_iterations"]) for step in self.summary["steps"])

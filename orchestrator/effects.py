@@ -1,0 +1,236 @@
+"""The effect catalog (DESIGN.md, "Missing physics"): named, switchable pieces of physics, off in the
+baseline model of Avril et al., each with its parameters, its physical reading, its realization in the
+deck (`decks.StepEffects` and the materials) and the `*SENSITIVITY` lines that give the engine's
+du/d(parameter) at the current point (at zero when the effect is off: what the score test needs).
+
+An effect's parameters are additive (`linear`): zero is "effect off", negative values may be physical
+(a shrink, a displacement), so the optimizers move them by steps of `scale` rather than in ln theta.
+
+| effect          | parameters                      | engine keyword                      |
+|-----------------|---------------------------------|-------------------------------------|
+| compartments    | dC10 of each muscle compartment | one *MATERIAL per COMPARTMENTk      |
+| drainage        | dv_muscle                       | *VOLUME CHANGE, ELSET=<muscle>      |
+| friction        | mu                              | explicit garment (*FRICTION)        |
+| bridging        | (switch)                        | explicit garment (*CONTACT PAIR)    |
+| tension_profile | a1, b1                          | *TENSION PROFILE, TYPE=FOURIER      |
+| bone_motion     | ux_BONE2, uy_BONE2              | *RIGID MOTION, NSET=BONE2           |
+| stiffening      | C20_fat, C20_muscle             | *HYPERELASTIC, AVRIL third constant |
+| out_of_plane    | eps_z                           | *AXIAL STRETCH                      |
+
+`friction` and `bridging` need the explicit garment band (`templates/leg_garment.inp.j2`, contact with
+path-dependent friction, minutes per solve on a fitting mesh); they are in the catalog for their
+explanation and for the garment studies, and the diagnosis of a Laplace-law model does not rank them
+(`Effect.laplace_model` is False).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+from .decks import KPA_PER_MPA
+
+MUSCLE_SET = "MUSCLE"
+COMPARTMENT_PREFIX = "COMPARTMENT"
+SECOND_BONE = "BONE2"
+PROFILE_NAME = "GARMENT"
+
+
+class EffectError(ValueError):
+    """An unknown effect, or one that the mesh of the run cannot carry."""
+
+
+def muscle_sets(element_sets: Sequence[str]) -> list[str]:
+    """The element sets that hold muscle: MUSCLE and every COMPARTMENTk (labels >= 4)."""
+    return [name for name in element_sets if name == MUSCLE_SET or name.startswith(COMPARTMENT_PREFIX)]
+
+
+def compartment_sets(element_sets: Sequence[str]) -> list[str]:
+    return sorted(name for name in element_sets if name.startswith(COMPARTMENT_PREFIX))
+
+
+@dataclass(frozen=True)
+class EffectParameter:
+    """One additive parameter of an effect; 0 is the effect switched off."""
+
+    name: str
+    unit: str
+    lower: float
+    upper: float
+    scale: float   # a typical size: the optimizers' unit step and the finite-difference scale
+    meaning: str
+
+
+@dataclass
+class LegDeckState:
+    """What the parameters of a leg model set in its deck: material constants (MPa) per element set and the
+    step keywords of `decks.StepEffects`; effects edit it in turn. `sensitivity` maps each parameter name to
+    the engine's *SENSITIVITY lines and the factor of each, d(engine value)/d(parameter), whose weighted sum
+    is du/d(parameter)."""
+
+    constants: dict[str, list[float]]        # element set -> [C10, Kv, C20] in MPa
+    volume_changes: dict[str, float] = field(default_factory=dict)
+    axial_stretch: float | None = None
+    rigid_motions: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    fourier_profile: dict[int, tuple[float, float]] = field(default_factory=dict)
+    sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Effect:
+    name: str
+    adds: str          # what it adds, one line (DESIGN.md table)
+    physics: str       # why it may be missing in a real calf, and what it does to the residual
+    parameter_list: Callable[[Sequence[str], Sequence[str]], tuple[EffectParameter, ...]]
+    apply: Callable[[LegDeckState, dict[str, float]], None] | None
+    laplace_model: bool = True   # realizable in the Laplace-law leg deck (ranked by the diagnosis)
+    requirement: Callable[[Sequence[str], Sequence[str]], str | None] = lambda element_sets, node_sets: None
+
+    def parameters(self, element_sets: Sequence[str], node_sets: Sequence[str]) -> tuple[EffectParameter, ...]:
+        """The effect's parameters on a mesh with these sets; EffectError when the mesh cannot carry it."""
+        reason = self.unavailable(element_sets, node_sets)
+        if reason:
+            raise EffectError(f"effect {self.name!r} is not available on this mesh: {reason}")
+        return self.parameter_list(element_sets, node_sets)
+
+    def unavailable(self, element_sets: Sequence[str], node_sets: Sequence[str]) -> str | None:
+        if not self.laplace_model:
+            return "it needs the explicit garment band (templates/leg_garment.inp.j2), not the Laplace-law model"
+        return self.requirement(element_sets, node_sets)
+
+
+# --- the realizations -------------------------------------------------------------------------------
+
+def _add_sensitivity(state: LegDeckState, parameter: str, line: str, factor: float) -> None:
+    state.sensitivity.setdefault(parameter, []).append((line, factor))
+
+
+def _compartment_parameters(element_sets, node_sets):
+    return tuple(EffectParameter(f"dC10_{name}", "1", -0.8, 4.0, 0.05,
+                                 f"relative change of the muscle C10 in {name}") for name in compartment_sets(element_sets))
+
+
+def _apply_compartments(state: LegDeckState, values: dict[str, float]) -> None:
+    for name, change in values.items():
+        elset = name[len("dC10_"):]
+        base = state.constants[elset][0]
+        state.constants[elset][0] = base * (1.0 + change)
+        _add_sensitivity(state, name, f"MATERIAL, {elset}, C10", base)
+
+
+def _apply_drainage(state: LegDeckState, values: dict[str, float]) -> None:
+    for elset in muscle_sets(list(state.constants)):
+        state.volume_changes[elset] = values["dv_muscle"]
+        _add_sensitivity(state, "dv_muscle", f"VOLUME CHANGE, {elset}", 1.0)
+
+
+def _apply_tension_profile(state: LegDeckState, values: dict[str, float]) -> None:
+    state.fourier_profile[1] = (values["a1"], values["b1"])
+    _add_sensitivity(state, "a1", f"PROFILE, {PROFILE_NAME}, A1", 1.0)
+    _add_sensitivity(state, "b1", f"PROFILE, {PROFILE_NAME}, B1", 1.0)
+
+
+def _apply_bone_motion(state: LegDeckState, values: dict[str, float]) -> None:
+    state.rigid_motions[SECOND_BONE] = (values["ux_BONE2"], values["uy_BONE2"], 0.0)
+    _add_sensitivity(state, "ux_BONE2", f"RIGID MOTION, {SECOND_BONE}, UX", 1.0)
+    _add_sensitivity(state, "uy_BONE2", f"RIGID MOTION, {SECOND_BONE}, UY", 1.0)
+
+
+def _apply_stiffening(state: LegDeckState, values: dict[str, float]) -> None:
+    for elset, constants in state.constants.items():
+        name = "C20_fat" if elset == "FAT" else "C20_muscle"
+        constants[2] = values[name] / KPA_PER_MPA
+        _add_sensitivity(state, name, f"MATERIAL, {elset}, C20", 1.0 / KPA_PER_MPA)
+
+
+def _apply_out_of_plane(state: LegDeckState, values: dict[str, float]) -> None:
+    state.axial_stretch = 1.0 + values["eps_z"]
+    _add_sensitivity(state, "eps_z", "AXIAL STRETCH", 1.0)
+
+
+def _fixed(*parameters: EffectParameter):
+    return lambda element_sets, node_sets: parameters
+
+
+def _needs_compartments(element_sets, node_sets):
+    found = compartment_sets(element_sets)
+    return None if len(found) >= 2 else (f"the mesh has {len(found)} muscle compartment set(s); label the "
+                                         "compartments 4, 5, ... in labels.png")
+
+
+def _needs_second_bone(element_sets, node_sets):
+    return None if SECOND_BONE in node_sets else "the mesh has a single bone (no node set BONE2)"
+
+
+CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
+    Effect("compartments", "separate C10 for each muscle compartment",
+           "The anterior, lateral, deep and superficial posterior compartments hold different muscles with different "
+           "tone; one muscle material then leaves a residual that jumps at the fasciae between compartments.",
+           _compartment_parameters, _apply_compartments, requirement=_needs_compartments),
+    Effect("drainage", "volumetric shrink of muscle (fluid loss under compression)",
+           "Muscle is a biphasic 'wet sponge': under sustained compression interstitial fluid leaves, the tissue "
+           "loses volume (dv < 0) and moves inwards everywhere, beyond what the compressible law gives: a radial, "
+           "roughly uniform inward residual.",
+           _fixed(EffectParameter("dv_muscle", "1", -0.3, 0.3, 0.01, "relative volume change of the muscle")),
+           _apply_drainage),
+    Effect("friction", "garment-skin Coulomb friction (explicit garment contact)",
+           "A garment pulled on holds the skin by friction, so the tangential traction shears the fat; Laplace's law "
+           "has no tangential traction at all.",
+           _fixed(EffectParameter("mu", "1", 0.0, 1.0, 0.05, "Coulomb friction coefficient")), None, laplace_model=False),
+    Effect("bridging", "explicit garment that bridges concave parts of the skin",
+           "Over concave skin (between the tibia's crest and the calf) a real garment lifts off; Laplace's law pulls "
+           "there (p = T/r < 0 is clipped, not bridged).",
+           _fixed(), None, laplace_model=False),
+    Effect("tension_profile", "garment tension varying around the leg (first harmonic)",
+           "Seams, a knit that is stretched unevenly or friction make the tension T vary around the leg: "
+           "T(theta) = T (1 + a1 cos theta + b1 sin theta); the leg is pushed towards the side of low tension.",
+           _fixed(EffectParameter("a1", "1", -0.6, 0.6, 0.05, "cos theta amplitude of the tension factor"),
+                  EffectParameter("b1", "1", -0.6, 0.6, 0.05, "sin theta amplitude of the tension factor")),
+           _apply_tension_profile),
+    Effect("bone_motion", "rigid motion of the fibula relative to the tibia instead of clamping",
+           "The bones are not welded together: the interosseous membrane lets the fibula move under load, which "
+           "drags the deep tissue with it: a residual that is largest around the second bone.",
+           _fixed(EffectParameter("ux_BONE2", "mm", -3.0, 3.0, 0.1, "x translation of the second bone"),
+                  EffectParameter("uy_BONE2", "mm", -3.0, 3.0, 0.1, "y translation of the second bone")),
+           _apply_bone_motion, requirement=_needs_second_bone),
+    Effect("stiffening", "higher-order strain-energy term C20 (I1bar - 3)^2",
+           "Soft tissue stiffens with strain (collagen recruitment); the neo-Hookean law cannot: regions of large "
+           "strain (under the skin, near the bones) move less than the model says.",
+           _fixed(EffectParameter("C20_fat", "kPa", 0.0, 5000.0, 10.0, "C20 of fat"),
+                  EffectParameter("C20_muscle", "kPa", 0.0, 5000.0, 10.0, "C20 of muscle")),
+           _apply_stiffening),
+    Effect("out_of_plane", "generalized plane strain: uniform axial stretch",
+           "A calf squeezed by a garment lengthens along the leg (or the slice is not where the two scans cut it): "
+           "a uniform axial strain eps_z changes the in-plane area at no cost, a dilatation everywhere.",
+           _fixed(EffectParameter("eps_z", "1", -0.2, 0.2, 0.01, "axial strain lambda_z - 1")),
+           _apply_out_of_plane),
+)}
+
+
+def effect(name: str) -> Effect:
+    try:
+        return CATALOG[name]
+    except KeyError:
+        raise EffectError(f"unknown effect {name!r}; the catalog has: {', '.join(CATALOG)}") from None
+
+
+def parse_effects(text: str | Sequence[str] | None) -> tuple[str, ...]:
+    """'drainage,stiffening' (or a list) -> ('drainage', 'stiffening'), checked against the catalog."""
+    if not text:
+        return ()
+    names = [n.strip() for n in (text.split(",") if isinstance(text, str) else text) if n.strip()]
+    for name in names:
+        effect(name)
+    if len(set(names)) != len(names):
+        raise EffectError(f"an effect is named twice in {names}")
+    return tuple(names)
+
+
+def describe() -> list[str]:
+    """Human lines: the catalog with parameters."""
+    lines = []
+    for item in CATALOG.values():
+        where = "" if item.laplace_model else "  [explicit garment]"
+        lines.append(f"{item.name:<16} {item.adds}{where}")
+        lines.append(f"{'':<16} {item.physics}")
+    return lines
