@@ -16,8 +16,11 @@ from typing import Sequence
 
 import numpy as np
 
+from dataclasses import asdict
+
+from .diagnose import ALPHA, diagnose, refit, residual_maps, summarize_fit
 from .forward import TABLE2_CENTRAL_KPA
-from .identify import levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
+from .identify import FitResult, levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .study import RunSetup, load_run, prepare_run, read_json, write_json
 
@@ -37,14 +40,16 @@ def _objective(setup: RunSetup, name: str):
 
 
 def run_identify(case_dir, run_dir, *, method: str = "nm", objective: str = "auto", start: Sequence[float] | None = None,
-                 starts: str = "one", n_elements: int = 400, workers: int = 1, scheduler: str | None = None,
-                 timeout_s: float = 120.0, progress: bool = True) -> dict:
-    """Prepare (or reload) the run folder and identify; returns and writes identification.json."""
+                 starts: str = "one", n_elements: int = 400, effects: Sequence[str] = (), workers: int = 1,
+                 scheduler: str | None = None, timeout_s: float = 120.0, progress: bool = True) -> dict:
+    """Prepare (or reload) the run folder and identify; returns and writes identification.json.
+    effects: catalog effects whose parameters are fitted too (they start at zero, effect off)."""
     run_dir = Path(run_dir)
     setup = load_run(run_dir) if (run_dir / "setup.json").is_file() else prepare_run(case_dir, run_dir, n_elements=n_elements)
+    setup.model = setup.model_with(effects)
     objective = choose_objective(setup, objective, method)
-    start = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
-    start_points = table1_starts(start) if starts == "table1" else [start]
+    base = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
+    start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
     with Evaluator(setup.model, _objective(setup, objective), run_dir, workers=workers, scheduler=scheduler,
                    timeout_s=timeout_s, progress=progress) as evaluator:
         if method == "lm":
@@ -53,7 +58,8 @@ def run_identify(case_dir, run_dir, *, method: str = "nm", objective: str = "aut
             fits = multistart(evaluator, start_points)
     best = min(fits, key=lambda fit: fit.cost)
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
-              "parameters": list(setup.model.space.names), "units": setup.model.space.units,
+              "effects": list(setup.model.effects), "parameters": list(setup.model.space.names),
+              "units": setup.model.space.units, "unit_of": list(setup.model.space.unit_of),
               "best": best.as_dict(), "fits": [fit.as_dict() for fit in fits],
               "engine_runs_total": len(EvaluationLog(run_dir / LOG_NAME))}
     write_json(run_dir / "identification.json", result)
@@ -66,6 +72,7 @@ def run_montecarlo(run_dir, *, draws: int = 400, threshold: float | None = None,
     run_dir = Path(run_dir)
     setup = load_run(run_dir)
     identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
+    setup.model = setup.model_with(identification.get("effects", ()))
     best = identification["best"]
     with Evaluator(setup.model, _objective(setup, identification["objective"]), run_dir, workers=workers,
                    scheduler=scheduler, timeout_s=timeout_s, progress=progress) as evaluator:
@@ -88,6 +95,51 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
                                      tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
     result = stats.as_dict()
     write_json(run_dir / "pressures.json", result)
+    return result
+
+
+def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
+                 engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
+                 timeout_s: float = 120.0, progress: bool = True) -> dict:
+    """Diagnose the identified model of a run; refit with `refit_effects` ("auto": the best-ranked effect when
+    it is significant, "none", or names). Writes and returns diagnosis.json."""
+    run_dir = Path(run_dir)
+    setup = load_run(run_dir)
+    identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
+    if identification["objective"] != "displacement":
+        raise ValueError("the diagnosis compares the model with measured displacements: identify with "
+                         "--objective displacement (points.csv) first")
+    model = setup.model_with(identification.get("effects", ()))
+    objective = setup.displacement_objective()
+    points = setup.case.points
+
+    def evaluator_for(m):
+        return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
+                         progress=progress)
+
+    theta = identification["best"]["theta"]
+    diagnosis = diagnose(evaluator_for, model, theta, points.position_mm, points.sigma_mm, setup.point_regions(),
+                         setup.leg_centre_mm(), alpha=alpha, engine_sensitivities=engine_sensitivities)
+    with evaluator_for(model) as evaluator:
+        before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), points.sigma_mm)
+    if refit_effects == "auto":
+        chosen = [[diagnosis.ranking[0].effect]] if diagnosis.ranking and diagnosis.ranking[0].significant else []
+    elif refit_effects == "none":
+        chosen = []
+    else:
+        chosen = [[name] for name in refit_effects]
+    after, after_maps = [], []
+    for names in chosen:
+        fit, extended = refit(evaluator_for, model, theta, names, points.sigma_mm)
+        after.append(fit)
+        with evaluator_for(extended) as evaluator:
+            residual = np.asarray(evaluator(fit.theta)["outputs"]["residuals"]).reshape(-1, 2) * points.sigma_mm[:, None]
+        after_maps.append(residual_maps(points.position_mm, residual, setup.point_regions(), setup.leg_centre_mm()))
+    result = diagnosis.as_dict()
+    result["before"] = before.as_dict()
+    result["refits"] = [fit.as_dict() for fit in after]
+    result["maps_after"] = [asdict(m) for m in after_maps]
+    write_json(run_dir / "diagnosis.json", result)
     return result
 
 

@@ -85,6 +85,24 @@ class RunSetup:
     mesh: Mesh
     model: LegModel
 
+    def model_with(self, effects: Sequence[str] = ()) -> LegModel:
+        """The run's leg model with these catalog effects fitted too."""
+        from .effects import parse_effects
+
+        return LegModel(self.mesh, self.case.tension_N_per_mm, effects=parse_effects(list(effects)))
+
+    def point_regions(self) -> np.ndarray:
+        """The tissue label of I0 under each measured point (1 fat, 2 muscle, ...)."""
+        dy, dx = self.case.pixel_size_mm
+        xy = self.case.points.position_mm
+        rows = np.clip((xy[:, 1] / dy).astype(int), 0, self.labels_unloaded.shape[0] - 1)
+        cols = np.clip((xy[:, 0] / dx).astype(int), 0, self.labels_unloaded.shape[1] - 1)
+        return self.labels_unloaded[rows, cols]
+
+    def leg_centre_mm(self) -> np.ndarray:
+        """Centroid of the skin contour: the centre of the angular sectors of the residual maps."""
+        return self.mesh.nodes[self.mesh.skin_loop].mean(axis=0)
+
     def mismatch_objective(self) -> ContourMismatchObjective:
         return ContourMismatchObjective(self.mesh, self.labels_unloaded, self.labels_loaded, self.case.pixel_size_mm)
 
@@ -143,32 +161,41 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
                       theta_kPa: Sequence[float] = TABLE2_CENTRAL_KPA, tension_N_per_mm: float = 0.16,
                       n_elements: int = 2000, order: int = 2, points_spacing_mm: float | None = 6.0,
                       points_sigma_mm: float = 0.02, noise_seeds: tuple[int, int] = (0, 1), rigid: RigidMotion | None = None,
+                      effects: dict[str, dict[str, float]] | None = None, labels: str = "segmented",
                       overwrite: bool = False) -> tuple[Path, Path]:
-    """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text)."""
+    """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text).
+
+    effects: catalog effects switched on in the truth, {effect: {parameter: value}} (a case with a hidden
+    effect); with `compartments` the truth is meshed with the muscle compartments, and `labels` should then be
+    "compartments" so that the fit can separate them. labels: what the case's labels.png holds
+    (`orchestrator.phantom.write_case`)."""
     from .phantom import CalfPhantom, write_case
     from .results import EngineResults
     from .runner import run_engine
 
+    effects = {name: dict(values) for name, values in (effects or {}).items()}
     phantom = CalfPhantom()
-    mesh = mesh_from_labels(phantom.labels(), phantom.pixel_size_mm, n_elements=n_elements, order=order)
-    model = LegModel(mesh, tension_N_per_mm)
+    mesh = mesh_from_labels(phantom.labels(compartments="compartments" in effects), phantom.pixel_size_mm,
+                            n_elements=n_elements, order=order)
+    model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects)
     with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
         deck.write_text(model.deck(theta_kPa))
         outcome = run_engine(deck, Path(scratch) / "out", threads=None)
         if not outcome.converged:
-            raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa; "
-                               "choose stiffer parameters or a smaller tension")
+            raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa "
+                               f"with effects {effects}; choose stiffer parameters or a smaller tension")
         nodal = EngineResults(outcome.outdir).displacement()
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
     truth = {"parameters_kPa": dict(zip(LEG_PARAMETERS, map(float, theta_kPa))), "tension_N_per_mm": tension_N_per_mm,
-             "law": "AVRIL (Avril et al. eq. 2)", "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type},
+             "law": "AVRIL (Avril et al. eq. 2)", "effects": effects,
+             "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type},
              "max_displacement_mm": float(np.abs(field).max())}
     case, truth_dir = write_case(folder, phantom, field, rigid=rigid, truth_folder=truth_folder,
                                  tension_N_per_mm=tension_N_per_mm, points_spacing_mm=points_spacing_mm,
-                                 points_sigma_mm=points_sigma_mm, noise_seeds=noise_seeds,
+                                 points_sigma_mm=points_sigma_mm, noise_seeds=noise_seeds, labels=labels,
                                  description=json.dumps(truth), overwrite=overwrite)
     write_json(Path(truth_dir) / PARAMETERS_FILE, truth)
     return Path(case), Path(truth_dir)

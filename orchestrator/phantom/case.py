@@ -39,7 +39,8 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
     """Render the phantom unloaded and loaded (displacement in mm, callable or (2, H, W); default a bone-clamped
     radial compression) and write the case folder and the truth folder. Returns (case folder, truth folder).
 
-    labels: "segmented" (segment_t1 of the unloaded image), "truth" (exact phantom labels) or None (no labels.png).
+    labels: "segmented" (segment_t1 of the unloaded image), "truth" (exact phantom labels), "compartments" (exact
+    labels with the muscle compartments as labels 4, 5, ..., a user's hand segmentation) or None (no labels.png).
     points_spacing_mm: if given, write points.csv on a grid of that spacing inside the leg.
     """
     folder = Path(folder)
@@ -47,8 +48,8 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
     for target in (folder, truth_folder):
         if target.exists() and not overwrite:
             raise FileExistsError(f"{target} already exists; choose another folder or pass overwrite=True")
-    if labels not in ("segmented", "truth", None):
-        raise ValueError("labels must be 'segmented', 'truth' or None")
+    if labels not in ("segmented", "truth", "compartments", None):
+        raise ValueError("labels must be 'segmented', 'truth', 'compartments' or None")
     phantom = phantom or CalfPhantom()
     if displacement is None:
         displacement = bone_clamped_compression(phantom.geometry)
@@ -59,7 +60,7 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
     loaded = make_loaded_image(phantom, displacement_fn, rigid, noise_seed=noise_seeds[1])
     true_labels = phantom.labels()
     case_labels = {"segmented": lambda: segment_t1(unloaded, phantom.pixel_size_mm), "truth": lambda: true_labels,
-                   None: lambda: None}[labels]()
+                   "compartments": lambda: phantom.labels(compartments=True), None: lambda: None}[labels]()
     field = displacement_on_grid(displacement_fn, phantom.image_shape, phantom.pixel_size_mm)
     points = (_grid_points(phantom, true_labels, displacement_fn, points_spacing_mm, points_sigma_mm, noise_seeds[1])
               if points_spacing_mm else None)

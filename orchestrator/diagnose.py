@@ -1,0 +1,352 @@
+"""Where the fitted model fails, which effect of the catalog is missing, and what adding it gains.
+
+Residual. r = (u_model - u_measured) / sigma at the measured points (Bouten and Drapier eq. 2, both
+components, n = 2N values), at the identified parameters theta of p fitted parameters. The misfit is
+F = sum |u_model - u_measured|^2 / (2N) (mm^2, the identification's cost); with measurement noise of
+standard deviation sigma and a correct model its expectation is the noise floor
+F_0 = mean(sigma^2) (n - p) / n.
+
+Which effect is missing (DESIGN.md). For every catalog effect not in the model, G = dr/dphi at phi = 0
+(n x q, its q parameters), from the engine's sensitivities when it gives them (one run), otherwise by
+forward differences of step `scale`. Its part that the fitted parameters cannot absorb is
+G_perp = G - J (J^T J)^-1 J^T G (J = dr/dx, x the optimizer's variables). Linearized, refitting with
+the effect lowers chi^2 = r.r by U^T M^-1 U with U = G_perp^T r and M = G_perp^T G_perp (the predicted
+reduction; for q = 1 it is (g_perp^T r)^2 / g_perp^T g_perp), and the score statistic
+S = U^T M^-1 U / (sigma^2 D) is chi^2 with q degrees of freedom when the effect is absent (r is
+normalized: sigma = 1). D >= 1 is the design effect of residuals correlated in space: with rho the
+correlation of each point's residual with its nearest neighbour's, D = (1 + rho) / (1 - rho) (the AR(1)
+variance inflation, i.e. an effective sample size n / D); independent noise has rho ~ 0 and D = 1, a
+smooth misfit pattern a large D, which keeps a smooth model error from passing for many independent
+pieces of evidence. |g_perp| / |g| tells how much of the effect the fitted parameters would mimic
+(0: all of it). Effects are ranked by S; one is significant when its p-value is below alpha / m
+(Bonferroni over the m effects tried) and the misfit itself is above the noise floor (chi^2 test).
+
+Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
+the noise floor, that effect explains the residual; otherwise the diagnosis says that no catalog effect
+explains it and points at where the residual is (per region, per angular sector around the leg).
+
+Refit. `refit` identifies again with the effect's parameters free (Levenberg-Marquardt from the fitted
+point, effect at zero) and compares misfit, AIC = chi^2 + 2k and BIC = chi^2 + k ln n (known sigma:
+-2 ln L = chi^2 + const) before and after, so that an effect that does not pay for its parameters is
+seen not to.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy import stats
+from scipy.spatial import cKDTree
+
+from .effects import CATALOG, effect
+from .forward import LegModel
+from .identify import FitResult, levenberg_marquardt, residual_jacobian
+from .runner import OK, Evaluator
+
+ALPHA = 0.01
+EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
+MAX_DESIGN_EFFECT = 100.0
+SECTORS = 12                 # angular sectors of 30 degrees around the leg for the residual summaries
+FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
+TISSUE_NAMES = {1: "fat", 2: "muscle"}
+
+
+@dataclass
+class EffectScore:
+    effect: str
+    parameters: list[str]
+    statistic: float
+    dof: int
+    p_value: float
+    predicted_reduction: float        # of the misfit F, mm^2
+    predicted_misfit: float           # F - reduction, mm^2
+    orthogonal_fraction: list[float]  # |g_perp| / |g| per parameter
+    predicted_values: list[float]     # the linearized refit's parameter values
+    significant: bool = False
+
+
+@dataclass
+class ResidualMaps:
+    """The residual where it is: vectors at the points, RMS per tissue and per angular sector."""
+
+    positions_mm: list[list[float]]
+    residual_mm: list[list[float]]          # u_model - u_measured at each point
+    per_region_rms_mm: dict[str, float]
+    sector_centre_deg: list[float]
+    sector_rms_mm: list[float]
+    sector_radial_mm: list[float]           # mean radial component (+ outwards: the model is too far out)
+    sector_count: list[int]
+    centre_mm: list[float]
+    worst_sector_deg: float
+
+
+@dataclass
+class Diagnosis:
+    effects_in_model: list[str]
+    parameters: list[str]
+    theta: list[float]
+    misfit: float
+    noise_floor: float
+    chi2: float
+    n_residuals: int
+    lack_of_fit_p: float
+    design_effect: float
+    neighbour_correlation: float
+    ranking: list[EffectScore]
+    explained: bool
+    verdict: str
+    maps: ResidualMaps
+    engine_runs: int
+    sensitivities_from: str
+    wall_time_s: float
+    not_ranked: dict[str, str] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+# --- statistics ---------------------------------------------------------------------------------
+
+def noise_floor(sigma_mm: np.ndarray, n_parameters: int) -> float:
+    """Expected misfit F of a correct model fitted to data with noise sigma: mean(sigma^2) (n - p) / n."""
+    n = 2 * len(sigma_mm)
+    return float(np.mean(np.asarray(sigma_mm, float) ** 2) * (n - n_parameters) / n)
+
+
+def neighbour_correlation(positions_mm: np.ndarray, residual: np.ndarray) -> float:
+    """Correlation of each point's residual vector with that of its nearest neighbour."""
+    vectors = np.asarray(residual, float).reshape(-1, 2)
+    if len(vectors) < 3:
+        return 0.0
+    _, nearest = cKDTree(positions_mm).query(positions_mm, k=2)
+    neighbour = vectors[nearest[:, 1]]
+    return float(np.sum(vectors * neighbour) / max(np.sum(vectors * vectors), 1e-300))
+
+
+def design_effect(rho: float) -> float:
+    rho = min(max(rho, 0.0), 0.999)
+    return float(min((1.0 + rho) / (1.0 - rho), MAX_DESIGN_EFFECT))
+
+
+def score_effect(r: np.ndarray, J: np.ndarray, G: np.ndarray, chi2_to_misfit: float, deff: float) -> dict:
+    """Score statistic, predicted reduction and orthogonal fractions of one effect (module text)."""
+    Q, _ = np.linalg.qr(J)
+    G_perp = G - Q @ (Q.T @ G)
+    r_perp = r - Q @ (Q.T @ r)
+    U = G_perp.T @ r_perp
+    M = G_perp.T @ G_perp
+    solution, *_ = np.linalg.lstsq(M, U, rcond=1e-10)
+    reduction = float(max(U @ solution, 0.0))
+    norms = np.linalg.norm(G, axis=0)
+    return {"statistic": reduction / deff, "reduction_chi2": reduction,
+            "predicted_reduction": reduction * chi2_to_misfit,
+            "orthogonal_fraction": (np.linalg.norm(G_perp, axis=0) / np.where(norms > 0, norms, 1.0)).tolist(),
+            "step": (-solution).tolist()}
+
+
+def information_criteria(chi2: float, k: int, n: int) -> dict:
+    return {"chi2": chi2, "k": k, "aic": chi2 + 2 * k, "bic": chi2 + k * np.log(n)}
+
+
+# --- residual maps --------------------------------------------------------------------------------
+
+def residual_maps(positions_mm: np.ndarray, residual_mm: np.ndarray, region_of_point: np.ndarray,
+                  centre_mm: np.ndarray) -> ResidualMaps:
+    positions_mm = np.asarray(positions_mm, float)
+    residual_mm = np.asarray(residual_mm, float).reshape(-1, 2)
+    size = np.linalg.norm(residual_mm, axis=1)
+    per_region = {TISSUE_NAMES.get(int(k), f"label {int(k)}"): float(np.sqrt(np.mean(size[region_of_point == k] ** 2)))
+                  for k in np.unique(region_of_point)}
+    offset = positions_mm - centre_mm
+    angle = np.degrees(np.arctan2(offset[:, 1], offset[:, 0])) % 360.0
+    radial = np.sum(residual_mm * offset, axis=1) / np.maximum(np.linalg.norm(offset, axis=1), 1e-12)
+    sector = np.minimum((angle / (360.0 / SECTORS)).astype(int), SECTORS - 1)
+    centres = ((np.arange(SECTORS) + 0.5) * 360.0 / SECTORS).tolist()
+    rms, mean_radial, count = [], [], []
+    for k in range(SECTORS):
+        inside = sector == k
+        count.append(int(inside.sum()))
+        rms.append(float(np.sqrt(np.mean(size[inside] ** 2))) if inside.any() else 0.0)
+        mean_radial.append(float(np.mean(radial[inside])) if inside.any() else 0.0)
+    return ResidualMaps(positions_mm.tolist(), residual_mm.tolist(), per_region, centres, rms, mean_radial, count,
+                        centre_mm.tolist(), float(centres[int(np.argmax(rms))]))
+
+
+# --- the diagnosis ------------------------------------------------------------------------------
+
+def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
+    """Catalog effects that the diagnosis can try on this model, and why the others are not tried."""
+    sets, nodes = list(model.mesh.element_sets()), list(model.mesh.node_sets)
+    candidates, skipped = [], {}
+    for name, item in CATALOG.items():
+        if name in model.effects or name in model.fixed_effects:
+            continue
+        reason = item.unavailable(sets, nodes)
+        if reason:
+            skipped[name] = reason
+        else:
+            candidates.append(name)
+    return candidates, skipped
+
+
+def _residuals(record: dict) -> np.ndarray:
+    if record["status"] != OK:
+        raise RuntimeError(f"the engine failed at the diagnosis point: {record['message']}")
+    return np.asarray(record["outputs"]["residuals"], float)
+
+
+def probe_jacobian(evaluator: Evaluator, theta: Sequence[float]) -> tuple[np.ndarray, np.ndarray, str]:
+    """r and dr/dtheta of the evaluator's model at theta: from the engine's sensitivities when the record
+    has them, otherwise forward differences (ln theta steps for constants, `scale` steps for effects)."""
+    model = evaluator.model
+    theta = np.asarray(theta, float)
+    record = evaluator(theta)
+    r = _residuals(record)
+    jacobian = residual_jacobian(model, record, theta)
+    if jacobian is not None:
+        return r, jacobian, "engine"
+    space = model.space
+    steps = np.where(np.array(space.linear), FD_FRACTION * np.array(space.scale), 1e-3 * np.abs(theta))
+    probes = [theta + steps[j] * np.eye(len(theta))[j] for j in range(len(theta))]
+    records = evaluator.evaluate([p.tolist() for p in probes], tag="diagnosis", label="diagnosis sensitivities")
+    columns = [(_residuals(rec) - r) / steps[j] for j, rec in enumerate(records)]
+    return r, np.column_stack(columns), "finite differences"
+
+
+def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], positions_mm: np.ndarray, sigma_mm: np.ndarray,
+             region_of_point: np.ndarray, centre_mm: np.ndarray, *, alpha: float = ALPHA,
+             engine_sensitivities: bool = True) -> Diagnosis:
+    """Rank the catalog effects missing from `model` fitted at theta (module text).
+
+    evaluator_factory(model) -> Evaluator: evaluations go through the run's log like any other."""
+    began = time.perf_counter()
+    candidates, skipped = candidate_effects(model)
+    probe = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile, model.effects + tuple(candidates),
+                     dict(model.fixed_effects), engine_sensitivities)
+    p = model.space.size
+    theta_probe = list(map(float, theta)) + [0.0] * (probe.space.size - p)
+    with evaluator_factory(probe) as evaluator:
+        r, jacobian, source = probe_jacobian(evaluator, theta_probe)
+        runs = evaluator.launched
+    n = len(r)
+    chi2 = float(r @ r)
+    residual_mm = (r.reshape(-1, 2) * np.asarray(sigma_mm, float)[:, None])
+    misfit = float(np.sum(residual_mm ** 2) / (2 * len(residual_mm)))
+    floor = noise_floor(sigma_mm, p)
+    chi2_to_misfit = misfit / chi2 if chi2 > 0 else 0.0
+    lack_of_fit_p = float(stats.chi2.sf(chi2, n - p))
+    rho = neighbour_correlation(positions_mm, r)
+    deff = design_effect(rho)
+    # dr/dx for the fitted parameters: the projection does not depend on the columns' scaling
+    J = jacobian[:, :p]
+    ranking = []
+    column = p
+    for name in candidates:
+        parameters = [prm.name for prm in effect(name).parameters(list(model.mesh.element_sets()), list(model.mesh.node_sets))]
+        G = jacobian[:, column:column + len(parameters)]
+        column += len(parameters)
+        score = score_effect(r, J, G, chi2_to_misfit, deff)
+        q = len(parameters)
+        ranking.append(EffectScore(name, parameters, score["statistic"], q, float(stats.chi2.sf(score["statistic"], q)),
+                                   score["predicted_reduction"], misfit - score["predicted_reduction"],
+                                   score["orthogonal_fraction"], score["step"]))
+    ranking.sort(key=lambda s: (s.p_value, -s.statistic))
+    lack_of_fit = lack_of_fit_p < alpha
+    for score in ranking:
+        score.significant = bool(lack_of_fit and score.p_value < alpha / max(len(ranking), 1))
+    explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
+    positions_mm = np.asarray(positions_mm, float)
+    maps = residual_maps(positions_mm, residual_mm, np.asarray(region_of_point), np.asarray(centre_mm, float))
+    if not explained:
+        verdict += (f"; the residual is largest in the sector around {maps.worst_sector_deg:.0f} deg "
+                    f"(RMS {max(maps.sector_rms_mm):.3f} mm) and in the "
+                    f"{max(maps.per_region_rms_mm, key=maps.per_region_rms_mm.get)}")
+    return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,
+                     lack_of_fit_p, deff, rho, ranking, explained, verdict, maps, runs, source,
+                     time.perf_counter() - began, skipped)
+
+
+def _verdict(ranking: list[EffectScore], misfit: float, floor: float, lack_of_fit: bool) -> tuple[bool, str]:
+    ratio = misfit / floor if floor > 0 else np.inf
+    if not lack_of_fit:
+        return False, f"the model fits to the noise floor (misfit {ratio:.2f} x the floor): no effect is missing"
+    significant = [s for s in ranking if s.significant]
+    if not significant:
+        return False, (f"misfit {ratio:.2f} x the noise floor, and no catalog effect explains the residual "
+                       "significantly: the missing physics is outside the catalog")
+    best = significant[0]
+    after = best.predicted_misfit / floor
+    if after <= EXPLAINED_FACTOR:
+        return True, (f"misfit {ratio:.2f} x the noise floor; {best.effect} explains it (predicted "
+                      f"{after:.2f} x the floor after the refit)")
+    return False, (f"misfit {ratio:.2f} x the noise floor; the best effect, {best.effect}, would leave "
+                   f"{after:.2f} x the floor: no catalog effect explains the residual")
+
+
+# --- refit --------------------------------------------------------------------------------------
+
+@dataclass
+class Refit:
+    effects: list[str]
+    parameters: list[str]
+    theta: list[float]
+    misfit: float
+    misfit_over_floor: float
+    chi2: float
+    aic: float
+    bic: float
+    fit: dict
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str],
+          sigma_mm: np.ndarray, *, max_iterations: int = 30) -> tuple[Refit, LegModel]:
+    """Levenberg-Marquardt with the effects' parameters free, from theta (effects at zero)."""
+    extended = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile, model.effects + tuple(effects),
+                        dict(model.fixed_effects), model.engine_sensitivities)
+    start = list(map(float, theta)) + [0.0] * (extended.space.size - model.space.size)
+    with evaluator_factory(extended) as evaluator:
+        fit = levenberg_marquardt(evaluator, start, max_iterations=max_iterations)
+        record = evaluator(fit.theta)
+    return summarize_fit(extended, fit, record, sigma_mm), extended
+
+
+def summarize_fit(model: LegModel, fit: FitResult, record: dict, sigma_mm: np.ndarray) -> Refit:
+    r = _residuals(record)
+    chi2 = float(r @ r)
+    criteria = information_criteria(chi2, model.space.size, len(r))
+    floor = noise_floor(sigma_mm, model.space.size)
+    return Refit(list(model.effects), list(model.space.names), list(fit.theta), float(record["cost"]),
+                 float(record["cost"]) / floor, chi2, criteria["aic"], criteria["bic"], fit.as_dict())
+
+
+def ranking_lines(diagnosis: Diagnosis) -> list[str]:
+    lines = [f"misfit {diagnosis.misfit:.4g} mm^2 = {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor "
+             f"{diagnosis.noise_floor:.4g} mm^2 (chi^2 {diagnosis.chi2:.1f} for n = {diagnosis.n_residuals}, lack of fit "
+             f"p = {diagnosis.lack_of_fit_p:.2g}); neighbour correlation {diagnosis.neighbour_correlation:.2f}, "
+             f"design effect {diagnosis.design_effect:.2f}; sensitivities from {diagnosis.sensitivities_from}",
+             f"{'rank':<5}{'effect':<17}{'q':>2}{'statistic':>11}{'p-value':>10}{'pred. misfit':>14}{'|g_perp|/|g|':>14}  significant"]
+    for k, s in enumerate(diagnosis.ranking, 1):
+        fraction = ", ".join(f"{v:.2f}" for v in s.orthogonal_fraction)
+        lines.append(f"{k:<5}{s.effect:<17}{s.dof:>2}{s.statistic:>11.4g}{s.p_value:>10.2g}"
+                     f"{s.predicted_misfit / diagnosis.noise_floor:>12.2f} x  {fraction:>12}  {'YES' if s.significant else 'no'}")
+    for name, reason in diagnosis.not_ranked.items():
+        lines.append(f"     {name:<17} not ranked: {reason}")
+    lines.append(diagnosis.verdict)
+    return lines
+
+
+def comparison_lines(before: Refit, after: Sequence[Refit]) -> list[str]:
+    lines = [f"{'model':<28}{'k':>3}{'misfit mm^2':>13}{'x floor':>9}{'AIC':>11}{'BIC':>11}  parameters"]
+    for fit in (before, *after):
+        label = "baseline" if not fit.effects else "+ " + ", ".join(fit.effects)
+        values = ", ".join(f"{n}={v:.4g}" for n, v in zip(fit.parameters, fit.theta))
+        lines.append(f"{label:<28}{len(fit.parameters):>3}{fit.misfit:>13.4g}{fit.misfit_over_floor:>9.2f}"
+                     f"{fit.aic:>11.1f}{fit.bic:>11.1f}  {values}")
+    return lines
+
