@@ -50,6 +50,7 @@ ALPHA = 0.01
 EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
 MAX_DESIGN_EFFECT = 100.0
 SECTORS = 12                 # angular sectors of 30 degrees around the leg for the residual summaries
+ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
 TISSUE_NAMES = {1: "fat", 2: "muscle"}
 
@@ -107,6 +108,14 @@ class Diagnosis:
     def as_dict(self) -> dict:
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "Diagnosis":
+        names = {f for f in cls.__dataclass_fields__}
+        values = {k: v for k, v in data.items() if k in names}
+        values["ranking"] = [EffectScore(**s) for s in data["ranking"]]
+        values["maps"] = ResidualMaps(**data["maps"])
+        return cls(**values)
+
 
 # --- statistics ---------------------------------------------------------------------------------
 
@@ -136,15 +145,17 @@ def score_effect(r: np.ndarray, J: np.ndarray, G: np.ndarray, chi2_to_misfit: fl
     Q, _ = np.linalg.qr(J)
     G_perp = G - Q @ (Q.T @ G)
     r_perp = r - Q @ (Q.T @ r)
-    U = G_perp.T @ r_perp
-    M = G_perp.T @ G_perp
-    solution, *_ = np.linalg.lstsq(M, U, rcond=1e-10)
-    reduction = float(max(U @ solution, 0.0))
     norms = np.linalg.norm(G, axis=0)
+    fraction = np.linalg.norm(G_perp, axis=0) / np.where(norms > 0, norms, 1.0)
+    # in units of |g|, so that a direction the fitted parameters absorb (round-off left) counts as zero
+    unit = G_perp / np.where(norms > 0, norms, 1.0)
+    unit[:, fraction < ORTHOGONAL_ROUNDOFF] = 0.0
+    U = unit.T @ r_perp
+    solution, *_ = np.linalg.lstsq(unit.T @ unit, U, rcond=ORTHOGONAL_ROUNDOFF)
+    reduction = float(max(U @ solution, 0.0))
     return {"statistic": reduction / deff, "reduction_chi2": reduction,
-            "predicted_reduction": reduction * chi2_to_misfit,
-            "orthogonal_fraction": (np.linalg.norm(G_perp, axis=0) / np.where(norms > 0, norms, 1.0)).tolist(),
-            "step": (-solution).tolist()}
+            "predicted_reduction": reduction * chi2_to_misfit, "orthogonal_fraction": fraction.tolist(),
+            "step": (-solution / np.where(norms > 0, norms, 1.0)).tolist()}
 
 
 def information_criteria(chi2: float, k: int, n: int) -> dict:

@@ -104,10 +104,11 @@ def test_pressures_json_prints_one_object(study, capsys):
     assert printed["mean_kPa"] == pressures["mean_kPa"]
 
 
-def test_effects_are_refused_with_a_clear_message(phantom, tmp_path, capsys):
+def test_unknown_effects_are_refused_with_the_catalog(phantom, tmp_path, capsys):
     case, _, _ = phantom
-    assert main(["identify", str(case), "--out", str(tmp_path / "run"), "--effects", "drainage"]) == 2
-    assert "effect catalog is not implemented yet" in capsys.readouterr().err
+    assert main(["identify", str(case), "--out", str(tmp_path / "run"), "--effects", "oedema"]) == 2
+    message = capsys.readouterr().err
+    assert "unknown effect 'oedema'" in message and "drainage" in message
 
 
 def _counting_wrapper(folder):

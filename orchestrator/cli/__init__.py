@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import _demo, _identify, _montecarlo, _phantom, _pressures, _report, _solve
+from . import _demo, _diagnose, _identify, _montecarlo, _phantom, _pressures, _report, _solve
 
 COMMANDS = {
     "demo": _demo,
@@ -16,6 +16,7 @@ COMMANDS = {
     "identify": _identify,
     "montecarlo": _montecarlo,
     "pressures": _pressures,
+    "diagnose": _diagnose,
     "report": _report,
 }
 

@@ -1,7 +1,8 @@
 """Identify the tissue parameters of a case (Avril et al. sec. 2.2.5; Bouten and Drapier sec. 2.6).
 
     calfit identify CASE_DIR --out RUN_DIR [--method nm|lm] [--objective auto|mismatch|displacement]
-                    [--starts one|table1] [--start C10f C10m Kvf Kvm] [--workers N] [--scheduler ADDRESS] [--json]
+                    [--starts one|table1] [--start C10f C10m Kvf Kvm] [--effects NAME[,NAME]] [--workers N]
+                    [--scheduler ADDRESS] [--json]
 
 The case is read, segmented, aligned on the bones and meshed (400 T3 elements), then the four
 parameters (C10 and Kv of fat and muscle, kPa) are fitted: Nelder-Mead on the contour mismatch M
@@ -9,6 +10,7 @@ or on the displacement residual F (points.csv), or Levenberg-Marquardt on F's re
 --starts table1 runs from the initial values of Avril et al. Table 1 (each parameter +-10 %).
 Every evaluation is logged in RUN_DIR/evaluations.jsonl: run the same command again after an
 interruption and it resumes without repeating one. Writes RUN_DIR/identification.json.
+--effects adds catalog effects (`calfit diagnose --catalog`), their parameters fitted from zero.
 """
 
 from __future__ import annotations
@@ -16,12 +18,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+from ..effects import EffectError, parse_effects
 from ..imaging.errors import CaseError
 from ..pipeline import OBJECTIVES, fit_summary, run_identify
 from ._common import add_parallel_arguments, emit, fail, parallel_options
 
 HELP = "fit the tissue parameters of a case (Nelder-Mead or Levenberg-Marquardt)"
-EFFECTS_ISSUE = "issue 6"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,18 +36,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", type=float, nargs=4, metavar=("C10F", "C10M", "KVF", "KVM"),
                         help="initial values in kPa (default: Avril et al. Table 2 central values)")
     parser.add_argument("--elements", type=int, default=400, help="elements of the identification mesh (default 400)")
-    parser.add_argument("--effects", help="comma-separated physical effects to add (arrives with the effect catalog)")
+    parser.add_argument("--effects", help="comma-separated catalog effects whose parameters are fitted too "
+                                           "(calfit diagnose --catalog lists them)")
     add_parallel_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.effects:
-        return fail(f"--effects {args.effects}: the effect catalog is not implemented yet ({EFFECTS_ISSUE}); "
-                    "run without --effects for the baseline model")
     try:
         result = run_identify(args.case_dir, args.out, method=args.method, objective=args.objective, start=args.start,
-                              starts=args.starts, n_elements=args.elements, progress=True, **parallel_options(args))
-    except (CaseError, ValueError, RuntimeError) as error:
+                              starts=args.starts, n_elements=args.elements, effects=parse_effects(args.effects),
+                              progress=True, **parallel_options(args))
+    except (CaseError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
     lines = [fit_summary(fit, result["parameters"]) for fit in result["fits"]]
     lines.append(f"best ({result['objective']}): " + fit_summary(result["best"], result["parameters"]))

@@ -1,0 +1,62 @@
+"""Where the identified model fails and which physical effect is missing (DESIGN.md, effect catalog).
+
+    calfit diagnose RUN_DIR [--refit auto|none|EFFECT[,EFFECT]] [--alpha 0.01] [--no-engine-sensitivities]
+                    [--workers N] [--json]
+    calfit diagnose --catalog
+
+Compares the model identified by `calfit identify --objective displacement` with the measured
+displacements: the misfit against the noise floor of the measurements, the residual per tissue
+and per angular sector around the leg, and for every catalog effect not in the model its score
+statistic, p-value (corrected for residuals correlated in space) and the misfit a refit with it
+would reach. Then refits with the best-ranked effect when it is significant (--refit auto), with
+the effects named, or not at all, and prints the before/after table (misfit, AIC, BIC,
+parameters). Writes RUN_DIR/diagnosis.json; `calfit report RUN_DIR` draws the residual maps
+before and after side by side. `calfit identify CASE --out RUN --effects NAME` fits a model with
+an effect from the start.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ..diagnose import ALPHA, Diagnosis, Refit, comparison_lines, ranking_lines
+from ..effects import EffectError, describe, parse_effects
+from ..pipeline import run_diagnose
+from ..study import RunFolderError
+from ._common import add_parallel_arguments, emit, fail, parallel_options
+
+HELP = "rank the physical effects missing from an identified model, refit with one"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run_dir", nargs="?", help="run folder of `calfit identify --objective displacement`")
+    parser.add_argument("--refit", default="auto",
+                        help="auto: refit with the best effect when significant (default); none; or effect names, "
+                             "comma-separated, each refitted on its own")
+    parser.add_argument("--alpha", type=float, default=ALPHA, help=f"significance level (default {ALPHA})")
+    parser.add_argument("--no-engine-sensitivities", action="store_true",
+                        help="finite differences instead of the engine's du/dtheta")
+    parser.add_argument("--catalog", action="store_true", help="list the effect catalog and exit")
+    add_parallel_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.catalog:
+        print("\n".join(describe()))
+        return 0
+    if not args.run_dir:
+        return fail("give the run folder: calfit diagnose RUN_DIR (or --catalog)")
+    try:
+        refit = args.refit if args.refit in ("auto", "none") else [[name] for name in parse_effects(args.refit)]
+        refit = refit if isinstance(refit, str) else [names[0] for names in refit]
+        result = run_diagnose(args.run_dir, refit_effects=refit, alpha=args.alpha,
+                              engine_sensitivities=not args.no_engine_sensitivities, **parallel_options(args))
+    except (RunFolderError, EffectError, ValueError, RuntimeError) as error:
+        return fail(str(error))
+    lines = ranking_lines(Diagnosis.from_dict(result))
+    if result["refits"]:
+        lines += [""] + comparison_lines(Refit(**result["before"]), [Refit(**fit) for fit in result["refits"]])
+    lines.append(f"{result['engine_runs']} engine runs for the ranking, {result['wall_time_s']:.1f} s; "
+                 f"written to {args.run_dir}/diagnosis.json")
+    emit(args, result, lines)
+    return 0
