@@ -37,7 +37,9 @@ from .appearance import T1Contrast, TextureField, add_rician_noise, bias_field
 from .geometry import CalfGeometry
 
 FIXED_POINT_TOLERANCE_MM = 1e-6
-FIXED_POINT_MAX_ITERATIONS = 200
+FIXED_POINT_MAX_ITERATIONS = 1000
+FIXED_POINT_PLAIN_ITERATIONS = 100
+FIXED_POINT_DIVERGED_MM = 1e4
 
 
 @dataclass
@@ -100,13 +102,24 @@ def loaded_labels(phantom: CalfPhantom, displacement, rigid: RigidMotion | None 
 def material_points(x_scanner, y_scanner, displacement_fn: DisplacementFn, rigid: RigidMotion | None = None):
     """Material points X whose deformed and moved position is the scanner point y: solve X + u(X) = rigid^-1(y)."""
     x, y = (x_scanner, y_scanner) if rigid is None else rigid.inverse().apply(x_scanner, y_scanner)
-    X, Y = np.array(x, float), np.array(y, float)
-    for _ in range(FIXED_POINT_MAX_ITERATIONS):
-        ux, uy = displacement_fn(X, Y)
-        X_new, Y_new = x - ux, y - uy
-        change = max(np.max(np.abs(X_new - X)), np.max(np.abs(Y_new - Y)))
-        X, Y = X_new, Y_new
-        if change < FIXED_POINT_TOLERANCE_MM:
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    X, Y = x.copy(), y.copy()
+    active = np.ones(x.shape, bool)   # iterate only the points not yet converged
+    for iteration in range(FIXED_POINT_MAX_ITERATIONS):
+        # X <- X + w (x - u(X) - X): plain (w = 1) first; then damped, which also converges where a
+        # compressive gradient (grad u < -1, e.g. across a bone hole's interpolated field) makes it oscillate
+        damping = 1.0 if iteration < FIXED_POINT_PLAIN_ITERATIONS else 0.5
+        ux, uy = displacement_fn(X[active], Y[active])
+        step_x, step_y = x[active] - ux - X[active], y[active] - uy - Y[active]
+        change = np.maximum(np.abs(step_x), np.abs(step_y))
+        if not np.all(change < FIXED_POINT_DIVERGED_MM):
+            break
+        X[active] += damping * step_x
+        Y[active] += damping * step_y
+        still = np.zeros_like(active)
+        still[active] = change >= FIXED_POINT_TOLERANCE_MM
+        active = still
+        if not active.any():
             return X, Y
     raise ValueError("x = X + u(X) could not be inverted (the fixed point did not converge); "
                      "the displacement field folds the tissue or varies too fast (|grad u| must stay below 1)")
