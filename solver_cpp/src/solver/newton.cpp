@@ -99,6 +99,12 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
     element_dofs_.push_back(std::move(dofs));
   }
   saddle_point_ = n_dofs_ > model.dof_count();
+  Eigen::Vector2d low = model.coordinates.front(), high = low;
+  for (const Eigen::Vector2d& x : model.coordinates) {
+    low = low.cwiseMin(x);
+    high = high.cwiseMax(x);
+  }
+  model_size_ = (high - low).norm();
   u_.setZero(n_dofs_);
   build_contacts();
   element_force_.resize(elements_.size());
@@ -504,6 +510,10 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       if (relative <= settings_.floor_tolerance &&
           last_correction <= settings_.correction_tolerance * std::max(u.cwiseAbs().maxCoeff(), 1e-300))
         return true;
+      // A state where every force is round-off from the start (all nodes moved rigidly, only
+      // hybrid pressures free) has no force scale at all: there, a correction at the
+      // round-off of the model's size means that nothing is left to solve.
+      if (last_correction <= 1e-13 * model_size_) return true;
       if (!std::isfinite(relative) || it >= settings_.max_iterations) {
         rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
         return false;

@@ -136,6 +136,7 @@ private:
   std::vector<std::vector<int>> system_contact_dofs_;  // contact couplings in system_'s pattern
   int n_dofs_ = 0;            // displacements, then hybrid pressures
   bool saddle_point_ = false;  // hybrid elements make the tangent indefinite
+  double model_size_ = 0.0;    // diagonal of the reference bounding box
   std::vector<std::vector<int>> element_dofs_;
   Eigen::VectorXd u_;  // committed displacement
   double last_lambda_ = 0.0;  // load fraction of u_ within its step
