@@ -13,11 +13,12 @@ against closed forms (engine_closed_forms.py) and against equivalent standard de
    exact rigid displacements and zero stress; two steps with a moved centre; an annulus
    whose inner ring is moved rigidly equals the deck with those displacements written as
    *BOUNDARY values.
-4. The hybrid elements: CPE6H and CPE3H match the closed forms above as CPE6 and CPE3 do
-   (so CPE6H == CPE6 for a compressible law to 1e-8 on every keyword), and CPE3H == CPE3
-   on an inhomogeneous annulus with all three keywords (constant pressure per element,
-   one-point rule: the pressure is condensable). CPE6H's continuous linear pressure is a
-   different discretization of an inhomogeneous field; there the two only converge.
+4. The hybrid elements: CPE6H and CPE3H match the closed forms above as CPE6 and CPE3 do,
+   and CPE6H == CPE6 for a compressible law to 1e-8 with each keyword on homogeneous states;
+   CPE3H == CPE3 on an inhomogeneous annulus with all three keywords (constant pressure per
+   element, one-point rule: the pressure is condensable). CPE6H's continuous linear
+   pressure is another discretization of an inhomogeneous field: there the two converge
+   to each other with the mesh.
 """
 
 from __future__ import annotations
@@ -259,6 +260,23 @@ def test_rigid_motion_two_steps_with_a_moved_centre(tmp_path):
     assert relative(u1, rigid(mesh.nodes, (0.3, -0.2), 30.0, centre)) < 1e-9  # Newton's tolerance, as above
     assert relative(u2, rigid(mesh.nodes, (1.0, 0.5), 100.0, (2.0, -1.0))) < 1e-9
     assert np.abs(cell_stress(run, 2)).max() < 1e-9 * AVRIL.params[0]
+
+
+def test_rigid_motion_starts_from_where_its_nodes_stood(tmp_path):
+    """Step 1: a free body drains (its nodes move); step 2: a new *RIGID MOTION of the left
+    edge (taking over the pin of the model data). The edge starts from its drained place
+    and ends exactly on the rigid motion of its reference positions."""
+    mesh = square("CPE6", n=3)
+    text = deck(mesh, AVRIL, fixed=statically_determinate(mesh), step_extra="*VOLUME CHANGE, ELSET=EALL\n-0.1\n")
+    text += "*STEP, NLGEOM, INC=1000\n*STATIC\n0.1, 1.0, 1e-5, 0.1\n*RIGID MOTION, NSET=LEFT\n0.05, 0.1, 20\n*END STEP\n"
+    run = solve(tmp_path, text)
+    left = mesh.nsets["LEFT"]
+    u1 = run.vtu(1).point_data["displacement"][:, :2]
+    u2 = run.vtu(2).point_data["displacement"][:, :2]
+    assert relative(u1, (free_inplane_stretch(AVRIL, -0.1) - 1.0) * mesh.nodes) < 1e-8
+    exact = rigid(mesh.nodes[left], (0.05, 0.1), 20.0, mesh.nodes[left].mean(axis=0))
+    assert np.abs(u2[left] - exact).max() < 1e-14
+    assert np.abs(u1[left] - exact).max() > 1e-2  # the edge did move in step 2
 
 
 def leg_slice(order: int, hybrid: bool = False):
