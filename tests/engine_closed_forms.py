@@ -10,7 +10,8 @@ isochoric invariants I1bar = J^(-2/3) tr C, I2bar = J^(-4/3) I2(C):
     REDUCED POLYNOMIAL  W = sum_i Ci0 (I1bar-3)^i + sum_i (J-1)^(2i)/Di
     ARRUDA-BOYCE        W = mu sum_i c_i / lm^(2i-2) (I1bar^i - 3^i) + (1/D) ((J^2-1)/2 - ln J),
                         c = 1/2, 1/20, 11/1050, 19/7000, 519/673750
-    AVRIL               W = C10 (I1bar-3) + Kv ((J^2-1)/2 - ln J)       (Avril et al., eq. (2))
+    AVRIL               W = C10 (I1bar-3) + C20 (I1bar-3)^2 + Kv ((J^2-1)/2 - ln J)
+                        (Avril et al., eq. (2); C20 optional, 0 by default: the `stiffening` effect)
     ELASTIC             St Venant-Kirchhoff, W = lambda/2 (tr E)^2 + mu E:E
 
 Cauchy stress of an invariant-based law (Holzapfel, Nonlinear Solid Mechanics, 6.5):
@@ -67,8 +68,11 @@ class Law:
     # -- energy derivatives W1 = dW/dI1bar, W2 = dW/dI2bar, U' = dU/dJ ----------------
     def w1(self, i1b):
         k, p = self.kind, self.params
-        if k in ("NEO HOOKE", "MOONEY-RIVLIN", "AVRIL"):
+        if k in ("NEO HOOKE", "MOONEY-RIVLIN"):
             return p[0] + 0.0 * i1b
+        if k == "AVRIL":  # params C10, Kv[, C20]
+            c20 = p[2] if len(p) > 2 else 0.0
+            return p[0] + 2.0 * c20 * (i1b - 3.0)
         if k == "REDUCED POLYNOMIAL":
             c = p[: self.n]
             return sum((i + 1) * c[i] * (i1b - 3.0) ** i for i in range(self.n))
@@ -125,10 +129,14 @@ class Law:
         J = l1 * l2
         return l1 * P1 / J, l2 * P2 / J
 
-    # -- full Cauchy tensor for a plane-strain F (2x2) -> 3x3 -----------------------------
+    # -- full Cauchy tensor for a plane-strain F (2x2, F33 = 1) or a general F (3x3) -------
     def cauchy(self, F2):
         F = np.eye(3)
-        F[:2, :2] = F2
+        F2 = np.asarray(F2, dtype=float)
+        if F2.shape == (3, 3):
+            F = F2.copy()
+        else:
+            F[:2, :2] = F2
         J = np.linalg.det(F)
         if self.kind == "ELASTIC":
             E, nu = self.params
@@ -173,6 +181,48 @@ def stretch_for_stress_given_other(law: Law, l2: float, s1: float, guess=1.0) ->
     """l1 such that sigma_1(l1, l2) = s1 (uniaxial plane-strain stretching with a free side)."""
     sol = optimize.brentq(lambda l1: law.principal_cauchy(l1, l2)[0] - s1, 0.2, 5.0, xtol=1e-15, rtol=1e-15)
     return float(sol)
+
+
+# ----------------------------------------------------------------------------------------
+# Growth eigenstrain and generalized plane strain (the project keywords)
+# ----------------------------------------------------------------------------------------
+#
+# *VOLUME CHANGE dv: F = F_e F_g, F_g = g I, g = (1 + dv)^(1/3) (Rodriguez, Hoger &
+# McCulloch 1994), W = g^3 W_e(C / g^2); the Cauchy stress is the elastic law's at F_e:
+#     sigma = F S F^T / J = F_e S_e(C_e) F_e^T / J_e.
+# *AXIAL STRETCH lambda_z: F33 = lambda_z.
+#
+# A free body (statically determinate supports) stays homogeneous, F = diag(l, l, lambda_z),
+# with sigma_11 = sigma_22 = 0 and sigma_33 carried by the plane-strain (or axial) constraint.
+# In plane strain (lambda_z = 1) the stress-free state F_e = I would need F33 = g != 1, so
+# the body is NOT stress free: F_e = diag(l/g, l/g, 1/g) and l solves sigma_11(F_e) = 0,
+# which is not g: at small strain l - 1 = (1 + nu)(g - 1) (sigma_33 = -E (g - 1) pushes the
+# plane out by Poisson's effect), with nu the Poisson ratio of the law. A clamped body (F = I) carries sigma = sigma_e(I / g), hydrostatic for an
+# isochoric/volumetric split law: sigma = U'(1 / g^3) I.
+
+
+def growth_factor(dv: float) -> float:
+    return (1.0 + dv) ** (1.0 / 3.0)
+
+
+def elastic_gradient(l1: float, l2: float, dv: float = 0.0, axial_stretch: float = 1.0) -> np.ndarray:
+    """F_e = diag(l1, l2, lambda_z) / g."""
+    return np.diag([l1, l2, axial_stretch]) / growth_factor(dv)
+
+
+def free_inplane_stretch(law: Law, dv: float = 0.0, axial_stretch: float = 1.0) -> float:
+    """Equal in-plane stretch l of a free body: sigma_11 = sigma_22 = 0 at F = diag(l, l, lambda_z), F_e = F / g."""
+    sol = optimize.brentq(
+        lambda l: law.cauchy(elastic_gradient(l, l, dv, axial_stretch))[0, 0], 0.2, 5.0, xtol=1e-15, rtol=1e-15
+    )
+    return float(sol)
+
+
+def clamped_growth_pressure(law: Law, dv: float) -> float:
+    """Hydrostatic Cauchy stress of a clamped body (F = I) with volume change dv, AVRIL law: U'(J_e), J_e = 1/g^3."""
+    assert law.kind == "AVRIL"
+    Je = 1.0 / (1.0 + dv)
+    return law.params[1] * (Je - 1.0 / Je)
 
 
 # ----------------------------------------------------------------------------------------

@@ -290,6 +290,7 @@ def deck(
     integration: str | None = None,
     heading: str = "calfit-fe verification case",
     outputs: bool = True,
+    step_extra: str = "",
 ) -> str:
     """A complete deck: mesh, material(s), sections, zero BCs, one NLGEOM static step.
 
@@ -297,7 +298,8 @@ def deck(
     index, first dof, last dof) fixed to zero before the step. prescribed: (node index or
     nset, dof, value) inside the step. pressure: (surface, p) follower *DLOAD. laplace:
     (surface, T) the project keyword *LAPLACE PRESSURE (not CalculiX). cloads: (node
-    index, dof, force) dead loads.
+    index, dof, force) dead loads. step_extra: keyword text put in the step after *STATIC
+    (e.g. the project keywords *VOLUME CHANGE, *AXIAL STRETCH, *RIGID MOTION).
     """
     text = [f"*HEADING\n{heading}\n", mesh_text(mesh)]
     for s in sorted({s for s, _ in laplace}):  # *DLOAD lists element faces, ccx needs no surface
@@ -311,6 +313,8 @@ def deck(
     if fixed:
         text.append("*BOUNDARY\n" + "".join(f"{_ref(n)}, {d0}, {d1}\n" for n, d0, d1 in fixed))
     text.append(f"*STEP, NLGEOM, INC={inc}\n*STATIC\n" + ", ".join(fmt(v) for v in static) + "\n")
+    if step_extra:
+        text.append(step_extra if step_extra.endswith("\n") else step_extra + "\n")
     if prescribed:
         text.append("*BOUNDARY\n" + "".join(f"{_ref(n)}, {d}, {d}, {fmt(v)}\n" for n, d, v in prescribed))
     if cloads:

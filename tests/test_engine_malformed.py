@@ -123,6 +123,7 @@ def _cases() -> list[Case]:
     add("END STEP without STEP", insert_after("BOTTOM, 1, 2", "*END STEP"))
     add("STEP inside a STEP", insert_after("*STEP, NLGEOM", "*STEP, NLGEOM"))
     cases.append(Case("data line before any keyword", "1, 2, 3\n" + BASE, [("main.inp", 1)]))
+    _project_kinematics_cases(add)
     # Includes: the error names the including line (or the line that closes the cycle).
     inc_line = line_of("*NSET, NSET=BOTTOM")
     text, _ = replace("*NSET, NSET=BOTTOM", "*INCLUDE, INPUT=missing_sets.inp\n*NSET, NSET=BOTTOM")
@@ -139,6 +140,58 @@ def _cases() -> list[Case]:
     text, _ = replace("*NSET, NSET=BOTTOM", "*INCLUDE, INPUT=sub/bad.inp\n*NSET, NSET=BOTTOM")
     cases.append(Case("error inside an included file", text, [("bad.inp", 3)], extra={"sub/bad.inp": "** included\n*ELSET, ELSET=E1\n1, x\n"}))
     return cases
+
+
+def _project_kinematics_cases(add) -> None:
+    """*VOLUME CHANGE, *AXIAL STRETCH, *RIGID MOTION and AVRIL's C20 (solver_cpp/README.md,
+    Project keywords): unknown set, out-of-range value, wrong number of values, keyword
+    outside a step, unknown parameter. `add(name, (text, line))` with the line that the
+    message must name; in_step(new) puts new after the step's *DLOAD data line."""
+    step_line = "1, P2, 0.1"
+    model_line = "BOTTOM, 1, 2"  # the model-level *BOUNDARY data line, before *STEP
+
+    def in_step(new: str, offset: int = 0):
+        text, k = insert_after(step_line, new)
+        return text, k + offset
+
+    def in_model(new: str):
+        return insert_after(model_line, new)
+
+    # *VOLUME CHANGE, ELSET=, OP=; data line dv > -1
+    add("volume change: unknown element set", in_step("*VOLUME CHANGE, ELSET=MUSCLE\n-0.1"))
+    add("volume change: dv = -1 (no volume left)", in_step("*VOLUME CHANGE, ELSET=EALL\n-1.0", 1))
+    add("volume change: dv not a number", in_step("*VOLUME CHANGE, ELSET=EALL\nminus", 1))
+    add("volume change: two values", in_step("*VOLUME CHANGE, ELSET=EALL\n-0.1, 0.2", 1))
+    add("volume change: two data lines", in_step("*VOLUME CHANGE, ELSET=EALL\n-0.1\n-0.2", 2))
+    add("volume change: no data line", in_step("*VOLUME CHANGE, ELSET=EALL"))
+    add("volume change: no ELSET", in_step("*VOLUME CHANGE\n-0.1"))
+    add("volume change: unknown parameter", in_step("*VOLUME CHANGE, ELSET=EALL, SCALE=2\n-0.1"))
+    add("volume change: bad OP", in_step("*VOLUME CHANGE, ELSET=EALL, OP=ADD\n-0.1"))
+    add("volume change: outside a step", in_model("*VOLUME CHANGE, ELSET=EALL\n-0.1"))
+    # *AXIAL STRETCH; data line lambda_z > 0
+    add("axial stretch: zero", in_step("*AXIAL STRETCH\n0.0", 1))
+    add("axial stretch: negative", in_step("*AXIAL STRETCH\n-1.05", 1))
+    add("axial stretch: two values", in_step("*AXIAL STRETCH\n1.0, 1.1", 1))
+    add("axial stretch: not a number", in_step("*AXIAL STRETCH\nlong", 1))
+    add("axial stretch: no data line", in_step("*AXIAL STRETCH"))
+    add("axial stretch: unknown parameter", in_step("*AXIAL STRETCH, OP=NEW\n1.05"))
+    add("axial stretch: outside a step", in_model("*AXIAL STRETCH\n1.05"))
+    # *RIGID MOTION, NSET=, CX=, CY=, OP=; data line ux, uy, angle
+    add("rigid motion: unknown node set", in_step("*RIGID MOTION, NSET=TIBIA\n0, 0, 5"))
+    add("rigid motion: two values", in_step("*RIGID MOTION, NSET=BOTTOM\n0.1, 5", 1))
+    add("rigid motion: four values", in_step("*RIGID MOTION, NSET=BOTTOM\n0.1, 0, 5, 1", 1))
+    add("rigid motion: angle not a number", in_step("*RIGID MOTION, NSET=BOTTOM\n0.1, 0, five", 1))
+    add("rigid motion: CX without CY", in_step("*RIGID MOTION, NSET=BOTTOM, CX=0.5\n0, 0, 5"))
+    add("rigid motion: no NSET", in_step("*RIGID MOTION\n0, 0, 5"))
+    add("rigid motion: unknown parameter", in_step("*RIGID MOTION, NSET=BOTTOM, CZ=1\n0, 0, 5"))
+    add("rigid motion: outside a step", in_model("*RIGID MOTION, NSET=BOTTOM\n0, 0, 5"))
+    add("rigid motion: node in two motions", in_step("*RIGID MOTION, NSET=BOTTOM\n0, 0, 5\n*RIGID MOTION, NSET=1\n0, 0, 3", 2))
+    add("boundary on a rigidly moved node", in_step("*RIGID MOTION, NSET=BOTTOM\n0, 0, 5\n*BOUNDARY\n1, 1, 1, 0.1", 3))
+    # *HYPERELASTIC, AVRIL: C10, Kv[, C20 >= 0]
+    hyper = line_of("*HYPERELASTIC, NEO HOOKE")
+    avril = BASE.replace("*HYPERELASTIC, NEO HOOKE\n1.0, 0.1\n", "*HYPERELASTIC, AVRIL\n1.0, 10.0, {}\n")
+    add("Avril: negative C20", (avril.format("-0.5"), hyper + 1))
+    add("Avril: four constants", (avril.format("0.5, 1.0"), hyper + 1))
 
 
 def _sec(elset: str, material: str = "RUBBER") -> tuple[str, str]:
@@ -166,6 +219,19 @@ def test_table_has_at_least_20_kinds():
 def test_base_deck_is_valid(tmp_path):
     deck = tmp_path / "main.inp"
     deck.write_text(BASE)
+    proc = _run(deck, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_base_deck_with_the_project_kinematics_is_valid(tmp_path):
+    """The mutations of _project_kinematics_cases start from a deck that solves."""
+    text, _ = insert_after(
+        "1, P2, 0.1",
+        "*VOLUME CHANGE, ELSET=EALL, OP=NEW\n-0.05\n*AXIAL STRETCH\n1.02\n*RIGID MOTION, NSET=BOTTOM, CX=0.5, CY=0\n0.01, 0, 2",
+    )
+    text = text.replace("*HYPERELASTIC, NEO HOOKE\n1.0, 0.1\n", "*HYPERELASTIC, AVRIL\n1.0, 10.0, 0.5\n")
+    deck = tmp_path / "main.inp"
+    deck.write_text(text)
     proc = _run(deck, tmp_path)
     assert proc.returncode == 0, proc.stderr
 

@@ -64,6 +64,49 @@ int main() {
   CHECK(message.find("bad_mesh.inp:6:") != std::string::npos);
   CHECK(message.find("node 9") != std::string::npos);
 
+  // Project kinematics: values kept per step, OP=NEW, the rigid motion's default centre
+  // (the centroid of its nodes) and its take-over of a model-level *BOUNDARY.
+  const std::string kinematics = write(
+      "kinematics.inp",
+      "*INCLUDE, INPUT=mesh.inp\n*NSET, NSET=LEFT\n1, 4\n"
+      "*MATERIAL, NAME=m\n*HYPERELASTIC, AVRIL\n1.0, 10.0, 0.25\n*SOLID SECTION, ELSET=E, MATERIAL=M\n"
+      "*BOUNDARY\nLEFT, 1, 2\n3, 2\n"
+      "*STEP, NLGEOM\n*STATIC\n*VOLUME CHANGE, ELSET=E\n-0.1\n*AXIAL STRETCH\n0.95\n"
+      "*RIGID MOTION, NSET=LEFT\n0.1, -0.2, 30\n*END STEP\n"
+      "*STEP, NLGEOM\n*STATIC\n*VOLUME CHANGE, ELSET=1, OP=NEW\n0.05\n"
+      "*RIGID MOTION, NSET=LEFT, CX=2, CY=3\n0, 0, -10\n*END STEP\n");
+  const Model k = build_model(kinematics);
+  const LoadState& k1 = k.steps[0].loads;
+  const LoadState& k2 = k.steps[1].loads;
+  CHECK(k1.volume_change.size() == 2 && k1.volume_change.at(0) == -0.1 && k1.volume_change.at(1) == -0.1);
+  CHECK(k2.volume_change.size() == 1 && k2.volume_change.at(0) == 0.05);  // OP=NEW dropped element 2
+  CHECK(k1.axial_stretch == 0.95 && k2.axial_stretch == 0.95);            // carried to the next step
+  CHECK(k1.rigid_motions.count("LEFT") == 1);
+  const RigidMotion& left = k1.rigid_motions.at("LEFT");
+  CHECK(left.nodes == std::vector<int>({0, 3}));
+  CHECK_NEAR(left.center.x(), 0.0, 1e-15);
+  CHECK_NEAR(left.center.y(), 0.5, 1e-15);
+  CHECK(left.ux == 0.1 && left.uy == -0.2 && left.angle_degrees == 30.0);
+  CHECK(k1.prescribed.size() == 1 && k1.prescribed.count(2 * 2 + 1) == 1);  // LEFT's zero BCs taken over
+  CHECK(k2.rigid_motions.at("LEFT").center == Eigen::Vector2d(2.0, 3.0));
+  // u = t + (R - I)(X - c): a quarter turn about (1, 0) takes (2, 0) to (1, 1).
+  RigidMotion quarter;
+  quarter.center = {1.0, 0.0};
+  quarter.angle_degrees = 90.0;
+  quarter.ux = 0.5;
+  const Eigen::Vector2d d = quarter.displacement(Eigen::Vector2d(2.0, 0.0));
+  CHECK_NEAR(d.x(), -0.5, 1e-15);
+  CHECK_NEAR(d.y(), 1.0, 1e-15);
+  // A *BOUNDARY in a step on a rigidly moved node names the motion's line.
+  const std::string conflict = write("conflict.inp",
+                                     "*INCLUDE, INPUT=mesh.inp\n*NSET, NSET=LEFT\n1, 4\n*MATERIAL, NAME=m\n"
+                                     "*HYPERELASTIC, AVRIL\n1.0, 10.0\n*SOLID SECTION, ELSET=E, MATERIAL=M\n"
+                                     "*STEP, NLGEOM\n*RIGID MOTION, NSET=LEFT\n0, 0, 5\n*BOUNDARY\n4, 1, 1, 0.1\n*END STEP\n");
+  const std::string conflict_message = error_of(conflict);
+  std::cout << conflict_message << '\n';
+  CHECK(conflict_message.find("conflict.inp:12:") != std::string::npos);
+  CHECK(conflict_message.find("(line 9)") != std::string::npos);
+
   const std::string unknown = write("unknown.inp", "*NODE\n1, 0, 0\n*FOO, BAR=1\n");
   CHECK(error_of(unknown).find("unknown.inp:3: unknown keyword *FOO") != std::string::npos);
   const std::string number = write("number.inp", "*NODE\n1, 0, 0x\n");

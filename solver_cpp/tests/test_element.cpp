@@ -1,5 +1,8 @@
 // Element and load unit tests: element tangent against central finite differences of
-// the element residual (T3, T6, both rules), zero residual under rigid motion,
+// the element residual (T3, T6, both rules, CPE3H, CPE6H; in plane strain and with a
+// growth eigenstrain g != 1 and an axial stretch lambda_z != 1), the force as the
+// gradient of the element energy g^3 W(C / g^2), no force in the grown stress-free state
+// F = g I, zero residual under rigid motion,
 // objectivity of the internal force, load stiffness of the follower pressure and of
 // the Laplace-law membrane against finite differences, and p = T/R on a circle.
 #include "check.hpp"
@@ -43,11 +46,17 @@ ElementVector unknowns(const NodeMatrix& u, const Eigen::VectorXd& pressures = E
   return ue;
 }
 
+const ElementKinematics kPlaneStrain{};
+// Drainage-like shrink of the stress-free state (dv = -0.12) with an axial stretch.
+const ElementKinematics kGrownStretched = ElementKinematics::from_volume_change(-0.12, 1.07);
+// Swelling (dv = +0.2) with an axial shortening.
+const ElementKinematics kSwollenShortened = ElementKinematics::from_volume_change(0.2, 0.93);
+
 // Tangent = d f / d(local unknowns) by central differences.
-void check_tangent(const Element& element, const ElementVector& ue) {
+void check_tangent(const Element& element, const ElementVector& ue, const ElementKinematics& kin = kPlaneStrain) {
   ElementVector f;
   ElementMatrix K;
-  CHECK(element.internal_force(ue, f, &K));
+  CHECK(element.internal_force(ue, kin, f, &K));
   const double h = 1e-6;
   double worst = 0.0;
   for (int b = 0; b < element.dof_count(); ++b) {
@@ -55,13 +64,90 @@ void check_tangent(const Element& element, const ElementVector& ue) {
     up[b] += h;
     um[b] -= h;
     ElementVector fp, fm;
-    element.internal_force(up, fp, nullptr);
-    element.internal_force(um, fm, nullptr);
+    element.internal_force(up, kin, fp, nullptr);
+    element.internal_force(um, kin, fm, nullptr);
     worst = std::max(worst, ((fp - fm) / (2 * h) - K.col(b)).cwiseAbs().maxCoeff());
   }
-  if (worst > 1e-6 * K.cwiseAbs().maxCoeff()) std::cerr << "tangent off by " << worst << '\n';
+  if (worst > 1e-6 * K.cwiseAbs().maxCoeff())
+    std::cerr << "tangent off by " << worst << " (g " << kin.growth << ", lambda_z " << kin.axial_stretch << ")\n";
   CHECK(worst <= 1e-6 * K.cwiseAbs().maxCoeff());
   CHECK((K - K.transpose()).cwiseAbs().maxCoeff() <= 1e-10 * K.cwiseAbs().maxCoeff());  // hyperelastic: symmetric
+}
+
+// Central differences of an element energy E(ue) against the force f(ue), over the
+// displacement unknowns.
+template <typename Energy>
+void check_force_gradient(const Element& element, const ElementVector& ue, const ElementKinematics& kin,
+                          int n_displacement_dofs, Energy energy) {
+  ElementVector f;
+  CHECK(element.internal_force(ue, kin, f, nullptr));
+  const double h = 1e-6;
+  double worst = 0.0;
+  for (int b = 0; b < n_displacement_dofs; ++b) {
+    ElementVector up = ue, um = ue;
+    up[b] += h;
+    um[b] -= h;
+    worst = std::max(worst, std::abs((energy(up) - energy(um)) / (2 * h) - f[b]));
+  }
+  if (worst > 1e-7 * f.cwiseAbs().maxCoeff()) std::cerr << "force vs energy gradient off by " << worst << '\n';
+  CHECK(worst <= 1e-7 * f.cwiseAbs().maxCoeff());
+}
+
+// The displacement element's force is the gradient of sum_q w_q g^3 W(C_q / g^2): this
+// checks the factor g of S = g S_e(C / g^2), which the tangent test cannot see.
+void force_is_energy_gradient(const Element& element, const Material& material, const NodeMatrix& X, double thickness,
+                              int degree, const ElementVector& ue, const ElementKinematics& kin) {
+  const ElementShape shape = X.rows() == 3 ? ElementShape::T3 : ElementShape::T6;
+  const std::vector<ReferencePoint> points = reference_points(shape, X, thickness, degree, nullptr);
+  const double g = kin.growth;
+  check_force_gradient(element, ue, kin, 2 * static_cast<int>(X.rows()), [&](const ElementVector& v) {
+    const NodeMatrix u = nodal_displacements(v, static_cast<int>(X.rows()));
+    double W = 0.0;
+    for (const ReferencePoint& p : points)
+      W += p.weight * g * g * g *
+           material.energy(right_cauchy_green(deformation_gradient(u, p.dN_dX), kin.axial_stretch) / (g * g));
+    return W;
+  });
+}
+
+// The mixed element's displacement residual is the u-gradient of
+// sum_q w_q [g^3 W_iso(C_q / g^2) + p_q J_q] (the -g^3 G(p) term does not depend on u).
+void mixed_isochoric_force_is_energy_gradient(const Element& element, const SplitHyperelastic& material,
+                                              const NodeMatrix& X, double thickness, int degree,
+                                              const ElementVector& ue, const ElementKinematics& kin) {
+  const ElementShape shape = X.rows() == 3 ? ElementShape::T3 : ElementShape::T6;
+  const std::vector<ReferencePoint> points = reference_points(shape, X, thickness, degree, nullptr);
+  const int n = static_cast<int>(X.rows());
+  const double g = kin.growth;
+  check_force_gradient(element, ue, kin, 2 * n, [&](const ElementVector& v) {
+    const NodeMatrix u = nodal_displacements(v, n);
+    const Eigen::VectorXd pressures = v.tail(element.dof_count() - 2 * n);
+    double W = 0.0;
+    for (const ReferencePoint& q : points) {
+      const Eigen::Matrix2d F = deformation_gradient(u, q.dN_dX);
+      const Mat3 Ce = right_cauchy_green(F, kin.axial_stretch) / (g * g);
+      const double Je = std::sqrt(Ce.determinant());
+      const double I1 = Ce.trace(), I2 = 0.5 * (I1 * I1 - (Ce * Ce).trace());
+      const double iso = material.isochoric().evaluate(I1 * std::pow(Je, -2.0 / 3.0), I2 * std::pow(Je, -4.0 / 3.0)).W;
+      const double p = pressures.size() == 3 ? q.L.dot(pressures) : pressures[0];
+      W += q.weight * (g * g * g * iso + p * kin.axial_stretch * F.determinant());
+    }
+    return W;
+  });
+}
+
+// F = g I in the plane with lambda_z = g is the grown, stress-free state F_e = I: no
+// force (and, at p = 0, no volume-constraint residual: J = g^3 = g^3 Theta(0)).
+void grown_state_is_stress_free(const Element& element, const NodeMatrix& X, int n_pressures) {
+  const double g = kGrownStretched.growth;
+  const ElementKinematics kin{g, g};
+  ElementVector f;
+  CHECK(element.internal_force(unknowns((g - 1.0) * X, Eigen::VectorXd::Zero(n_pressures)), kin, f, nullptr));
+  CHECK(f.cwiseAbs().maxCoeff() <= 1e-14);
+  // ... while in plane strain (lambda_z = 1) the same in-plane state is stressed.
+  CHECK(element.internal_force(unknowns((g - 1.0) * X, Eigen::VectorXd::Zero(n_pressures)), ElementKinematics{g, 1.0}, f,
+                               nullptr));
+  CHECK(f.cwiseAbs().maxCoeff() > 1e-3);
 }
 
 void mixed_element_tests(const SplitHyperelastic& material, ElementShape shape, int degree) {
@@ -70,18 +156,23 @@ void mixed_element_tests(const SplitHyperelastic& material, ElementShape shape, 
   const int n = node_count(shape);
   Eigen::VectorXd p(element.pressure_count());
   for (int k = 0; k < p.size(); ++k) p[k] = 0.3 - 0.2 * k;
-  check_tangent(element, unknowns(some_displacement(n), p));
+  for (const ElementKinematics& kin : {kPlaneStrain, kGrownStretched, kSwollenShortened})
+    check_tangent(element, unknowns(some_displacement(n), p), kin);
+  mixed_isochoric_force_is_energy_gradient(element, material, X, 1.3, degree, unknowns(some_displacement(n), p),
+                                           kGrownStretched);
+  grown_state_is_stress_free(element, X, element.pressure_count());
   // Rigid motion at zero pressure: no force and no volume-constraint residual.
   Eigen::Matrix2d R;
   R << std::cos(0.4), -std::sin(0.4), std::sin(0.4), std::cos(0.4);
   NodeMatrix rigid(n, 2);
   for (int a = 0; a < n; ++a) rigid.row(a) = (R * X.row(a).transpose() - X.row(a).transpose()).transpose();
   ElementVector f;
-  CHECK(element.internal_force(unknowns(rigid, Eigen::VectorXd::Zero(p.size())), f, nullptr));
+  CHECK(element.internal_force(unknowns(rigid, Eigen::VectorXd::Zero(p.size())), kPlaneStrain, f, nullptr));
   CHECK(f.cwiseAbs().maxCoeff() <= 1e-12);
   // A constant pressure p0 in the undeformed element: Cauchy stress p0 I (plus nothing
   // isochoric), so the element's written pressure -tr(sigma)/3 is -p0.
-  const ElementState s = element.state(unknowns(NodeMatrix::Zero(n, 2), Eigen::VectorXd::Constant(p.size(), 0.7)));
+  const ElementState s =
+      element.state(unknowns(NodeMatrix::Zero(n, 2), Eigen::VectorXd::Constant(p.size(), 0.7)), kPlaneStrain);
   CHECK_NEAR(-s.cauchy.trace() / 3.0, -0.7, 1e-12);
 }
 
@@ -92,8 +183,12 @@ void element_tests(const Material& material, ElementShape shape, int degree) {
   const NodeMatrix u = some_displacement(n);
   ElementVector f;
   ElementMatrix K;
-  CHECK(element.internal_force(unknowns(u), f, &K));
-  check_tangent(element, unknowns(u));
+  CHECK(element.internal_force(unknowns(u), kPlaneStrain, f, &K));
+  for (const ElementKinematics& kin : {kPlaneStrain, kGrownStretched, kSwollenShortened}) {
+    check_tangent(element, unknowns(u), kin);
+    force_is_energy_gradient(element, material, X, 1.7, degree, unknowns(u), kin);
+  }
+  grown_state_is_stress_free(element, X, 0);
 
   // Rigid motion: rotation by 0.7 rad and translation give no internal force.
   Eigen::Matrix2d R;
@@ -102,7 +197,7 @@ void element_tests(const Material& material, ElementShape shape, int degree) {
   for (int a = 0; a < n; ++a) rigid.row(a) = (R * X.row(a).transpose() - X.row(a).transpose()).transpose() +
                                              Eigen::RowVector2d(0.3, -0.2);
   ElementVector f_rigid;
-  CHECK(element.internal_force(unknowns(rigid), f_rigid, nullptr));
+  CHECK(element.internal_force(unknowns(rigid), kPlaneStrain, f_rigid, nullptr));
   CHECK(f_rigid.cwiseAbs().maxCoeff() <= 1e-12 * std::max(1.0, f.cwiseAbs().maxCoeff()));
 
   // Objectivity: x -> R x rotates every nodal force by R.
@@ -110,7 +205,7 @@ void element_tests(const Material& material, ElementShape shape, int degree) {
   for (int a = 0; a < n; ++a)
     rotated.row(a) = (R * (X.row(a) + u.row(a)).transpose()).transpose() - X.row(a);
   ElementVector f_rot;
-  CHECK(element.internal_force(unknowns(rotated), f_rot, nullptr));
+  CHECK(element.internal_force(unknowns(rotated), kPlaneStrain, f_rot, nullptr));
   double off = 0.0;
   for (int a = 0; a < n; ++a) off = std::max(off, (f_rot.segment<2>(2 * a) - R * f.segment<2>(2 * a)).cwiseAbs().maxCoeff());
   CHECK(off <= 1e-10 * f.cwiseAbs().maxCoeff());

@@ -31,6 +31,9 @@ std::vector<Law> laws() {
              make_shared<PolynomialVolumetric>(std::vector<double>{0.1, 0.5, 2.0}))},
       {"Arruda-Boyce", split(make_shared<ArrudaBoyceIsochoric>(2.0, 1.5), make_shared<LogVolumetric>(10.0))},
       {"Avril", split(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{1.0}), make_shared<LogVolumetric>(10.0))},
+      // Avril with the C20 (I1bar - 3)^2 term of the `stiffening` effect (*HYPERELASTIC, AVRIL: C10, Kv, C20).
+      {"Avril with C20",
+       split(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{1.0, 0.35}), make_shared<LogVolumetric>(10.0))},
       {"St Venant-Kirchhoff", make_shared<StVenantKirchhoff>(10.0, 0.3)},
   };
 }

@@ -105,6 +105,9 @@ private:
     h["FRICTION"] = bind(&ModelBuilder::friction);
     h["CONTACT PAIR"] = bind(&ModelBuilder::contact_pair);
     h["MODEL CHANGE"] = bind(&ModelBuilder::model_change);
+    h["VOLUME CHANGE"] = bind(&ModelBuilder::volume_change);
+    h["AXIAL STRETCH"] = bind(&ModelBuilder::axial_stretch);
+    h["RIGID MOTION"] = bind(&ModelBuilder::rigid_motion);
     return h;
   }
 
@@ -389,12 +392,15 @@ private:
       nonneg(d, "D");
       set_law(make_shared<SplitHyperelastic>(make_shared<ArrudaBoyceIsochoric>(mu, lm),
                                              make_shared<LogVolumetric>(d > 0.0 ? 1.0 / d : 0.0)));
-    } else {  // AVRIL
-      field_count(line, 2, 2, "*HYPERELASTIC, AVRIL data (C10, Kv)");
+    } else {  // AVRIL, with the optional C20 (I1bar - 3)^2 of the `stiffening` effect
+      field_count(line, 2, 3, "*HYPERELASTIC, AVRIL data (C10, Kv[, C20])");
       const double c10 = c.number(0, "C10"), kv = c.number(1, "Kv");
+      const double c20 = c.field_count() == 3 ? c.number(2, "C20") : 0.0;
       require(c10 > 0.0, line, "C10 must be > 0");
       require(kv > 0.0, line, "Kv must be > 0");
-      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{c10}),
+      require(c20 >= 0.0, line, "C20 must be >= 0 (it stiffens the law at large strain; 0 drops the term)");
+      const std::vector<double> coefficients = c20 > 0.0 ? std::vector<double>{c10, c20} : std::vector<double>{c10};
+      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(coefficients),
                                              make_shared<LogVolumetric>(kv)));
     }
   }
@@ -466,8 +472,10 @@ private:
       const double value = c.field_count() == 4 ? c.number(3, "prescribed value") : 0.0;
       if (!in_step_ && value != 0.0)
         throw DeckError(line.where, "a nonzero prescribed value belongs inside a *STEP (model-level *BOUNDARY fixes to 0)");
-      for (int n : nodes_of(line.fields[0], line.where))
+      for (int n : nodes_of(line.fields[0], line.where)) {
+        if (in_step_) check_not_rigid(n, line.where);
         for (int d = first; d <= last; ++d) target[2 * n + d] = value;
+      }
     }
   }
 
@@ -701,6 +709,86 @@ private:
         throw DeckError(b.where, "tension profile " + *profile + " is not defined (*TENSION PROFILE, NAME=" + *profile + ")");
     }
     loads_.laplace[surface] = load;
+  }
+
+  // ---- project kinematics: *VOLUME CHANGE, *AXIAL STRETCH, *RIGID MOTION ----------
+  // The one data line of a keyword that takes exactly `count` values.
+  static const DataLine& one_data_line(const KeywordBlock& b, std::size_t count, const std::string& what) {
+    needs_data(b);
+    if (b.data.size() > 1) throw DeckError(b.data[1].where, "*" + b.name + " takes one data line (" + what + ")");
+    field_count(b.data[0], count, count, "*" + b.name + " data line (" + what + ")");
+    return b.data[0];
+  }
+
+  void volume_change(const KeywordBlock& b) {
+    b.allow_only({"ELSET", "OP"});
+    step_data(b);
+    apply_op(b, loads_.volume_change);
+    const std::vector<int> elements = elements_of(b.required("ELSET"), b.where);
+    const DataLine& line = one_data_line(b, 1, "dv, the relative volume change of the stress-free state");
+    const double dv = Context{line}.number(0, "dv");
+    require(dv > -1.0, line,
+            "dv must be > -1: the stress-free volume becomes (1 + dv) times the reference volume "
+            "(e.g. -0.05 for a 5% fluid loss)");
+    for (int e : elements) loads_.volume_change[e] = dv;
+  }
+
+  void axial_stretch(const KeywordBlock& b) {
+    b.allow_only({});
+    step_data(b);
+    const DataLine& line = one_data_line(b, 1, "lambda_z, the out-of-plane stretch F33");
+    const double stretch = Context{line}.number(0, "lambda_z");
+    require(stretch > 0.0, line, "lambda_z must be > 0 (1 is plane strain, e.g. 0.98 for a 2% axial shortening)");
+    loads_.axial_stretch = stretch;
+  }
+
+  void rigid_motion(const KeywordBlock& b) {
+    b.allow_only({"NSET", "CX", "CY", "OP"});
+    step_data(b);
+    apply_op(b, loads_.rigid_motions);
+    RigidMotion motion;
+    motion.where = b.where;
+    motion.node_set = upper(b.required("NSET"));
+    motion.nodes = nodes_of(b.required("NSET"), b.where);
+    std::sort(motion.nodes.begin(), motion.nodes.end());  // sorted, once each: binary_search below
+    motion.nodes.erase(std::unique(motion.nodes.begin(), motion.nodes.end()), motion.nodes.end());
+    const auto cx = b.value("CX"), cy = b.value("CY");
+    if (cx.has_value() != cy.has_value()) throw DeckError(b.where, "give both CX= and CY= (or neither: the set's centroid)");
+    if (cx) {
+      motion.center = {to_double(*cx, b.where, "CX"), to_double(*cy, b.where, "CY")};
+    } else {
+      for (int n : motion.nodes) motion.center += model_.coordinates[n];
+      motion.center /= static_cast<double>(motion.nodes.size());
+    }
+    const DataLine& line = one_data_line(b, 3, "ux, uy, angle in degrees");
+    Context c{line};
+    motion.ux = c.number(0, "ux");
+    motion.uy = c.number(1, "uy");
+    motion.angle_degrees = c.number(2, "angle");
+    for (const auto& [name, other] : loads_.rigid_motions) {
+      if (name == motion.node_set) continue;  // OP=MOD: this set's motion is replaced
+      for (int n : motion.nodes)
+        if (std::binary_search(other.nodes.begin(), other.nodes.end(), n))
+          throw DeckError(b.where, "node " + std::to_string(model_.node_ids[n]) + " of set " + motion.node_set +
+                                       " is already moved by *RIGID MOTION, NSET=" + name + " (line " +
+                                       std::to_string(other.where.line) + "): a node follows one rigid motion; split the sets or use OP=NEW");
+    }
+    // The motion prescribes both dofs of its nodes: it takes over from a *BOUNDARY on them
+    // (a bone clamped in the model data, then moved).
+    for (int n : motion.nodes) {
+      loads_.prescribed.erase(2 * n);
+      loads_.prescribed.erase(2 * n + 1);
+    }
+    loads_.rigid_motions[motion.node_set] = std::move(motion);
+  }
+
+  // A *BOUNDARY inside a step may not prescribe a node that a rigid motion drives.
+  void check_not_rigid(int node, const SourceLocation& where) const {
+    for (const auto& [name, motion] : loads_.rigid_motions)
+      if (std::binary_search(motion.nodes.begin(), motion.nodes.end(), node))
+        throw DeckError(where, "node " + std::to_string(model_.node_ids[node]) + " is moved by *RIGID MOTION, NSET=" +
+                                   name + " (line " + std::to_string(motion.where.line) +
+                                   "): remove it from that set, or remove the motion with *RIGID MOTION, OP=NEW");
   }
 
   void output_request(const KeywordBlock& b) {

@@ -26,29 +26,32 @@ Eigen::VectorXd MixedElement::pressure_shape(const ReferencePoint& p) const {
   return Eigen::VectorXd::Ones(1);
 }
 
-bool MixedElement::internal_force(const ElementVector& ue, ElementVector& f, ElementMatrix* K) const {
+bool MixedElement::internal_force(const ElementVector& ue, const ElementKinematics& kin, ElementVector& f,
+                                  ElementMatrix* K) const {
   const int n = node_count(shape_), nu = 2 * n, np = pressure_count();
   const NodeMatrix u = nodal_displacements(ue, n);
   const Eigen::VectorXd pressures = ue.segment(nu, np);
   const VolumetricEnergy& volumetric = material_->volumetric();
+  const double g = kin.growth, grown_volume = g * g * g;  // J_g = g^3
+  const auto isochoric = [this](const Mat3& C, Mat3& S, Mat6* D) { material_->isochoric_stress(C, S, D); };
   f.setZero(nu + np);
   if (K) K->setZero(nu + np, nu + np);
   Mat3 S;
   Mat6 D;
   for (const ReferencePoint& q : points_) {
     const Eigen::Matrix2d F = deformation_gradient(u, q.dN_dX);
-    const double J = F.determinant();
+    const double J = kin.axial_stretch * F.determinant();
     if (J <= 0.0) return false;
-    const Mat3 C = right_cauchy_green(F);
+    const Mat3 C = right_cauchy_green(F, kin.axial_stretch);
     const Mat3 Cinv = C.inverse();
     const Eigen::VectorXd Np = pressure_shape(q);
     const double p = Np.dot(pressures);
-    material_->isochoric_stress(C, S, K ? &D : nullptr);
+    stress_with_growth(isochoric, C, g, S, K ? &D : nullptr);
     S += p * J * Cinv;
     const Eigen::Matrix2d P = F * S.topLeftCorner<2, 2>();
     for (int a = 0; a < n; ++a) f.segment<2>(2 * a) += q.weight * P * q.dN_dX.row(a).transpose();
-    const double theta = volumetric.dilatation(p);
-    f.segment(nu, np) += q.weight * (J - theta) * Np;
+    const double theta = volumetric.dilatation(p);  // J_e at which U'(J_e) = p
+    f.segment(nu, np) += q.weight * (J - grown_volume * theta) * Np;
     if (!K) continue;
 
     D += p * jacobian_inverse_tangent(Cinv, J);
@@ -59,17 +62,18 @@ bool MixedElement::internal_force(const ElementVector& ue, ElementVector& f, Ele
     K->block(0, nu, nu, np) += q.weight * dJ_du * Np.transpose();
     K->block(nu, 0, np, nu) += q.weight * Np * dJ_du.transpose();
     if (!volumetric.is_constraint())
-      K->block(nu, nu, np, np) -= q.weight / volumetric.evaluate(theta).d2U * Np * Np.transpose();
+      K->block(nu, nu, np, np) -= q.weight * grown_volume / volumetric.evaluate(theta).d2U * Np * Np.transpose();
   }
   return true;
 }
 
-ElementState MixedElement::state(const ElementVector& ue) const {
+ElementState MixedElement::state(const ElementVector& ue, const ElementKinematics& kin) const {
   const int n = node_count(shape_);
   const Eigen::VectorXd pressures = ue.segment(2 * n, pressure_count());
-  return average_state(points_, nodal_displacements(ue, n), [&](const ReferencePoint& q, const Mat3& C) {
+  const auto isochoric = [this](const Mat3& C, Mat3& S, Mat6* D) { material_->isochoric_stress(C, S, D); };
+  return average_state(points_, nodal_displacements(ue, n), kin.axial_stretch, [&](const ReferencePoint& q, const Mat3& C) {
     Mat3 S;
-    material_->isochoric_stress(C, S, nullptr);
+    stress_with_growth(isochoric, C, kin.growth, S, nullptr);
     return Mat3(S + pressure_shape(q).dot(pressures) * std::sqrt(C.determinant()) * C.inverse());
   });
 }

@@ -32,9 +32,10 @@ Eigen::Matrix2d deformation_gradient(const NodeMatrix& u, const NodeMatrix& dN_d
   return Eigen::Matrix2d::Identity() + u.transpose() * dN_dX;
 }
 
-Mat3 right_cauchy_green(const Eigen::Matrix2d& F) {
-  Mat3 C = Mat3::Identity();
+Mat3 right_cauchy_green(const Eigen::Matrix2d& F, double axial_stretch) {
+  Mat3 C = Mat3::Zero();
   C.topLeftCorner<2, 2>() = F.transpose() * F;
+  C(2, 2) = axial_stretch * axial_stretch;
   return C;
 }
 
@@ -86,17 +87,19 @@ double SolidElement::reference_area() const {
   return area;
 }
 
-bool SolidElement::internal_force(const ElementVector& ue, ElementVector& f, ElementMatrix* K) const {
+bool SolidElement::internal_force(const ElementVector& ue, const ElementKinematics& kin, ElementVector& f,
+                                  ElementMatrix* K) const {
   const int n = node_count(shape_);
   const NodeMatrix u = nodal_displacements(ue, n);
   f.setZero(2 * n);
   if (K) K->setZero(2 * n, 2 * n);
+  const auto elastic = [this](const Mat3& C, Mat3& S, Mat6* D) { material_->stress(C, S, D); };
   Mat3 S;
   Mat6 D;
   for (const ReferencePoint& p : points_) {
     const Eigen::Matrix2d F = deformation_gradient(u, p.dN_dX);
     if (F.determinant() <= 0.0) return false;
-    material_->stress(right_cauchy_green(F), S, K ? &D : nullptr);
+    stress_with_growth(elastic, right_cauchy_green(F, kin.axial_stretch), kin.growth, S, K ? &D : nullptr);
     const Eigen::Matrix2d P = F * S.topLeftCorner<2, 2>();
     for (int a = 0; a < n; ++a) f.segment<2>(2 * a) += p.weight * P * p.dN_dX.row(a).transpose();
     if (K) add_displacement_tangent(p, F, S, D, *K);
@@ -104,12 +107,14 @@ bool SolidElement::internal_force(const ElementVector& ue, ElementVector& f, Ele
   return true;
 }
 
-ElementState SolidElement::state(const ElementVector& ue) const {
-  return average_state(points_, nodal_displacements(ue, node_count(shape_)), [this](const ReferencePoint&, const Mat3& C) {
-    Mat3 S;
-    material_->stress(C, S, nullptr);
-    return S;
-  });
+ElementState SolidElement::state(const ElementVector& ue, const ElementKinematics& kin) const {
+  const auto elastic = [this](const Mat3& C, Mat3& S, Mat6* D) { material_->stress(C, S, D); };
+  return average_state(points_, nodal_displacements(ue, node_count(shape_)), kin.axial_stretch,
+                       [&](const ReferencePoint&, const Mat3& C) {
+                         Mat3 S;
+                         stress_with_growth(elastic, C, kin.growth, S, nullptr);
+                         return S;
+                       });
 }
 
 }  // namespace calfit

@@ -5,6 +5,9 @@
 //   K_ab = integral of [ (grad0 N_a . S grad0 N_b) I + B_a^T D B_b ],
 // B_a mapping nodal displacement increments to the Green-Lagrange strain increment
 // (engineering shear) and D the material tangent (Voigt 11, 22, 12 block).
+// Generalized plane strain (F33 = lambda_z, fixed per step) and a growth eigenstrain
+// (F = F_e g I) change only the stress and tangent that enter these integrals (see
+// ElementKinematics): E33 is prescribed, so it is not varied.
 #pragma once
 
 #include "element/element.hpp"
@@ -25,7 +28,22 @@ struct ReferencePoint {
 std::vector<ReferencePoint> reference_points(ElementShape shape, const NodeMatrix& X, double thickness,
                                              int quadrature_degree, double* min_det);
 Eigen::Matrix2d deformation_gradient(const NodeMatrix& u, const NodeMatrix& dN_dX);
-Mat3 right_cauchy_green(const Eigen::Matrix2d& F);
+// C = F^T F of F = [F2 0; 0 lambda_z].
+Mat3 right_cauchy_green(const Eigen::Matrix2d& F, double axial_stretch = 1.0);
+// Stress S and tangent D of a material whose stress-free state has grown by F_g = g I:
+// W(C) = g^3 W_e(C / g^2), so S = 2 dW/dC = g S_e(C / g^2) and D = 4 d2W/dCdC = D_e(C / g^2) / g
+// (Rodriguez, Hoger & McCulloch 1994; Holzapfel, Nonlinear Solid Mechanics, sec. 6.1
+// for S = 2 dW/dC). elastic(C, S, D) evaluates S_e and D_e.
+template <typename ElasticStress>
+void stress_with_growth(ElasticStress elastic, const Mat3& C, double g, Mat3& S, Mat6* D) {
+  if (g == 1.0) {
+    elastic(C, S, D);
+    return;
+  }
+  elastic(Mat3(C / (g * g)), S, D);
+  S *= g;
+  if (D) *D /= g;
+}
 // Rows dE11, dE22, 2 dE12 per nodal displacement component (3 x 2n).
 Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> strain_operator(const Eigen::Matrix2d& F,
                                                                                  const NodeMatrix& dN_dX);
@@ -35,23 +53,26 @@ void add_displacement_tangent(const ReferencePoint& p, const Eigen::Matrix2d& F,
 // Nodal displacements (nodes x 2) from the interleaved local vector.
 NodeMatrix nodal_displacements(const ElementVector& ue, int n_nodes);
 
-// Volume averages of the Cauchy stress sigma = F S F^T / J and of J over the points;
-// second_pk(point, C) gives the second Piola-Kirchhoff stress S at a point.
+// Volume averages of the Cauchy stress sigma = F S F^T / J and of J = lambda_z det F2 over
+// the points (F the 3x3 gradient with F33 = lambda_z); second_pk(point, C) gives the
+// second Piola-Kirchhoff stress S at a point.
 template <typename SecondPK>
-ElementState average_state(const std::vector<ReferencePoint>& points, const NodeMatrix& u, SecondPK second_pk) {
+ElementState average_state(const std::vector<ReferencePoint>& points, const NodeMatrix& u, double axial_stretch,
+                           SecondPK second_pk) {
   ElementState out;
   out.J = 0.0;
   double volume = 0.0;
   bool first = true;
   for (const ReferencePoint& p : points) {
     const Eigen::Matrix2d F2 = deformation_gradient(u, p.dN_dX);
-    Mat3 F = Mat3::Identity();
+    Mat3 F = Mat3::Zero();
     F.topLeftCorner<2, 2>() = F2;
-    const double J = F2.determinant();
+    F(2, 2) = axial_stretch;
+    const double J = axial_stretch * F2.determinant();
     out.min_J = first ? J : std::min(out.min_J, J);
     first = false;
     if (J <= 0.0) continue;
-    const Mat3 S = second_pk(p, right_cauchy_green(F2));
+    const Mat3 S = second_pk(p, right_cauchy_green(F2, axial_stretch));
     out.cauchy += p.weight * (F * S * F.transpose()) / J;
     out.J += p.weight * J;
     volume += p.weight;
@@ -75,8 +96,9 @@ public:
   double min_reference_jacobian() const { return min_det_; }
   double reference_area() const;
 
-  bool internal_force(const ElementVector& ue, ElementVector& f, ElementMatrix* K) const override;
-  ElementState state(const ElementVector& ue) const override;
+  bool internal_force(const ElementVector& ue, const ElementKinematics& kin, ElementVector& f,
+                      ElementMatrix* K) const override;
+  ElementState state(const ElementVector& ue, const ElementKinematics& kin) const override;
 
 private:
   ElementShape shape_;

@@ -77,14 +77,44 @@ struct LaplaceLoad {
   int profile = -1;      // index into Model::profiles, -1 for constant tension
 };
 
-// Loads and prescribed displacements in force at the end of a step. Each step ramps
-// linearly from the previous step's state to its own.
+// *RIGID MOTION: both dofs of every node of a set follow u = t + (R(angle) - I)(X - center),
+// X the node's reference position. t and the angle are ramped over the step (the angle
+// itself, so that a large rotation stays rigid at every increment).
+struct RigidMotion {
+  std::string node_set;  // upper-case set name, the key in LoadState::rigid_motions
+  std::vector<int> nodes;  // node indices
+  Eigen::Vector2d center = Eigen::Vector2d::Zero();  // CX, CY or the centroid of the nodes' reference positions
+  double ux = 0.0, uy = 0.0;  // translation t
+  double angle_degrees = 0.0;  // counter-clockwise
+  SourceLocation where;
+
+  static Eigen::Vector2d displacement(const Eigen::Vector2d& translation, double angle_degrees,
+                                      const Eigen::Vector2d& center, const Eigen::Vector2d& X) {
+    const Eigen::Matrix2d R = Eigen::Rotation2Dd(angle_degrees * 3.14159265358979323846 / 180.0).toRotationMatrix();
+    return translation + (R - Eigen::Matrix2d::Identity()) * (X - center);
+  }
+  Eigen::Vector2d displacement(const Eigen::Vector2d& X) const {
+    return displacement({ux, uy}, angle_degrees, center, X);
+  }
+};
+
+// Loads, prescribed displacements and imposed kinematics in force at the end of a step.
+// Each step ramps linearly from the previous step's state to its own; before the first
+// step every value is zero, except axial_stretch = 1. The values are plain data: a
+// model copy may change them (e.g. to differentiate the solution with respect to them).
 struct LoadState {
   std::map<int, double> prescribed;               // dof -> value (dof = 2 node + component)
   std::map<int, double> forces;                   // dof -> concentrated force
   std::map<std::pair<int, int>, double> pressures;  // (element, face) -> follower pressure
   std::map<int, LaplaceLoad> laplace;             // surface index -> garment tension
   std::vector<char> contact_active;               // per contact pair
+  // *VOLUME CHANGE: element index -> dv, the relative volume change of the element's
+  // stress-free state (growth F_g = (1 + dv)^(1/3) I; dv < 0 for drainage).
+  std::map<int, double> volume_change;
+  // *AXIAL STRETCH: lambda_z = F33 of every element (generalized plane strain).
+  double axial_stretch = 1.0;
+  // *RIGID MOTION: node-set name -> motion; these nodes' dofs are prescribed by it.
+  std::map<std::string, RigidMotion> rigid_motions;
 };
 
 struct StepDef {

@@ -99,6 +99,12 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
     element_dofs_.push_back(std::move(dofs));
   }
   saddle_point_ = n_dofs_ > model.dof_count();
+  Eigen::Vector2d low = model.coordinates.front(), high = low;
+  for (const Eigen::Vector2d& x : model.coordinates) {
+    low = low.cwiseMin(x);
+    high = high.cwiseMax(x);
+  }
+  model_size_ = (high - low).norm();
   u_.setZero(n_dofs_);
   build_contacts();
   element_force_.resize(elements_.size());
@@ -153,6 +159,7 @@ void StaticAnalysis::prepare_step(int step) {
     free_[dof] = 0;
     prescribed_.push_back({dof, u_[dof], value});
   }
+  prepare_rigid_motions(before, now);
   rebuild_system({});
   free_dofs_ = system_->size();
 
@@ -160,6 +167,16 @@ void StaticAnalysis::prepare_step(int step) {
   for_each_ramp(before.forces, now.forces, [&](int dof, const double* start, const double* end) {
     forces_.push_back({dof, start ? *start : 0.0, end ? *end : 0.0});
   });
+
+  const std::size_t n_elements = elements_.size();
+  volume_change_start_.assign(n_elements, 0.0);
+  volume_change_end_.assign(n_elements, 0.0);
+  for_each_ramp(before.volume_change, now.volume_change, [&](int element, const double* start, const double* end) {
+    volume_change_start_[element] = start ? *start : 0.0;
+    volume_change_end_[element] = end ? *end : 0.0;
+  });
+  axial_stretch_start_ = before.axial_stretch;
+  axial_stretch_end_ = now.axial_stretch;
 
   auto face_load = [&](const std::pair<int, int>& key) {
     FaceLoad f;
@@ -185,6 +202,39 @@ void StaticAnalysis::prepare_step(int step) {
                   f.t_end = end ? *end : Eigen::VectorXd::Zero(n);
                   laplace_faces_.push_back(f);
                 });
+}
+
+void StaticAnalysis::prepare_rigid_motions(const LoadState& before, const LoadState& now) {
+  rigid_motions_.clear();
+  for_each_ramp(before.rigid_motions, now.rigid_motions,
+                [&](const std::string&, const RigidMotion* start, const RigidMotion* end) {
+                  if (!end) return;  // removed (OP=NEW): its nodes are free again
+                  RigidRamp r;
+                  r.nodes = end->nodes;
+                  r.center = end->center;
+                  r.translation_end = {end->ux, end->uy};
+                  r.angle_end = end->angle_degrees;
+                  r.translation_start.setZero();
+                  if (start) {
+                    // The previous motion about this centre: same angle, translation
+                    // t + (R - I)(c_now - c_before), so a moved centre does not jump.
+                    r.translation_start = start->displacement(end->center);
+                    r.angle_start = start->angle_degrees;
+                  }
+                  for (int node : r.nodes) {
+                    free_[2 * node] = free_[2 * node + 1] = 0;
+                    const Eigen::Vector2d at_start =
+                        RigidMotion::displacement(r.translation_start, r.angle_start, r.center, model_.coordinates[node]);
+                    r.mismatch.emplace_back(u_[2 * node] - at_start.x(), u_[2 * node + 1] - at_start.y());
+                  }
+                  rigid_motions_.push_back(std::move(r));
+                });
+}
+
+ElementKinematics StaticAnalysis::kinematics(int element, double lambda) const {
+  return ElementKinematics::from_volume_change(
+      ramp(volume_change_start_[element], volume_change_end_[element], lambda),
+      ramp(axial_stretch_start_, axial_stretch_end_, lambda));
 }
 
 void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
@@ -344,6 +394,17 @@ ElementVector StaticAnalysis::local_unknowns(const Eigen::VectorXd& u, int eleme
 
 void StaticAnalysis::apply_prescribed(Eigen::VectorXd& u, double lambda) const {
   for (const Ramp& r : prescribed_) u[r.dof] = ramp(r.start, r.end, lambda);
+  for (const RigidRamp& r : rigid_motions_) {
+    const Eigen::Vector2d translation = r.translation_start + lambda * (r.translation_end - r.translation_start);
+    const double angle = ramp(r.angle_start, r.angle_end, lambda);
+    for (std::size_t k = 0; k < r.nodes.size(); ++k) {
+      const int node = r.nodes[k];
+      const Eigen::Vector2d d = RigidMotion::displacement(translation, angle, r.center, model_.coordinates[node]) +
+                                (1.0 - lambda) * r.mismatch[k];
+      u[2 * node] = d.x();
+      u[2 * node + 1] = d.y();
+    }
+  }
 }
 
 StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, double lambda, bool tangent) {
@@ -352,7 +413,8 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   int failures = 0;
 #pragma omp parallel for schedule(static) reduction(+ : failures)
   for (int e = 0; e < n_elements; ++e) {
-    if (!elements_[e]->internal_force(local_unknowns(u, e), element_force_[e], tangent ? &element_tangent_[e] : nullptr))
+    if (!elements_[e]->internal_force(local_unknowns(u, e), kinematics(e, lambda), element_force_[e],
+                                      tangent ? &element_tangent_[e] : nullptr))
       ++failures;
   }
   Evaluation ev;
@@ -434,8 +496,13 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     }
     int rises = 0;
     double last_correction = std::numeric_limits<double>::infinity();
+    // The force scale is at least the one the increment started from: a volume change or
+    // an axial stretch of a free body, or a rigid motion, ends in a state where every
+    // nodal force vanishes with the residual, which would then never be small relative
+    // to the current forces alone.
+    const double increment_reference = ev.reference;
     for (int it = 0;; ++it) {
-      const double relative = ev.norm / ev.reference;
+      const double relative = ev.norm / std::max(ev.reference, increment_reference);
       rec.residual_norms.push_back(relative);
       if (relative <= settings_.residual_tolerance) return true;
       // Stiff penalties (contact) put a round-off floor under the residual; there the
@@ -443,6 +510,10 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       if (relative <= settings_.floor_tolerance &&
           last_correction <= settings_.correction_tolerance * std::max(u.cwiseAbs().maxCoeff(), 1e-300))
         return true;
+      // A state where every force is round-off from the start (all nodes moved rigidly, only
+      // hybrid pressures free) has no force scale at all: there, a correction at the
+      // round-off of the model's size means that nothing is left to solve.
+      if (last_correction <= 1e-13 * model_size_) return true;
       if (!std::isfinite(relative) || it >= settings_.max_iterations) {
         rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
         return false;
@@ -552,7 +623,8 @@ FieldOutput StaticAnalysis::output() {
   evaluate(u_, last_lambda_, false);
   out.reaction = residual_.head(n_displacements);
   for (std::size_t e = 0; e < elements_.size(); ++e)
-    out.element_states.push_back(elements_[e]->state(local_unknowns(u_, static_cast<int>(e))));
+    out.element_states.push_back(
+        elements_[e]->state(local_unknowns(u_, static_cast<int>(e)), kinematics(static_cast<int>(e), last_lambda_)));
   // Nodal garment pressure: the Laplace load's nodal force over the node's consistent
   // length, along the node's outward normal.
   const int n_nodes = static_cast<int>(model_.coordinates.size());

@@ -78,6 +78,16 @@ private:
     int dof;
     double start, end;
   };
+  // A *RIGID MOTION over the step: translation and angle ramped from start to end about
+  // the end's centre. `mismatch` (per node) is how far a node stood from the motion's
+  // start at the start of the step (nonzero when the motion is new and the node had
+  // moved freely); it fades out linearly, as a *BOUNDARY ramps from the current value.
+  struct RigidRamp {
+    std::vector<int> nodes;
+    Eigen::Vector2d center, translation_start, translation_end;
+    double angle_start = 0, angle_end = 0;  // degrees
+    std::vector<Eigen::Vector2d> mismatch;
+  };
   struct Evaluation {
     bool ok = false;
     double norm = 0, reference = 0;
@@ -108,6 +118,9 @@ private:
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   void apply_prescribed(Eigen::VectorXd& u, double lambda) const;
+  void prepare_rigid_motions(const LoadState& before, const LoadState& now);
+  // Growth and axial stretch of element e at load fraction lambda of the current step.
+  ElementKinematics kinematics(int element, double lambda) const;
   // Nodal garment tension of every face of the Laplace-loaded surfaces: (element, face) -> T.
   std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state) const;
   EdgeNodes face_positions(const FaceLoad& f, const Eigen::VectorXd& u) const;
@@ -123,12 +136,17 @@ private:
   std::vector<std::vector<int>> system_contact_dofs_;  // contact couplings in system_'s pattern
   int n_dofs_ = 0;            // displacements, then hybrid pressures
   bool saddle_point_ = false;  // hybrid elements make the tangent indefinite
+  double model_size_ = 0.0;    // diagonal of the reference bounding box
   std::vector<std::vector<int>> element_dofs_;
   Eigen::VectorXd u_;  // committed displacement
   double last_lambda_ = 0.0;  // load fraction of u_ within its step
   Eigen::VectorXd residual_, f_ext_;
   std::unique_ptr<SparseSystem> system_;
   std::vector<Ramp> prescribed_, forces_;
+  std::vector<RigidRamp> rigid_motions_;
+  // *VOLUME CHANGE dv per element and *AXIAL STRETCH lambda_z at the two ends of the step.
+  std::vector<double> volume_change_start_, volume_change_end_;
+  double axial_stretch_start_ = 1.0, axial_stretch_end_ = 1.0;
   std::vector<FaceLoad> pressure_faces_, laplace_faces_;
   int free_dofs_ = 0;
   std::string linear_solver_ = "none";
