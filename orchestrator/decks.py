@@ -113,15 +113,18 @@ def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_f
 
 
 RELEASE_STATIC = (0.1, 1.0, 1e-5, 0.25)  # the band closes onto the skin in several increments
-INFLATE_STATIC = (0.25, 1.0, 1e-4, 0.5)
+INFLATE_STATIC = ONE_INCREMENT  # every band node prescribed: nothing to increment
+LET_GO_STATIC = ONE_INCREMENT  # a released *BOUNDARY is not ramped; the band is near equilibrium already
+GARMENT_STEPS = {"inflated": 2, "released": 4}  # step numbers of leg_garment.inp.j2's states (Fig. 2 b, c)
 GARMENT_PENALTY_MPA_PER_MM = 1.0  # penalty K: p / K = 3e-3 mm overclosure at 20 mmHg, 100x a kPa tissue / mm element
 GARMENT_STICK_SLOPE_MPA_PER_MM = 1.0
 
 
 def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band, leg, *, friction_mu: float = 0.0,
                      penalty: float = GARMENT_PENALTY_MPA_PER_MM, stick_slope: float = GARMENT_STICK_SLOPE_MPA_PER_MM,
-                     inflate_static: Sequence[float] = INFLATE_STATIC, release_static: Sequence[float] = RELEASE_STATIC,
-                     max_increments: int = 200, description: str = "") -> str:
+                     inflate_static: Sequence[float] = INFLATE_STATIC, let_go_static: Sequence[float] = LET_GO_STATIC,
+                     release_static: Sequence[float] = RELEASE_STATIC, max_increments: int = 200,
+                     description: str = "") -> str:
     """The leg slice under the explicit garment band of the second paper (Bouten and Drapier sec. 2.5,
     Fig. 2): step 1 inflates the band (`orchestrator.meshing.garment_band(leg)`) by its internal
     pressure with the contact pair removed, step 2 adds the skin/band contact (penalty `penalty`,
@@ -139,8 +142,10 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   band_constants=numbers((band.C10, band.D1)), penalty=f"{penalty:.10g}",
                   friction_mu=float(friction_mu), stick_slope=f"{stick_slope:.10g}",
                   inflation_pressure=f"{band.inflation_pressure_MPa:.10g}", inflate_faces=band.deck_inner_faces(leg),
-                  inflate_static=numbers(inflate_static), release_static=numbers(release_static),
-                  max_increments=max_increments)
+                  inflate_displacements=band.deck_inflation_displacements(leg), pins=band.deck_pins(leg),
+                  sliding_pins=band.deck_pins(leg, ("GARMENT_PIN_Y",)), settle_static=numbers(ONE_INCREMENT),
+                  inflate_static=numbers(inflate_static), let_go_static=numbers(let_go_static),
+                  release_static=numbers(release_static), max_increments=max_increments)
 
 
 def text_sha256(text: str) -> str:

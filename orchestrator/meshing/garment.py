@@ -79,13 +79,16 @@ def _plane_strain_stress(C10: float, D1: float, l1: float, l2: float) -> tuple[f
     return float(sigma[0]), float(sigma[1])
 
 
+def band_thickness_stretch(C10: float, D1: float, hoop_stretch: float) -> float:
+    """Thickness stretch l2 of a plane-strain band at hoop stretch l1, free through its thickness
+    (sigma_22 = 0)."""
+    return brentq(lambda l2: _plane_strain_stress(C10, D1, hoop_stretch, l2)[1], 0.05, 2.0, xtol=1e-14)
+
+
 def band_hoop_tension(C10: float, D1: float, hoop_stretch: float, thickness_mm: float) -> float:
     """Hoop force per unit length T = sigma_11 t l2 (N/mm) of a plane-strain band at hoop stretch l1,
     free through its thickness (sigma_22 = 0 fixes the thickness stretch l2)."""
-    def sigma_22(l2):
-        return _plane_strain_stress(C10, D1, hoop_stretch, l2)[1]
-
-    l2 = brentq(sigma_22, 0.05, 2.0, xtol=1e-14)
+    l2 = band_thickness_stretch(C10, D1, hoop_stretch)
     return _plane_strain_stress(C10, D1, hoop_stretch, l2)[0] * thickness_mm * l2
 
 
@@ -127,6 +130,7 @@ class GarmentBand:
     design_tension_N_per_mm: float
     inflation_pressure_MPa: float
     inflated_radius_mm: float
+    inflated_nodes: np.ndarray
     centroid: np.ndarray
 
     @property
@@ -152,6 +156,20 @@ class GarmentBand:
         out.append("*SURFACE, NAME=GARMENT_IN, TYPE=ELEMENT\n")
         out.append("".join("%d, S%d\n" % (e + 1 + element_offset, k) for e, k in self.inner_faces.tolist()))
         return "".join(out)
+
+    def deck_inflation_displacements(self, leg: Mesh) -> list[tuple[int, float, float]]:
+        """(1-based deck node id, u_x, u_y) that draw every band node onto the inflated circle (step 1)."""
+        u = self.inflated_nodes - self.nodes
+        ids = np.arange(1, len(self.nodes) + 1) + len(leg.nodes)
+        return [(int(i), float(ux), float(uy)) for i, (ux, uy) in zip(ids, u.tolist())]
+
+    def deck_pins(self, leg: Mesh, names: tuple[str, ...] = ("GARMENT_PIN_X", "GARMENT_PIN_Y")) -> list[tuple[int, int, float]]:
+        """(1-based deck node id, dof 1|2, value) of the rigid-body pins GARMENT_PIN_X (dof 1) and
+        GARMENT_PIN_Y (dof 2), held at their inflated displacement once the band is let go."""
+        u = self.inflated_nodes - self.nodes
+        return [(int(n) + 1 + len(leg.nodes), dof, float(u[n, dof - 1]))
+                for name, dof in (("GARMENT_PIN_X", 1), ("GARMENT_PIN_Y", 2)) if name in names
+                for n in self.node_sets[name]]
 
     def deck_inner_faces(self, leg: Mesh) -> list[tuple[int, int]]:
         """(1-based deck element id, face number) of GARMENT_IN, for the inflation *DLOAD."""
@@ -299,6 +317,8 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
     if ring_pressure(1.02 * inflated_stretch) <= ring_pressure(inflated_stretch):
         raise ValueError(f"inflating the band to radius {inflated_radius:.1f} mm passes its pressure limit; "
                          "ask for a smaller clearance or a larger design stretch")
+    inflated_nodes = inflated_ring(stations, depth, centroid, inflated_radius,
+                                   band_thickness_stretch(C10, D1, inflated_stretch)).reshape(-1, 2)
     return GarmentBand(
         nodes=nodes, elements=elements, inner_faces=np.asarray(inner_faces, dtype=np.int64),
         station_elements=np.asarray(station_elements, dtype=np.int64), inner_corners=inner_corners,
@@ -306,4 +326,23 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
         node_sets={"GARMENT_PIN_X": pins_x, "GARMENT_PIN_Y": pin_y, "GARMENT_INNER": np.arange(n_stations)},
         C10=C10, D1=D1, thickness_mm=thickness_mm, design_stretch=stretch, design_tension_N_per_mm=tension_N_per_mm,
         inflation_pressure_MPa=float(ring_pressure(inflated_stretch)), inflated_radius_mm=inflated_radius,
-        centroid=centroid)
+        inflated_nodes=inflated_nodes, centroid=centroid)
+
+
+def inflated_ring(stations: np.ndarray, depth: np.ndarray, centre: np.ndarray, radius: float,
+                  thickness_stretch: float) -> np.ndarray:
+    """Positions (n_rows, n_stations, 2) of the band's nodes drawn onto a circle: the inner contour on
+    the circle of `radius` about `centre`, station I at the polar angle theta_0 + 2 pi s_I, s_I its
+    arc-length fraction along the natural inner contour (a uniform hoop stretch, the state of an
+    inflated frictionless ring, Laplace's law with one T and one r); row J at radius
+    radius + depth_J thickness_stretch along the radial direction. theta_0 is the circular mean of
+    (polar angle of station I) - 2 pi s_I, so that the stations move about radially and the ring is
+    not turned as a whole."""
+    closed = np.vstack([stations, stations[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    share = arc[:-1] / arc[-1]
+    polar = np.arctan2(stations[:, 1] - centre[1], stations[:, 0] - centre[0])
+    theta_0 = np.angle(np.exp(1j * (polar - 2.0 * np.pi * share)).sum())
+    theta = theta_0 + 2.0 * np.pi * share
+    radial = np.column_stack([np.cos(theta), np.sin(theta)])
+    return centre + (radius + thickness_stretch * depth)[:, None, None] * radial[None, :, :]
