@@ -115,6 +115,7 @@ def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_f
 RELEASE_STATIC = (0.1, 1.0, 1e-5, 0.25)  # the band closes onto the skin in several increments
 INFLATE_STATIC = ONE_INCREMENT  # every band node prescribed: nothing to increment
 LET_GO_STATIC = ONE_INCREMENT  # a released *BOUNDARY is not ramped; the band is near equilibrium already
+SETTLE_STATIC = ONE_INCREMENT  # likewise: the released pins carried a few % of the band tension
 GARMENT_STEPS = {"inflated": 2, "released": 4}  # step numbers of leg_garment.inp.j2's states (Fig. 2 b, c)
 GARMENT_PENALTY_MPA_PER_MM = 1.0  # penalty K: p / K = 3e-3 mm overclosure at 20 mmHg, 100x a kPa tissue / mm element
 GARMENT_STICK_SLOPE_MPA_PER_MM = 1.0
@@ -126,10 +127,13 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                      release_static: Sequence[float] = RELEASE_STATIC, max_increments: int = 200,
                      description: str = "") -> str:
     """The leg slice under the explicit garment band of the second paper (Bouten and Drapier sec. 2.5,
-    Fig. 2): step 1 inflates the band (`orchestrator.meshing.garment_band(leg)`) by its internal
-    pressure with the contact pair removed, step 2 adds the skin/band contact (penalty `penalty`,
-    Coulomb friction `friction_mu` with stick slope `stick_slope`, 0 = frictionless) and releases
-    the pressure. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
+    Fig. 2), `orchestrator.meshing.garment_band(leg)`, put on in four steps (module docstring of
+    orchestrator.meshing.garment): 1, every band node drawn onto the inflated circle, the holding
+    pressure ramped up; 2, the band let go, held round by the pressure and three pins; 3, the
+    skin/band contact added (penalty `penalty`, Coulomb friction `friction_mu` with stick slope
+    `stick_slope`, 0 = frictionless) and the pressure released; 4, the two pins that the wrapped band
+    makes statically indeterminate released. GARMENT_STEPS names the steps of the inflated and the
+    released states. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
     The mesh include (mesh.inp) is `band.include_text(leg)`."""
     _positive("the penalty slope and stick slope", [penalty, stick_slope])
     if friction_mu < 0.0:
@@ -143,8 +147,8 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   friction_mu=float(friction_mu), stick_slope=f"{stick_slope:.10g}",
                   inflation_pressure=f"{band.inflation_pressure_MPa:.10g}", inflate_faces=band.deck_inner_faces(leg),
                   inflate_displacements=band.deck_inflation_displacements(leg), pins=band.deck_pins(leg),
-                  sliding_pins=band.deck_pins(leg, ("GARMENT_PIN_Y",)), settle_static=numbers(ONE_INCREMENT),
-                  inflate_static=numbers(inflate_static), let_go_static=numbers(let_go_static),
+                  sliding_pins=band.deck_pins(leg, ("GARMENT_PIN_Y",)), inflate_static=numbers(inflate_static),
+                  let_go_static=numbers(let_go_static), settle_static=numbers(SETTLE_STATIC),
                   release_static=numbers(release_static), max_increments=max_increments)
 
 

@@ -5,12 +5,12 @@ through its thickness t, whose NATURAL (stress-free) inner contour is the skin c
 about the skin's area centroid c by 1/stretch: X_in = c + (X_skin - c) / stretch, the outer contour
 offset by t along the outward normal. Where the skin is concave the natural contour bridges the
 pocket instead, on a shallow outward arc over the skin's convex-hull chord: a band dented inwards is an arch under
-external pressure once inflated and snaps through (calfit-fe: tangent not positive definite, no
-convergence in step 1); a real garment, a tube, does not follow the pockets either. Stretched back over the undeformed skin, its hoop stretch is
-`stretch`. The deck (templates/leg_garment.inp.j2) inflates it by an internal follower pressure with
-the contact pair removed until it clears the skin, then adds the contact pair (penalty, optional
-Coulomb friction) and releases the pressure, so the band closes onto the leg with no initial
-overclosure, as the second paper does.
+external pressure once wrapped and snaps through; a real garment, a tube, does not follow the pockets either.
+Stretched back over the undeformed skin, its hoop stretch is `stretch`, and band station I lies on skin node I
+(outside the pockets).
+The deck (templates/leg_garment.inp.j2) puts it on as the second paper does (Fig. 2): inflated clear of the
+skin with the contact pair removed, then the contact pair added (penalty, optional Coulomb friction) and the
+inflation pressure released, so that the band closes onto the leg with no initial overclosure.
 
 Band material: CalculiX NEO HOOKE, W = C10 (I1bar - 3) + (J - 1)^2 / D1, Cauchy stress
     sigma = (2 C10 / J) dev(bbar) + (2 / D1) (J - 1) I,  bbar = J^(-2/3) b,
@@ -25,19 +25,31 @@ paper's garment; with stretch 1.15, t = 0.5 mm and nu = 0.4: C10 = 0.35 MPa, E =
 below the design value; the contact pressure then follows Laplace's law p = T / r (Avril et al.
 eq. 1) where the band touches convex skin and the band bridges concave stretches.
 
-Inflation: a membrane under internal pressure p rounds out to a circle; the deck inflates the band
-to a circle of radius R = max |X_skin - c| + clearance, i.e. hoop stretch l = 2 pi R / P_natural
-(P_natural the natural inner perimeter) and p = T(l) / R (thin-ring Laplace law). dp/dl must stay
-positive (the neo-Hookean ring has a pressure limit 2 C10 t / R_natural in the incompressible case);
-`garment_band` refuses a clearance past it.
+Inflation. A membrane under internal pressure p rounds out to a circle: the inflated band is a circle of
+inner radius R = max |X_skin - c| + clearance about c, hoop stretch l = 2 pi R / P_natural (P_natural the
+natural inner perimeter), held by p = T(l) / R (the ring's Laplace law: half the ring carries 2 T against
+2 p R). dp/dl must stay positive (the neo-Hookean ring has a pressure limit 2 C10 t / R_natural in the
+incompressible case); `garment_band` refuses a clearance past it. The deck does not reach that circle by
+ramping p: the natural ring, not round and without tension, has near-zero stiffness against inextensional
+bending (the five smallest tangent eigenvalues of the dented leg's band are 1e-8..1e-6 against moduli of
+order 1), so under pressure alone Newton has no stiffness to work with and stalls (dented leg: no
+convergence down to dt = 2.4e-4). Step 1 prescribes every band node instead (`inflated_ring`: uniform hoop
+stretch, station I at the arc-length fraction s_I of the circle; rows through the thickness at the thickness
+stretch of a free band) while p is ramped up as a mere reaction; step 2 lets the band go, and p alone holds
+it round: a ring in tension is stiff against inextensional bending (geometric stiffness (n^2 - 1) T / R^2
+per unit length for the n-lobed mode), and the only imbalance is
+what uniform stretch leaves out (bending, the hoop stretch varying through the thickness): 3 Newton
+iterations.
 
-Rigid-body pins. A full-leg band is free in steps 1-2 except for the contact. It is held by three
-statically determinate constraints: u_x = 0 at its top-most and bottom-most inner nodes (node set
-GARMENT_PIN_X) and u_y = 0 at its right-most inner node (GARMENT_PIN_Y). Because the constraints
-are statically determinate and the loads on the band (follower inflation pressure on a closed
-contour, contact forces from the clamped leg at equilibrium) are self-equilibrated, their
-reactions are zero: the pins remove translation and rotation without altering inflation or
-contact. (A pin pair u_x at the top and u_y at the right alone would leave a rotation free.)
+Rigid-body pins. While the band is free (steps 2 and 3, until it touches) it is held by three statically
+determinate constraints at their inflated displacements: u_x at its top-most and bottom-most inner nodes
+(GARMENT_PIN_X) and u_y at its right-most inner node (GARMENT_PIN_Y) (a pin pair u_x at the top and u_y at
+the right alone would leave a rotation free). The loads on the free band (follower pressure on a closed
+contour) are self-equilibrated, so their reactions are zero. Once the band is wrapped on the clamped leg,
+the contact holds its translations and only its sliding around the leg is free: the three pins are then
+statically indeterminate and carry tangential forces, each a jump in the hoop force (measured: 7e-3 and
+9.5e-3 N/mm, jumps of up to 6.5% of T at the GARMENT_PIN_X nodes). Step 4 therefore releases GARMENT_PIN_X
+and keeps GARMENT_PIN_Y alone against sliding, whose reaction is then 2e-6 N/mm.
 
 Positions are in mm in the image frame; elements are counter-clockwise in deck coordinates (see
 mesh.py); GARMENT_IN are the band's inner faces, ordinary outward faces of the band, as calfit-fe
@@ -114,6 +126,7 @@ class GarmentBand:
     station_elements (n_around, 2 n_through) the elements between corner stations i and i+1
     inner_corners, outer_corners  (n_around,) corner nodes on the inner / outer contour
     node_sets        GARMENT_PIN_X, GARMENT_PIN_Y, GARMENT_INNER (every node of the inner contour)
+    inflated_nodes   (n, 2) positions on the inflated circle (deck step 1, `inflated_ring`)
     """
 
     nodes: np.ndarray
@@ -245,7 +258,7 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
     """The band around `leg`'s skin, one corner station per skin corner node, its constants chosen to
     carry `tension_N_per_mm` at hoop stretch `stretch` (module docstring), and the inflation
     pressure that rounds it out to a circle clearing the skin by `clearance_mm` (default: 5% of
-    the largest skin radius) about the skin centroid."""
+    the largest skin radius) about the skin centroid, and every node's position on that circle."""
     if len(leg.skin_loop) == 0:
         raise ValueError("the leg mesh has no skin loop to wrap the garment around")
     if n_through < 1 or thickness_mm <= 0.0:
