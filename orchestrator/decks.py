@@ -1,14 +1,15 @@
 """Input decks for calfit-fe, rendered from the jinja2 templates in `templates/` (StrictUndefined:
 a variable the caller forgets is an error, never an empty string in a deck).
 
-Two templates are in use: `leg_laplace.inp.j2`, the leg slice of the first paper (Avril et al.):
+Three templates are in use: `leg_laplace.inp.j2`, the leg slice of the first paper (Avril et al.):
 clamped bones (sec. 2.2.2), the compressible neo-Hookean law W = C10 (I1bar - 3) + Kv [(J^2 - 1)/2
 - ln J] per tissue (eq. 2, keyword `*HYPERELASTIC, AVRIL`) and the garment pressure p = T / r of
 the Laplace law on the skin (eq. 1, `*LAPLACE PRESSURE`), with the `tension_profile` effect as a
-template variable; and `disk.inp.j2`, the disk under radial load of the second paper (Bouten and
+template variable; `disk.inp.j2`, the disk under radial load of the second paper (Bouten and
 Drapier, sec. 3.4), an annulus clamped inside and pressed outside, linear elastic (`*ELASTIC`)
-or Mooney-Rivlin. The mesh is not in the deck: it is `*INCLUDE`d from `mesh.inp` beside it, so
-that one mesh serves thousands of decks. A deck's identity (cache key) is the SHA-256 of its
+or Mooney-Rivlin; and `leg_garment.inp.j2`, the leg slice under the explicit garment band of the
+second paper (Fig. 2), put on in four steps (`leg_garment_deck`). The mesh is not in the deck: it
+is `*INCLUDE`d from `mesh.inp` beside it, so that one mesh serves thousands of decks. A deck's identity (cache key) is the SHA-256 of its
 text and of the mesh it includes (`deck_key`).
 """
 
