@@ -11,7 +11,7 @@
 2. The same slice nearly incompressible (NEO HOOKE, D1 for nu = 0.499, CPE6H Taylor-Hood
    elements): median wall time and its DOF count (displacement and pressure).
 3. The leg slice under the explicit garment band (orchestrator.meshing.garment_band,
-   templates/leg_garment.inp.j2: inflate, then contact + release; frictionless), --garment-elements
+   templates/leg_garment.inp.j2: inflate, let go, contact + release, settle; frictionless), --garment-elements
    T6 elements: median wall time and DOF count.
 4. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
    process (os.wait4 resource usage of that child, i.e. /usr/bin/time -v's "Maximum
@@ -234,7 +234,7 @@ def explicit_garment(args, root: Path) -> None:
         return folder / "leg.inp"
 
     print(f"\nleg-like slice under the explicit garment band ({len(leg.elements)} CPE6 + {len(band.elements)} band "
-          f"elements; inflate, contact + release, frictionless)")
+          f"elements; inflate, let go, contact + release, settle; frictionless)")
     result = _median_runs(args, root, "garment", write)
     if result:
         _report("explicit garment", *result, n_dof)

@@ -1,14 +1,15 @@
 """Input decks for calfit-fe, rendered from the jinja2 templates in `templates/` (StrictUndefined:
 a variable the caller forgets is an error, never an empty string in a deck).
 
-Two templates are in use: `leg_laplace.inp.j2`, the leg slice of the first paper (Avril et al.):
+Three templates are in use: `leg_laplace.inp.j2`, the leg slice of the first paper (Avril et al.):
 clamped bones (sec. 2.2.2), the compressible neo-Hookean law W = C10 (I1bar - 3) + Kv [(J^2 - 1)/2
 - ln J] per tissue (eq. 2, keyword `*HYPERELASTIC, AVRIL`) and the garment pressure p = T / r of
 the Laplace law on the skin (eq. 1, `*LAPLACE PRESSURE`), with the `tension_profile` effect as a
-template variable; and `disk.inp.j2`, the disk under radial load of the second paper (Bouten and
+template variable; `disk.inp.j2`, the disk under radial load of the second paper (Bouten and
 Drapier, sec. 3.4), an annulus clamped inside and pressed outside, linear elastic (`*ELASTIC`)
-or Mooney-Rivlin. The mesh is not in the deck: it is `*INCLUDE`d from `mesh.inp` beside it, so
-that one mesh serves thousands of decks. A deck's identity (cache key) is the SHA-256 of its
+or Mooney-Rivlin; and `leg_garment.inp.j2`, the leg slice under the explicit garment band of the
+second paper (Fig. 2), put on in four steps (`leg_garment_deck`). The mesh is not in the deck: it
+is `*INCLUDE`d from `mesh.inp` beside it, so that one mesh serves thousands of decks. A deck's identity (cache key) is the SHA-256 of its
 text and of the mesh it includes (`deck_key`).
 """
 
@@ -149,20 +150,27 @@ def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_f
 
 
 RELEASE_STATIC = (0.1, 1.0, 1e-5, 0.25)  # the band closes onto the skin in several increments
-INFLATE_STATIC = (0.25, 1.0, 1e-4, 0.5)
+INFLATE_STATIC = ONE_INCREMENT  # every band node prescribed: nothing to increment
+LET_GO_STATIC = ONE_INCREMENT  # a released *BOUNDARY is not ramped; the band is near equilibrium already
+SETTLE_STATIC = ONE_INCREMENT  # likewise: the released pins carried a few % of the band tension
+GARMENT_STEPS = {"inflated": 2, "released": 4}  # step numbers of leg_garment.inp.j2's states (Fig. 2 b, c)
 GARMENT_PENALTY_MPA_PER_MM = 1.0  # penalty K: p / K = 3e-3 mm overclosure at 20 mmHg, 100x a kPa tissue / mm element
 GARMENT_STICK_SLOPE_MPA_PER_MM = 1.0
 
 
 def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band, leg, *, friction_mu: float = 0.0,
                      penalty: float = GARMENT_PENALTY_MPA_PER_MM, stick_slope: float = GARMENT_STICK_SLOPE_MPA_PER_MM,
-                     inflate_static: Sequence[float] = INFLATE_STATIC, release_static: Sequence[float] = RELEASE_STATIC,
-                     max_increments: int = 200, description: str = "") -> str:
+                     inflate_static: Sequence[float] = INFLATE_STATIC, let_go_static: Sequence[float] = LET_GO_STATIC,
+                     release_static: Sequence[float] = RELEASE_STATIC, max_increments: int = 200,
+                     description: str = "") -> str:
     """The leg slice under the explicit garment band of the second paper (Bouten and Drapier sec. 2.5,
-    Fig. 2): step 1 inflates the band (`orchestrator.meshing.garment_band(leg)`) by its internal
-    pressure with the contact pair removed, step 2 adds the skin/band contact (penalty `penalty`,
-    Coulomb friction `friction_mu` with stick slope `stick_slope`, 0 = frictionless) and releases
-    the pressure. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
+    Fig. 2), `orchestrator.meshing.garment_band(leg)`, put on in four steps (module docstring of
+    orchestrator.meshing.garment): 1, every band node drawn onto the inflated circle, the holding
+    pressure ramped up; 2, the band let go, held round by the pressure and three pins; 3, the
+    skin/band contact added (penalty `penalty`, Coulomb friction `friction_mu` with stick slope
+    `stick_slope`, 0 = frictionless) and the pressure released; 4, the two pins that the wrapped band
+    makes statically indeterminate released. GARMENT_STEPS names the steps of the inflated and the
+    released states. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
     The mesh include (mesh.inp) is `band.include_text(leg)`."""
     _positive("the penalty slope and stick slope", [penalty, stick_slope])
     if friction_mu < 0.0:
@@ -175,8 +183,10 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   band_constants=numbers((band.C10, band.D1)), penalty=f"{penalty:.10g}",
                   friction_mu=float(friction_mu), stick_slope=f"{stick_slope:.10g}",
                   inflation_pressure=f"{band.inflation_pressure_MPa:.10g}", inflate_faces=band.deck_inner_faces(leg),
-                  inflate_static=numbers(inflate_static), release_static=numbers(release_static),
-                  max_increments=max_increments)
+                  inflate_displacements=band.deck_inflation_displacements(leg), pins=band.deck_pins(leg),
+                  sliding_pins=band.deck_pins(leg, ("GARMENT_PIN_Y",)), inflate_static=numbers(inflate_static),
+                  let_go_static=numbers(let_go_static), settle_static=numbers(SETTLE_STATIC),
+                  release_static=numbers(release_static), max_increments=max_increments)
 
 
 def text_sha256(text: str) -> str:

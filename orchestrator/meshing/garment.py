@@ -5,12 +5,12 @@ through its thickness t, whose NATURAL (stress-free) inner contour is the skin c
 about the skin's area centroid c by 1/stretch: X_in = c + (X_skin - c) / stretch, the outer contour
 offset by t along the outward normal. Where the skin is concave the natural contour bridges the
 pocket instead, on a shallow outward arc over the skin's convex-hull chord: a band dented inwards is an arch under
-external pressure once inflated and snaps through (calfit-fe: tangent not positive definite, no
-convergence in step 1); a real garment, a tube, does not follow the pockets either. Stretched back over the undeformed skin, its hoop stretch is
-`stretch`. The deck (templates/leg_garment.inp.j2) inflates it by an internal follower pressure with
-the contact pair removed until it clears the skin, then adds the contact pair (penalty, optional
-Coulomb friction) and releases the pressure, so the band closes onto the leg with no initial
-overclosure, as the second paper does.
+external pressure once wrapped and snaps through; a real garment, a tube, does not follow the pockets either.
+Stretched back over the undeformed skin, its hoop stretch is `stretch`, and band station I lies on skin node I
+(outside the pockets).
+The deck (templates/leg_garment.inp.j2) puts it on as the second paper does (Fig. 2): inflated clear of the
+skin with the contact pair removed, then the contact pair added (penalty, optional Coulomb friction) and the
+inflation pressure released, so that the band closes onto the leg with no initial overclosure.
 
 Band material: CalculiX NEO HOOKE, W = C10 (I1bar - 3) + (J - 1)^2 / D1, Cauchy stress
     sigma = (2 C10 / J) dev(bbar) + (2 / D1) (J - 1) I,  bbar = J^(-2/3) b,
@@ -25,19 +25,31 @@ paper's garment; with stretch 1.15, t = 0.5 mm and nu = 0.4: C10 = 0.35 MPa, E =
 below the design value; the contact pressure then follows Laplace's law p = T / r (Avril et al.
 eq. 1) where the band touches convex skin and the band bridges concave stretches.
 
-Inflation: a membrane under internal pressure p rounds out to a circle; the deck inflates the band
-to a circle of radius R = max |X_skin - c| + clearance, i.e. hoop stretch l = 2 pi R / P_natural
-(P_natural the natural inner perimeter) and p = T(l) / R (thin-ring Laplace law). dp/dl must stay
-positive (the neo-Hookean ring has a pressure limit 2 C10 t / R_natural in the incompressible case);
-`garment_band` refuses a clearance past it.
+Inflation. A membrane under internal pressure p rounds out to a circle: the inflated band is a circle of
+inner radius R = max |X_skin - c| + clearance about c, hoop stretch l = 2 pi R / P_natural (P_natural the
+natural inner perimeter), held by p = T(l) / R (the ring's Laplace law: half the ring carries 2 T against
+2 p R). dp/dl must stay positive (the neo-Hookean ring has a pressure limit 2 C10 t / R_natural in the
+incompressible case); `garment_band` refuses a clearance past it. The deck does not reach that circle by
+ramping p: the natural ring, not round and without tension, has near-zero stiffness against inextensional
+bending (the five smallest tangent eigenvalues of the dented leg's band are 1e-8..1e-6 against moduli of
+order 1), so under pressure alone Newton has no stiffness to work with and stalls (dented leg: no
+convergence down to dt = 2.4e-4). Step 1 prescribes every band node instead (`inflated_ring`: uniform hoop
+stretch, station I at the arc-length fraction s_I of the circle; rows through the thickness at the thickness
+stretch of a free band) while p is ramped up as a mere reaction; step 2 lets the band go, and p alone holds
+it round: a ring in tension is stiff against inextensional bending (geometric stiffness (n^2 - 1) T / R^2
+per unit length for the n-lobed mode), and the only imbalance is
+what uniform stretch leaves out (bending, the hoop stretch varying through the thickness): 3 Newton
+iterations.
 
-Rigid-body pins. A full-leg band is free in steps 1-2 except for the contact. It is held by three
-statically determinate constraints: u_x = 0 at its top-most and bottom-most inner nodes (node set
-GARMENT_PIN_X) and u_y = 0 at its right-most inner node (GARMENT_PIN_Y). Because the constraints
-are statically determinate and the loads on the band (follower inflation pressure on a closed
-contour, contact forces from the clamped leg at equilibrium) are self-equilibrated, their
-reactions are zero: the pins remove translation and rotation without altering inflation or
-contact. (A pin pair u_x at the top and u_y at the right alone would leave a rotation free.)
+Rigid-body pins. While the band is free (steps 2 and 3, until it touches) it is held by three statically
+determinate constraints at their inflated displacements: u_x at its top-most and bottom-most inner nodes
+(GARMENT_PIN_X) and u_y at its right-most inner node (GARMENT_PIN_Y) (a pin pair u_x at the top and u_y at
+the right alone would leave a rotation free). The loads on the free band (follower pressure on a closed
+contour) are self-equilibrated, so their reactions are zero. Once the band is wrapped on the clamped leg,
+the contact holds its translations and only its sliding around the leg is free: the three pins are then
+statically indeterminate and carry tangential forces, each a jump in the hoop force (measured: 7e-3 and
+9.5e-3 N/mm, jumps of up to 6.5% of T at the GARMENT_PIN_X nodes). Step 4 therefore releases GARMENT_PIN_X
+and keeps GARMENT_PIN_Y alone against sliding, whose reaction is then 2e-6 N/mm.
 
 Positions are in mm in the image frame; elements are counter-clockwise in deck coordinates (see
 mesh.py); GARMENT_IN are the band's inner faces, ordinary outward faces of the band, as calfit-fe
@@ -79,13 +91,16 @@ def _plane_strain_stress(C10: float, D1: float, l1: float, l2: float) -> tuple[f
     return float(sigma[0]), float(sigma[1])
 
 
+def band_thickness_stretch(C10: float, D1: float, hoop_stretch: float) -> float:
+    """Thickness stretch l2 of a plane-strain band at hoop stretch l1, free through its thickness
+    (sigma_22 = 0)."""
+    return brentq(lambda l2: _plane_strain_stress(C10, D1, hoop_stretch, l2)[1], 0.05, 2.0, xtol=1e-14)
+
+
 def band_hoop_tension(C10: float, D1: float, hoop_stretch: float, thickness_mm: float) -> float:
     """Hoop force per unit length T = sigma_11 t l2 (N/mm) of a plane-strain band at hoop stretch l1,
     free through its thickness (sigma_22 = 0 fixes the thickness stretch l2)."""
-    def sigma_22(l2):
-        return _plane_strain_stress(C10, D1, hoop_stretch, l2)[1]
-
-    l2 = brentq(sigma_22, 0.05, 2.0, xtol=1e-14)
+    l2 = band_thickness_stretch(C10, D1, hoop_stretch)
     return _plane_strain_stress(C10, D1, hoop_stretch, l2)[0] * thickness_mm * l2
 
 
@@ -111,6 +126,7 @@ class GarmentBand:
     station_elements (n_around, 2 n_through) the elements between corner stations i and i+1
     inner_corners, outer_corners  (n_around,) corner nodes on the inner / outer contour
     node_sets        GARMENT_PIN_X, GARMENT_PIN_Y, GARMENT_INNER (every node of the inner contour)
+    inflated_nodes   (n, 2) positions on the inflated circle (deck step 1, `inflated_ring`)
     """
 
     nodes: np.ndarray
@@ -127,6 +143,7 @@ class GarmentBand:
     design_tension_N_per_mm: float
     inflation_pressure_MPa: float
     inflated_radius_mm: float
+    inflated_nodes: np.ndarray
     centroid: np.ndarray
 
     @property
@@ -152,6 +169,20 @@ class GarmentBand:
         out.append("*SURFACE, NAME=GARMENT_IN, TYPE=ELEMENT\n")
         out.append("".join("%d, S%d\n" % (e + 1 + element_offset, k) for e, k in self.inner_faces.tolist()))
         return "".join(out)
+
+    def deck_inflation_displacements(self, leg: Mesh) -> list[tuple[int, float, float]]:
+        """(1-based deck node id, u_x, u_y) that draw every band node onto the inflated circle (step 1)."""
+        u = self.inflated_nodes - self.nodes
+        ids = np.arange(1, len(self.nodes) + 1) + len(leg.nodes)
+        return [(int(i), float(ux), float(uy)) for i, (ux, uy) in zip(ids, u.tolist())]
+
+    def deck_pins(self, leg: Mesh, names: tuple[str, ...] = ("GARMENT_PIN_X", "GARMENT_PIN_Y")) -> list[tuple[int, int, float]]:
+        """(1-based deck node id, dof 1|2, value) of the rigid-body pins GARMENT_PIN_X (dof 1) and
+        GARMENT_PIN_Y (dof 2), held at their inflated displacement once the band is let go."""
+        u = self.inflated_nodes - self.nodes
+        return [(int(n) + 1 + len(leg.nodes), dof, float(u[n, dof - 1]))
+                for name, dof in (("GARMENT_PIN_X", 1), ("GARMENT_PIN_Y", 2)) if name in names
+                for n in self.node_sets[name]]
 
     def deck_inner_faces(self, leg: Mesh) -> list[tuple[int, int]]:
         """(1-based deck element id, face number) of GARMENT_IN, for the inflation *DLOAD."""
@@ -227,7 +258,7 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
     """The band around `leg`'s skin, one corner station per skin corner node, its constants chosen to
     carry `tension_N_per_mm` at hoop stretch `stretch` (module docstring), and the inflation
     pressure that rounds it out to a circle clearing the skin by `clearance_mm` (default: 5% of
-    the largest skin radius) about the skin centroid."""
+    the largest skin radius) about the skin centroid, and every node's position on that circle."""
     if len(leg.skin_loop) == 0:
         raise ValueError("the leg mesh has no skin loop to wrap the garment around")
     if n_through < 1 or thickness_mm <= 0.0:
@@ -299,6 +330,8 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
     if ring_pressure(1.02 * inflated_stretch) <= ring_pressure(inflated_stretch):
         raise ValueError(f"inflating the band to radius {inflated_radius:.1f} mm passes its pressure limit; "
                          "ask for a smaller clearance or a larger design stretch")
+    inflated_nodes = inflated_ring(stations, depth, centroid, inflated_radius,
+                                   band_thickness_stretch(C10, D1, inflated_stretch)).reshape(-1, 2)
     return GarmentBand(
         nodes=nodes, elements=elements, inner_faces=np.asarray(inner_faces, dtype=np.int64),
         station_elements=np.asarray(station_elements, dtype=np.int64), inner_corners=inner_corners,
@@ -306,4 +339,23 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
         node_sets={"GARMENT_PIN_X": pins_x, "GARMENT_PIN_Y": pin_y, "GARMENT_INNER": np.arange(n_stations)},
         C10=C10, D1=D1, thickness_mm=thickness_mm, design_stretch=stretch, design_tension_N_per_mm=tension_N_per_mm,
         inflation_pressure_MPa=float(ring_pressure(inflated_stretch)), inflated_radius_mm=inflated_radius,
-        centroid=centroid)
+        inflated_nodes=inflated_nodes, centroid=centroid)
+
+
+def inflated_ring(stations: np.ndarray, depth: np.ndarray, centre: np.ndarray, radius: float,
+                  thickness_stretch: float) -> np.ndarray:
+    """Positions (n_rows, n_stations, 2) of the band's nodes drawn onto a circle: the inner contour on
+    the circle of `radius` about `centre`, station I at the polar angle theta_0 + 2 pi s_I, s_I its
+    arc-length fraction along the natural inner contour (a uniform hoop stretch, the state of an
+    inflated frictionless ring, Laplace's law with one T and one r); row J at radius
+    radius + depth_J thickness_stretch along the radial direction. theta_0 is the circular mean of
+    (polar angle of station I) - 2 pi s_I, so that the stations move about radially and the ring is
+    not turned as a whole."""
+    closed = np.vstack([stations, stations[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed, axis=0), axis=1))])
+    share = arc[:-1] / arc[-1]
+    polar = np.arctan2(stations[:, 1] - centre[1], stations[:, 0] - centre[0])
+    theta_0 = np.angle(np.exp(1j * (polar - 2.0 * np.pi * share)).sum())
+    theta = theta_0 + 2.0 * np.pi * share
+    radial = np.column_stack([np.cos(theta), np.sin(theta)])
+    return centre + (radius + thickness_stretch * depth)[:, None, None] * radial[None, :, :]
