@@ -74,6 +74,7 @@ class LegDeckState:
     rigid_motions: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     fourier_profile: dict[int, tuple[float, float]] = field(default_factory=dict)
     sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
+    c10_factor: dict[str, float] = field(default_factory=dict)   # sensitivity line -> C10 / C10_muscle (compartments)
 
 
 @dataclass(frozen=True)
@@ -116,6 +117,7 @@ def _apply_compartments(state: LegDeckState, values: dict[str, float]) -> None:
         base = state.constants[elset][0]
         state.constants[elset][0] = base * (1.0 + change)
         _add_sensitivity(state, name, f"MATERIAL, {elset}, C10", base)
+        state.c10_factor[f"MATERIAL, {elset}, C10"] = 1.0 + change
 
 
 def _apply_drainage(state: LegDeckState, values: dict[str, float]) -> None:

@@ -83,11 +83,9 @@ class ParameterSpace:
         return np.where(linear, x * scale, np.exp(np.where(linear, 0.0, x)))
 
     def clip(self, theta) -> np.ndarray:
-        """theta inside the bounds of the linear parameters (a positive constant needs no clipping in ln theta)."""
-        theta = np.asarray(theta, float).copy()
-        linear = np.array(self.linear)
-        theta[linear] = np.clip(theta[linear], np.array(self.lower)[linear], np.array(self.upper)[linear])
-        return theta
+        """theta inside the box: a fit that runs away (a constant to 1e-8 kPa) stops at the edge, where the
+        report shows it, instead of producing decks far outside any tissue."""
+        return np.clip(np.asarray(theta, float), np.array(self.lower), np.array(self.upper))
 
     def draw(self, count: int, rng: np.random.Generator, lower=None, upper=None) -> np.ndarray:
         """count uniform draws in the box (or in [lower, upper])."""
@@ -236,10 +234,8 @@ class LegModel:
         for name, fixed in self.fixed_effects.items():
             effect(name).apply(state, dict(fixed))
         # the compartments effect scales C10 of a compartment by (1 + c): du/dC10_muscle gets that factor
-        for elset in self.muscle_sets:
-            factor = state.constants[elset][0] / c10_muscle
-            state.sensitivity["C10_muscle"] = [(line, f * (factor if line == f"MATERIAL, {elset}, C10" else 1.0))
-                                               for line, f in state.sensitivity["C10_muscle"]]
+        state.sensitivity["C10_muscle"] = [(line, f * state.c10_factor.get(line, 1.0))
+                                           for line, f in state.sensitivity["C10_muscle"]]
         return state
 
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None) -> str:

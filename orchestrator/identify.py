@@ -34,6 +34,7 @@ from scipy import optimize
 from .runner import OK, Evaluator
 
 FD_STEP = 1e-3           # forward-difference step in ln(theta): 0.1 %
+MAX_LM_STEP = 1.0        # largest LM step in x: a factor e in a constant, `scale` in an effect parameter
 MAX_EXPLORED_FACTOR = 2.0      # Monte-Carlo draws within best / 2 .. best * 2
 PROFILE_OFFSETS = np.array([-1.0, -0.5, -0.25, -0.125, 0.125, 0.25, 0.5, 1.0])   # in units of ln(max factor)
 POORLY_IDENTIFIED_RATIO = 1.5  # kept values span more than a factor 1.5 (upper / lower)
@@ -169,6 +170,7 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
         improved = False
         while lam < 1e12:
             step = np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient)
+            step *= min(1.0, MAX_LM_STEP / max(np.max(np.abs(step)), 1e-300))   # a trust region in x
             trial = evaluator(_from_x(space, x + step))
             evaluations += 1
             r_trial = residuals(trial)

@@ -18,7 +18,7 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import ALPHA, diagnose, refit, residual_maps, summarize_fit
+from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, summarize_fit
 from .forward import TABLE2_CENTRAL_KPA
 from .identify import FitResult, levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
 from .runner import LOG_NAME, EvaluationLog, Evaluator
@@ -135,6 +135,12 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         with evaluator_for(extended) as evaluator:
             residual = np.asarray(evaluator(fit.theta)["outputs"]["residuals"]).reshape(-1, 2) * points.sigma_mm[:, None]
         after_maps.append(residual_maps(points.position_mm, residual, setup.point_regions(), setup.leg_centre_mm()))
+    diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
+    if not diagnosis.explained:
+        maps = diagnosis.maps
+        diagnosis.verdict += (f"; the residual is largest in the sector around {maps.worst_sector_deg:.0f} deg "
+                              f"(RMS {max(maps.sector_rms_mm):.3f} mm) and in the "
+                              f"{max(maps.per_region_rms_mm, key=maps.per_region_rms_mm.get)}")
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]
