@@ -329,7 +329,7 @@ class Refit:
 
 
 def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str],
-          sigma_mm: np.ndarray, *, max_iterations: int = 30) -> tuple[Refit, LegModel]:
+          sigma_mm: np.ndarray, *, max_iterations: int = 50) -> tuple[Refit, LegModel]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and from
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
     when the missing effect dragged the baseline fit to a bound or far from the tissue's values."""

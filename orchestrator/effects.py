@@ -8,7 +8,7 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 
 | effect          | parameters                      | engine keyword                      |
 |-----------------|---------------------------------|-------------------------------------|
-| compartments    | dC10 of each muscle compartment | one *MATERIAL per COMPARTMENTk      |
+| compartments    | dC10 of each compartment but 1st| one *MATERIAL per COMPARTMENTk      |
 | drainage        | dv_muscle                       | *VOLUME CHANGE, ELSET=<muscle>      |
 | friction        | mu                              | explicit garment (*FRICTION)        |
 | bridging        | (switch)                        | explicit garment (*CONTACT PAIR)    |
@@ -107,8 +107,10 @@ def _add_sensitivity(state: LegDeckState, parameter: str, line: str, factor: flo
 
 
 def _compartment_parameters(element_sets, node_sets):
+    """One relative change per compartment but the first, whose C10 stays the muscle's C10_muscle (a change in
+    every compartment would duplicate C10_muscle and leave the fit without a unique optimum)."""
     return tuple(EffectParameter(f"dC10_{name}", "1", -0.8, 4.0, 0.05,
-                                 f"relative change of the muscle C10 in {name}") for name in compartment_sets(element_sets))
+                                 f"relative change of the muscle C10 in {name}") for name in compartment_sets(element_sets)[1:])
 
 
 def _apply_compartments(state: LegDeckState, values: dict[str, float]) -> None:

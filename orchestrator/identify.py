@@ -158,19 +158,22 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     for iteration in range(1, max_iterations + 1):
         J = engine_jacobian(current, x)
         if J is None:
-            probes = [_from_x(space, x + FD_STEP * np.eye(p)[j]) for j in range(p)]
+            # one-sided differences pointing into the box (a parameter on its upper bound steps down)
+            signs = np.where(_to_x(space, _from_x(space, x + FD_STEP)) > x + 0.5 * FD_STEP, 1.0, -1.0)
+            probes = [_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in range(p)]
             records = evaluator.evaluate(probes, tag="lm-jacobian", label=f"LM Jacobian {iteration}")
             evaluations += p
             columns = [residuals(rec) for rec in records]
             if any(c is None for c in columns):
                 raise RuntimeError("the engine failed in a finite-difference probe: "
                                    + "; ".join(rec["message"] for rec in records if rec["status"] != OK))
-            J = np.column_stack([(c - r) / FD_STEP for c in columns])
+            J = np.column_stack([(c - r) / (signs[j] * FD_STEP) for j, c in enumerate(columns)])
         gradient, normal = J.T @ r, J.T @ J
         improved = False
         while lam < 1e12:
             step = np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient)
             step *= min(1.0, MAX_LM_STEP / max(np.max(np.abs(step)), 1e-300))   # a trust region in x
+            step = _to_x(space, _from_x(space, x + step)) - x                     # projected onto the box
             trial = evaluator(_from_x(space, x + step))
             evaluations += 1
             r_trial = residuals(trial)

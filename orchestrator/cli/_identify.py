@@ -4,7 +4,7 @@
                     [--starts one|table1] [--start C10f C10m Kvf Kvm] [--effects NAME[,NAME]] [--workers N]
                     [--scheduler ADDRESS] [--json]
 
-The case is read, segmented, aligned on the bones and meshed (400 T3 elements), then the four
+The case is read, segmented, aligned on the bones and meshed (400 T3 elements; --order 2: T6), then the four
 parameters (C10 and Kv of fat and muscle, kPa) are fitted: Nelder-Mead on the contour mismatch M
 or on the displacement residual F (points.csv), or Levenberg-Marquardt on F's residual vector.
 --starts table1 runs from the initial values of Avril et al. Table 1 (each parameter +-10 %).
@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--start", type=float, nargs=4, metavar=("C10F", "C10M", "KVF", "KVM"),
                         help="initial values in kPa (default: Avril et al. Table 2 central values)")
     parser.add_argument("--elements", type=int, default=400, help="elements of the identification mesh (default 400)")
+    parser.add_argument("--order", type=int, choices=(1, 2), default=1,
+                        help="1: CPE3 (the first paper, default); 2: CPE6, for effects that change volume")
     parser.add_argument("--effects", help="comma-separated catalog effects whose parameters are fitted too "
                                            "(calfit diagnose --catalog lists them)")
     add_parallel_arguments(parser)
@@ -44,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         result = run_identify(args.case_dir, args.out, method=args.method, objective=args.objective, start=args.start,
-                              starts=args.starts, n_elements=args.elements, effects=parse_effects(args.effects),
+                              starts=args.starts, n_elements=args.elements, order=args.order,
+                              effects=parse_effects(args.effects),
                               progress=True, **parallel_options(args))
     except (CaseError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
