@@ -47,6 +47,8 @@ from .identify import FitResult, levenberg_marquardt, residual_jacobian
 from .runner import OK, Evaluator
 
 ALPHA = 0.01
+REFIT_FTOL = 1e-6            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)
+TIE_FRACTION = 0.1           # statistics within 10 % of the best: the score cannot tell them apart, refits do
 EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
 MAX_DESIGN_EFFECT = 100.0
 SECTORS = 12                 # angular sectors of 30 degrees around the leg for the residual summaries
@@ -67,6 +69,7 @@ class EffectScore:
     orthogonal_fraction: list[float]  # |g_perp| / |g| per parameter
     predicted_values: list[float]     # the linearized refit's parameter values
     significant: bool = False
+    tied_with: list[str] = field(default_factory=list)   # effects the score cannot tell from this one
 
 
 @dataclass
@@ -268,12 +271,34 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], positio
     lack_of_fit = lack_of_fit_p < alpha
     for score in ranking:
         score.significant = bool(lack_of_fit and score.p_value < alpha / max(len(ranking), 1))
+    if ranking and ranking[0].significant:
+        # effects whose residual signatures the fitted parameters leave nearly alike (e.g. drainage of the muscle
+        # and an axial stretch of the whole slice, where the fat is thin): the linear score ranks them by a hair,
+        # so they are refitted, and their misfits decide
+        top = ranking[0]
+        top.tied_with = [s.effect for s in ranking[1:] if s.significant and s.statistic >= (1 - TIE_FRACTION) * top.statistic]
     explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
     positions_mm = np.asarray(positions_mm, float)
     maps = residual_maps(positions_mm, residual_mm, np.asarray(region_of_point), np.asarray(centre_mm, float))
     return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,
                      lack_of_fit_p, deff, rho, ranking, explained, verdict, maps, runs, source,
                      time.perf_counter() - began, skipped)
+
+
+def settle_ties(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> None:
+    """Reorder the best-ranked effect and those tied with it by the BIC of their single-effect refits."""
+    if not diagnosis.ranking or not diagnosis.ranking[0].tied_with:
+        return
+    group = [diagnosis.ranking[0].effect] + diagnosis.ranking[0].tied_with
+    bic = {f.effects[-1]: f.bic for f in refits if len(f.effects) >= 1 and f.effects[-1] in group}
+    if set(bic) != set(group):
+        return
+    tied = [s for s in diagnosis.ranking if s.effect in group]
+    rest = [s for s in diagnosis.ranking if s.effect not in group]
+    tied.sort(key=lambda s: bic[s.effect])
+    for s in tied:
+        s.tied_with = [name for name in group if name != s.effect] if s is tied[0] else []
+    diagnosis.ranking = tied + rest
 
 
 def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool, str]:
@@ -286,9 +311,11 @@ def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool
     if not done:
         return diagnosis.explained, diagnosis.verdict
     ratio = done[0].misfit_over_floor
+    tie = diagnosis.ranking[0].tied_with
+    settled = (f" (the score could not tell it from {', '.join(tie)}; their refits decided, by BIC)" if tie else "")
     if ratio <= EXPLAINED_FACTOR:
         return True, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; {best} explains it: "
-                      f"refitted with it, the misfit is {ratio:.2f} x the floor")
+                      f"refitted with it, the misfit is {ratio:.2f} x the floor{settled}")
     return False, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; the best effect, {best}, "
                    f"refitted, leaves {ratio:.2f} x the floor: no catalog effect explains the residual")
 
@@ -338,7 +365,7 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
     extra = [0.0] * (extended.space.size - model.space.size)
     starts = [list(map(float, theta)) + extra, model.start() + extra]
     with evaluator_factory(extended) as evaluator:
-        fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations) for start in starts]
+        fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations, ftol=REFIT_FTOL) for start in starts]
         fit = min(fits, key=lambda f: f.cost)
         record = evaluator(fit.theta)
     return summarize_fit(extended, fit, record, sigma_mm), extended
@@ -362,7 +389,8 @@ def ranking_lines(diagnosis: Diagnosis) -> list[str]:
     for k, s in enumerate(diagnosis.ranking, 1):
         fraction = ", ".join(f"{v:.2f}" for v in s.orthogonal_fraction)
         lines.append(f"{k:<5}{s.effect:<17}{s.dof:>2}{s.statistic:>11.4g}{s.p_value:>10.2g}"
-                     f"{s.predicted_misfit / diagnosis.noise_floor:>12.2f} x  {fraction:>12}  {'YES' if s.significant else 'no'}")
+                     f"{s.predicted_misfit / diagnosis.noise_floor:>12.2f} x  {fraction:>12}  {'YES' if s.significant else 'no'}"
+                     + (f"  (tied with {', '.join(s.tied_with)}: settled by refit)" if s.tied_with else ""))
     for name, reason in diagnosis.not_ranked.items():
         lines.append(f"     {name:<17} not ranked: {reason}")
     lines.append(diagnosis.verdict)

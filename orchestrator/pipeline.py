@@ -18,7 +18,7 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, summarize_fit
+from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, settle_ties, summarize_fit
 from .forward import TABLE2_CENTRAL_KPA
 from .identify import FitResult, levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
 from .runner import LOG_NAME, EvaluationLog, Evaluator
@@ -103,8 +103,9 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
 def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
                  engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
                  timeout_s: float = 120.0, progress: bool = True) -> dict:
-    """Diagnose the identified model of a run; refit with `refit_effects` ("auto": the best-ranked effect when
-    it is significant, "none", or names). Writes and returns diagnosis.json."""
+    """Diagnose the identified model of a run; refit with `refit_effects`: "auto" (the best-ranked effect when it
+    is significant, with those the score cannot tell from it), "none", effect names, or "auto" and names.
+    Writes and returns diagnosis.json."""
     run_dir = Path(run_dir)
     setup = load_run(run_dir)
     identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
@@ -124,12 +125,11 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
                          setup.leg_centre_mm(), alpha=alpha, engine_sensitivities=engine_sensitivities)
     with evaluator_for(model) as evaluator:
         before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), points.sigma_mm)
-    if refit_effects == "auto":
-        chosen = [[diagnosis.ranking[0].effect]] if diagnosis.ranking and diagnosis.ranking[0].significant else []
-    elif refit_effects == "none":
-        chosen = []
-    else:
-        chosen = [[name] for name in refit_effects]
+    requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
+    top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
+    names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
+    names += [n for n in requested if n not in ("auto", "none") and n not in names]
+    chosen = [[name] for name in names]
     after, after_maps = [], []
     for names in chosen:
         fit, extended = refit(evaluator_for, model, theta, names, points.sigma_mm)
@@ -137,6 +137,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         with evaluator_for(extended) as evaluator:
             residual = np.asarray(evaluator(fit.theta)["outputs"]["residuals"]).reshape(-1, 2) * points.sigma_mm[:, None]
         after_maps.append(residual_maps(points.position_mm, residual, setup.point_regions(), setup.leg_centre_mm()))
+    settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
     if not diagnosis.explained:
         maps = diagnosis.maps

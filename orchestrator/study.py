@@ -162,13 +162,14 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
                       n_elements: int = 2000, order: int = 2, points_spacing_mm: float | None = 6.0,
                       points_sigma_mm: float = 0.02, noise_seeds: tuple[int, int] = (0, 1), rigid: RigidMotion | None = None,
                       effects: dict[str, dict[str, float]] | None = None, labels: str = "segmented",
-                      overwrite: bool = False) -> tuple[Path, Path]:
+                      edit_deck=None, overwrite: bool = False) -> tuple[Path, Path]:
     """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text).
 
     effects: catalog effects switched on in the truth, {effect: {parameter: value}} (a case with a hidden
     effect); with `compartments` the truth is meshed with the muscle compartments, and `labels` should then be
     "compartments" so that the fit can separate them. labels: what the case's labels.png holds
-    (`orchestrator.phantom.write_case`)."""
+    (`orchestrator.phantom.write_case`). edit_deck(deck_text, mesh) -> deck_text: physics outside the catalog
+    written into the truth's deck directly (how a case with an unknown effect is made)."""
     from .phantom import CalfPhantom, write_case
     from .results import EngineResults
     from .runner import run_engine
@@ -181,7 +182,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
-        deck.write_text(model.deck(theta_kPa))
+        text = model.deck(theta_kPa)
+        deck.write_text(edit_deck(text, mesh) if edit_deck else text)
         outcome = run_engine(deck, Path(scratch) / "out", threads=None)
         if not outcome.converged:
             raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa "
@@ -190,7 +192,7 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
     truth = {"parameters_kPa": dict(zip(LEG_PARAMETERS, map(float, theta_kPa))), "tension_N_per_mm": tension_N_per_mm,
-             "law": "AVRIL (Avril et al. eq. 2)", "effects": effects,
+             "law": "AVRIL (Avril et al. eq. 2)", "effects": effects, "deck_edited": edit_deck is not None,
              "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type},
              "max_displacement_mm": float(np.abs(field).max())}
     case, truth_dir = write_case(folder, phantom, field, rigid=rigid, truth_folder=truth_folder,

@@ -1,6 +1,6 @@
 """Where the identified model fails and which physical effect is missing (DESIGN.md, effect catalog).
 
-    calfit diagnose RUN_DIR [--refit auto|none|EFFECT[,EFFECT]] [--alpha 0.01] [--no-engine-sensitivities]
+    calfit diagnose RUN_DIR [--refit auto|none|EFFECT[,EFFECT]|auto,EFFECT] [--alpha 0.01] [--no-engine-sensitivities]
                     [--workers N] [--json]
     calfit diagnose --catalog
 
@@ -31,8 +31,8 @@ HELP = "rank the physical effects missing from an identified model, refit with o
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", nargs="?", help="run folder of `calfit identify --objective displacement`")
     parser.add_argument("--refit", default="auto",
-                        help="auto: refit with the best effect when significant (default); none; or effect names, "
-                             "comma-separated, each refitted on its own")
+                        help="auto: refit with the best effect when significant (default); none; effect names, "
+                             "comma-separated, each refitted on its own; or both, e.g. auto,bone_motion")
     parser.add_argument("--alpha", type=float, default=ALPHA, help=f"significance level (default {ALPHA})")
     parser.add_argument("--no-engine-sensitivities", action="store_true",
                         help="finite differences instead of the engine's du/dtheta")
@@ -47,8 +47,9 @@ def run(args: argparse.Namespace) -> int:
     if not args.run_dir:
         return fail("give the run folder: calfit diagnose RUN_DIR (or --catalog)")
     try:
-        refit = args.refit if args.refit in ("auto", "none") else [[name] for name in parse_effects(args.refit)]
-        refit = refit if isinstance(refit, str) else [names[0] for names in refit]
+        requested = [n.strip() for n in args.refit.split(",") if n.strip()]
+        refit = [n for n in requested if n in ("auto", "none")] + list(parse_effects([n for n in requested
+                                                                                    if n not in ("auto", "none")]))
         result = run_diagnose(args.run_dir, refit_effects=refit, alpha=args.alpha,
                               engine_sensitivities=not args.no_engine_sensitivities, **parallel_options(args))
     except (RunFolderError, EffectError, ValueError, RuntimeError) as error:
