@@ -1,0 +1,69 @@
+"""Cost of a full diagnosis (issue 6) on the 400-element model: every catalog effect that the Laplace-law
+model can carry is scored, then the best one (and those tied with it) refitted.
+
+    .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage]
+
+A phantom case is made with a hidden effect (default: 5 % fluid loss of the muscle; its making and the
+baseline identification are not timed), then `pipeline.run_diagnose` runs from an empty evaluation log
+twice: with the engine's sensitivities du/dtheta (`*SENSITIVITY`, one run for the whole ranking) and with
+forward differences (one run per parameter). Prints for each the wall time of the ranking alone and of
+the full diagnosis with its refits (target: under 60 s on 2 cores) and the engine runs each took.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.pipeline import run_diagnose, run_identify
+from orchestrator.runner import LOG_NAME, EvaluationLog
+from orchestrator.study import make_phantom_case
+
+HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
+                 "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.15, "b1": -0.1}}
+
+
+def _fresh_copy(base: Path, target: Path) -> Path:
+    """A copy of the identified run folder: each measurement starts from the same log, no diagnosis in it."""
+    shutil.copytree(base, target)
+    return target
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="element order of the fit (default 2)")
+    parser.add_argument("--hidden", choices=sorted(HIDDEN_VALUES), default="drainage", help="the hidden effect")
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="calfit-bench-") as scratch:
+        scratch = Path(scratch)
+        print(f"making a phantom case with hidden {args.hidden} {HIDDEN_VALUES[args.hidden]} ...", flush=True)
+        case, _ = make_phantom_case(scratch / "case", effects={args.hidden: HIDDEN_VALUES[args.hidden]},
+                                    rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)), points_sigma_mm=0.05,
+                                    points_spacing_mm=3.0)
+        identified = scratch / "identified"
+        fit = run_identify(case, identified, method="lm", order=args.order, workers=args.workers, progress=False)
+        setup = json.loads((identified / "setup.json").read_text())
+        print(f"baseline identification (not timed): {setup['n_elements']} elements of order {setup['order']}, "
+              f"{fit['best']['engine_runs']} engine runs, misfit {fit['best']['cost']:.4g} mm^2")
+        for label, engine in (("engine sensitivities", True), ("finite differences", False)):
+            for refit in ("none", "auto"):
+                run = _fresh_copy(identified, scratch / f"{label}-{refit}".replace(" ", "-"))
+                before = len(EvaluationLog(run / LOG_NAME))
+                began = time.perf_counter()
+                result = run_diagnose(run, refit_effects=refit, engine_sensitivities=engine, workers=args.workers,
+                                      progress=False)
+                elapsed = time.perf_counter() - began
+                runs = len(EvaluationLog(run / LOG_NAME)) - before
+                what = "ranking only" if refit == "none" else "ranking + refit"
+                print(f"{label:<21} {what:<16} {elapsed:6.1f} s  {runs:4d} engine runs  "
+                      f"best: {result['ranking'][0]['effect']}  verdict: {result['verdict'][:90]}")
+
+
+if __name__ == "__main__":
+    main()
