@@ -47,6 +47,9 @@ struct FieldOutput {
   std::vector<ElementState> element_states;
   Eigen::VectorXd laplace_pressure;            // n_nodes: T / r applied (0 off the surface)
   Eigen::VectorXd contact_pressure, contact_shear;  // n_nodes: on slave and master nodes of contact pairs
+  // Further named fields (sensitivities): nodal vectors (2 n_nodes, x y per node) and
+  // element scalars (n_elements).
+  std::vector<std::pair<std::string, Eigen::VectorXd>> point_vectors, cell_scalars;
 };
 
 struct SolverSettings {
@@ -65,6 +68,26 @@ public:
   int free_dof_count() const { return free_dofs_; }
   const std::string& linear_solver() const { return linear_solver_; }
   const Timings& timings() const { return timings_; }
+
+  // ---- for parameter sensitivities (solver/sensitivity.hpp) --------------------------
+  // Unknowns of the last converged state: 2 n_nodes displacements, then hybrid pressures.
+  const Eigen::VectorXd& solution() const { return u_; }
+  // R(u) = f_int - f_ext at the end of the current step (every load at its full value).
+  Eigen::VectorXd residual(const Eigen::VectorXd& u);
+  // The part of R(u) at the end of the current step that `scope` covers, with the
+  // materials, tension profiles and loads of `state` in place of the model's own; with
+  // scope.prescribed, the prescribed entries of u take state's values first.
+  Eigen::VectorXd scoped_residual(const ParameterState& state, const ParameterScope& scope, const Eigen::VectorXd& u) const;
+  // Element pressures -tr(sigma)/3 (volume averages, as written to the VTU) at u; the
+  // elements of `scope` with the materials of `state`.
+  Eigen::VectorXd element_pressures(const ParameterState& state, const ParameterScope& scope,
+                                    const Eigen::VectorXd& u) const;
+  // Prescribed displacements (dof -> value) that `loads` hold at the end of their step.
+  static std::map<int, double> prescribed_values(const LoadState& loads) { return loads.prescribed; }
+  // Solves K X = B with K = dR/du at the converged solution of the current step, for
+  // every column of B (full length: prescribed rows of B are ignored, of X set to 0).
+  // Returns false when K is singular.
+  bool solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
 
 private:
   struct FaceLoad {
@@ -109,7 +132,9 @@ private:
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   void apply_prescribed(Eigen::VectorXd& u, double lambda) const;
   // Nodal garment tension of every face of the Laplace-loaded surfaces: (element, face) -> T.
-  std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state) const;
+  std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state,
+                                                                   const std::vector<TensionProfile>& profiles) const;
+  FaceLoad unloaded_face(const std::pair<int, int>& key) const;  // element and face nodes, no load yet
   EdgeNodes face_positions(const FaceLoad& f, const Eigen::VectorXd& u) const;
 
   const Model& model_;
@@ -125,6 +150,8 @@ private:
   bool saddle_point_ = false;  // hybrid elements make the tangent indefinite
   std::vector<std::vector<int>> element_dofs_;
   Eigen::VectorXd u_;  // committed displacement
+  Eigen::VectorXd tangent_u_;   // where the matrix in system_ was last assembled ...
+  double tangent_lambda_ = -1;  // ... and at which load fraction
   double last_lambda_ = 0.0;  // load fraction of u_ within its step
   Eigen::VectorXd residual_, f_ext_;
   std::unique_ptr<SparseSystem> system_;
