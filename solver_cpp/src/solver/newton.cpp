@@ -637,7 +637,9 @@ Eigen::VectorXd StaticAnalysis::scoped_residual(const ParameterState& state, con
   const int n = static_cast<int>(scope.elements.size());
   std::vector<ElementVector> forces(scope.elements.size());
   int failures = 0;
-#pragma omp parallel for schedule(static) reduction(+ : failures)
+  // A thread team for a handful of elements costs more than it saves (and waits for
+  // descheduled threads on a loaded machine).
+#pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
   for (int k = 0; k < n; ++k) {
     const int e = scope.elements[k];
     if (!make_element(model_, state.materials, e)->internal_force(local_unknowns(u, e), forces[k], nullptr)) ++failures;
