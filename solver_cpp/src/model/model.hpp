@@ -129,6 +129,7 @@ struct SensitivityParameter {
   std::string name;  // e.g. MATERIAL:MUSCLE:C10, TENSION:SKIN, PROFILE:GARMENT:A2
   SourceLocation where;
   double scale = 1.0;  // size of the parameter where its value is 0, for the difference step
+  bool affine = false;  // R is affine in theta for every element type (one evaluation is exact)
   std::function<double(const ParameterState&)> get;
   std::function<void(ParameterState&, double)> set;
   ParameterScope scope;

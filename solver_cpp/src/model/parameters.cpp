@@ -52,6 +52,11 @@ SensitivityParameter material_constant(const Model& model, const DataLine& line)
   for (std::size_t i = 0; i < law.names.size(); ++i)
     if (law.names[i][0] == constant[0]) same_kind = std::max(same_kind, std::abs(law.values[i]));
   p.scale = same_kind > 0.0 ? same_kind : 1.0;
+  // The isochoric coefficients and the moduli scale the stress linearly, in displacement
+  // and hybrid elements alike; the compliances D, KV (hybrid: G'(p) is not linear in it),
+  // LAMBDA_M and NU do not.
+  static const std::set<std::string> linear = {"C10", "C01", "C20", "C30", "MU", "E"};
+  p.affine = linear.count(constant) > 0;
   p.get = [material, index](const ParameterState& s) { return s.materials[material].constants.values[index]; };
   p.set = [material, index](ParameterState& s, double value) {
     MaterialDef& m = s.materials[material];
@@ -75,6 +80,7 @@ SensitivityParameter laplace_tension(const Model& model, const DataLine& line) {
   SensitivityParameter p;
   p.name = "TENSION:" + name;
   p.where = line.where;
+  p.affine = true;  // the membrane load is linear in the nodal tension
   p.get = [surface](const ParameterState& s) { return s.loads.laplace.at(surface).tension; };
   p.set = [surface](ParameterState& s, double value) { s.loads.laplace.at(surface).tension = value; };
   p.scope.faces = faces_of(model, surface);
@@ -102,6 +108,7 @@ SensitivityParameter profile_coefficient(const Model& model, const DataLine& lin
   SensitivityParameter p;
   p.name = "PROFILE:" + name + ":" + label[0] + std::to_string(k);
   p.where = line.where;
+  p.affine = true;  // the factor, and so the tension and the load, are linear in a_k, b_k
   p.get = [profile, k, cosine](const ParameterState& s) {
     const auto& h = s.profiles[profile].harmonics;
     const auto it = h.find(k);

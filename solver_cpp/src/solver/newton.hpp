@@ -78,6 +78,9 @@ public:
   // materials, tension profiles and loads of `state` in place of the model's own; with
   // scope.prescribed, the prescribed entries of u take state's values first.
   Eigen::VectorXd scoped_residual(const ParameterState& state, const ParameterScope& scope, const Eigen::VectorXd& u) const;
+  // scoped_residual(model's own state, scope, solution()), from the element forces that
+  // the last evaluation at the converged state left (recomputed if another came since).
+  Eigen::VectorXd converged_scoped_residual(const ParameterScope& scope);
   // Element pressures -tr(sigma)/3 (volume averages, as written to the VTU) at u; the
   // elements of `scope` with the materials of `state`.
   Eigen::VectorXd element_pressures(const ParameterState& state, const ParameterScope& scope,
@@ -135,6 +138,9 @@ private:
   std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state,
                                                                    const std::vector<TensionProfile>& profiles) const;
   FaceLoad unloaded_face(const std::pair<int, int>& key) const;  // element and face nodes, no load yet
+  // R -= the end-of-step loads of `faces` (follower pressures, Laplace) with state's loads and profiles, at u.
+  void subtract_face_loads(const ParameterState& state, const std::vector<std::pair<int, int>>& faces,
+                           const Eigen::VectorXd& u, Eigen::VectorXd& R) const;
   EdgeNodes face_positions(const FaceLoad& f, const Eigen::VectorXd& u) const;
 
   const Model& model_;
@@ -152,6 +158,8 @@ private:
   Eigen::VectorXd u_;  // committed displacement
   Eigen::VectorXd tangent_u_;   // where the matrix in system_ was last assembled ...
   double tangent_lambda_ = -1;  // ... and at which load fraction
+  Eigen::VectorXd forces_u_;    // where element_force_ was last computed ...
+  double forces_lambda_ = -1;   // ... and at which load fraction
   double last_lambda_ = 0.0;  // load fraction of u_ within its step
   Eigen::VectorXd residual_, f_ext_;
   std::unique_ptr<SparseSystem> system_;

@@ -27,10 +27,17 @@ Eigen::MatrixXd SensitivityAnalysis::residual_derivatives() const {
   Eigen::MatrixXd dR(u.size(), static_cast<Eigen::Index>(parameters.size()));
   for (std::size_t j = 0; j < parameters.size(); ++j) {
     const SensitivityParameter& p = parameters[j];
-    const double theta = p.get(base_), h = step(p);
-    dR.col(static_cast<Eigen::Index>(j)) = (analysis_.scoped_residual(at(p, theta + h), p.scope, u) -
-                                            analysis_.scoped_residual(at(p, theta - h), p.scope, u)) /
-                                           (2.0 * h);
+    const double theta = p.get(base_);
+    auto column = dR.col(static_cast<Eigen::Index>(j));
+    if (p.affine) {  // (3): one evaluation, the converged residual kept from Newton
+      const double h = theta != 0.0 ? std::abs(theta) : p.scale;
+      column = (analysis_.scoped_residual(at(p, theta + h), p.scope, u) - analysis_.converged_scoped_residual(p.scope)) / h;
+    } else {  // (2)
+      const double h = step(p);
+      column = (analysis_.scoped_residual(at(p, theta + h), p.scope, u) -
+                analysis_.scoped_residual(at(p, theta - h), p.scope, u)) /
+               (2.0 * h);
+    }
   }
   return dR;
 }

@@ -9,12 +9,14 @@
 // hybrid elements u holds the pressure unknowns too and K is the saddle-point tangent.
 //
 // dR/dtheta is the semi-analytic central difference of the residual at fixed u,
-//   dR/dtheta = [R(u; theta + h) - R(u; theta - h)] / 2h,  h = 1e-4 max(|theta|, scale), (2)
+//   dR/dtheta = [R(u; theta + h) - R(u; theta - h)] / 2h,  h = 1e-4 (|theta| or scale), (2)
 // evaluated over the elements and faces the parameter touches (ParameterScope) with the
 // model's materials, profiles and last-step loads replaced by a copy in which the
-// parameter's setter changed theta. R is affine in most parameters (the C's, KV, MU, E,
-// TENSION, profile coefficients) and (2) is then exact up to roundoff; elsewhere
-// (D1 of displacement elements, LAMBDA_M, NU) its error is O(h^2) ~ 1e-8.
+// parameter's setter changed theta; its error is O(h^2) ~ 1e-8. Where R is affine in
+// theta (SensitivityParameter::affine: the C's, MU, E, TENSION, profile coefficients)
+// one evaluation is exact up to round-off, with the converged residual that Newton
+// already computed:
+//   dR/dtheta = [R(u; theta + H) - R(u; theta)] / H,      H = |theta| or scale.      (3)
 // A parameter that moves prescribed displacements (scope.prescribed) shifts u_p with
 // theta in (2), which brings K_fp du_p/dtheta into the free rows, and du_p/dtheta is
 // the difference of the prescribed values.
@@ -36,7 +38,7 @@ namespace calfit {
 struct ParameterSensitivity {
   std::string name;
   double value = 0.0;         // the parameter's value in the model
-  double step = 0.0;          // h of (2)
+  double step = 0.0;          // h of (2), also the step of the pressure difference
   Eigen::VectorXd du;         // du/dtheta: 2 n_nodes displacements, then hybrid pressures
   Eigen::VectorXd dpressure;  // dp_e/dtheta per element; empty unless asked
   double max_abs_du = 0.0;    // over the displacement components
@@ -49,7 +51,7 @@ public:
   // `analysis` holds the converged last step of `model`.
   SensitivityAnalysis(const Model& model, StaticAnalysis& analysis);
 
-  // dR/dtheta (2) at the converged solution, one column per requested parameter.
+  // dR/dtheta, (2) or (3), at the converged solution, one column per requested parameter.
   Eigen::MatrixXd residual_derivatives() const;
   // Solves (1) for every requested parameter (deck order), with dp/dtheta when the deck
   // asks. Throws std::runtime_error when the tangent is singular.

@@ -33,13 +33,14 @@ public:
 
   // Factorizes the current matrix and solves A x = b. Returns false when singular.
   bool solve(const Eigen::VectorXd& b, Eigen::VectorXd& x);
-  // Solves A X = B for every column of B with the factorization F of the last solve(),
-  // possibly of an earlier matrix (Newton's previous iterate), refined against the
-  // current matrix: X <- X + F^-1 (B - A X) (iterative refinement, Golub & Van Loan,
-  // Matrix Computations, 4th ed., sec. 3.5.3), which converges at the rate
-  // |I - F^-1 A|, tiny near a converged Newton state. Factorizes the current matrix when
-  // there is no factorization yet or refinement stalls. Returns false when singular.
-  bool solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
+  // Solves A X = B for every column of B, to a relative residual |B - A X| / |B| <=
+  // tolerance per column, with the factorization F of the last solve(), possibly of an
+  // earlier matrix (Newton's previous iterate), refined against the current matrix:
+  // X <- X + F^-1 (B - A X) (iterative refinement, Golub & Van Loan, Matrix
+  // Computations, 4th ed., sec. 3.5.3), which converges at the rate |I - F^-1 A|, tiny
+  // near a converged Newton state. Factorizes the current matrix when there is no
+  // factorization yet or refinement stalls. Returns false when singular.
+  bool solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, double tolerance);
   const std::string& solver_name() const { return solver_name_; }
   bool symmetric() const;
 
