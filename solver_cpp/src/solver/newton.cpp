@@ -628,6 +628,10 @@ Eigen::VectorXd StaticAnalysis::residual(const Eigen::VectorXd& u) {
   return residual_;
 }
 
+std::unique_ptr<Element> StaticAnalysis::element_for(const ParameterState& state, int e) const {
+  return make_element(model_, state.materials, e);
+}
+
 Eigen::VectorXd StaticAnalysis::scoped_residual(const ParameterState& state, const ParameterScope& scope,
                                                 const Eigen::VectorXd& u_given) const {
   Eigen::VectorXd u = u_given;
@@ -644,7 +648,7 @@ Eigen::VectorXd StaticAnalysis::scoped_residual(const ParameterState& state, con
 #pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
   for (int k = 0; k < n; ++k) {
     const int e = scope.elements[k];
-    if (!make_element(model_, state.materials, e)->internal_force(local_unknowns(u, e), forces[k], nullptr)) ++failures;
+    if (!element_for(state, e)->internal_force(local_unknowns(u, e), forces[k], nullptr)) ++failures;
   }
   if (failures > 0)
     throw std::runtime_error("an element turns inside out (det F <= 0) where a sensitivity parameter moves the prescribed displacements");
@@ -701,7 +705,7 @@ Eigen::VectorXd StaticAnalysis::element_pressures(const ParameterState& state, c
 #pragma omp parallel for schedule(static)
   for (int e = 0; e < n; ++e) {
     const ElementVector ue = local_unknowns(u, e);
-    const ElementState s = in_scope[e] ? make_element(model_, state.materials, e)->state(ue) : elements_[e]->state(ue);
+    const ElementState s = in_scope[e] ? element_for(state, e)->state(ue) : elements_[e]->state(ue);
     pressure[e] = -s.cauchy.trace() / 3.0;
   }
   return pressure;

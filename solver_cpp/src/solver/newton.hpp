@@ -85,7 +85,9 @@ public:
   // elements of `scope` with the materials of `state`.
   Eigen::VectorXd element_pressures(const ParameterState& state, const ParameterScope& scope,
                                     const Eigen::VectorXd& u) const;
-  // Prescribed displacements (dof -> value) that `loads` hold at the end of their step.
+  // Prescribed displacements (dof -> value) that `loads` hold at the end of their step:
+  // prepare_step and the sensitivities both take them from here, so a load that moves
+  // prescribed dofs (a rigid motion of a node set) is differentiated once it is added here.
   static std::map<int, double> prescribed_values(const LoadState& loads) { return loads.prescribed; }
   // Solves K X = B with K = dR/du at the converged solution of the current step, for
   // every column of B (full length: prescribed rows of B are ignored, of X set to 0).
@@ -138,6 +140,9 @@ private:
   std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state,
                                                                    const std::vector<TensionProfile>& profiles) const;
   FaceLoad unloaded_face(const std::pair<int, int>& key) const;  // element and face nodes, no load yet
+  // Element e as the end of the current step sees it with the parameters of `state` (its
+  // materials; per-element loads belong here too), for the sensitivities.
+  std::unique_ptr<Element> element_for(const ParameterState& state, int e) const;
   // R -= the end-of-step loads of `faces` (follower pressures, Laplace) with state's loads and profiles, at u.
   void subtract_face_loads(const ParameterState& state, const std::vector<std::pair<int, int>>& faces,
                            const Eigen::VectorXd& u, Eigen::VectorXd& R) const;
