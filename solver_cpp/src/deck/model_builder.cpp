@@ -4,9 +4,8 @@
 #include "deck/deck_reader.hpp"
 #include "material/laws.hpp"
 #include "model/model.hpp"
-#include "element/solid_element.hpp"
-
 #include "model/parameters.hpp"
+#include "element/solid_element.hpp"
 
 #include <algorithm>
 #include <cmath>

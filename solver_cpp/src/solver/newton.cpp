@@ -168,11 +168,10 @@ void StaticAnalysis::prepare_step(int step) {
     forces_.push_back({dof, start ? *start : 0.0, end ? *end : 0.0});
   });
 
-  auto face_load = [&](const std::pair<int, int>& key) { return unloaded_face(key); };
   pressure_faces_.clear();
   for_each_ramp(before.pressures, now.pressures,
                 [&](const std::pair<int, int>& key, const double* start, const double* end) {
-                  FaceLoad f = face_load(key);
+                  FaceLoad f = unloaded_face(key);
                   f.start = start ? *start : 0.0;
                   f.end = end ? *end : 0.0;
                   pressure_faces_.push_back(f);
@@ -181,7 +180,7 @@ void StaticAnalysis::prepare_step(int step) {
   laplace_faces_.clear();
   for_each_ramp(laplace_tensions(before, model_.profiles), laplace_tensions(now, model_.profiles),
                 [&](const std::pair<int, int>& key, const Eigen::VectorXd* start, const Eigen::VectorXd* end) {
-                  FaceLoad f = face_load(key);
+                  FaceLoad f = unloaded_face(key);
                   const Eigen::Index n = static_cast<Eigen::Index>(f.local.size());
                   f.t_start = start ? *start : Eigen::VectorXd::Zero(n);
                   f.t_end = end ? *end : Eigen::VectorXd::Zero(n);
