@@ -2,6 +2,7 @@
 
     cd /work/main && .venv/bin/python benchmarks/engine.py [--runs 5] [--ccx-runs 5] [--no-ccx]
                                                           [--dofs 1000,3000,...,200000] [--threads N]
+                                                          [--only paper,hybrid,garment,sensitivities,scaling]
 
 1. The leg-like slice at the size of the second paper (about 5,500 T6 elements, about
    25,000 DOF; that paper reports about 1,200 s per FE solve): median wall time of
@@ -13,7 +14,13 @@
 3. The leg slice under the explicit garment band (orchestrator.meshing.garment_band,
    templates/leg_garment.inp.j2: inflate, let go, contact + release, settle; frictionless), --garment-elements
    T6 elements: median wall time and DOF count.
-4. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
+4. Parameter sensitivities on the paper-size slice under a Laplace-law garment (uniform
+   tension, a TYPE=FOURIER profile with no terms): *SENSITIVITY for 10 parameters (C10
+   and D1 of fat and muscle, the garment TENSION, profile coefficients A1, B1, A2, B2,
+   A3 at 0): median wall time of the solve (the engine's wall time without the
+   sensitivities), of the sensitivities (summary time_s.sensitivity) and their ratio
+   (target: under 20 %).
+5. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
    process (os.wait4 resource usage of that child, i.e. /usr/bin/time -v's "Maximum
    resident set size"; target: under 1 GiB at 200k DOF).
 
@@ -240,6 +247,51 @@ def explicit_garment(args, root: Path) -> None:
         _report("explicit garment", *result, n_dof)
 
 
+SENSITIVITY_PARAMETERS = [
+    "MATERIAL, FAT, C10", "MATERIAL, FAT, D1", "MATERIAL, MUSCLE, C10", "MATERIAL, MUSCLE, D1", "TENSION, SKIN",
+    "PROFILE, GARMENT, A1", "PROFILE, GARMENT, B1", "PROFILE, GARMENT, A2", "PROFILE, GARMENT, B2", "PROFILE, GARMENT, A3",
+]
+TARGET_SENSITIVITY_RATIO = 0.20
+GARMENT_TENSION = 0.16  # N/mm
+
+
+def sensitivities(args, root: Path) -> None:
+    mesh = leg_slice_mesh(5500, order=2)
+
+    def write(folder: Path) -> Path:
+        deck = folder / "leg.inp"
+        leg_slice_deck(deck, mesh=mesh, include_mesh=False, laplace_tension=GARMENT_TENSION)
+        text = deck.read_text().replace("*STEP,", "*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n*STEP,", 1)
+        text = text.replace(f"TENSION={GARMENT_TENSION:.10g}", f"TENSION={GARMENT_TENSION:.10g}, PROFILE=GARMENT")
+        deck.write_text(text + "*SENSITIVITY\n" + "\n".join(SENSITIVITY_PARAMETERS) + "\n")
+        return deck
+
+    print(f"\nsensitivities, {len(SENSITIVITY_PARAMETERS)} parameters, {mesh.n_dof} DOF "
+          f"(leg slice, Laplace-law garment, {len(mesh.elements)} CPE6)")
+    solve, sens, newton = [], [], []
+    for k in range(args.runs):
+        d = root / f"sens{k}"
+        d.mkdir()
+        r = run_engine(write(d), args.threads, args.timeout)
+        if r["exit"] != 0:
+            print(f"  run {k}: exit {r['exit']} (see {d / 'run.log'}):")
+            print("   ", (d / "run.log").read_text()[-1500:])
+            return
+        summary = json.loads((d / "out" / "summary.json").read_text())
+        times = summary["time_s"]
+        sens.append(times["sensitivity"])
+        solve.append(summary["wall_time_s"] - times["sensitivity"])
+        newton.append(times["assembly"] + times["factorization"])
+    ratios = [s / t for s, t in zip(sens, solve)]
+    print(f"  solve (wall, without sensitivities)  median {statistics.median(solve):8.3f} s over {args.runs} runs "
+          f"(Newton: assembly + factorization {statistics.median(newton):.3f} s); solver {summary['linear_solver']}")
+    print(f"  sensitivities ({len(SENSITIVITY_PARAMETERS)} parameters)     median {statistics.median(sens):8.3f} s")
+    print(f"  ratio sensitivities / solve          median {100 * statistics.median(ratios):7.1f} % "
+          f"(min {100 * min(ratios):.1f}, max {100 * max(ratios):.1f}); of the Newton part "
+          f"{100 * statistics.median([s / n for s, n in zip(sens, newton)]):.1f} %    "
+          f"target < {100 * TARGET_SENSITIVITY_RATIO:.0f} %")
+
+
 def scaling(args, root: Path) -> None:
     print("\nscaling on the leg-like slice (CPE6): one calfit-fe process per size")
     print(f"  {'target DOF':>10} {'DOF':>8} {'elements':>9} {'wall s':>9} {'peak RSS':>13} {'status':>14} {'Newton':>6}")
@@ -268,14 +320,20 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=1800.0)
     ap.add_argument("--garment-elements", type=int, default=1000, help="T6 elements of the garment case")
     ap.add_argument("--dofs", type=lambda s: [int(x) for x in s.split(",")], default=list(DEFAULT_DOFS))
+    sections = {"paper": paper_size, "hybrid": nearly_incompressible, "garment": explicit_garment,
+                "sensitivities": sensitivities, "scaling": scaling}
+    ap.add_argument("--only", type=lambda s: s.split(","), default=list(sections),
+                    help=f"comma-separated sections to run, of {','.join(sections)} (default: all)")
     args = ap.parse_args()
+    unknown = sorted(set(args.only) - set(sections))
+    if unknown:
+        ap.error(f"unknown section(s) {', '.join(unknown)}: choose from {', '.join(sections)}")
     print(f"calfit-fe: {find_engine()}; machine: {os.cpu_count()} logical CPUs")
     with tempfile.TemporaryDirectory(prefix="calfit-bench-") as tmp:
         root = Path(tmp)
-        paper_size(args, root)
-        nearly_incompressible(args, root)
-        explicit_garment(args, root)
-        scaling(args, root)
+        for name, section in sections.items():
+            if name in args.only:
+                section(args, root)
 
 
 if __name__ == "__main__":

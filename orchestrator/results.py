@@ -5,6 +5,11 @@ displacement table step-N.u.npy (node id, X, Y, u_x, u_y) and, on demand, the VT
 step through meshio (stress, pressure, J and material per element). The hydrostatic
 pressure that the first paper maps (Avril et al. sec. 3.2, Fig. 5) is the VTU's
 `pressure` = -tr(sigma)/3, per node (nodal average) or per element, in MPa.
+
+With `*SENSITIVITY` in the deck, summary.json lists the requested parameters
+(`sensitivities`: index, name, value, file, max_abs_du) and each has its table
+step-N.du-K.npy (node id, X, Y, du_x/dtheta, du_y/dtheta) for the last step N; with
+PRESSURE=YES the last step's VTU holds the cell fields `dp/d<name>`.
 """
 
 from __future__ import annotations
@@ -67,16 +72,33 @@ class EngineResults:
             raise ResultsError(f"{self.outdir}: the VTU has no cell field {name!r} (it has {sorted(mesh.cell_data)})")
         return np.asarray(mesh.cell_data[name][0], float).squeeze()
 
+    @property
+    def sensitivity_parameters(self) -> list[dict]:
+        """The summary's `sensitivities` entries (index, name, value, file, max_abs_du), deck order."""
+        return list(self.summary.get("sensitivities", []))
+
     def sensitivities(self) -> dict[str, np.ndarray]:
-        """Engine name (e.g. "MATERIAL:MUSCLE:C10") -> (n_nodes, 2) du/dtheta of the last step, for a deck
-        with *SENSITIVITY; empty otherwise."""
-        out = {}
-        for entry in self.summary.get("sensitivities", []):
+        """du/dtheta of each *SENSITIVITY parameter: name (e.g. "MATERIAL:MUSCLE:C10") ->
+        (n_nodes, 2) array in deck node order, parameters in deck order; {} without *SENSITIVITY."""
+        out: dict[str, np.ndarray] = {}
+        for entry in self.sensitivity_parameters:
             path = self.outdir / entry["file"]
             if not path.is_file():
-                raise ResultsError(f"{path} does not exist although summary.json lists it")
+                raise ResultsError(f"{path} does not exist: summary.json lists it for {entry['name']}")
             out[entry["name"]] = np.load(path)[:, 3:5]
         return out
+
+    def pressure_sensitivities(self) -> dict[str, np.ndarray]:
+        """d(pressure)/dtheta per element (*SENSITIVITY, PRESSURE=YES): name -> (n_elements,)
+        array of d(-tr sigma / 3)/dtheta in deck element order, from the last step's VTU."""
+        names = [entry["name"] for entry in self.sensitivity_parameters]
+        if not names:
+            return {}
+        mesh = self.mesh()
+        missing = [n for n in names if f"dp/d{n}" not in mesh.cell_data]
+        if missing:
+            raise ResultsError(f"{self.outdir}: no pressure sensitivities for {missing} (ask with *SENSITIVITY, PRESSURE=YES)")
+        return {n: np.asarray(mesh.cell_data[f"dp/d{n}"][0], float).squeeze() for n in names}
 
     @property
     def total_newton_iterations(self) -> int:

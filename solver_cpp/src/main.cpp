@@ -6,6 +6,7 @@
 #include "model/model.hpp"
 #include "output/writers.hpp"
 #include "solver/newton.hpp"
+#include "solver/sensitivity.hpp"
 
 #include <dlfcn.h>
 
@@ -33,6 +34,7 @@ struct Arguments {
 const char* kUsageText =
     "usage: calfit-fe DECK.inp [-o OUTDIR] [--threads N] [--quiet]\n"
     "  Solves a plane-strain finite-strain deck; writes step-N.vtu, step-N.u.npy and summary.json\n"
+    "  (and step-N.du-K.npy for the parameters of *SENSITIVITY)\n"
     "  into OUTDIR (default: DECK without .inp, plus .out). Exit: 0 converged, 2 bad deck,\n"
     "  3 not converged, 4 other failure.\n";
 
@@ -128,13 +130,36 @@ int main(int argc, char** argv) {
       const std::string stem = "step-" + std::to_string(k + 1);
       step.vtu = stem + ".vtu";
       step.table = stem + ".u.npy";
-      const auto output_start = std::chrono::steady_clock::now();
-      const FieldOutput fields = analysis.output();
-      write_vtu((std::filesystem::path(args.outdir) / step.vtu).string(), model, fields);
-      write_displacement_table((std::filesystem::path(args.outdir) / step.table).string(), model, fields.displacement);
-      summary.output_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - output_start).count();
       summary.timings = analysis.timings();
       const bool ok = step.result.converged;
+
+      // Sensitivities of the last step's converged state, written with that step.
+      std::vector<ParameterSensitivity> sensitivities;
+      if (ok && k + 1 == model.steps.size() && model.sensitivity.requested) {
+        const auto sensitivity_start = std::chrono::steady_clock::now();
+        sensitivities = SensitivityAnalysis(model, analysis).compute();
+        summary.sensitivity_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - sensitivity_start).count();
+      }
+
+      const auto output_start = std::chrono::steady_clock::now();
+      FieldOutput fields = analysis.output();
+      for (const ParameterSensitivity& s : sensitivities) {
+        fields.point_vectors.emplace_back("du/d" + s.name, s.du.head(model.dof_count()));
+        if (s.dpressure.size()) fields.cell_scalars.emplace_back("dp/d" + s.name, s.dpressure);
+      }
+      write_vtu((std::filesystem::path(args.outdir) / step.vtu).string(), model, fields);
+      write_displacement_table((std::filesystem::path(args.outdir) / step.table).string(), model, fields.displacement);
+      for (std::size_t j = 0; j < sensitivities.size(); ++j) {
+        SensitivitySummary entry;
+        entry.index = static_cast<int>(j + 1);
+        entry.name = sensitivities[j].name;
+        entry.value = sensitivities[j].value;
+        entry.max_abs_du = sensitivities[j].max_abs_du;
+        entry.file = stem + ".du-" + std::to_string(j + 1) + ".npy";
+        write_displacement_table((std::filesystem::path(args.outdir) / entry.file).string(), model, sensitivities[j].du);
+        summary.sensitivities.push_back(entry);
+      }
+      summary.output_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - output_start).count();
       summary.steps.push_back(step);
       if (!ok) {
         summary.status = "not_converged";

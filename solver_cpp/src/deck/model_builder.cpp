@@ -4,12 +4,15 @@
 #include "deck/deck_reader.hpp"
 #include "material/laws.hpp"
 #include "model/model.hpp"
+#include "model/parameters.hpp"
 #include "element/solid_element.hpp"
 
 #include <algorithm>
 #include <cmath>
 #include <functional>
+#include <iomanip>
 #include <set>
+#include <sstream>
 
 namespace calfit {
 
@@ -19,6 +22,12 @@ int Model::surface(const std::string& name) const {
 }
 
 double TensionProfile::factor(double theta) const {
+  if (type == Type::Fourier) {
+    constexpr double kDegree = 3.14159265358979323846 / 180.0;
+    double f = 1.0;
+    for (const auto& [k, ab] : harmonics) f += ab.first * std::cos(k * theta * kDegree) + ab.second * std::sin(k * theta * kDegree);
+    return f;
+  }
   const auto& t = angle_factor;
   if (t.size() == 1) return t[0].second;
   theta = std::fmod(std::fmod(theta, 360.0) + 360.0, 360.0);
@@ -31,6 +40,34 @@ double TensionProfile::factor(double theta) const {
     if (offset <= span) return a.second + (b.second - a.second) * (span > 0 ? offset / span : 0.0);
   }
   return t.back().second;
+}
+
+double TensionProfile::minimum_factor(double* at_degrees) const {
+  // Sample finely enough to bracket every minimum (16 points per period of the highest
+  // harmonic), then refine the smallest sample by golden section within its bracket.
+  const int k_max = harmonics.empty() ? 1 : harmonics.rbegin()->first;
+  const int n = std::max(720, 16 * k_max);
+  const double spacing = 360.0 / n;
+  int best = 0;
+  for (int i = 1; i < n; ++i)
+    if (factor(i * spacing) < factor(best * spacing)) best = i;
+  double lo = (best - 1) * spacing, hi = (best + 1) * spacing;
+  const double ratio = 0.5 * (std::sqrt(5.0) - 1.0);
+  for (int it = 0; it < 60; ++it) {
+    const double a = hi - ratio * (hi - lo), b = lo + ratio * (hi - lo);
+    if (factor(a) < factor(b)) {
+      hi = b;
+    } else {
+      lo = a;
+    }
+  }
+  const double angle = std::fmod(0.5 * (lo + hi) + 360.0, 360.0);
+  if (at_degrees) *at_degrees = angle;
+  return std::min(factor(angle), factor(best * spacing));
+}
+
+ParameterState Model::parameter_state() const {
+  return {materials, profiles, steps.empty() ? LoadState{} : steps.back().loads};
 }
 
 namespace {
@@ -70,6 +107,7 @@ private:
   bool in_step_ = false;
   bool step_has_static_ = false;
   LoadState loads_;                 // state carried from step to step
+  std::vector<DataLine> sensitivity_lines_;  // resolved once the whole model is known
   std::map<int, double> model_bcs_;  // *BOUNDARY given before the first step
 
   std::map<std::string, Handler> handlers() {
@@ -94,6 +132,7 @@ private:
         {"CLOAD", bind(&ModelBuilder::cload)},
         {"DLOAD", bind(&ModelBuilder::dload)},
         {"LAPLACE PRESSURE", bind(&ModelBuilder::laplace_pressure)},
+        {"SENSITIVITY", bind(&ModelBuilder::sensitivity)},
         {"NODE PRINT", bind(&ModelBuilder::output_request)},
         {"NODE FILE", bind(&ModelBuilder::output_request)},
         {"EL PRINT", bind(&ModelBuilder::output_request)},
@@ -305,7 +344,7 @@ private:
     const std::string name = upper(b.required("NAME"));
     for (const MaterialDef& m : model_.materials)
       if (m.name == name) throw DeckError(b.where, "material " + name + " is defined twice");
-    model_.materials.push_back({name, nullptr, b.where});
+    model_.materials.push_back({name, nullptr, {}, b.where});
     current_material_ = static_cast<int>(model_.materials.size()) - 1;
     material_has_law_ = false;
   }
@@ -331,15 +370,28 @@ private:
     if (!ok) throw DeckError(line.where, message);
   }
 
-  void set_law(std::shared_ptr<const Material> law) {
-    model_.materials[current_material_].law = std::move(law);
+  // Checks nothing: the caller checked the constants where it read them.
+  void set_law(LawConstants constants) {
+    MaterialDef& m = model_.materials[current_material_];
+    m.law = make_law(constants);
+    m.constants = std::move(constants);
     material_has_law_ = true;
+  }
+
+  // The data line of a law, read into its named constants (law_constant_names order); the
+  // last `optional` constants may be left off the line and are then 0 (AVRIL's C20).
+  static LawConstants read_constants(const DataLine& line, const std::string& law, int order, const std::string& what,
+                                     std::size_t optional = 0) {
+    LawConstants c{law, law_constant_names(law, order), {}};
+    field_count(line, c.names.size() - optional, c.names.size(), what);
+    for (std::size_t i = 0; i < c.names.size(); ++i)
+      c.values.push_back(i < line.fields.size() ? Context{line}.number(i, c.names[i]) : 0.0);
+    return c;
   }
 
   void hyperelastic(const KeywordBlock& b) {
     model_data(b);
     const DataLine& line = single_data_line(b);
-    Context c{line};
     std::string law = "NEO HOOKE";
     int n = 1;
     for (const Parameter& p : b.parameters) {
@@ -355,53 +407,35 @@ private:
                                      "POLYNOMIAL with N=, ARRUDA-BOYCE, AVRIL)");
       }
     }
-    using std::make_shared;
     auto nonneg = [&](double d, const std::string& name) { require(d >= 0.0, line, name + " must be >= 0 (0 means incompressible)"); };
     if (law == "NEO HOOKE") {
-      field_count(line, 2, 2, "*HYPERELASTIC, NEO HOOKE data (C10, D1)");
-      const double c10 = c.number(0, "C10"), d1 = c.number(1, "D1");
-      require(c10 > 0.0, line, "C10 must be > 0");
-      nonneg(d1, "D1");
-      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{c10}),
-                                             make_shared<PolynomialVolumetric>(std::vector<double>{d1})));
+      const LawConstants c = read_constants(line, law, 1, "*HYPERELASTIC, NEO HOOKE data (C10, D1)");
+      require(c.values[0] > 0.0, line, "C10 must be > 0");
+      nonneg(c.values[1], "D1");
+      set_law(c);
     } else if (law == "MOONEY-RIVLIN") {
-      field_count(line, 3, 3, "*HYPERELASTIC, MOONEY-RIVLIN data (C10, C01, D1)");
-      const double c10 = c.number(0, "C10"), c01 = c.number(1, "C01"), d1 = c.number(2, "D1");
-      require(c10 + c01 > 0.0, line, "C10 + C01 (the initial shear modulus / 2) must be > 0");
-      nonneg(d1, "D1");
-      set_law(make_shared<SplitHyperelastic>(make_shared<MooneyRivlinIsochoric>(c10, c01),
-                                             make_shared<PolynomialVolumetric>(std::vector<double>{d1})));
+      const LawConstants c = read_constants(line, law, 1, "*HYPERELASTIC, MOONEY-RIVLIN data (C10, C01, D1)");
+      require(c.values[0] + c.values[1] > 0.0, line, "C10 + C01 (the initial shear modulus / 2) must be > 0");
+      nonneg(c.values[2], "D1");
+      set_law(c);
     } else if (law == "REDUCED POLYNOMIAL") {
-      const std::size_t count = static_cast<std::size_t>(2 * n);
-      field_count(line, count, count, "*HYPERELASTIC, REDUCED POLYNOMIAL, N=" + std::to_string(n) +
-                                          " data (C10..CN0, D1..DN)");
-      std::vector<double> coeff, d;
-      for (int i = 0; i < n; ++i) coeff.push_back(c.number(i, "C" + std::to_string(i + 1) + "0"));
-      for (int i = 0; i < n; ++i) {
-        d.push_back(c.number(n + i, "D" + std::to_string(i + 1)));
-        nonneg(d.back(), "D" + std::to_string(i + 1));
-      }
-      require(coeff[0] > 0.0, line, "C10 must be > 0");
-      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(coeff),
-                                             make_shared<PolynomialVolumetric>(d)));
+      const LawConstants c = read_constants(line, law, n, "*HYPERELASTIC, REDUCED POLYNOMIAL, N=" + std::to_string(n) +
+                                                              " data (C10..CN0, D1..DN)");
+      for (int i = 0; i < n; ++i) nonneg(c.values[static_cast<std::size_t>(n + i)], "D" + std::to_string(i + 1));
+      require(c.values[0] > 0.0, line, "C10 must be > 0");
+      set_law(c);
     } else if (law == "ARRUDA-BOYCE") {
-      field_count(line, 3, 3, "*HYPERELASTIC, ARRUDA-BOYCE data (mu, lambda_m, D)");
-      const double mu = c.number(0, "mu"), lm = c.number(1, "lambda_m"), d = c.number(2, "D");
-      require(mu > 0.0, line, "mu must be > 0");
-      require(lm >= 1.0, line, "lambda_m (locking stretch) must be >= 1");
-      nonneg(d, "D");
-      set_law(make_shared<SplitHyperelastic>(make_shared<ArrudaBoyceIsochoric>(mu, lm),
-                                             make_shared<LogVolumetric>(d > 0.0 ? 1.0 / d : 0.0)));
-    } else {  // AVRIL, with the optional C20 (I1bar - 3)^2 of the `stiffening` effect
-      field_count(line, 2, 3, "*HYPERELASTIC, AVRIL data (C10, Kv[, C20])");
-      const double c10 = c.number(0, "C10"), kv = c.number(1, "Kv");
-      const double c20 = c.field_count() == 3 ? c.number(2, "C20") : 0.0;
-      require(c10 > 0.0, line, "C10 must be > 0");
-      require(kv > 0.0, line, "Kv must be > 0");
-      require(c20 >= 0.0, line, "C20 must be >= 0 (it stiffens the law at large strain; 0 drops the term)");
-      const std::vector<double> coefficients = c20 > 0.0 ? std::vector<double>{c10, c20} : std::vector<double>{c10};
-      set_law(make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(coefficients),
-                                             make_shared<LogVolumetric>(kv)));
+      const LawConstants c = read_constants(line, law, 1, "*HYPERELASTIC, ARRUDA-BOYCE data (mu, lambda_m, D)");
+      require(c.values[0] > 0.0, line, "mu must be > 0");
+      require(c.values[1] >= 1.0, line, "lambda_m (locking stretch) must be >= 1");
+      nonneg(c.values[2], "D");
+      set_law(c);
+    } else {  // AVRIL, with the optional C20 (I1bar - 3)^2 of the `stiffening` effect (0 when not given)
+      const LawConstants c = read_constants(line, law, 1, "*HYPERELASTIC, AVRIL data (C10, Kv[, C20])", 1);
+      require(c.values[0] > 0.0, line, "C10 must be > 0");
+      require(c.values[1] > 0.0, line, "Kv must be > 0");
+      require(c.values[2] >= 0.0, line, "C20 must be >= 0 (it stiffens the law at large strain; 0 drops the term)");
+      set_law(c);
     }
   }
 
@@ -411,12 +445,10 @@ private:
     const std::string type = upper(b.value("TYPE").value_or("ISO"));
     if (type != "ISO") throw DeckError(b.where, "*ELASTIC, TYPE=" + type + " is not supported: use TYPE=ISO");
     const DataLine& line = single_data_line(b);
-    field_count(line, 2, 2, "*ELASTIC data (E, nu)");
-    Context c{line};
-    const double E = c.number(0, "E"), nu = c.number(1, "nu");
-    require(E > 0.0, line, "Young's modulus E must be > 0");
-    require(nu > -1.0 && nu < 0.5, line, "Poisson's ratio must lie in (-1, 0.5)");
-    set_law(std::make_shared<StVenantKirchhoff>(E, nu));
+    const LawConstants c = read_constants(line, "ELASTIC", 1, "*ELASTIC data (E, nu)");
+    require(c.values[0] > 0.0, line, "Young's modulus E must be > 0");
+    require(c.values[1] > -1.0 && c.values[1] < 0.5, line, "Poisson's ratio must lie in (-1, 0.5)");
+    set_law(c);
   }
 
   void solid_section(const KeywordBlock& b) {
@@ -480,18 +512,32 @@ private:
   }
 
   void tension_profile(const KeywordBlock& b) {
-    b.allow_only({"NAME", "CX", "CY"});
+    b.allow_only({"NAME", "TYPE", "CX", "CY"});
     model_data(b);
-    needs_data(b);
     TensionProfile p;
     p.name = upper(b.required("NAME"));
     p.where = b.where;
+    const std::string type = upper(b.value("TYPE").value_or("TABLE"));
+    if (type != "TABLE" && type != "FOURIER") throw DeckError(b.where, "*TENSION PROFILE, TYPE=" + type + " is not known: use TABLE or FOURIER");
+    p.type = type == "FOURIER" ? TensionProfile::Type::Fourier : TensionProfile::Type::Table;
     const auto cx = b.value("CX"), cy = b.value("CY");
     if (cx.has_value() != cy.has_value()) throw DeckError(b.where, "give both CX= and CY= (or neither)");
     if (cx) {
       p.has_center = true;
       p.center = {to_double(*cx, b.where, "CX"), to_double(*cy, b.where, "CY")};
     }
+    for (const TensionProfile& other : model_.profiles)
+      if (other.name == p.name) throw DeckError(b.where, "tension profile " + p.name + " is defined twice");
+    if (p.type == TensionProfile::Type::Fourier) {
+      read_fourier_profile(b, p);
+    } else {
+      read_table_profile(b, p);
+    }
+    model_.profiles.push_back(p);
+  }
+
+  static void read_table_profile(const KeywordBlock& b, TensionProfile& p) {
+    needs_data(b);
     for (const DataLine& line : b.data) {
       field_count(line, 2, 2, "*TENSION PROFILE data line (angle in degrees, factor)");
       Context c{line};
@@ -502,9 +548,27 @@ private:
         throw DeckError(line.where, "angles must increase from line to line");
       p.angle_factor.emplace_back(angle, factor);
     }
-    for (const TensionProfile& other : model_.profiles)
-      if (other.name == p.name) throw DeckError(b.where, "tension profile " + p.name + " is defined twice");
-    model_.profiles.push_back(p);
+  }
+
+  // TYPE=FOURIER: data lines k, a_k, b_k (none: a uniform tension whose coefficients
+  // *SENSITIVITY may still ask about); the factor must stay > 0 all around.
+  static void read_fourier_profile(const KeywordBlock& b, TensionProfile& p) {
+    for (const DataLine& line : b.data) {
+      field_count(line, 3, 3, "*TENSION PROFILE, TYPE=FOURIER data line (k, a_k, b_k)");
+      Context c{line};
+      const int k = c.integer(0, "harmonic number k");
+      require(k >= 1, line, "harmonic number k must be >= 1 (the constant term is the TENSION itself)");
+      if (p.harmonics.count(k)) throw DeckError(line.where, "harmonic " + std::to_string(k) + " is listed twice");
+      p.harmonics[k] = {c.number(1, "a_k"), c.number(2, "b_k")};
+    }
+    double angle = 0.0;
+    const double smallest = p.minimum_factor(&angle);
+    if (!(smallest > 0.0)) {
+      std::ostringstream where;
+      where << std::setprecision(4) << smallest << " at " << angle;
+      throw DeckError(b.where, "the tension factor 1 + sum_k (a_k cos k theta + b_k sin k theta) of profile " + p.name +
+                                   " falls to " + where.str() + " degrees: it must stay > 0 all around");
+    }
   }
 
   // ---- contact ------------------------------------------------------------------
@@ -791,6 +855,33 @@ private:
                                    "): remove it from that set, or remove the motion with *RIGID MOTION, OP=NEW");
   }
 
+  // Model or step data alike: the parameters are resolved against the whole model (and
+  // the last step) in finish().
+  void sensitivity(const KeywordBlock& b) {
+    b.allow_only({"PRESSURE"});
+    needs_data(b);
+    const std::string pressure = upper(b.value("PRESSURE").value_or("NO"));
+    if (pressure != "YES" && pressure != "NO") throw DeckError(b.where, "PRESSURE must be YES or NO");
+    if (!model_.sensitivity.requested) model_.sensitivity.where = b.where;
+    model_.sensitivity.requested = true;
+    model_.sensitivity.pressure = model_.sensitivity.pressure || pressure == "YES";
+    sensitivity_lines_.insert(sensitivity_lines_.end(), b.data.begin(), b.data.end());
+  }
+
+  void resolve_sensitivities() {
+    if (!model_.sensitivity.requested) return;
+    if (!model_.contact_pairs.empty())
+      throw DeckError(model_.sensitivity.where,
+                      "*SENSITIVITY is not available with *CONTACT PAIR: contact makes the solution depend on the "
+                      "loading path (active set, friction history); remove one of them");
+    std::set<std::string> names;
+    for (const DataLine& line : sensitivity_lines_) {
+      SensitivityParameter p = resolve_sensitivity_parameter(model_, line);
+      if (!names.insert(p.name).second) throw DeckError(line.where, "parameter " + p.name + " is listed twice");
+      model_.sensitivity.parameters.push_back(std::move(p));
+    }
+  }
+
   void output_request(const KeywordBlock& b) {
     b.allow_only({"NSET", "ELSET", "FREQUENCY", "TOTALS", "GLOBAL", "OUTPUT", "POSITION"});
     step_data(b);
@@ -833,6 +924,7 @@ private:
                                      " cannot represent it; use the hybrid " + e.type + "H or give D1 > 0");
       check_geometry(e);
     }
+    resolve_sensitivities();
   }
 
   void check_geometry(const ElementDef& e) const {

@@ -1,8 +1,10 @@
 // Strain-energy laws: see laws.hpp for the equations and their sources.
 #include "material/laws.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <sstream>
+#include <stdexcept>
 
 namespace calfit {
 
@@ -111,6 +113,57 @@ std::string LogVolumetric::description() const {
   std::ostringstream out;
   out << "log volumetric (K=" << k_ << ")";
   return out.str();
+}
+
+int LawConstants::index(const std::string& name) const {
+  const auto it = std::find(names.begin(), names.end(), name);
+  return it == names.end() ? -1 : static_cast<int>(it - names.begin());
+}
+
+std::vector<std::string> law_constant_names(const std::string& law, int order) {
+  if (law == "NEO HOOKE") return {"C10", "D1"};
+  if (law == "MOONEY-RIVLIN") return {"C10", "C01", "D1"};
+  if (law == "ARRUDA-BOYCE") return {"MU", "LAMBDA_M", "D"};
+  if (law == "AVRIL") return {"C10", "KV", "C20"};  // C20: 0 when the data line gives two values
+  if (law == "ELASTIC") return {"E", "NU"};
+  if (law == "REDUCED POLYNOMIAL") {
+    std::vector<std::string> names;
+    for (int i = 1; i <= order; ++i) names.push_back("C" + std::to_string(i) + "0");
+    for (int i = 1; i <= order; ++i) names.push_back("D" + std::to_string(i));
+    return names;
+  }
+  throw std::invalid_argument("unknown material law " + law);
+}
+
+std::shared_ptr<const Material> make_law(const LawConstants& c) {
+  using std::make_shared;
+  const std::vector<double>& v = c.values;
+  if (v.size() != c.names.size() || v.empty()) throw std::invalid_argument("constants of " + c.law + " do not match their names");
+  if (c.law == "NEO HOOKE")
+    return make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{v[0]}),
+                                          make_shared<PolynomialVolumetric>(std::vector<double>{v[1]}));
+  if (c.law == "MOONEY-RIVLIN")
+    return make_shared<SplitHyperelastic>(make_shared<MooneyRivlinIsochoric>(v[0], v[1]),
+                                          make_shared<PolynomialVolumetric>(std::vector<double>{v[2]}));
+  if (c.law == "REDUCED POLYNOMIAL") {
+    const std::size_t n = v.size() / 2;
+    return make_shared<SplitHyperelastic>(
+        make_shared<ReducedPolynomialIsochoric>(std::vector<double>(v.begin(), v.begin() + static_cast<long>(n))),
+        make_shared<PolynomialVolumetric>(std::vector<double>(v.begin() + static_cast<long>(n), v.end())));
+  }
+  if (c.law == "ARRUDA-BOYCE")  // CalculiX: U = [(J^2 - 1)/2 - ln J] / D
+    return make_shared<SplitHyperelastic>(make_shared<ArrudaBoyceIsochoric>(v[0], v[1]),
+                                          make_shared<LogVolumetric>(v[2] != 0.0 ? 1.0 / v[2] : 0.0));
+  if (c.law == "AVRIL") {
+    // C20 (I1bar - 3)^2 stiffens the law; at C20 = 0 the term is dropped, which is the same
+    // law (and the same derivative in C20: the term's stress vanishes at C20 = 0 too, so a
+    // sensitivity evaluates it from the copies at C20 != 0).
+    const std::vector<double> coefficients = v[2] != 0.0 ? std::vector<double>{v[0], v[2]} : std::vector<double>{v[0]};
+    return make_shared<SplitHyperelastic>(make_shared<ReducedPolynomialIsochoric>(coefficients),
+                                          make_shared<LogVolumetric>(v[1]));
+  }
+  if (c.law == "ELASTIC") return make_shared<StVenantKirchhoff>(v[0], v[1]);
+  throw std::invalid_argument("unknown material law " + c.law);
 }
 
 }  // namespace calfit

@@ -4,6 +4,8 @@
 
 #include "material/material.hpp"
 
+#include <memory>
+#include <string>
 #include <vector>
 
 namespace calfit {
@@ -70,5 +72,23 @@ public:
 private:
   double k_;
 };
+
+// A constitutive law as the deck gives it: the law's name (AVRIL, NEO HOOKE, MOONEY-RIVLIN,
+// REDUCED POLYNOMIAL, ARRUDA-BOYCE, ELASTIC) and its data-line constants, named as
+// solver_cpp/README.md names them (C10, D1, KV, ...), in data-line order. Kept with the
+// material so that a sensitivity parameter can rebuild the law with one constant changed.
+struct LawConstants {
+  std::string law;
+  std::vector<std::string> names;
+  std::vector<double> values;
+  int index(const std::string& name) const;  // -1 when the law has no constant of that name
+};
+
+// The constant names of a law in data-line order; REDUCED POLYNOMIAL takes its order N.
+std::vector<std::string> law_constant_names(const std::string& law, int order = 1);
+
+// The law built from its constants. No range checks: the deck reader checks the values
+// where it reads them, and sensitivities evaluate slightly perturbed copies.
+std::shared_ptr<const Material> make_law(const LawConstants& constants);
 
 }  // namespace calfit

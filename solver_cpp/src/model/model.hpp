@@ -6,9 +6,11 @@
 #include "contact/node_to_segment.hpp"
 #include "deck/deck_reader.hpp"
 #include "element/triangle.hpp"
+#include "material/laws.hpp"
 #include "material/material.hpp"
 
 #include <Eigen/Dense>
+#include <functional>
 #include <map>
 #include <memory>
 #include <string>
@@ -31,6 +33,7 @@ struct ElementDef {
 struct MaterialDef {
   std::string name;
   std::shared_ptr<const Material> law;
+  LawConstants constants;  // what `law` was built from
   SourceLocation where;
 };
 
@@ -47,14 +50,24 @@ struct Face {
   int face = 0;     // 0..2: corner face -> corner face+1
 };
 
+// Garment tension factor around a surface: T(theta) = TENSION x factor(theta), theta the
+// polar angle of a node's reference position about the centre (default: the surface's
+// node centroid).
+//   TYPE=TABLE:   periodic linear interpolation of (angle, factor) pairs;
+//   TYPE=FOURIER: factor = 1 + sum_k (a_k cos k theta + b_k sin k theta), k >= 1.
 struct TensionProfile {
+  enum class Type { Table, Fourier };
   std::string name;
+  Type type = Type::Table;
   bool has_center = false;
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
-  std::vector<std::pair<double, double>> angle_factor;  // degrees in [0, 360), sorted
+  std::vector<std::pair<double, double>> angle_factor;  // TABLE: degrees in [0, 360), sorted
+  std::map<int, std::pair<double, double>> harmonics;   // FOURIER: k -> (a_k, b_k)
   SourceLocation where;
-  // Periodic linear interpolation of the factor at polar angle theta (degrees).
   double factor(double theta_degrees) const;
+  // FOURIER: the smallest factor around the circle (dense sampling refined by golden
+  // section; a trigonometric polynomial of degree k_max has at most 2 k_max extrema).
+  double minimum_factor(double* at_degrees = nullptr) const;
 };
 
 struct InteractionDef {
@@ -124,6 +137,42 @@ struct StepDef {
   LoadState loads;
 };
 
+// The parts of a Model that sensitivity parameters set. A parameter's setter changes a
+// copy of them, and the solver evaluates the residual of the last step's end state with
+// the copy in place of the model's own (solver/sensitivity.hpp).
+struct ParameterState {
+  std::vector<MaterialDef> materials;
+  std::vector<TensionProfile> profiles;
+  LoadState loads;  // in force at the end of the last step
+};
+
+// What a parameter changes in the residual, so that dR/dtheta is evaluated over these
+// parts only.
+struct ParameterScope {
+  std::vector<int> elements;               // element indices whose internal force depends on theta
+  std::vector<std::pair<int, int>> faces;  // (element, face) whose load depends on theta
+  bool prescribed = false;                 // theta moves prescribed displacements
+};
+
+// One *SENSITIVITY data line, resolved against the model (model/parameters.hpp).
+struct SensitivityParameter {
+  std::string name;  // e.g. MATERIAL:MUSCLE:C10, TENSION:SKIN, PROFILE:GARMENT:A2
+  SourceLocation where;
+  double scale = 1.0;  // size of the parameter where its value is 0, for the difference step
+  bool affine = false;  // R is affine in theta for every element type (one evaluation is exact)
+  std::function<double(const ParameterState&)> get;
+  std::function<void(ParameterState&, double)> set;
+  ParameterScope scope;
+};
+
+// *SENSITIVITY: du/dtheta of the last step's converged state for each parameter.
+struct SensitivityRequest {
+  bool requested = false;
+  bool pressure = false;  // also d(-tr sigma / 3)/dtheta per element
+  SourceLocation where;
+  std::vector<SensitivityParameter> parameters;
+};
+
 struct Model {
   std::string deck_path;
   std::vector<int> node_ids;
@@ -141,9 +190,11 @@ struct Model {
   std::vector<InteractionDef> interactions;
   std::vector<ContactPairDef> contact_pairs;
   std::vector<StepDef> steps;
+  SensitivityRequest sensitivity;
 
   int dof_count() const { return 2 * static_cast<int>(coordinates.size()); }
   int surface(const std::string& name) const;  // -1 when unknown
+  ParameterState parameter_state() const;       // materials, profiles, the last step's loads
 };
 
 // Parses the deck at `path` and checks the mesh; throws DeckError on bad input.

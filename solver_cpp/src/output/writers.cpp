@@ -82,6 +82,21 @@ std::string base64(const std::string& bytes) {
   return out;
 }
 
+// Field names come from the deck (sensitivity parameters): escape what XML reserves.
+std::string xml_attribute(const std::string& text) {
+  std::string out;
+  for (char c : text) {
+    switch (c) {
+      case '&': out += "&amp;"; break;
+      case '<': out += "&lt;"; break;
+      case '>': out += "&gt;"; break;
+      case '"': out += "&quot;"; break;
+      default: out += c;
+    }
+  }
+  return out;
+}
+
 // One VTK XML DataArray in "binary" format: base64 of a UInt64 byte count followed by
 // the little-endian values (the layout ParaView and meshio read).
 template <typename T>
@@ -90,7 +105,7 @@ void data_array(std::ostream& out, const char* vtk_type, const char* name, int c
   std::string bytes(reinterpret_cast<const char*>(&size), sizeof(size));
   bytes.append(reinterpret_cast<const char*>(values.data()), size);
   out << "        <DataArray type=\"" << vtk_type << "\"";
-  if (name) out << " Name=\"" << name << "\"";
+  if (name) out << " Name=\"" << xml_attribute(name) << "\"";
   out << " NumberOfComponents=\"" << components << "\" format=\"binary\">\n" << base64(bytes)
       << "\n        </DataArray>\n";
 }
@@ -156,11 +171,19 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
     data_array(out, "Float64", "laplace_pressure", 1, laplace);
     data_array(out, "Float64", "contact_pressure", 1, contact_pressure);
     data_array(out, "Float64", "contact_shear", 1, contact_shear);
+    for (const auto& [name, field] : fields.point_vectors) {
+      std::vector<double> values;
+      values.reserve(3 * n_nodes);
+      for (std::size_t n = 0; n < n_nodes; ++n) values.insert(values.end(), {field[2 * n], field[2 * n + 1], 0.0});
+      data_array(out, "Float64", name.c_str(), 3, values);
+    }
     out << "      </PointData>\n      <CellData>\n";
     data_array(out, "Float64", "cauchy_stress", 6, cell_stress);
     data_array(out, "Float64", "pressure", 1, cell_pressure);
     data_array(out, "Float64", "J", 1, cell_J);
     data_array(out, "Float64", "material_id", 1, material);
+    for (const auto& [name, field] : fields.cell_scalars)
+      data_array(out, "Float64", name.c_str(), 1, std::vector<double>(field.data(), field.data() + field.size()));
     out << "      </CellData>\n    </Piece>\n  </UnstructuredGrid>\n</VTKFile>\n";
   }, true);
 }
@@ -198,10 +221,17 @@ void write_summary(const std::string& path, const RunSummary& s) {
         << ",\n  \"message\": " << json_string(s.message) << ",\n  \"wall_time_s\": " << json_number(s.wall_time_s)
         << ",\n  \"time_s\": {\"parse\": " << json_number(s.parse_s) << ", \"assembly\": "
         << json_number(s.timings.assembly_s) << ", \"factorization\": " << json_number(s.timings.factorization_s)
-        << ", \"output\": " << json_number(s.output_s) << "}"
+        << ", \"output\": " << json_number(s.output_s) << ", \"sensitivity\": " << json_number(s.sensitivity_s) << "}"
         << ",\n  \"n_nodes\": " << s.n_nodes << ",\n  \"n_elements\": " << s.n_elements << ",\n  \"n_dof\": " << s.n_dof
         << ",\n  \"n_free_dof\": " << s.n_free_dof << ",\n  \"threads\": " << s.threads
-        << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"steps\": [";
+        << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"sensitivities\": [";
+    for (std::size_t k = 0; k < s.sensitivities.size(); ++k) {
+      const SensitivitySummary& p = s.sensitivities[k];
+      out << (k ? "," : "") << "\n    {\"index\": " << p.index << ", \"name\": " << json_string(p.name)
+          << ", \"value\": " << json_number(p.value) << ", \"file\": " << json_string(p.file)
+          << ", \"max_abs_du\": " << json_number(p.max_abs_du) << "}";
+    }
+    out << (s.sensitivities.empty() ? "]" : "\n  ]") << ",\n  \"steps\": [";
     for (std::size_t k = 0; k < s.steps.size(); ++k) {
       const StepResult& r = s.steps[k].result;
       out << (k ? "," : "") << "\n    {\"step\": " << k + 1 << ", \"status\": "

@@ -18,10 +18,17 @@ struct StepSummary {
   StepResult result;
   std::string vtu, table;
 };
+// One requested sensitivity parameter, as summary.json lists it.
+struct SensitivitySummary {
+  int index = 0;  // 1-based, deck order
+  std::string name, file;
+  double value = 0, max_abs_du = 0;
+};
 struct RunSummary {
   std::string deck, status, message, linear_solver;
   int exit_code = 0;
-  double wall_time_s = 0, parse_s = 0, output_s = 0;
+  double wall_time_s = 0, parse_s = 0, output_s = 0, sensitivity_s = 0;
+  std::vector<SensitivitySummary> sensitivities;
   Timings timings;
   int n_nodes = 0, n_elements = 0, n_dof = 0, n_free_dof = 0, threads = 0;
   std::vector<StepSummary> steps;

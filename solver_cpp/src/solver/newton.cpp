@@ -60,6 +60,19 @@ std::vector<int> local_dofs(const std::vector<int>& local_nodes) {
   return dofs;
 }
 
+// Element `index` of the model with the given materials (the model's own, or a
+// sensitivity parameter's perturbed copy of them).
+std::unique_ptr<Element> make_element(const Model& model, const std::vector<MaterialDef>& materials, int index) {
+  const ElementDef& e = model.elements[index];
+  const SectionDef& s = model.sections[e.section];
+  const Material& law = *materials[s.material].law;
+  const int degree = e.shape == ElementShape::T3 ? 1 : (s.full_integration ? 4 : 2);
+  NodeMatrix X(node_count(e.shape), 2);
+  for (int k = 0; k < X.rows(); ++k) X.row(k) = model.coordinates[e.nodes[k]].transpose();
+  if (!e.hybrid) return std::make_unique<SolidElement>(e.shape, X, law, s.thickness, degree);
+  return std::make_unique<MixedElement>(e.shape, X, dynamic_cast<const SplitHyperelastic&>(law), s.thickness, degree);
+}
+
 }  // namespace
 
 StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : model_(model), settings_(settings) {
@@ -70,22 +83,15 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
   // hybrid elements (one per corner node shared by CPE6H elements, one per CPE3H).
   n_dofs_ = model.dof_count();
   std::unordered_map<int, int> corner_pressure;
-  for (const ElementDef& e : model.elements) {
-    const SectionDef& s = model.sections[e.section];
-    const Material& law = *model.materials[s.material].law;
-    const int degree = e.shape == ElementShape::T3 ? 1 : (s.full_integration ? 4 : 2);
-    NodeMatrix X(node_count(e.shape), 2);
+  for (std::size_t index = 0; index < model.elements.size(); ++index) {
+    const ElementDef& e = model.elements[index];
+    elements_.push_back(make_element(model, model.materials, static_cast<int>(index)));
     std::vector<int> dofs;
-    for (int k = 0; k < X.rows(); ++k) {
-      X.row(k) = model.coordinates[e.nodes[k]].transpose();
-      dofs.push_back(2 * e.nodes[k]);
-      dofs.push_back(2 * e.nodes[k] + 1);
+    for (int node : e.nodes) {
+      dofs.push_back(2 * node);
+      dofs.push_back(2 * node + 1);
     }
-    if (!e.hybrid) {
-      elements_.push_back(std::make_unique<SolidElement>(e.shape, X, law, s.thickness, degree));
-    } else {
-      elements_.push_back(std::make_unique<MixedElement>(e.shape, X, dynamic_cast<const SplitHyperelastic&>(law),
-                                                         s.thickness, degree));
+    if (e.hybrid) {
       if (e.shape == ElementShape::T6) {
         for (int k = 0; k < 3; ++k) {
           const auto inserted = corner_pressure.emplace(e.nodes[k], n_dofs_);
@@ -111,12 +117,13 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
   element_tangent_.resize(elements_.size());
 }
 
-std::map<std::pair<int, int>, Eigen::VectorXd> StaticAnalysis::laplace_tensions(const LoadState& state) const {
+std::map<std::pair<int, int>, Eigen::VectorXd> StaticAnalysis::laplace_tensions(
+    const LoadState& state, const std::vector<TensionProfile>& profiles) const {
   std::map<std::pair<int, int>, Eigen::VectorXd> tensions;  // (element, face) -> nodal tension
   for (const auto& [surface, load] : state.laplace) {
     const std::vector<Face>& surface_faces = model_.surfaces[surface];
     Eigen::Vector2d center = Eigen::Vector2d::Zero();
-    const TensionProfile* profile = load.profile >= 0 ? &model_.profiles[load.profile] : nullptr;
+    const TensionProfile* profile = load.profile >= 0 ? &profiles[load.profile] : nullptr;
     if (profile && profile->has_center) {
       center = profile->center;
     } else if (profile) {
@@ -155,6 +162,7 @@ void StaticAnalysis::prepare_step(int step) {
   current_step_ = step;
   free_ = active;
   prescribed_.clear();
+  // The *BOUNDARY values ramp linearly; rigid motions ramp in angle (prepare_rigid_motions).
   for (const auto& [dof, value] : now.prescribed) {
     free_[dof] = 0;
     prescribed_.push_back({dof, u_[dof], value});
@@ -178,25 +186,19 @@ void StaticAnalysis::prepare_step(int step) {
   axial_stretch_start_ = before.axial_stretch;
   axial_stretch_end_ = now.axial_stretch;
 
-  auto face_load = [&](const std::pair<int, int>& key) {
-    FaceLoad f;
-    f.element = key.first;
-    f.local = face_nodes(model_.elements[key.first].shape, key.second);
-    return f;
-  };
   pressure_faces_.clear();
   for_each_ramp(before.pressures, now.pressures,
                 [&](const std::pair<int, int>& key, const double* start, const double* end) {
-                  FaceLoad f = face_load(key);
+                  FaceLoad f = unloaded_face(key);
                   f.start = start ? *start : 0.0;
                   f.end = end ? *end : 0.0;
                   pressure_faces_.push_back(f);
                 });
 
   laplace_faces_.clear();
-  for_each_ramp(laplace_tensions(before), laplace_tensions(now),
+  for_each_ramp(laplace_tensions(before, model_.profiles), laplace_tensions(now, model_.profiles),
                 [&](const std::pair<int, int>& key, const Eigen::VectorXd* start, const Eigen::VectorXd* end) {
-                  FaceLoad f = face_load(key);
+                  FaceLoad f = unloaded_face(key);
                   const Eigen::Index n = static_cast<Eigen::Index>(f.local.size());
                   f.t_start = start ? *start : Eigen::VectorXd::Zero(n);
                   f.t_end = end ? *end : Eigen::VectorXd::Zero(n);
@@ -235,6 +237,13 @@ ElementKinematics StaticAnalysis::kinematics(int element, double lambda) const {
   return ElementKinematics::from_volume_change(
       ramp(volume_change_start_[element], volume_change_end_[element], lambda),
       ramp(axial_stretch_start_, axial_stretch_end_, lambda));
+}
+
+StaticAnalysis::FaceLoad StaticAnalysis::unloaded_face(const std::pair<int, int>& key) const {
+  FaceLoad f;
+  f.element = key.first;
+  f.local = face_nodes(model_.elements[key.first].shape, key.second);
+  return f;
 }
 
 void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
@@ -419,6 +428,8 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   }
   Evaluation ev;
   if (failures > 0) return ev;
+  forces_u_ = u;
+  forces_lambda_ = lambda;
 
   residual_.setZero(n_dofs_);
   // Contact first: new contact couplings change the matrix pattern before assembly.
@@ -475,6 +486,10 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
     if (system_->equation(d) >= 0) free_norm2 += residual_[d] * residual_[d];
   ev.ok = std::isfinite(free_norm2);
   ev.norm = std::sqrt(free_norm2);
+  if (tangent) {
+    tangent_u_ = u;
+    tangent_lambda_ = lambda;
+  }
   ev.reference = std::max({f_ext_.norm(), internal_norm, 1e-300});
   return ev;
 }
@@ -676,6 +691,136 @@ FieldOutput StaticAnalysis::output() {
       }
   }
   return out;
+}
+
+// ---- parameter sensitivities ------------------------------------------------------------
+
+Eigen::VectorXd StaticAnalysis::residual(const Eigen::VectorXd& u) {
+  if (!evaluate(u, 1.0, false).ok) throw std::runtime_error("the residual is not defined here: an element is inverted (det F <= 0)");
+  return residual_;
+}
+
+StaticAnalysis::ParameterElement StaticAnalysis::element_for(const ParameterState& state, int e) const {
+  const auto dv = state.loads.volume_change.find(e);
+  return {make_element(model_, state.materials, e),
+          ElementKinematics::from_volume_change(dv == state.loads.volume_change.end() ? 0.0 : dv->second,
+                                                state.loads.axial_stretch)};
+}
+
+std::map<int, double> StaticAnalysis::prescribed_values(const LoadState& loads) const {
+  std::map<int, double> values = loads.prescribed;
+  // A rigid motion takes over both dofs of its nodes (the deck reader drops a *BOUNDARY
+  // on them; a sensitivity copy may add a motion to a clamped set).
+  for (const auto& [name, motion] : loads.rigid_motions)
+    for (int node : motion.nodes) {
+      const Eigen::Vector2d d = motion.displacement(model_.coordinates[node]);
+      values[2 * node] = d.x();
+      values[2 * node + 1] = d.y();
+    }
+  return values;
+}
+
+Eigen::VectorXd StaticAnalysis::scoped_residual(const ParameterState& state, const ParameterScope& scope,
+                                                const Eigen::VectorXd& u_given) const {
+  Eigen::VectorXd u = u_given;
+  if (scope.prescribed)
+    for (const auto& [dof, value] : prescribed_values(state.loads)) u[dof] = value;
+  Eigen::VectorXd R = Eigen::VectorXd::Zero(n_dofs_);
+
+  // Internal forces of the elements in scope, rebuilt with the state's materials.
+  const int n = static_cast<int>(scope.elements.size());
+  std::vector<ElementVector> forces(scope.elements.size());
+  int failures = 0;
+  // A thread team for a handful of elements costs more than it saves (and waits for
+  // descheduled threads on a loaded machine).
+#pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
+  for (int k = 0; k < n; ++k) {
+    const int e = scope.elements[k];
+    if (!element_for(state, e).internal_force(local_unknowns(u, e), forces[k])) ++failures;
+  }
+  if (failures > 0)
+    throw std::runtime_error("an element turns inside out (det F <= 0) where a sensitivity parameter moves the prescribed displacements");
+  for (int k = 0; k < n; ++k) {
+    const std::vector<int>& dofs = element_dofs_[scope.elements[k]];
+    for (std::size_t i = 0; i < dofs.size(); ++i) R[dofs[i]] += forces[k][static_cast<Eigen::Index>(i)];
+  }
+
+  subtract_face_loads(state, scope.faces, u, R);
+  return R;
+}
+
+Eigen::VectorXd StaticAnalysis::converged_scoped_residual(const ParameterScope& scope) {
+  if (forces_lambda_ != last_lambda_ || forces_u_.size() != u_.size() || forces_u_ != u_) evaluate(u_, last_lambda_, false);
+  Eigen::VectorXd R = Eigen::VectorXd::Zero(n_dofs_);
+  for (int e : scope.elements) {
+    const std::vector<int>& dofs = element_dofs_[e];
+    for (std::size_t i = 0; i < dofs.size(); ++i) R[dofs[i]] += element_force_[e][static_cast<Eigen::Index>(i)];
+  }
+  subtract_face_loads(model_.parameter_state(), scope.faces, u_, R);
+  return R;
+}
+
+void StaticAnalysis::subtract_face_loads(const ParameterState& state, const std::vector<std::pair<int, int>>& faces,
+                                         const Eigen::VectorXd& u, Eigen::VectorXd& R) const {
+  if (faces.empty()) return;
+  const auto tensions = laplace_tensions(state.loads, state.profiles);
+  for (const std::pair<int, int>& key : faces) {
+    const FaceLoad f = unloaded_face(key);
+    const std::vector<int>& dofs = element_dofs_[f.element];
+    const std::vector<int> local = local_dofs(f.local);
+    const EdgeNodes x = face_positions(f, u);
+    EdgeVector fe;
+    auto subtract = [&] {
+      for (std::size_t k = 0; k < local.size(); ++k) R[dofs[local[k]]] -= fe[static_cast<Eigen::Index>(k)];
+    };
+    if (const auto p = state.loads.pressures.find(key); p != state.loads.pressures.end()) {
+      follower_pressure_load(x, p->second, fe, nullptr);
+      subtract();
+    }
+    if (const auto t = tensions.find(key); t != tensions.end()) {
+      laplace_membrane_load(x, t->second, fe, nullptr);
+      subtract();
+    }
+  }
+}
+
+Eigen::VectorXd StaticAnalysis::element_pressures(const ParameterState& state, const ParameterScope& scope,
+                                                  const Eigen::VectorXd& u) const {
+  const int n = static_cast<int>(elements_.size());
+  std::vector<char> in_scope(elements_.size(), 0);
+  for (int e : scope.elements) in_scope[e] = 1;
+  Eigen::VectorXd pressure(n);
+#pragma omp parallel for schedule(static)
+  for (int e = 0; e < n; ++e) {
+    const ElementVector ue = local_unknowns(u, e);
+    const ElementState s = in_scope[e] ? element_for(state, e).state(ue) : elements_[e]->state(ue, kinematics(e, last_lambda_));
+    pressure[e] = -s.cauchy.trace() / 3.0;
+  }
+  return pressure;
+}
+
+// Relative residual of the sensitivity solves. Its error in X is about as large (the
+// residual is a smooth operator perturbation, (K_old - K) X, that K^-1 does not amplify
+// much: 1e-7 residuals gave 1e-9 to 3e-7 errors on the leg slice), well inside the 1e-4
+// the sensitivities are held to; near a converged Newton state the factorization of the
+// last iteration usually meets it without a correction.
+constexpr double kTangentSolveTolerance = 1e-6;
+
+bool StaticAnalysis::solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X) {
+  // Newton re-evaluates every accepted iterate with its tangent, so the matrix in
+  // system_ is normally the converged state's already; anything evaluated since
+  // (another tangent) is undone here.
+  if (tangent_lambda_ != last_lambda_ || tangent_u_.size() != u_.size() || tangent_u_ != u_)
+    if (!evaluate(u_, last_lambda_, true).ok) return false;
+  const int n = system_->size();
+  Eigen::MatrixXd rhs(n, B.cols()), x;
+  for (int d = 0; d < n_dofs_; ++d)
+    if (system_->equation(d) >= 0) rhs.row(system_->equation(d)) = B.row(d);
+  if (!system_->solve_refined(rhs, x, kTangentSolveTolerance)) return false;
+  X = Eigen::MatrixXd::Zero(n_dofs_, B.cols());
+  for (int d = 0; d < n_dofs_; ++d)
+    if (system_->equation(d) >= 0) X.row(d) = x.row(system_->equation(d));
+  return true;
 }
 
 }  // namespace calfit

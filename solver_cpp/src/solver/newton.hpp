@@ -47,6 +47,9 @@ struct FieldOutput {
   std::vector<ElementState> element_states;
   Eigen::VectorXd laplace_pressure;            // n_nodes: T / r applied (0 off the surface)
   Eigen::VectorXd contact_pressure, contact_shear;  // n_nodes: on slave and master nodes of contact pairs
+  // Further named fields (sensitivities): nodal vectors (2 n_nodes, x y per node) and
+  // element scalars (n_elements).
+  std::vector<std::pair<std::string, Eigen::VectorXd>> point_vectors, cell_scalars;
 };
 
 struct SolverSettings {
@@ -65,6 +68,33 @@ public:
   int free_dof_count() const { return free_dofs_; }
   const std::string& linear_solver() const { return linear_solver_; }
   const Timings& timings() const { return timings_; }
+
+  // ---- for parameter sensitivities (solver/sensitivity.hpp) --------------------------
+  // Unknowns of the last converged state: 2 n_nodes displacements, then hybrid pressures.
+  const Eigen::VectorXd& solution() const { return u_; }
+  // R(u) = f_int - f_ext at the end of the current step (every load at its full value).
+  Eigen::VectorXd residual(const Eigen::VectorXd& u);
+  // The part of R(u) at the end of the current step that `scope` covers, with the
+  // materials, tension profiles and loads of `state` in place of the model's own; with
+  // scope.prescribed, the prescribed entries of u take state's values first.
+  Eigen::VectorXd scoped_residual(const ParameterState& state, const ParameterScope& scope, const Eigen::VectorXd& u) const;
+  // scoped_residual(model's own state, scope, solution()), from the element forces that
+  // the last evaluation at the converged state left (recomputed if another came since).
+  Eigen::VectorXd converged_scoped_residual(const ParameterScope& scope);
+  // Element pressures -tr(sigma)/3 (volume averages, as written to the VTU) at u; the
+  // elements of `scope` with the materials of `state`.
+  Eigen::VectorXd element_pressures(const ParameterState& state, const ParameterScope& scope,
+                                    const Eigen::VectorXd& u) const;
+  // Prescribed displacements (dof -> value) that `loads` hold at the end of their step:
+  // the *BOUNDARY values and the end positions of the *RIGID MOTION node sets. The
+  // sensitivities take u_p(theta) from here (a parameter that moves prescribed dofs is
+  // differentiated through it); prepare_step ramps the *BOUNDARY ones linearly and the
+  // rigid motions in angle (prepare_rigid_motions), which end at the same values.
+  std::map<int, double> prescribed_values(const LoadState& loads) const;
+  // Solves K X = B with K = dR/du at the converged solution of the current step, for
+  // every column of B (full length: prescribed rows of B are ignored, of X set to 0).
+  // Returns false when K is singular.
+  bool solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
 
 private:
   struct FaceLoad {
@@ -122,7 +152,24 @@ private:
   // Growth and axial stretch of element e at load fraction lambda of the current step.
   ElementKinematics kinematics(int element, double lambda) const;
   // Nodal garment tension of every face of the Laplace-loaded surfaces: (element, face) -> T.
-  std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state) const;
+  std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state,
+                                                                   const std::vector<TensionProfile>& profiles) const;
+  FaceLoad unloaded_face(const std::pair<int, int>& key) const;  // element and face nodes, no load yet
+  // Element e as the end of the current step sees it with the parameters of `state`, for
+  // the sensitivities: built with state's material, under state's end-of-step growth and
+  // axial stretch (what evaluate() imposes at lambda = 1).
+  struct ParameterElement {
+    std::unique_ptr<Element> element;
+    ElementKinematics kinematics;
+    bool internal_force(const ElementVector& ue, ElementVector& f) const {
+      return element->internal_force(ue, kinematics, f, nullptr);
+    }
+    ElementState state(const ElementVector& ue) const { return element->state(ue, kinematics); }
+  };
+  ParameterElement element_for(const ParameterState& state, int e) const;
+  // R -= the end-of-step loads of `faces` (follower pressures, Laplace) with state's loads and profiles, at u.
+  void subtract_face_loads(const ParameterState& state, const std::vector<std::pair<int, int>>& faces,
+                           const Eigen::VectorXd& u, Eigen::VectorXd& R) const;
   EdgeNodes face_positions(const FaceLoad& f, const Eigen::VectorXd& u) const;
 
   const Model& model_;
@@ -139,6 +186,10 @@ private:
   double model_size_ = 0.0;    // diagonal of the reference bounding box
   std::vector<std::vector<int>> element_dofs_;
   Eigen::VectorXd u_;  // committed displacement
+  Eigen::VectorXd tangent_u_;   // where the matrix in system_ was last assembled ...
+  double tangent_lambda_ = -1;  // ... and at which load fraction
+  Eigen::VectorXd forces_u_;    // where element_force_ was last computed ...
+  double forces_lambda_ = -1;   // ... and at which load fraction
   double last_lambda_ = 0.0;  // load fraction of u_ within its step
   Eigen::VectorXd residual_, f_ext_;
   std::unique_ptr<SparseSystem> system_;

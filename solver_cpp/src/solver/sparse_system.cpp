@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 
 namespace calfit {
 
@@ -87,6 +88,7 @@ bool SparseSystem::solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (ldlt_->info() != Eigen::Success) return false;
   x = ldlt_->solve(b);
   solver_name_ = "cholmod-ldlt";
+  factor_ = Factor::Ldlt;
   return ldlt_->info() == Eigen::Success && accurate(b, x);
 }
 
@@ -99,6 +101,7 @@ bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (lu_->info() != Eigen::Success) return false;
   x = lu_->solve(b);
   solver_name_ = "umfpack";
+  factor_ = Factor::Lu;
   return lu_->info() == Eigen::Success && x.allFinite();
 }
 
@@ -118,6 +121,7 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     if (cholesky_->info() == Eigen::Success) {
       x = cholesky_->solve(b);
       solver_name_ = "cholmod";
+      factor_ = Factor::Cholesky;
       if (cholesky_->info() == Eigen::Success && x.allFinite()) return true;
     }
   }
@@ -137,6 +141,7 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       if (choice_ == Choice::Ldlt) {
         x = x_ldlt;
         solver_name_ = "cholmod-ldlt";
+        factor_ = Factor::Ldlt;
         return true;
       }
       solver_name_ = "umfpack";
@@ -144,6 +149,41 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     }
   }
   return solve_lu(b, x);
+}
+
+Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B) const {
+  switch (factor_) {
+    case Factor::Cholesky: return cholesky_->solve(B);
+    case Factor::Ldlt: return ldlt_->solve(B);
+    case Factor::Lu: return lu_->solve(B);
+    case Factor::None: break;
+  }
+  return Eigen::MatrixXd::Constant(B.rows(), B.cols(), std::numeric_limits<double>::quiet_NaN());
+}
+
+bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, double tolerance) {
+  if (size() == 0 || B.cols() == 0) {
+    X.setZero(size(), B.cols());
+    return true;
+  }
+  const Eigen::RowVectorXd norms = B.colwise().norm().cwiseMax(1e-300);
+  auto relative_residual = [&] { return ((B - matrix_ * X).colwise().norm().array() / norms.array()).maxCoeff(); };
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    if (factor_ == Factor::None || attempt == 1) {
+      Eigen::VectorXd first;
+      if (!solve(B.col(0), first)) return false;  // factorizes the current matrix
+    }
+    X = solve_factored(B);
+    double previous = std::numeric_limits<double>::infinity();
+    for (int it = 0; it < 10 && X.allFinite(); ++it) {
+      const double r = relative_residual();
+      if (r <= tolerance) return true;
+      if (!(r < 0.5 * previous)) break;  // stalled: factorize the current matrix
+      previous = r;
+      X += solve_factored(B - matrix_ * X);
+    }
+  }
+  return false;
 }
 
 }  // namespace calfit

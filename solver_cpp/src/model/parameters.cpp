@@ -1,0 +1,155 @@
+// Sensitivity parameter kinds: see parameters.hpp.
+#include "model/parameters.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <set>
+
+namespace calfit {
+namespace {
+
+using Resolver = SensitivityParameter (*)(const Model&, const DataLine&);
+
+void expect_fields(const DataLine& line, std::size_t n, const std::string& form) {
+  if (line.fields.size() != n)
+    throw DeckError(line.where, "*SENSITIVITY data line: expected " + form + ", found " + std::to_string(line.fields.size()) +
+                                    " values");
+}
+
+std::vector<std::pair<int, int>> faces_of(const Model& model, int surface) {
+  std::vector<std::pair<int, int>> faces;
+  for (const Face& f : model.surfaces[surface]) faces.emplace_back(f.element, f.face);
+  return faces;
+}
+
+void sort_unique(std::vector<std::pair<int, int>>& faces) {
+  std::sort(faces.begin(), faces.end());
+  faces.erase(std::unique(faces.begin(), faces.end()), faces.end());
+}
+
+// MATERIAL, <material>, <constant>: the law is rebuilt from its constants with one changed.
+SensitivityParameter material_constant(const Model& model, const DataLine& line) {
+  expect_fields(line, 3, "MATERIAL, material name, constant");
+  const std::string name = upper(line.fields[1]), constant = upper(line.fields[2]);
+  int material = -1;
+  for (std::size_t m = 0; m < model.materials.size(); ++m)
+    if (model.materials[m].name == name) material = static_cast<int>(m);
+  if (material < 0) throw DeckError(line.where, "material " + name + " is not defined (*MATERIAL, NAME=" + name + ")");
+  const LawConstants& law = model.materials[material].constants;
+  const int index = law.index(constant);
+  if (index < 0) {
+    std::string known;
+    for (const std::string& n : law.names) known += (known.empty() ? "" : ", ") + n;
+    throw DeckError(line.where, "material " + name + " (" + law.law + ") has no constant " + constant + ": its constants are " + known);
+  }
+  SensitivityParameter p;
+  p.name = "MATERIAL:" + name + ":" + constant;
+  p.where = line.where;
+  // Where the constant is 0 (C01, C20 switched off) the step takes the size of the law's
+  // constants of the same kind (the C's are stresses, the D's compliances).
+  double same_kind = 0.0;
+  for (std::size_t i = 0; i < law.names.size(); ++i)
+    if (law.names[i][0] == constant[0]) same_kind = std::max(same_kind, std::abs(law.values[i]));
+  p.scale = same_kind > 0.0 ? same_kind : 1.0;
+  // The isochoric coefficients and the moduli scale the stress linearly, in displacement
+  // and hybrid elements alike; the compliances D, KV (hybrid: G'(p) is not linear in it),
+  // LAMBDA_M and NU do not.
+  static const std::set<std::string> linear = {"C10", "C01", "C20", "C30", "MU", "E"};
+  p.affine = linear.count(constant) > 0;
+  p.get = [material, index](const ParameterState& s) { return s.materials[material].constants.values[index]; };
+  p.set = [material, index](ParameterState& s, double value) {
+    MaterialDef& m = s.materials[material];
+    m.constants.values[index] = value;
+    m.law = make_law(m.constants);
+  };
+  for (std::size_t e = 0; e < model.elements.size(); ++e)
+    if (model.sections[model.elements[e].section].material == material) p.scope.elements.push_back(static_cast<int>(e));
+  if (p.scope.elements.empty()) throw DeckError(line.where, "material " + name + " is used by no element (*SOLID SECTION)");
+  return p;
+}
+
+// TENSION, <surface>: the garment tension of the last step's *LAPLACE PRESSURE there.
+SensitivityParameter laplace_tension(const Model& model, const DataLine& line) {
+  expect_fields(line, 2, "TENSION, surface");
+  const std::string name = upper(line.fields[1]);
+  const int surface = model.surface(name);
+  if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+  if (!model.steps.back().loads.laplace.count(surface))
+    throw DeckError(line.where, "the last step has no *LAPLACE PRESSURE on surface " + name + ": no TENSION to differentiate");
+  SensitivityParameter p;
+  p.name = "TENSION:" + name;
+  p.where = line.where;
+  p.affine = true;  // the membrane load is linear in the nodal tension
+  p.get = [surface](const ParameterState& s) { return s.loads.laplace.at(surface).tension; };
+  p.set = [surface](ParameterState& s, double value) { s.loads.laplace.at(surface).tension = value; };
+  p.scope.faces = faces_of(model, surface);
+  sort_unique(p.scope.faces);
+  return p;
+}
+
+// PROFILE, <profile>, A<k> | B<k>: a Fourier coefficient, 0 where the profile does not list k.
+SensitivityParameter profile_coefficient(const Model& model, const DataLine& line) {
+  expect_fields(line, 3, "PROFILE, profile name, A<k> or B<k>");
+  const std::string name = upper(line.fields[1]), label = upper(line.fields[2]);
+  int profile = -1;
+  for (std::size_t k = 0; k < model.profiles.size(); ++k)
+    if (model.profiles[k].name == name) profile = static_cast<int>(k);
+  if (profile < 0) throw DeckError(line.where, "tension profile " + name + " is not defined (*TENSION PROFILE, NAME=" + name + ")");
+  if (model.profiles[profile].type != TensionProfile::Type::Fourier)
+    throw DeckError(line.where, "tension profile " + name + " is TYPE=TABLE: coefficients A<k>, B<k> belong to TYPE=FOURIER profiles");
+  const std::string digits = label.size() > 1 ? label.substr(1) : "";
+  const bool valid = (label[0] == 'A' || label[0] == 'B') && !digits.empty() && digits.size() < 6 &&
+                     std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; }) &&
+                     std::stoi(digits) >= 1;
+  if (!valid) throw DeckError(line.where, "profile coefficient " + line.fields[2] + " is not valid: use A<k> or B<k> with k >= 1 (e.g. A2)");
+  const int k = std::stoi(digits);
+  const bool cosine = label[0] == 'A';
+  SensitivityParameter p;
+  p.name = "PROFILE:" + name + ":" + label[0] + std::to_string(k);
+  p.where = line.where;
+  p.affine = true;  // the factor, and so the tension and the load, are linear in a_k, b_k
+  p.get = [profile, k, cosine](const ParameterState& s) {
+    const auto& h = s.profiles[profile].harmonics;
+    const auto it = h.find(k);
+    return it == h.end() ? 0.0 : (cosine ? it->second.first : it->second.second);
+  };
+  p.set = [profile, k, cosine](ParameterState& s, double value) {
+    auto& ab = s.profiles[profile].harmonics[k];
+    (cosine ? ab.first : ab.second) = value;
+  };
+  for (const auto& [surface, load] : model.steps.back().loads.laplace)
+    if (load.profile == profile) {
+      const auto faces = faces_of(model, surface);
+      p.scope.faces.insert(p.scope.faces.end(), faces.begin(), faces.end());
+    }
+  if (p.scope.faces.empty())
+    throw DeckError(line.where, "tension profile " + name + " is used by no *LAPLACE PRESSURE of the last step (PROFILE=" + name + ")");
+  sort_unique(p.scope.faces);
+  return p;
+}
+
+const std::map<std::string, Resolver>& kinds() {
+  static const std::map<std::string, Resolver> table = {
+      {"MATERIAL", material_constant},
+      {"TENSION", laplace_tension},
+      {"PROFILE", profile_coefficient},
+  };
+  return table;
+}
+
+}  // namespace
+
+SensitivityParameter resolve_sensitivity_parameter(const Model& model, const DataLine& line) {
+  const std::string kind = line.fields.empty() ? "" : upper(line.fields[0]);
+  const auto it = kinds().find(kind);
+  if (it == kinds().end()) {
+    std::string known;
+    for (const auto& entry : kinds()) known += (known.empty() ? "" : ", ") + entry.first;
+    throw DeckError(line.where, "unknown sensitivity parameter kind " + (kind.empty() ? std::string("''") : kind) +
+                                    " (calfit-fe knows " + known + ")");
+  }
+  return it->second(model, line);
+}
+
+}  // namespace calfit

@@ -1,0 +1,23 @@
+// The parameters that *SENSITIVITY asks about. Each kind turns one data line into a
+// SensitivityParameter (model.hpp): its name, how to read and set its value on a
+// ParameterState (a copy of the model's materials, tension profiles and last-step loads),
+// and the parts of the model it touches (ParameterScope), so that the solver evaluates
+// dR/dtheta over those parts only.
+//
+//   MATERIAL, <material>, <constant>   a law constant (law_constant_names: C10, KV, D1, ...)
+//   TENSION, <surface>                 the TENSION of the last step's *LAPLACE PRESSURE there
+//   PROFILE, <profile>, A<k> | B<k>    a coefficient of a TYPE=FOURIER tension profile
+//                                      (0 when the profile does not list k)
+//
+// A new kind is one resolver function in parameters.cpp and one row in its table.
+#pragma once
+
+#include "deck/deck_reader.hpp"
+#include "model/model.hpp"
+
+namespace calfit {
+
+// Throws DeckError naming the line when the line names nothing the model has.
+SensitivityParameter resolve_sensitivity_parameter(const Model& model, const DataLine& line);
+
+}  // namespace calfit

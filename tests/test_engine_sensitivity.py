@@ -1,0 +1,312 @@
+"""Engine parameter sensitivities (*SENSITIVITY) against finite differences of the engine.
+
+calfit-fe differentiates its converged solution directly (solver_cpp/src/solver/
+sensitivity.hpp: K du/dtheta = -dR/dtheta on the converged tangent). The reference here
+is the engine itself: two runs with theta (1 - h) and theta (1 + h) (absolute steps +-h
+for a parameter at 0), du_FD = (u+ - u-) / (theta+ - theta-), the thetas as written in
+the decks. On the leg slice (orchestrator.meshing.leg_slice_deck, a few hundred T6
+elements, clamped bones, Laplace-law garment with a TYPE=FOURIER tension profile) with
+CPE6 and with CPE6H elements, for every parameter kind: each constant of AVRIL,
+MOONEY-RIVLIN (C10, C01, D1) and NEO HOOKE (C10, D1), the garment TENSION and the
+profile coefficients A1 (listed in the profile, or at 0 under a uniform garment) and B2
+(not listed: at 0), the relative
+error max|du - du_FD| / max|du_FD| must stay below 1e-4.
+
+Accuracy of the reference: the central difference with h = 1e-3 has a truncation error
+of order h^2 = 1e-6 (relative); the runs' own error is their Newton residual over h.
+The engine has no deck keyword for its Newton tolerance (relative residual 1e-9,
+SolverSettings); quadratic convergence puts the last residual far lower, and the test
+checks that every reference run ended below 1e-10, so that this part stays below
+about 1e-6 too.
+
+Also: the pressure sensitivities (PRESSURE=YES) against the same differences of the
+element pressures; the reader EngineResults.sensitivities on a synthetic output folder;
+malformed *SENSITIVITY lines and FOURIER profiles exit 2 with FILE:LINE.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from engine_run import run_engine
+from orchestrator.engine import find_engine
+from orchestrator.meshing import leg_slice_deck, leg_slice_mesh
+from orchestrator.results import EngineResults, ResultsError
+
+TENSION = 0.16  # N/mm
+PROFILE = {1: (0.1, 0.05)}  # k -> (a_k, b_k): B2 is not listed
+RELATIVE_STEP = 1e-3
+TOLERANCE = 1e-4
+REFERENCE_RESIDUAL = 1e-10
+
+# elset -> (law, constants by name, in data-line order); MPa and 1/MPa
+LAWS = {
+    "avril-mooney": {
+        "FAT": ("AVRIL", {"C10": 0.0045, "KV": 0.106}),
+        "MUSCLE": ("MOONEY-RIVLIN", {"C10": 0.009, "C01": 0.0022, "D1": 1.0 / 0.0695}),
+    },
+    "neo-hooke": {
+        "FAT": ("NEO HOOKE", {"C10": 0.0045, "D1": 1.0 / 0.106}),
+        "MUSCLE": ("NEO HOOKE", {"C10": 0.0112, "D1": 1.0 / 0.0695}),
+    },
+}
+
+
+def _written(value: float) -> float:
+    """The value as leg_slice_deck writes it (10 significant digits)."""
+    return float(f"{value:.10g}")
+
+
+def parameters(laws) -> list[str]:
+    names = [f"MATERIAL:{elset}:{c}" for elset, (_, constants) in laws.items() for c in constants]
+    return names + ["TENSION:SKIN", "PROFILE:GARMENT:A1", "PROFILE:GARMENT:B2"]
+
+
+def write_deck(folder: Path, mesh, laws, element_type: str, tension: float, profile: dict, sensitivity: list[str]) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    deck = folder / "leg.inp"
+    materials = {elset: (law, tuple(constants.values())) for elset, (law, constants) in laws.items()}
+    leg_slice_deck(deck, mesh=mesh, materials=materials, laplace_tension=tension, include_mesh=False)
+    text = deck.read_text()
+    if element_type == "CPE6H":
+        text = text.replace("TYPE=CPE6,", "TYPE=CPE6H,")
+    harmonics = "".join(f"{k}, {a!r}, {b!r}\n" for k, (a, b) in sorted(profile.items()))
+    text = text.replace("*STEP,", f"*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n{harmonics}*STEP,", 1)
+    text = re.sub(r"(\*LAPLACE PRESSURE, SURFACE=SKIN, TENSION=[^\n]*)", r"\1, PROFILE=GARMENT", text)
+    if sensitivity:
+        lines = [", ".join(name.split(":")) for name in sensitivity]
+        text += "*SENSITIVITY, PRESSURE=YES\n" + "\n".join(lines) + "\n"
+    deck.write_text(text)
+    return deck
+
+
+def with_value(laws, tension, profile, name: str, value: float):
+    """(laws, tension, profile) with parameter `name` set to value."""
+    laws = {elset: (law, dict(constants)) for elset, (law, constants) in laws.items()}
+    profile = dict(profile)
+    kind, *rest = name.split(":")
+    if kind == "MATERIAL":
+        laws[rest[0]][1][rest[1]] = value
+    elif kind == "TENSION":
+        tension = value
+    else:
+        k = int(rest[1][1:])
+        a, b = profile.get(k, (0.0, 0.0))
+        profile[k] = (value, b) if rest[1][0] == "A" else (a, value)
+    return laws, tension, profile
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return leg_slice_mesh(300, order=2)
+
+
+# (law set, element type, garment profile): the profiled garment has an unsymmetric
+# tangent (UMFPACK); the uniform one (a FOURIER profile with no terms, A1 and B2 at 0) a
+# symmetric one (CHOLMOD, or for CPE6H the saddle-point LDL^T when it is the faster).
+CASES = [
+    ("avril-mooney", "CPE6", PROFILE),
+    ("avril-mooney", "CPE6H", PROFILE),
+    ("neo-hooke", "CPE6", {}),
+    ("neo-hooke", "CPE6H", {}),
+]
+
+
+@pytest.mark.parametrize("law_set, element_type, profile", CASES,
+                         ids=[f"{c[0]}-{c[1]}-{'profiled' if c[2] else 'uniform'}" for c in CASES])
+def test_sensitivities_match_finite_differences(tmp_path, mesh, law_set, element_type, profile):
+    laws = LAWS[law_set]
+    names = parameters(laws)
+    deck = write_deck(tmp_path / "sensitivity", mesh, laws, element_type, TENSION, profile, names)
+    run = run_engine(None, tmp_path, "sensitivity", deck_path=deck)
+    assert run.returncode == 0, run.stderr
+    results = EngineResults(run.outdir)
+    du = results.sensitivities()
+    dp = results.pressure_sensitivities()
+    entries = results.sensitivity_parameters
+    assert [e["name"] for e in entries] == names
+    assert [e["index"] for e in entries] == list(range(1, len(names) + 1))
+    assert results.summary["time_s"]["sensitivity"] > 0.0
+
+    report = []
+    for entry in entries:
+        name, theta = entry["name"], entry["value"]
+        step = RELATIVE_STEP * abs(theta) if theta else RELATIVE_STEP
+        sides = {}
+        for label, value in (("minus", theta - step), ("plus", theta + step)):
+            value = _written(value) if name.startswith(("MATERIAL", "TENSION")) else value
+            folder = tmp_path / f"{name.replace(':', '_')}-{label}"
+            fd_laws, fd_tension, fd_profile = with_value(laws, TENSION, profile, name, value)
+            fd_deck = write_deck(folder, mesh, fd_laws, element_type, fd_tension, fd_profile, [])
+            fd_run = run_engine(None, folder, "run", deck_path=fd_deck)
+            assert fd_run.returncode == 0, fd_run.stderr
+            last_residual = fd_run.residual_histories()[-1][-1]
+            assert last_residual <= REFERENCE_RESIDUAL, f"{name} {label}: reference run stopped at {last_residual:.1e}"
+            sides[label] = (value, fd_run.u(), EngineResults(fd_run.outdir).cell_field("pressure"))
+        (v_minus, u_minus, p_minus), (v_plus, u_plus, p_plus) = sides["minus"], sides["plus"]
+        du_fd = (u_plus - u_minus) / (v_plus - v_minus)
+        dp_fd = (p_plus - p_minus) / (v_plus - v_minus)
+        error = np.abs(du[name] - du_fd).max() / np.abs(du_fd).max()
+        dp_error = np.abs(dp[name] - dp_fd).max() / np.abs(dp_fd).max()
+        assert entry["max_abs_du"] == pytest.approx(np.abs(du[name]).max(), rel=1e-12)
+        report.append((name, float(np.abs(du_fd).max()), float(error), float(dp_error)))
+    print(f"\n{law_set} {element_type} {'profiled' if profile else 'uniform'} garment, {run.summary['linear_solver']}: "
+          "parameter, max|du/dtheta|, relative error of du, of dp")
+    for row in report:
+        print("  %-22s %.4e  %.2e  %.2e" % row)
+    worst = max(report, key=lambda row: row[2])
+    assert worst[2] < TOLERANCE, f"du/d{worst[0]} differs from the finite difference by {worst[2]:.2e}: {report}"
+    worst_dp = max(report, key=lambda row: row[3])
+    assert worst_dp[3] < TOLERANCE, f"dp/d{worst_dp[0]} differs from the finite difference by {worst_dp[3]:.2e}: {report}"
+
+
+def test_sensitivity_reader(tmp_path):
+    """EngineResults.sensitivities on a hand-written output folder (the engine's formats)."""
+    table = np.column_stack([[1, 2, 3], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.1, 0.2, 0.3], [-0.1, -0.2, -0.3]])
+    np.save(tmp_path / "step-1.du-1.npy", table)
+    np.save(tmp_path / "step-1.du-2.npy", 2 * table)
+    entries = [
+        {"index": 1, "name": "MATERIAL:FAT:C10", "value": 0.0045, "file": "step-1.du-1.npy", "max_abs_du": 0.3},
+        {"index": 2, "name": "TENSION:SKIN", "value": 0.16, "file": "step-1.du-2.npy", "max_abs_du": 0.6},
+    ]
+    (tmp_path / "summary.json").write_text(json.dumps({"steps": [{}], "sensitivities": entries}))
+    results = EngineResults(tmp_path)
+    du = results.sensitivities()
+    assert list(du) == ["MATERIAL:FAT:C10", "TENSION:SKIN"]
+    np.testing.assert_array_equal(du["TENSION:SKIN"], 2 * table[:, 3:5])
+    assert results.sensitivity_parameters[1]["value"] == 0.16
+    (tmp_path / "step-1.du-2.npy").unlink()
+    with pytest.raises(ResultsError, match="TENSION:SKIN"):
+        results.sensitivities()
+    (tmp_path / "summary.json").write_text(json.dumps({"steps": [{}]}))
+    assert EngineResults(tmp_path).sensitivities() == {}
+
+
+def test_no_sensitivity_request_lists_none(tmp_path, mesh):
+    deck = write_deck(tmp_path / "plain", mesh, LAWS["neo-hooke"], "CPE6", TENSION, PROFILE, [])
+    run = run_engine(None, tmp_path, "plain", deck_path=deck)
+    assert run.returncode == 0, run.stderr
+    assert run.summary["sensitivities"] == []
+    assert not list(run.outdir.glob("*.du-*.npy"))
+
+
+# ----------------------------------------------------------------------------------------
+# Malformed *SENSITIVITY and *TENSION PROFILE, TYPE=FOURIER: exit 2, FILE:LINE
+# ----------------------------------------------------------------------------------------
+
+BASE = """\
+*NODE
+1, 0.0, 0.0
+2, 1.0, 0.0
+3, 1.0, 1.0
+4, 0.0, 1.0
+*ELEMENT, TYPE=CPE3, ELSET=EALL
+1, 1, 2, 3
+2, 1, 3, 4
+*NSET, NSET=BOTTOM
+1, 2
+*SURFACE, NAME=SKIN, TYPE=ELEMENT
+1, S2
+2, S2
+*MATERIAL, NAME=RUBBER
+*HYPERELASTIC, NEO HOOKE
+1.0, 0.1
+*SOLID SECTION, ELSET=EALL, MATERIAL=RUBBER
+*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER
+1, 0.1, 0.0
+*TENSION PROFILE, NAME=TABLE
+0, 1.0
+*BOUNDARY
+BOTTOM, 1, 2
+*STEP, NLGEOM
+*STATIC
+0.5, 1.0, 1e-5, 1.0
+*LAPLACE PRESSURE, SURFACE=SKIN, TENSION=0.01, PROFILE=GARMENT
+*END STEP
+"""
+
+MALFORMED = {
+    # name: (text appended or substituted, substring expected in the message)
+    "unknown kind": ("*SENSITIVITY\nSTIFFNESS, RUBBER\n", "unknown sensitivity parameter kind"),
+    "unknown material": ("*SENSITIVITY\nMATERIAL, STEEL, C10\n", "material STEEL is not defined"),
+    "constant the law lacks": ("*SENSITIVITY\nMATERIAL, RUBBER, C01\n", "has no constant C01"),
+    "material line too short": ("*SENSITIVITY\nMATERIAL, RUBBER\n", "expected MATERIAL"),
+    "unknown surface": ("*SENSITIVITY\nTENSION, BACK\n", "surface BACK is not defined"),
+    "no Laplace load there": ("*SENSITIVITY\nTENSION, ALSO\n", "no *LAPLACE PRESSURE on surface ALSO"),
+    "unknown profile": ("*SENSITIVITY\nPROFILE, SOCK, A1\n", "tension profile SOCK is not defined"),
+    "table profile": ("*SENSITIVITY\nPROFILE, TABLE, A1\n", "TYPE=TABLE"),
+    "bad coefficient": ("*SENSITIVITY\nPROFILE, GARMENT, C2\n", "use A<k> or B<k>"),
+    "coefficient zero": ("*SENSITIVITY\nPROFILE, GARMENT, A0\n", "use A<k> or B<k>"),
+    "listed twice": ("*SENSITIVITY\nTENSION, SKIN\nTENSION, SKIN\n", "listed twice"),
+    "no data line": ("*SENSITIVITY\n", "needs at least one data line"),
+    "bad PRESSURE": ("*SENSITIVITY, PRESSURE=MAYBE\nTENSION, SKIN\n", "PRESSURE must be YES or NO"),
+    "unknown parameter": ("*SENSITIVITY, ORDER=2\nTENSION, SKIN\n", "ORDER"),
+}
+
+
+def _run(deck: Path, tmp: Path):
+    return subprocess.run([str(find_engine()), str(deck), "-o", str(tmp / "out"), "--quiet"],
+                          capture_output=True, text=True, timeout=30, cwd=tmp)
+
+
+def _expect_error(tmp_path: Path, text: str, line: int, fragment: str) -> None:
+    deck = tmp_path / "main.inp"
+    deck.write_text(text)
+    proc = _run(deck, tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    found = re.findall(r"([^\s:]+\.inp):(\d+):", proc.stderr)
+    assert found and (Path(found[0][0]).name, int(found[0][1])) == ("main.inp", line), proc.stderr
+    assert fragment in proc.stderr, proc.stderr
+
+
+def test_base_deck_with_sensitivities_runs(tmp_path):
+    deck = tmp_path / "main.inp"
+    deck.write_text(BASE + "*SENSITIVITY\nMATERIAL, RUBBER, C10\nTENSION, SKIN\nPROFILE, GARMENT, B3\n")
+    proc = _run(deck, tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    names = [e["name"] for e in EngineResults(tmp_path / "out").sensitivity_parameters]
+    assert names == ["MATERIAL:RUBBER:C10", "TENSION:SKIN", "PROFILE:GARMENT:B3"]
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED))
+def test_malformed_sensitivity(tmp_path, case):
+    addition, fragment = MALFORMED[case]
+    base = BASE.replace("*TENSION PROFILE, NAME=GARMENT", "*SURFACE, NAME=ALSO, TYPE=ELEMENT\n1, S1\n*TENSION PROFILE, NAME=GARMENT")
+    text = base + addition
+    # the error names the offending data line (the last), or the keyword line for keyword-level faults
+    keyword_level = case in ("no data line", "bad PRESSURE", "unknown parameter")
+    line = len(base.splitlines()) + 1 if keyword_level else len(text.splitlines())
+    _expect_error(tmp_path, text, line, fragment)
+
+
+def test_sensitivity_refused_with_contact(tmp_path):
+    text = BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
+                        "1000.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n"
+                        "*BOUNDARY")
+    text += "*SENSITIVITY\nTENSION, SKIN\n"
+    _expect_error(tmp_path, text, len(text.splitlines()) - 1, "not available with *CONTACT PAIR")
+
+
+@pytest.mark.parametrize(
+    "profile, fragment",
+    [
+        ("*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n1, 0.8, 0.8\n", "must stay > 0"),
+        ("*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n0, 0.1, 0.0\n", "k must be >= 1"),
+        ("*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n1, 0.1, 0.0\n1, 0.0, 0.1\n", "listed twice"),
+        ("*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n1, 0.1\n", "expected 3"),
+        ("*TENSION PROFILE, NAME=GARMENT, TYPE=SPLINE\n1, 0.1, 0.0\n", "TABLE or FOURIER"),
+    ],
+    ids=["factor not positive", "k zero", "k twice", "short line", "unknown type"],
+)
+def test_malformed_fourier_profile(tmp_path, profile, fragment):
+    text = BASE.replace("*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n1, 0.1, 0.0\n", profile)
+    start = text.splitlines().index(profile.splitlines()[0]) + 1
+    keyword_level = fragment in ("must stay > 0", "TABLE or FOURIER")
+    line = start if keyword_level else start + len(profile.splitlines()) - 1
+    _expect_error(tmp_path, text, line, fragment)
