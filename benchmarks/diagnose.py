@@ -25,7 +25,7 @@ from orchestrator.runner import LOG_NAME, EvaluationLog
 from orchestrator.study import make_phantom_case
 
 HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
-                 "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.15, "b1": -0.1}}
+                 "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05}}
 
 
 def _fresh_copy(base: Path, target: Path) -> Path:
