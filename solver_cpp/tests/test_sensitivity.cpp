@@ -1,6 +1,7 @@
 // Sensitivity unit tests.
 //  - dR/dtheta of every parameter kind (each constant of each law, TENSION, PROFILE A<k>
-//    and B<k>, listed and unlisted) against an independent central difference: the
+//    and B<k>, listed and unlisted, VOLUME CHANGE, AXIAL STRETCH, RIGID MOTION UX/UY/ANGLE,
+//    each where its keyword is absent and where it is given) against an independent central difference: the
 //    residual of the full evaluation path (StaticAnalysis::residual) of two models read
 //    from decks written with theta -/+ h, at the base model's converged u. This checks
 //    the setters, the scopes and the scoped evaluation together; displacement (CPE6)
@@ -17,6 +18,7 @@
 
 #include <array>
 #include <cmath>
+#include <optional>
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -45,13 +47,17 @@ std::string number(double v) {
 
 // A ring sector R_in <= r <= R_out, 10 <= angle <= 110 degrees, T6 elements on a polar
 // grid (curved sides exact), inner layer MUSCLE, outer layer FAT, inner arc clamped, a
-// Laplace-law garment with a FOURIER tension profile on the outer arc.
+// Laplace-law garment with a FOURIER tension profile on the outer arc. Optionally a
+// *VOLUME CHANGE of MUSCLE, an *AXIAL STRETCH and a *RIGID MOTION of the inner arc (which
+// then replaces its clamp).
 struct SectorCase {
   std::string element_type = "CPE6";
   std::string muscle_law, fat_law;  // as after *HYPERELASTIC, or ELASTIC
   std::map<std::string, double> muscle, fat;  // constant name -> value
   double tension = 0.3;
   std::map<int, std::pair<double, double>> harmonics = {{1, {0.1, 0.05}}};
+  std::optional<double> muscle_dv, axial_stretch;
+  std::optional<std::array<double, 3>> inner_motion;  // ux, uy, angle in degrees
   std::vector<std::string> sensitivities;  // *SENSITIVITY data lines
 
   // The value a parameter name (MATERIAL:FAT:C10, TENSION:SKIN, PROFILE:GARMENT:B2) refers to.
@@ -59,6 +65,14 @@ struct SectorCase {
     if (name.rfind("MATERIAL:MUSCLE:", 0) == 0) return muscle.at(name.substr(16));
     if (name.rfind("MATERIAL:FAT:", 0) == 0) return fat.at(name.substr(13));
     if (name == "TENSION:SKIN") return tension;
+    // An absent keyword is the same model as the keyword at its neutral value.
+    if (name == "VOLUME CHANGE:MUSCLE") return muscle_dv ? *muscle_dv : muscle_dv.emplace(0.0);
+    if (name == "AXIAL STRETCH") return axial_stretch ? *axial_stretch : axial_stretch.emplace(1.0);
+    if (name.rfind("RIGID MOTION:INNER:", 0) == 0) {
+      if (!inner_motion) inner_motion.emplace(std::array<double, 3>{0.0, 0.0, 0.0});
+      const std::string component = name.substr(19);
+      return (*inner_motion)[component == "UX" ? 0 : component == "UY" ? 1 : 2];
+    }
     const int k = std::stoi(name.substr(17));
     auto& ab = harmonics[k];
     return name[16] == 'A' ? ab.first : ab.second;
@@ -111,6 +125,11 @@ struct SectorCase {
     d << "*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n";
     for (const auto& [k, ab] : harmonics) d << k << ", " << number(ab.first) << ", " << number(ab.second) << "\n";
     d << "*BOUNDARY\nINNER, 1, 2\n*STEP, NLGEOM\n*STATIC\n0.5, 1.0\n";
+    if (muscle_dv) d << "*VOLUME CHANGE, ELSET=MUSCLE\n" << number(*muscle_dv) << "\n";
+    if (axial_stretch) d << "*AXIAL STRETCH\n" << number(*axial_stretch) << "\n";
+    if (inner_motion)
+      d << "*RIGID MOTION, NSET=INNER\n" << number((*inner_motion)[0]) << ", " << number((*inner_motion)[1]) << ", "
+        << number((*inner_motion)[2]) << "\n";
     d << "*LAPLACE PRESSURE, SURFACE=SKIN, TENSION=" << number(tension) << ", PROFILE=GARMENT\n*END STEP\n";
     if (!sensitivities.empty()) {
       d << "*SENSITIVITY\n";
@@ -127,11 +146,13 @@ Eigen::VectorXd solve(const Model& model, StaticAnalysis& analysis) {
   return analysis.solution();
 }
 
-// R of the model read from the deck of `c` at u (the full evaluation path).
-Eigen::VectorXd residual_of(const SectorCase& c, const std::string& name, const Eigen::VectorXd& u) {
+// R of the model read from the deck of `c` at u (the full evaluation path), with the inner
+// arc where that model's own solution puts it (a rigid motion moves it with theta).
+Eigen::VectorXd residual_of(const SectorCase& c, const std::string& name, Eigen::VectorXd u) {
   const Model model = read(c, name);
   StaticAnalysis analysis(model, SolverSettings{});
-  solve(model, analysis);  // prepares the step's loads
+  const Eigen::VectorXd own = solve(model, analysis);  // also prepares the step's loads
+  for (int node : model.node_sets.at("INNER")) u.segment<2>(2 * node) = own.segment<2>(2 * node);
   return analysis.residual(u);
 }
 
@@ -140,7 +161,9 @@ void check_residual_derivatives(SectorCase c, const std::string& label) {
     for (const auto& entry : material == "MUSCLE" ? c.muscle : c.fat)
       c.sensitivities.push_back("MATERIAL, " + material + ", " + entry.first);
   c.sensitivities.insert(c.sensitivities.end(), {"TENSION, SKIN", "PROFILE, GARMENT, A1", "PROFILE, GARMENT, B1",
-                                                 "PROFILE, GARMENT, B2", "PROFILE, GARMENT, A3"});
+                                                 "PROFILE, GARMENT, B2", "PROFILE, GARMENT, A3", "VOLUME CHANGE, MUSCLE",
+                                                 "AXIAL STRETCH", "RIGID MOTION, INNER, UX", "RIGID MOTION, INNER, UY",
+                                                 "RIGID MOTION, INNER, ANGLE"});
   const Model model = read(c, label);
   StaticAnalysis analysis(model, SolverSettings{});
   const Eigen::VectorXd u = solve(model, analysis);
@@ -254,6 +277,16 @@ int main() {
   check_residual_derivatives(a, "mooney-avril-cpe6");
   a.element_type = "CPE6H";
   check_residual_derivatives(a, "mooney-avril-cpe6h");
+
+  // The project kinematics given (a moved inner arc instead of a clamped one), AVRIL with C20 > 0.
+  a.element_type = "CPE6";
+  a.fat.at("C20") = 0.05;
+  a.muscle_dv = -0.04;
+  a.axial_stretch = 0.98;
+  a.inner_motion = std::array<double, 3>{0.03, -0.02, 4.0};
+  check_residual_derivatives(a, "kinematics-cpe6");
+  a.element_type = "CPE6H";
+  check_residual_derivatives(a, "kinematics-cpe6h");
 
   SectorCase b;
   b.muscle_law = "REDUCED POLYNOMIAL, N=2";

@@ -129,11 +129,153 @@ SensitivityParameter profile_coefficient(const Model& model, const DataLine& lin
   return p;
 }
 
+// The elements with a node in `nodes` (sorted).
+std::vector<int> elements_touching(const Model& model, const std::vector<int>& nodes) {
+  std::vector<int> elements;
+  for (std::size_t e = 0; e < model.elements.size(); ++e)
+    for (int n : model.elements[e].nodes)
+      if (std::binary_search(nodes.begin(), nodes.end(), n)) {
+        elements.push_back(static_cast<int>(e));
+        break;
+      }
+  return elements;
+}
+
+// The faces loaded in the last step (follower pressure or Laplace) of the given (sorted) elements.
+std::vector<std::pair<int, int>> loaded_faces_of(const Model& model, const std::vector<int>& elements) {
+  const LoadState& loads = model.steps.back().loads;
+  std::vector<std::pair<int, int>> faces;
+  for (const auto& entry : loads.pressures) faces.push_back(entry.first);
+  for (const auto& entry : loads.laplace) {
+    const auto surface = faces_of(model, entry.first);
+    faces.insert(faces.end(), surface.begin(), surface.end());
+  }
+  faces.erase(std::remove_if(faces.begin(), faces.end(),
+                             [&](const std::pair<int, int>& f) { return !std::binary_search(elements.begin(), elements.end(), f.first); }),
+              faces.end());
+  sort_unique(faces);
+  return faces;
+}
+
+// VOLUME CHANGE, <elset>: the dv of the set's elements in the last step (0 where the step
+// has none), one value shared by the set; the setter gives it to every element of the set.
+SensitivityParameter volume_change(const Model& model, const DataLine& line) {
+  expect_fields(line, 2, "VOLUME CHANGE, element set");
+  const std::string name = upper(line.fields[1]);
+  const auto set = model.element_sets.find(name);
+  if (set == model.element_sets.end()) throw DeckError(line.where, "element set " + name + " is not defined (*ELSET or ELSET= on *ELEMENT)");
+  std::vector<int> elements = set->second;
+  std::sort(elements.begin(), elements.end());
+  elements.erase(std::unique(elements.begin(), elements.end()), elements.end());
+  if (elements.empty()) throw DeckError(line.where, "element set " + name + " is empty");
+  const std::map<int, double>& dv = model.steps.back().loads.volume_change;
+  auto dv_of = [&dv](int e) {
+    const auto it = dv.find(e);
+    return it == dv.end() ? 0.0 : it->second;
+  };
+  for (int e : elements)
+    if (dv_of(e) != dv_of(elements.front()))
+      throw DeckError(line.where, "the elements of set " + name + " have different volume changes in the last step (" +
+                                      std::to_string(dv_of(elements.front())) + " and " + std::to_string(dv_of(e)) +
+                                      "): VOLUME CHANGE differentiates one dv that the whole set shares");
+  SensitivityParameter p;
+  p.name = "VOLUME CHANGE:" + name;
+  p.where = line.where;
+  p.scale = 0.1;  // a tissue's volume change is a few per cent: dv = 0 is differenced with h = 1e-5
+  const int first = elements.front();
+  p.get = [first](const ParameterState& s) {
+    const auto it = s.loads.volume_change.find(first);
+    return it == s.loads.volume_change.end() ? 0.0 : it->second;
+  };
+  p.set = [elements](ParameterState& s, double value) {
+    for (int e : elements) s.loads.volume_change[e] = value;
+  };
+  p.scope.elements = elements;
+  return p;
+}
+
+// AXIAL STRETCH: lambda_z of the last step (1 without *AXIAL STRETCH); every element.
+SensitivityParameter axial_stretch(const Model& model, const DataLine& line) {
+  expect_fields(line, 1, "AXIAL STRETCH");
+  SensitivityParameter p;
+  p.name = "AXIAL STRETCH";
+  p.where = line.where;
+  p.get = [](const ParameterState& s) { return s.loads.axial_stretch; };
+  p.set = [](ParameterState& s, double value) { s.loads.axial_stretch = value; };
+  for (std::size_t e = 0; e < model.elements.size(); ++e) p.scope.elements.push_back(static_cast<int>(e));
+  return p;
+}
+
+// RIGID MOTION, <nset>, UX | UY | ANGLE: a component of the set's *RIGID MOTION in the last
+// step. Without one the set must be clamped (both dofs of every node prescribed to 0 by
+// *BOUNDARY), which is the motion at zero about the set's centroid: the value is 0 and
+// the setter adds that motion. The parameter moves prescribed dofs.
+SensitivityParameter rigid_motion(const Model& model, const DataLine& line) {
+  expect_fields(line, 3, "RIGID MOTION, node set, UX or UY or ANGLE");
+  const std::string name = upper(line.fields[1]), component = upper(line.fields[2]);
+  const auto set = model.node_sets.find(name);
+  if (set == model.node_sets.end()) throw DeckError(line.where, "node set " + name + " is not defined (*NSET, NSET=" + name + ")");
+  if (component != "UX" && component != "UY" && component != "ANGLE")
+    throw DeckError(line.where, "rigid motion component " + line.fields[2] +
+                                    " is not valid: use UX, UY (translation) or ANGLE (degrees, counter-clockwise)");
+  std::vector<int> nodes = set->second;
+  std::sort(nodes.begin(), nodes.end());
+  nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
+  if (nodes.empty()) throw DeckError(line.where, "node set " + name + " is empty");
+
+  const LoadState& loads = model.steps.back().loads;
+  Eigen::Vector2d low = model.coordinates[nodes.front()], high = low;
+  for (int n : nodes) {
+    low = low.cwiseMin(model.coordinates[n]);
+    high = high.cwiseMax(model.coordinates[n]);
+  }
+  RigidMotion at_zero;  // what an absent motion is
+  if (!loads.rigid_motions.count(name)) {
+    for (int n : nodes)
+      for (int dof : {2 * n, 2 * n + 1}) {
+        const auto prescribed = loads.prescribed.find(dof);
+        if (prescribed == loads.prescribed.end() || prescribed->second != 0.0)
+          throw DeckError(line.where, "node set " + name + " has no *RIGID MOTION in the last step and node " +
+                                          std::to_string(model.node_ids[n]) +
+                                          " is not clamped (*BOUNDARY, both dofs 0): a motion at zero would move it");
+      }
+    at_zero.node_set = name;
+    at_zero.nodes = nodes;
+    for (int n : nodes) at_zero.center += model.coordinates[n];
+    at_zero.center /= static_cast<double>(nodes.size());
+    at_zero.where = line.where;
+  }
+  SensitivityParameter p;
+  p.name = "RIGID MOTION:" + name + ":" + component;
+  p.where = line.where;
+  // The size of the value where it is 0: a hundredth of the set's extent for a translation
+  // (the difference step is then 1e-6 of the extent), a degree for the angle.
+  p.scale = component == "ANGLE" ? 1.0 : std::max(0.01 * (high - low).norm(), 1e-300);
+  using Component = double RigidMotion::*;
+  const Component field = component == "UX" ? &RigidMotion::ux : component == "UY" ? &RigidMotion::uy : &RigidMotion::angle_degrees;
+  p.get = [name, field](const ParameterState& s) {
+    const auto it = s.loads.rigid_motions.find(name);
+    return it == s.loads.rigid_motions.end() ? 0.0 : it->second.*field;
+  };
+  p.set = [name, field, at_zero](ParameterState& s, double value) {
+    auto it = s.loads.rigid_motions.find(name);
+    if (it == s.loads.rigid_motions.end()) it = s.loads.rigid_motions.emplace(name, at_zero).first;
+    it->second.*field = value;
+  };
+  p.scope.prescribed = true;
+  p.scope.elements = elements_touching(model, nodes);
+  p.scope.faces = loaded_faces_of(model, p.scope.elements);
+  return p;
+}
+
 const std::map<std::string, Resolver>& kinds() {
   static const std::map<std::string, Resolver> table = {
       {"MATERIAL", material_constant},
       {"TENSION", laplace_tension},
       {"PROFILE", profile_coefficient},
+      {"VOLUME CHANGE", volume_change},
+      {"AXIAL STRETCH", axial_stretch},
+      {"RIGID MOTION", rigid_motion},
   };
   return table;
 }

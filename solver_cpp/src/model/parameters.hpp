@@ -8,6 +8,10 @@
 //   TENSION, <surface>                 the TENSION of the last step's *LAPLACE PRESSURE there
 //   PROFILE, <profile>, A<k> | B<k>    a coefficient of a TYPE=FOURIER tension profile
 //                                      (0 when the profile does not list k)
+//   VOLUME CHANGE, <elset>             dv of the set's elements in the last step (0 when absent)
+//   AXIAL STRETCH                      lambda_z of the last step (1 when absent)
+//   RIGID MOTION, <nset>, UX|UY|ANGLE  a component of the set's last-step *RIGID MOTION (0 when
+//                                      absent: the set must then be clamped by *BOUNDARY)
 //
 // A new kind is one resolver function in parameters.cpp and one row in its table.
 #pragma once
