@@ -47,7 +47,7 @@ from .identify import FitResult, levenberg_marquardt, residual_jacobian
 from .runner import OK, Evaluator
 
 ALPHA = 0.01
-REFIT_FTOL = 1e-6            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)
+REFIT_FTOL = 1e-5            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)
 TIE_FRACTION = 0.1           # statistics within 10 % of the best: the score cannot tell them apart, refits do
 EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
 MAX_DESIGN_EFFECT = 100.0
@@ -356,7 +356,7 @@ class Refit:
 
 
 def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str],
-          sigma_mm: np.ndarray, *, max_iterations: int = 50) -> tuple[Refit, LegModel]:
+          sigma_mm: np.ndarray, *, max_iterations: int = 25) -> tuple[Refit, LegModel]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and from
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
     when the missing effect dragged the baseline fit to a bound or far from the tissue's values."""

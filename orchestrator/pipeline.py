@@ -40,16 +40,17 @@ def _objective(setup: RunSetup, name: str):
 
 
 def run_identify(case_dir, run_dir, *, method: str = "nm", objective: str = "auto", start: Sequence[float] | None = None,
-                 starts: str = "one", n_elements: int = 400, order: int = 1, effects: Sequence[str] = (), workers: int = 1,
-                 scheduler: str | None = None, timeout_s: float = 120.0, progress: bool = True) -> dict:
+                 starts: str = "one", n_elements: int = 400, order: int = 1, effects: Sequence[str] = (),
+                 engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
+                 timeout_s: float = 120.0, progress: bool = True) -> dict:
     """Prepare (or reload) the run folder and identify; returns and writes identification.json.
     effects: catalog effects whose parameters are fitted too (they start at zero, effect off); order: 1 for CPE3
     (Avril et al.), 2 for CPE6 (volumetric effects such as drainage need it: CPE3 is too stiff in dilatation)."""
     run_dir = Path(run_dir)
     setup = (load_run(run_dir) if (run_dir / "setup.json").is_file()
              else prepare_run(case_dir, run_dir, n_elements=n_elements, order=order))
-    setup.model = setup.model_with(effects)
     objective = choose_objective(setup, objective, method)
+    setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
     with Evaluator(setup.model, _objective(setup, objective), run_dir, workers=workers, scheduler=scheduler,
@@ -112,7 +113,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     if identification["objective"] != "displacement":
         raise ValueError("the diagnosis compares the model with measured displacements: identify with "
                          "--objective displacement (points.csv) first")
-    model = setup.model_with(identification.get("effects", ()))
+    model = setup.model_with(identification.get("effects", ()), sensitivities=engine_sensitivities)
     objective = setup.displacement_objective()
     points = setup.case.points
 

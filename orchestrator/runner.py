@@ -31,6 +31,7 @@ from .engine import find_engine
 from .results import EngineResults
 
 DEFAULT_TIMEOUT_S = 600.0
+TRANSIENT_OUTPUTS = ("sensitivity",)   # outputs kept in memory but not written to the evaluation log
 
 
 class EngineError(RuntimeError):
@@ -167,7 +168,10 @@ class EvaluationLog:
         if self._stream is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._stream = open(self.path, "a", encoding="utf-8")
-        self._stream.write(json.dumps(record, separators=(",", ":")) + "\n")
+        # the engine sensitivities (p residual vectors) stay in memory only: they would multiply the log's size
+        # by p, and a resumed run recomputes a Jacobian it lacks by finite differences
+        kept = {**record, "outputs": {k: v for k, v in record["outputs"].items() if k not in TRANSIENT_OUTPUTS}}
+        self._stream.write(json.dumps(kept, separators=(",", ":")) + "\n")
         self._stream.flush()
         self.records[record["key"]] = record
 

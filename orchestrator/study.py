@@ -85,11 +85,13 @@ class RunSetup:
     mesh: Mesh
     model: LegModel
 
-    def model_with(self, effects: Sequence[str] = ()) -> LegModel:
-        """The run's leg model with these catalog effects fitted too."""
+    def model_with(self, effects: Sequence[str] = (), sensitivities: bool = False) -> LegModel:
+        """The run's leg model with these catalog effects fitted too; with `sensitivities` its decks ask the engine
+        for du/dtheta (Levenberg-Marquardt and the diagnosis then need no finite-difference runs)."""
         from .effects import parse_effects
 
-        return LegModel(self.mesh, self.case.tension_N_per_mm, effects=parse_effects(list(effects)))
+        return LegModel(self.mesh, self.case.tension_N_per_mm, effects=parse_effects(list(effects)),
+                        engine_sensitivities=sensitivities)
 
     def point_regions(self) -> np.ndarray:
         """The tissue label of I0 under each measured point (1 fat, 2 muscle, ...)."""
