@@ -12,6 +12,13 @@ profile coefficients A1 (listed in the profile, or at 0 under a uniform garment)
 (not listed: at 0), the relative
 error max|du - du_FD| / max|du_FD| must stay below 1e-4.
 
+The same for the effect parameters, once where their keywords are absent (dv = 0,
+lambda_z = 1, BONE2 clamped with BONES, AVRIL's C20 = 0 from a two-value data line) and
+once where they are given (*VOLUME CHANGE on MUSCLE, *AXIAL STRETCH, *RIGID MOTION of
+BONE2, C20 > 0): VOLUME CHANGE:MUSCLE, AXIAL STRETCH, RIGID MOTION:BONE2:UX|UY|ANGLE,
+MATERIAL:FAT:C20. C20 cannot go below 0 in a deck, so at 0 its reference is the
+one-sided difference of second order, (-3 u(0) + 4 u(h) - u(2h)) / 2h.
+
 Accuracy of the reference: the central difference with h = 1e-3 has a truncation error
 of order h^2 = 1e-6 (relative); the runs' own error is their Newton residual over h.
 The engine has no deck keyword for its Newton tolerance (relative residual 1e-9,
@@ -68,7 +75,24 @@ def parameters(laws) -> list[str]:
     return names + ["TENSION:SKIN", "PROFILE:GARMENT:A1", "PROFILE:GARMENT:B2"]
 
 
-def write_deck(folder: Path, mesh, laws, element_type: str, tension: float, profile: dict, sensitivity: list[str]) -> Path:
+# The effect keywords of a deck: dv of MUSCLE, lambda_z, BONE2's motion (ux mm, uy mm, angle
+# degrees); None leaves the keyword out (BONE2 then stays clamped with BONES).
+NO_EFFECTS = {"dv": None, "lambda_z": None, "motion": None}
+
+
+def effect_keywords(effects: dict) -> str:
+    text = ""
+    if effects["dv"] is not None:
+        text += f"*VOLUME CHANGE, ELSET=MUSCLE\n{effects['dv']!r}\n"
+    if effects["lambda_z"] is not None:
+        text += f"*AXIAL STRETCH\n{effects['lambda_z']!r}\n"
+    if effects["motion"] is not None:
+        text += "*RIGID MOTION, NSET=BONE2\n" + ", ".join(repr(v) for v in effects["motion"]) + "\n"
+    return text
+
+
+def write_deck(folder: Path, mesh, laws, element_type: str, tension: float, profile: dict, sensitivity: list[str],
+               effects: dict = NO_EFFECTS) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     deck = folder / "leg.inp"
     materials = {elset: (law, tuple(constants.values())) for elset, (law, constants) in laws.items()}
@@ -79,6 +103,7 @@ def write_deck(folder: Path, mesh, laws, element_type: str, tension: float, prof
     harmonics = "".join(f"{k}, {a!r}, {b!r}\n" for k, (a, b) in sorted(profile.items()))
     text = text.replace("*STEP,", f"*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER\n{harmonics}*STEP,", 1)
     text = re.sub(r"(\*LAPLACE PRESSURE, SURFACE=SKIN, TENSION=[^\n]*)", r"\1, PROFILE=GARMENT", text)
+    text = text.replace(", PROFILE=GARMENT\n", ", PROFILE=GARMENT\n" + effect_keywords(effects), 1)
     if sensitivity:
         lines = [", ".join(name.split(":")) for name in sensitivity]
         text += "*SENSITIVITY, PRESSURE=YES\n" + "\n".join(lines) + "\n"
@@ -86,20 +111,29 @@ def write_deck(folder: Path, mesh, laws, element_type: str, tension: float, prof
     return deck
 
 
-def with_value(laws, tension, profile, name: str, value: float):
-    """(laws, tension, profile) with parameter `name` set to value."""
+def with_value(laws, tension, profile, name: str, value: float, effects: dict = NO_EFFECTS):
+    """(laws, tension, profile, effects) with parameter `name` set to value."""
     laws = {elset: (law, dict(constants)) for elset, (law, constants) in laws.items()}
     profile = dict(profile)
+    effects = dict(effects)
     kind, *rest = name.split(":")
     if kind == "MATERIAL":
-        laws[rest[0]][1][rest[1]] = value
+        laws[rest[0]][1][rest[1]] = value  # a C20 the line did not give is appended: AVRIL's third value
     elif kind == "TENSION":
         tension = value
+    elif kind == "VOLUME CHANGE":
+        effects["dv"] = value
+    elif kind == "AXIAL STRETCH":
+        effects["lambda_z"] = value
+    elif kind == "RIGID MOTION":
+        motion = list(effects["motion"] or (0.0, 0.0, 0.0))
+        motion[("UX", "UY", "ANGLE").index(rest[1])] = value
+        effects["motion"] = tuple(motion)
     else:
         k = int(rest[1][1:])
         a, b = profile.get(k, (0.0, 0.0))
         profile[k] = (value, b) if rest[1][0] == "A" else (a, value)
-    return laws, tension, profile
+    return laws, tension, profile, effects
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +176,7 @@ def test_sensitivities_match_finite_differences(tmp_path, mesh, law_set, element
         for label, value in (("minus", theta - step), ("plus", theta + step)):
             value = _written(value) if name.startswith(("MATERIAL", "TENSION")) else value
             folder = tmp_path / f"{name.replace(':', '_')}-{label}"
-            fd_laws, fd_tension, fd_profile = with_value(laws, TENSION, profile, name, value)
+            fd_laws, fd_tension, fd_profile, _ = with_value(laws, TENSION, profile, name, value)
             fd_deck = write_deck(folder, mesh, fd_laws, element_type, fd_tension, fd_profile, [])
             fd_run = run_engine(None, folder, "run", deck_path=fd_deck)
             assert fd_run.returncode == 0, fd_run.stderr
@@ -164,6 +198,89 @@ def test_sensitivities_match_finite_differences(tmp_path, mesh, law_set, element
     assert worst[2] < TOLERANCE, f"du/d{worst[0]} differs from the finite difference by {worst[2]:.2e}: {report}"
     worst_dp = max(report, key=lambda row: row[3])
     assert worst_dp[3] < TOLERANCE, f"dp/d{worst_dp[0]} differs from the finite difference by {worst_dp[3]:.2e}: {report}"
+
+
+# ----------------------------------------------------------------------------------------
+# Effect parameters: VOLUME CHANGE, AXIAL STRETCH, RIGID MOTION, AVRIL's C20
+# ----------------------------------------------------------------------------------------
+
+EFFECT_PARAMETERS = ["VOLUME CHANGE:MUSCLE", "AXIAL STRETCH", "RIGID MOTION:BONE2:UX", "RIGID MOTION:BONE2:UY",
+                     "RIGID MOTION:BONE2:ANGLE", "MATERIAL:FAT:C20"]
+# absent: the neutral values (the deck has none of the keywords, AVRIL's line two values);
+# given: a drained muscle, an axially shortened slice, a moved second bone, C20 > 0.
+EFFECT_CASES = {
+    "absent": (NO_EFFECTS, None),
+    "given": ({"dv": -0.04, "lambda_z": 0.98, "motion": (0.3, -0.2, 2.0)}, 0.002),
+}
+
+
+def _zero_step(name: str, laws) -> float:
+    """The difference step of a parameter at 0: for a law constant RELATIVE_STEP times the largest
+    constant of the same kind (C20 beside C10), otherwise RELATIVE_STEP (dv, mm, degrees)."""
+    kind, *rest = name.split(":")
+    if kind == "MATERIAL":
+        constants = laws[rest[0]][1]
+        return RELATIVE_STEP * max(abs(v) for c, v in constants.items() if c[0] == rest[1][0])
+    return RELATIVE_STEP
+
+
+@pytest.mark.parametrize("element_type", ["CPE6", "CPE6H"])
+@pytest.mark.parametrize("case", sorted(EFFECT_CASES))
+def test_effect_sensitivities_match_finite_differences(tmp_path, mesh, case, element_type):
+    effects, c20 = EFFECT_CASES[case]
+    laws = {elset: (law, dict(constants)) for elset, (law, constants) in LAWS["avril-mooney"].items()}
+    if c20 is not None:
+        laws["FAT"][1]["C20"] = c20
+    deck = write_deck(tmp_path / "sensitivity", mesh, laws, element_type, TENSION, PROFILE, EFFECT_PARAMETERS, effects)
+    run = run_engine(None, tmp_path, "sensitivity", deck_path=deck)
+    assert run.returncode == 0, run.stderr
+    results = EngineResults(run.outdir)
+    du, dp = results.sensitivities(), results.pressure_sensitivities()
+    entries = results.sensitivity_parameters
+    assert [e["name"] for e in entries] == EFFECT_PARAMETERS
+    expected = {"VOLUME CHANGE:MUSCLE": effects["dv"] or 0.0, "AXIAL STRETCH": effects["lambda_z"] or 1.0,
+                "MATERIAL:FAT:C20": c20 or 0.0}
+    for k, component in enumerate(("UX", "UY", "ANGLE")):
+        expected[f"RIGID MOTION:BONE2:{component}"] = effects["motion"][k] if effects["motion"] else 0.0
+    assert {e["name"]: e["value"] for e in entries} == pytest.approx(expected, rel=1e-12, abs=0.0)
+
+    def reference(name: str, value: float):
+        folder = tmp_path / f"{name.replace(':', '_').replace(' ', '_')}-{value!r}"
+        value = _written(value) if name.startswith("MATERIAL") else value
+        fd_laws, fd_tension, fd_profile, fd_effects = with_value(laws, TENSION, PROFILE, name, value, effects)
+        fd_run = run_engine(None, folder, "run", deck_path=write_deck(folder, mesh, fd_laws, element_type, fd_tension,
+                                                                      fd_profile, [], fd_effects))
+        assert fd_run.returncode == 0, fd_run.stderr
+        last_residual = fd_run.residual_histories()[-1][-1]
+        assert last_residual <= REFERENCE_RESIDUAL, f"{name} = {value}: reference run stopped at {last_residual:.1e}"
+        return value, fd_run.u(), EngineResults(fd_run.outdir).cell_field("pressure")
+
+    report = []
+    for entry in entries:
+        name, theta = entry["name"], entry["value"]
+        if name == "MATERIAL:FAT:C20" and theta == 0.0:  # C20 < 0 is no deck: one-sided, second order
+            h = _zero_step(name, laws)
+            (v0, u0, p0), (v1, u1, p1), (v2, u2, p2) = (reference(name, v) for v in (0.0, h, 2.0 * h))
+            h = (v2 - v0) / 2.0  # as written
+            du_fd, dp_fd = (-3.0 * u0 + 4.0 * u1 - u2) / (2.0 * h), (-3.0 * p0 + 4.0 * p1 - p2) / (2.0 * h)
+        else:
+            h = RELATIVE_STEP * abs(theta) if theta else _zero_step(name, laws)
+            (v_minus, u_minus, p_minus), (v_plus, u_plus, p_plus) = reference(name, theta - h), reference(name, theta + h)
+            du_fd, dp_fd = (u_plus - u_minus) / (v_plus - v_minus), (p_plus - p_minus) / (v_plus - v_minus)
+        error = np.abs(du[name] - du_fd).max() / np.abs(du_fd).max()
+        dp_error = np.abs(dp[name] - dp_fd).max() / np.abs(dp_fd).max()
+        report.append((name, float(np.abs(du_fd).max()), float(error), float(dp_error)))
+    print(f"\neffects {case}, {element_type}, {run.summary['linear_solver']}: "
+          "parameter, max|du/dtheta|, relative error of du, of dp")
+    for row in report:
+        print("  %-26s %.4e  %.2e  %.2e" % row)
+    worst = max(report, key=lambda row: row[2])
+    assert worst[2] < TOLERANCE, f"du/d{worst[0]} differs from the finite difference by {worst[2]:.2e}: {report}"
+    worst_dp = max(report, key=lambda row: row[3])
+    assert worst_dp[3] < TOLERANCE, f"dp/d{worst_dp[0]} differs from the finite difference by {worst_dp[3]:.2e}: {report}"
+    # The bone's own nodes follow the motion: du/dux = (1, 0) there, exactly.
+    bone2 = np.asarray(mesh.node_sets["BONE2"])
+    np.testing.assert_allclose(du["RIGID MOTION:BONE2:UX"][bone2], np.tile([1.0, 0.0], (len(bone2), 1)), atol=1e-9)
 
 
 def test_sensitivity_reader(tmp_path):
@@ -247,6 +364,14 @@ MALFORMED = {
     "no data line": ("*SENSITIVITY\n", "needs at least one data line"),
     "bad PRESSURE": ("*SENSITIVITY, PRESSURE=MAYBE\nTENSION, SKIN\n", "PRESSURE must be YES or NO"),
     "unknown parameter": ("*SENSITIVITY, ORDER=2\nTENSION, SKIN\n", "ORDER"),
+    "unknown element set": ("*SENSITIVITY\nVOLUME CHANGE, LEGS\n", "element set LEGS is not defined"),
+    "volume change without set": ("*SENSITIVITY\nVOLUME CHANGE\n", "expected VOLUME CHANGE"),
+    "axial stretch with a set": ("*SENSITIVITY\nAXIAL STRETCH, EALL\n", "expected AXIAL STRETCH"),
+    "unknown node set": ("*SENSITIVITY\nRIGID MOTION, BONE, UX\n", "node set BONE is not defined"),
+    "rigid motion UZ": ("*SENSITIVITY\nRIGID MOTION, BOTTOM, UZ\n", "use UX, UY"),
+    "rigid motion without component": ("*SENSITIVITY\nRIGID MOTION, BOTTOM\n", "expected RIGID MOTION"),
+    "rigid motion of a free set": ("*SENSITIVITY\nRIGID MOTION, TOP, ANGLE\n", "is not clamped"),
+    "C20 of a law without it": ("*SENSITIVITY\nMATERIAL, RUBBER, C20\n", "has no constant C20"),
 }
 
 
@@ -277,7 +402,8 @@ def test_base_deck_with_sensitivities_runs(tmp_path):
 @pytest.mark.parametrize("case", sorted(MALFORMED))
 def test_malformed_sensitivity(tmp_path, case):
     addition, fragment = MALFORMED[case]
-    base = BASE.replace("*TENSION PROFILE, NAME=GARMENT", "*SURFACE, NAME=ALSO, TYPE=ELEMENT\n1, S1\n*TENSION PROFILE, NAME=GARMENT")
+    base = BASE.replace("*TENSION PROFILE, NAME=GARMENT",
+                        "*SURFACE, NAME=ALSO, TYPE=ELEMENT\n1, S1\n*NSET, NSET=TOP\n3, 4\n*TENSION PROFILE, NAME=GARMENT")
     text = base + addition
     # the error names the offending data line (the last), or the keyword line for keyword-level faults
     keyword_level = case in ("no data line", "bad PRESSURE", "unknown parameter")
