@@ -5,7 +5,9 @@
 
 prints (1) engine evaluations per second of a Monte-Carlo sweep scored by the contour mismatch
 M (sec. 2.2.5) with 1 and 2 local workers (target: at least 50/s on 2 cores), (2) the wall time
-of a Nelder-Mead identification (F, Bouten and Drapier eq. 2, from a start off the truth), and
+of a Nelder-Mead identification (F, Bouten and Drapier eq. 2, from a start off the truth), the wall
+time and engine runs of Levenberg-Marquardt with the Jacobian from the engine's sensitivities and
+from finite differences (issue 7: at most 15 runs with sensitivities), and
 (3) the time of the 30-draw uncertainty study of sec. 4.2 (the paper: 15 minutes; target under
 3 s). Every measurement starts from an empty run folder (no cache).
 """
@@ -21,6 +23,7 @@ import numpy as np
 
 from orchestrator.forward import TABLE2_CENTRAL_KPA
 from orchestrator.identify import nelder_mead, pressure_uncertainty
+from orchestrator.pipeline import run_identify
 from orchestrator.runner import Evaluator
 from orchestrator.study import make_phantom_case, prepare_run
 
@@ -53,6 +56,11 @@ def main() -> None:
             fit = nelder_mead(evaluator, start)
         print(f"Nelder-Mead identification (F at {len(setup.case.points)} points): {fit.wall_time_s:.2f} s, "
               f"{fit.iterations} iterations, {fit.engine_runs} engine runs")
+        for label, engine in (("engine sensitivities", True), ("finite differences", False)):
+            lm = run_identify(case, scratch / f"lm-{label.split()[0]}", method="lm", objective="displacement",
+                              engine_sensitivities=engine, progress=False)["best"]
+            print(f"Levenberg-Marquardt, Jacobian from {label}: {lm['wall_time_s']:.2f} s, {lm['iterations']} "
+                  f"iterations, {lm['engine_runs']} engine runs, misfit {lm['cost']:.6g} mm^2")
         pressure = setup.pressure_objective()
         with Evaluator(setup.model, pressure, scratch / "uq", workers=2, progress=False) as evaluator:
             evaluator.evaluate([central.tolist(), (central * 1.01).tolist()])   # start the pool outside the timing

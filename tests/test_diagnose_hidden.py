@@ -32,9 +32,10 @@ HIDDEN = {
     "out_of_plane": dict(values={"eps_z": 0.05}, wrong="bone_motion"),
     "bone_motion": dict(values={"ux_BONE2": 0.2, "uy_BONE2": -0.15}, wrong="drainage"),
     "tension_profile": dict(values={"a1": 0.08, "b1": -0.05}, wrong="drainage"),
-    # four compartments at 3x contrast are not resolved by 400 elements (misfit 1.34x the floor at the truth)
+    # four compartments at 3x contrast are not resolved by 400 elements (misfit 1.34x the floor at the truth);
+    # a fibular motion mimics a third of the lateral compartment's signature, so the wrong effect is drainage
     "compartments": dict(values={"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
-                         wrong="bone_motion", labels="compartments", n_elements=1000),
+                         wrong="drainage", labels="compartments", n_elements=1000),
 }
 FAST = {"drainage"}
 
