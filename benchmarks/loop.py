@@ -58,7 +58,7 @@ def main() -> None:
               f"{fit.iterations} iterations, {fit.engine_runs} engine runs")
         for label, engine in (("engine sensitivities", True), ("finite differences", False)):
             lm = run_identify(case, scratch / f"lm-{label.split()[0]}", method="lm", objective="displacement",
-                              engine_sensitivities=engine, progress=False)["best"]
+                              start=start.tolist(), engine_sensitivities=engine, progress=False)["best"]
             print(f"Levenberg-Marquardt, Jacobian from {label}: {lm['wall_time_s']:.2f} s, {lm['iterations']} "
                   f"iterations, {lm['engine_runs']} engine runs, misfit {lm['cost']:.6g} mm^2")
         pressure = setup.pressure_objective()

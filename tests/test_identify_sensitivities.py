@@ -1,12 +1,16 @@
 """Levenberg-Marquardt with the engine's sensitivities (issue 7): on the phantom case of the demo (4
 parameters of Avril et al., displacement residual at points.csv), the Jacobian from du/dtheta
-(`*SENSITIVITY`) reaches the optimum that finite differences reach, in at most 15 engine runs."""
+(`*SENSITIVITY`) reaches the optimum that finite differences reach, from a start 20-30 % off the
+truth, in at most 15 engine runs."""
 
 import numpy as np
 import pytest
 
+from orchestrator.forward import TABLE2_CENTRAL_KPA
 from orchestrator.pipeline import run_identify
 from orchestrator.study import make_phantom_case
+
+START_KPA = (np.array(TABLE2_CENTRAL_KPA) * np.array([1.3, 0.8, 0.8, 1.25])).tolist()   # off the truth
 
 
 @pytest.fixture(scope="module")
@@ -16,7 +20,7 @@ def fits(tmp_path_factory):
     results = {}
     for label, engine in (("engine", True), ("fd", False)):
         results[label] = run_identify(case, folder / f"run-{label}", method="lm", objective="displacement",
-                                      engine_sensitivities=engine, progress=False)["best"]
+                                      start=START_KPA, engine_sensitivities=engine, progress=False)["best"]
     return results
 
 
