@@ -28,7 +28,7 @@ sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE.parent.parent))
 
 from engine_closed_forms import Law  # noqa: E402
-from engine_run import parse_ccx_dat, run_ccx  # noqa: E402
+from engine_run import run_ccx  # noqa: E402
 from fe_cases import deck, ring, unit_square  # noqa: E402
 
 SYM = [("INNER", 1, 2), ("XSYM", 1, 1), ("YSYM", 2, 2)]
