@@ -254,7 +254,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], positio
     lack_of_fit_p = float(stats.chi2.sf(chi2, n - p))
     rho = neighbour_correlation(positions_mm, r)
     deff = design_effect(rho)
-    # dr/dx for the fitted parameters: the projection does not depend on the columns' scaling
+    # dr/dtheta of the fitted parameters (the projection onto their span does not depend on how columns are scaled)
     J = jacobian[:, :p]
     ranking = []
     column = p
