@@ -21,6 +21,20 @@ int Model::surface(const std::string& name) const {
   return it == surface_names.end() ? -1 : static_cast<int>(it - surface_names.begin());
 }
 
+namespace {
+// Index of the first item whose name is `name` (upper-cased), -1 when none.
+template <typename Items>
+int index_by_name(const Items& items, const std::string& name) {
+  const std::string key = upper(name);
+  const auto it = std::find_if(items.begin(), items.end(), [&](const auto& item) { return item.name == key; });
+  return it == items.end() ? -1 : static_cast<int>(it - items.begin());
+}
+}  // namespace
+
+int Model::material(const std::string& name) const { return index_by_name(materials, name); }
+
+int Model::profile(const std::string& name) const { return index_by_name(profiles, name); }
+
 double TensionProfile::factor(double theta) const {
   if (type == Type::Fourier) {
     constexpr double kDegree = 3.14159265358979323846 / 180.0;
@@ -342,8 +356,7 @@ private:
     check_material_complete();
     current_interaction_ = -1;
     const std::string name = upper(b.required("NAME"));
-    for (const MaterialDef& m : model_.materials)
-      if (m.name == name) throw DeckError(b.where, "material " + name + " is defined twice");
+    if (model_.material(name) >= 0) throw DeckError(b.where, "material " + name + " is defined twice");
     model_.materials.push_back({name, nullptr, {}, b.where});
     current_material_ = static_cast<int>(model_.materials.size()) - 1;
     material_has_law_ = false;
@@ -458,8 +471,7 @@ private:
     SectionDef s;
     s.where = b.where;
     const std::string material = upper(b.required("MATERIAL"));
-    for (std::size_t m = 0; m < model_.materials.size(); ++m)
-      if (model_.materials[m].name == material) s.material = static_cast<int>(m);
+    s.material = model_.material(material);
     if (s.material < 0) throw DeckError(b.where, "material " + material + " is not defined (*MATERIAL, NAME=" + material + ")");
     const std::string integration = upper(b.value("INTEGRATION").value_or("REDUCED"));
     if (integration != "FULL" && integration != "REDUCED")
@@ -526,8 +538,7 @@ private:
       p.has_center = true;
       p.center = {to_double(*cx, b.where, "CX"), to_double(*cy, b.where, "CY")};
     }
-    for (const TensionProfile& other : model_.profiles)
-      if (other.name == p.name) throw DeckError(b.where, "tension profile " + p.name + " is defined twice");
+    if (model_.profile(p.name) >= 0) throw DeckError(b.where, "tension profile " + p.name + " is defined twice");
     if (p.type == TensionProfile::Type::Fourier) {
       read_fourier_profile(b, p);
     } else {
@@ -767,8 +778,7 @@ private:
     load.tension = to_double(b.required("TENSION"), b.where, "TENSION");
     if (load.tension < 0.0) throw DeckError(b.where, "TENSION must be >= 0 (a garment pulls, it does not push)");
     if (const auto profile = b.value("PROFILE")) {
-      for (std::size_t p = 0; p < model_.profiles.size(); ++p)
-        if (model_.profiles[p].name == upper(*profile)) load.profile = static_cast<int>(p);
+      load.profile = model_.profile(*profile);
       if (load.profile < 0)
         throw DeckError(b.where, "tension profile " + *profile + " is not defined (*TENSION PROFILE, NAME=" + *profile + ")");
     }

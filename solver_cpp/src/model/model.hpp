@@ -193,7 +193,9 @@ struct Model {
   SensitivityRequest sensitivity;
 
   int dof_count() const { return 2 * static_cast<int>(coordinates.size()); }
-  int surface(const std::string& name) const;  // -1 when unknown
+  int surface(const std::string& name) const;   // -1 when unknown
+  int material(const std::string& name) const;  // -1 when unknown
+  int profile(const std::string& name) const;   // -1 when unknown
   ParameterState parameter_state() const;       // materials, profiles, the last step's loads
 };
 

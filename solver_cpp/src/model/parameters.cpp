@@ -32,9 +32,7 @@ void sort_unique(std::vector<std::pair<int, int>>& faces) {
 SensitivityParameter material_constant(const Model& model, const DataLine& line) {
   expect_fields(line, 3, "MATERIAL, material name, constant");
   const std::string name = upper(line.fields[1]), constant = upper(line.fields[2]);
-  int material = -1;
-  for (std::size_t m = 0; m < model.materials.size(); ++m)
-    if (model.materials[m].name == name) material = static_cast<int>(m);
+  const int material = model.material(name);
   if (material < 0) throw DeckError(line.where, "material " + name + " is not defined (*MATERIAL, NAME=" + name + ")");
   const LawConstants& law = model.materials[material].constants;
   const int index = law.index(constant);
@@ -92,9 +90,7 @@ SensitivityParameter laplace_tension(const Model& model, const DataLine& line) {
 SensitivityParameter profile_coefficient(const Model& model, const DataLine& line) {
   expect_fields(line, 3, "PROFILE, profile name, A<k> or B<k>");
   const std::string name = upper(line.fields[1]), label = upper(line.fields[2]);
-  int profile = -1;
-  for (std::size_t k = 0; k < model.profiles.size(); ++k)
-    if (model.profiles[k].name == name) profile = static_cast<int>(k);
+  const int profile = model.profile(name);
   if (profile < 0) throw DeckError(line.where, "tension profile " + name + " is not defined (*TENSION PROFILE, NAME=" + name + ")");
   if (model.profiles[profile].type != TensionProfile::Type::Fourier)
     throw DeckError(line.where, "tension profile " + name + " is TYPE=TABLE: coefficients A<k>, B<k> belong to TYPE=FOURIER profiles");
