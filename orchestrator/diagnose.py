@@ -356,10 +356,11 @@ class Refit:
 
 
 def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str],
-          sigma_mm: np.ndarray, *, max_iterations: int = 25) -> tuple[Refit, LegModel]:
+          sigma_mm: np.ndarray, *, max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and from
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
-    when the missing effect dragged the baseline fit to a bound or far from the tissue's values."""
+    when the missing effect dragged the baseline fit to a bound or far from the tissue's values.
+    Returns the fit and its residual u_model - u_measured (mm) at the points."""
     extended = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile, model.effects + tuple(effects),
                         dict(model.fixed_effects), model.engine_sensitivities)
     extra = [0.0] * (extended.space.size - model.space.size)
@@ -368,7 +369,8 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
         fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations, ftol=REFIT_FTOL) for start in starts]
         fit = min(fits, key=lambda f: f.cost)
         record = evaluator(fit.theta)
-    return summarize_fit(extended, fit, record, sigma_mm), extended
+    residual_mm = _residuals(record).reshape(-1, 2) * np.asarray(sigma_mm, float)[:, None]
+    return summarize_fit(extended, fit, record, sigma_mm), residual_mm
 
 
 def summarize_fit(model: LegModel, fit: FitResult, record: dict, sigma_mm: np.ndarray) -> Refit:

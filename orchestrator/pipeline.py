@@ -122,22 +122,20 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
                          progress=progress)
 
     theta = identification["best"]["theta"]
-    diagnosis = diagnose(evaluator_for, model, theta, points.position_mm, points.sigma_mm, setup.point_regions(),
-                         setup.leg_centre_mm(), alpha=alpha, engine_sensitivities=engine_sensitivities)
+    regions, centre = setup.point_regions(), setup.leg_centre_mm()
+    diagnosis = diagnose(evaluator_for, model, theta, points.position_mm, points.sigma_mm, regions, centre,
+                         alpha=alpha, engine_sensitivities=engine_sensitivities)
     with evaluator_for(model) as evaluator:
         before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), points.sigma_mm)
     requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
     top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
     names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
     names += [n for n in requested if n not in ("auto", "none") and n not in names]
-    chosen = [[name] for name in names]
     after, after_maps = [], []
-    for names in chosen:
-        fit, extended = refit(evaluator_for, model, theta, names, points.sigma_mm)
+    for name in names:
+        fit, residual = refit(evaluator_for, model, theta, [name], points.sigma_mm)
         after.append(fit)
-        with evaluator_for(extended) as evaluator:
-            residual = np.asarray(evaluator(fit.theta)["outputs"]["residuals"]).reshape(-1, 2) * points.sigma_mm[:, None]
-        after_maps.append(residual_maps(points.position_mm, residual, setup.point_regions(), setup.leg_centre_mm()))
+        after_maps.append(residual_maps(points.position_mm, residual, regions, centre))
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
     if not diagnosis.explained:
