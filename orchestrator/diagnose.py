@@ -1,10 +1,11 @@
 """Where the fitted model fails, which effect of the catalog is missing, and what adding it gains.
 
-Residual. r = (u_model - u_measured) / sigma at the measured points (Bouten and Drapier eq. 2, both
-components, n = 2N values), at the identified parameters theta of p fitted parameters. The misfit is
-F = sum |u_model - u_measured|^2 / (2N) (mm^2, the identification's cost); with measurement noise of
-standard deviation sigma and a correct model its expectation is the noise floor
-F_0 = mean(sigma^2) (n - p) / n.
+Residual. r = P C^-1/2 (u_model - u_measured) at the measured points or DIC windows (Bouten and Drapier
+eq. 2 weighted by the measurements' covariance C, both components, n = 2N values; P removes the k nuisance
+directions, the residual rigid motion of the bones for DIC; `objectives.DisplacementResidualObjective`), at
+the identified parameters theta of p fitted parameters. The misfit is F = s^2 r.r / n (mm^2, the
+identification's cost, s^2 the mean variance of one component); for a correct model its expectation is the
+noise floor F_0 = s^2 (n - p - k) / n, and r.r is chi^2 with n - p - k degrees of freedom.
 
 Which effect is missing (DESIGN.md). For every catalog effect not in the model, G = dr/dphi at phi = 0
 (n x q, its q parameters), from the engine's sensitivities when it gives them (one run), otherwise by
@@ -23,7 +24,9 @@ pieces of evidence. |g_perp| / |g| tells how much of the effect the fitted param
 
 Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
 the noise floor, that effect explains the residual; otherwise the diagnosis says that no catalog effect
-explains it and points at where the residual is (per region, per angular sector around the leg).
+explains it and points at where the residual is, in words (`regions.LegFrame`): the tissue, the
+anatomical sector around the leg in degrees and the depth under the skin of the region that holds the
+largest share of the squared residual.
 
 Refit. `refit` identifies again with the effect's parameters free (Levenberg-Marquardt from the fitted
 point, effect at zero) and compares misfit, AIC = chi^2 + 2k and BIC = chi^2 + k ln n (known sigma:
@@ -44,6 +47,7 @@ from scipy.spatial import cKDTree
 from .effects import CATALOG, effect
 from .forward import LegModel
 from .identify import FitResult, levenberg_marquardt, residual_jacobian
+from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator
 
 ALPHA = 0.01
@@ -51,10 +55,9 @@ REFIT_FTOL = 1e-5            # LM stops when chi^2 falls by less than this fract
 TIE_FRACTION = 0.1           # statistics within 10 % of the best: the score cannot tell them apart, refits do
 EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
 MAX_DESIGN_EFFECT = 100.0
-SECTORS = 12                 # angular sectors of 30 degrees around the leg for the residual summaries
 ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
-TISSUE_NAMES = {1: "fat", 2: "muscle"}
+MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
 
 
 @dataclass
@@ -78,13 +81,17 @@ class ResidualMaps:
 
     positions_mm: list[list[float]]
     residual_mm: list[list[float]]          # u_model - u_measured at each point
-    per_region_rms_mm: dict[str, float]
-    sector_centre_deg: list[float]
+    per_region_rms_mm: dict[str, float]     # per tissue
+    sector_centre_deg: list[float]          # display angles, counter-clockwise from the image's +x axis
     sector_rms_mm: list[float]
     sector_radial_mm: list[float]           # mean radial component (+ outwards: the model is too far out)
     sector_count: list[int]
     centre_mm: list[float]
     worst_sector_deg: float
+    sector_names: list[str] = field(default_factory=list)   # "posterior sector 240-270 deg"
+    worst_region: str = ""                  # "fat, posterior sector 240-270 deg, 0-5 mm under the skin"
+    worst_region_rms_mm: float = 0.0
+    worst_region_share: float = 0.0         # its share of the sum of squared residuals
 
 
 @dataclass
@@ -121,12 +128,6 @@ class Diagnosis:
 
 
 # --- statistics ---------------------------------------------------------------------------------
-
-def noise_floor(sigma_mm: np.ndarray, n_parameters: int) -> float:
-    """Expected misfit F of a correct model fitted to data with noise sigma: mean(sigma^2) (n - p) / n."""
-    n = 2 * len(sigma_mm)
-    return float(np.mean(np.asarray(sigma_mm, float) ** 2) * (n - n_parameters) / n)
-
 
 def neighbour_correlation(positions_mm: np.ndarray, residual: np.ndarray) -> float:
     """Correlation of each point's residual vector with that of its nearest neighbour."""
@@ -167,26 +168,35 @@ def information_criteria(chi2: float, k: int, n: int) -> dict:
 
 # --- residual maps --------------------------------------------------------------------------------
 
-def residual_maps(positions_mm: np.ndarray, residual_mm: np.ndarray, region_of_point: np.ndarray,
-                  centre_mm: np.ndarray) -> ResidualMaps:
+def residual_maps(positions_mm: np.ndarray, residual_mm: np.ndarray, frame: LegFrame) -> ResidualMaps:
+    """The residual per tissue and per sector, and the named region (tissue, sector, depth band) that holds
+    the largest share of its squares."""
     positions_mm = np.asarray(positions_mm, float)
     residual_mm = np.asarray(residual_mm, float).reshape(-1, 2)
-    size = np.linalg.norm(residual_mm, axis=1)
-    per_region = {TISSUE_NAMES.get(int(k), f"label {int(k)}"): float(np.sqrt(np.mean(size[region_of_point == k] ** 2)))
-                  for k in np.unique(region_of_point)}
-    offset = positions_mm - centre_mm
-    angle = np.degrees(np.arctan2(offset[:, 1], offset[:, 0])) % 360.0
+    squared = np.sum(residual_mm ** 2, axis=1)
+    tissues = np.array(frame.tissues(positions_mm))
+    per_region = {str(name): float(np.sqrt(np.mean(squared[tissues == name]))) for name in np.unique(tissues)}
+    offset = positions_mm - frame.centre_mm
     radial = np.sum(residual_mm * offset, axis=1) / np.maximum(np.linalg.norm(offset, axis=1), 1e-12)
-    sector = np.minimum((angle / (360.0 / SECTORS)).astype(int), SECTORS - 1)
+    sector = frame.sectors(positions_mm)
     centres = ((np.arange(SECTORS) + 0.5) * 360.0 / SECTORS).tolist()
     rms, mean_radial, count = [], [], []
     for k in range(SECTORS):
         inside = sector == k
         count.append(int(inside.sum()))
-        rms.append(float(np.sqrt(np.mean(size[inside] ** 2))) if inside.any() else 0.0)
+        rms.append(float(np.sqrt(np.mean(squared[inside]))) if inside.any() else 0.0)
         mean_radial.append(float(np.mean(radial[inside])) if inside.any() else 0.0)
+    bands = np.array([depth_band(d) for d in frame.depth_mm(positions_mm)])
+    worst, worst_sum, worst_rms = "", -1.0, 0.0
+    for key in {(t, k, b) for t, k, b in zip(tissues, sector, bands)}:
+        inside = (tissues == key[0]) & (sector == key[1]) & (bands == key[2])
+        if inside.sum() >= MIN_REGION_POINTS and squared[inside].sum() > worst_sum:
+            worst_sum, worst_rms = float(squared[inside].sum()), float(np.sqrt(np.mean(squared[inside])))
+            worst = f"{key[0]}, {frame.sector_label(int(key[1]))}, {key[2]}"
     return ResidualMaps(positions_mm.tolist(), residual_mm.tolist(), per_region, centres, rms, mean_radial, count,
-                        centre_mm.tolist(), float(centres[int(np.argmax(rms))]))
+                        frame.centre_mm.tolist(), float(centres[int(np.argmax(rms))]),
+                        [frame.sector_label(k) for k in range(SECTORS)], worst, worst_rms,
+                        worst_sum / max(float(squared.sum()), 1e-300))
 
 
 # --- the diagnosis ------------------------------------------------------------------------------
@@ -230,12 +240,13 @@ def probe_jacobian(evaluator: Evaluator, theta: Sequence[float]) -> tuple[np.nda
     return r, np.column_stack(columns), "finite differences"
 
 
-def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], positions_mm: np.ndarray, sigma_mm: np.ndarray,
-             region_of_point: np.ndarray, centre_mm: np.ndarray, *, alpha: float = ALPHA,
-             engine_sensitivities: bool = True) -> Diagnosis:
+def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objective, frame: LegFrame, *,
+             alpha: float = ALPHA, engine_sensitivities: bool = True) -> Diagnosis:
     """Rank the catalog effects missing from `model` fitted at theta (module text).
 
-    evaluator_factory(model) -> Evaluator: evaluations go through the run's log like any other."""
+    evaluator_factory(model) -> Evaluator: evaluations go through the run's log like any other; objective: the
+    `DisplacementResidualObjective` of the measurements (its floor, its nuisance, its residual in mm); frame:
+    how regions are named."""
     began = time.perf_counter()
     candidates, skipped = candidate_effects(model)
     probe = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile, model.effects + tuple(candidates),
@@ -247,11 +258,12 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], positio
         runs = evaluator.launched
     n = len(r)
     chi2 = float(r @ r)
-    residual_mm = (r.reshape(-1, 2) * np.asarray(sigma_mm, float)[:, None])
-    misfit = float(np.sum(residual_mm ** 2) / (2 * len(residual_mm)))
-    floor = noise_floor(sigma_mm, p)
+    residual_mm = objective.residual_mm(r)
+    misfit = objective.cost_of(r)
+    floor = objective.noise_floor(p)
     chi2_to_misfit = misfit / chi2 if chi2 > 0 else 0.0
-    lack_of_fit_p = float(stats.chi2.sf(chi2, n - p))
+    lack_of_fit_p = float(stats.chi2.sf(chi2, n - p - objective.nuisance_dof))
+    positions_mm = objective.positions_mm
     rho = neighbour_correlation(positions_mm, r)
     deff = design_effect(rho)
     # dr/dtheta of the fitted parameters (the projection onto their span does not depend on how columns are scaled)
@@ -278,8 +290,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], positio
         top = ranking[0]
         top.tied_with = [s.effect for s in ranking[1:] if s.significant and s.statistic >= (1 - TIE_FRACTION) * top.statistic]
     explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
-    positions_mm = np.asarray(positions_mm, float)
-    maps = residual_maps(positions_mm, residual_mm, np.asarray(region_of_point), np.asarray(centre_mm, float))
+    maps = residual_maps(positions_mm, residual_mm, frame)
     return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,
                      lack_of_fit_p, deff, rho, ranking, explained, verdict, maps, runs, source,
                      time.perf_counter() - began, skipped)
@@ -355,8 +366,8 @@ class Refit:
         return asdict(self)
 
 
-def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str],
-          sigma_mm: np.ndarray, *, max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
+def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str], objective, *,
+          max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and from
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
     when the missing effect dragged the baseline fit to a bound or far from the tissue's values.
@@ -369,15 +380,14 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
         fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations, ftol=REFIT_FTOL) for start in starts]
         fit = min(fits, key=lambda f: f.cost)
         record = evaluator(fit.theta)
-    residual_mm = _residuals(record).reshape(-1, 2) * np.asarray(sigma_mm, float)[:, None]
-    return summarize_fit(extended, fit, record, sigma_mm), residual_mm
+    return summarize_fit(extended, fit, record, objective), objective.residual_mm(_residuals(record))
 
 
-def summarize_fit(model: LegModel, fit: FitResult, record: dict, sigma_mm: np.ndarray) -> Refit:
+def summarize_fit(model: LegModel, fit: FitResult, record: dict, objective) -> Refit:
     r = _residuals(record)
     chi2 = float(r @ r)
     criteria = information_criteria(chi2, model.space.size, len(r))
-    floor = noise_floor(sigma_mm, model.space.size)
+    floor = objective.noise_floor(model.space.size)
     return Refit(list(model.effects), list(model.space.names), list(fit.theta), float(record["cost"]),
                  float(record["cost"]) / floor, chi2, criteria["aic"], criteria["bic"], fit.as_dict())
 

@@ -5,10 +5,15 @@
   warped image I(x) = I1(x + u(x; theta)) (sec. 2.1.2) to the nearest contour pixel of the
   same tissue in I0 (mm^2; `orchestrator.imaging.mismatch`). u on the pixels is the FE
   interpolation of the nodal field (`forward.MeshInterpolator`).
-- `DisplacementResidualObjective`: the displacement residual of Bouten and Drapier (eq. 2),
-  F(theta) = 1/(2N) sum_i |u_e(P_i) - u_s(P_i; theta)|^2 over N measured points P_i (DIC
-  window centres or points.csv), with the residual vector r = (u_s - u_e) / sigma for
-  Levenberg-Marquardt (sigma = 1 mm when the points carry none, so that then F = r.r / (2N)).
+- `DisplacementResidualObjective`: the displacement residual of Bouten and Drapier (eq. 2), weighted
+  by the measurements' covariance C (`measure.Measurements`: DIC windows or points.csv):
+  r = P C^-1/2 (O u_s(theta) - u_e), with O what the measurement sees of the model (the FE
+  interpolation at the points, or the DIC windows' observation operator), C^-1/2 the symmetric
+  inverse square root (so that r_i stays attached to window i) and P the projection that removes
+  the residual rigid motion of the bones between the two images when the measurement has it as a
+  nuisance (DIC). The misfit F = s^2 r.r / n (mm^2, n = 2N values, s^2 the mean variance of one
+  component) is eq. 2's F for points of equal sigma; its expectation for a correct model is the
+  noise floor s^2 (n - p - k) / n (p fitted parameters, k nuisance ones).
 - `LandmarkPressure`: the hydrostatic pressure -tr(sigma)/3 (kPa) at the five landmarks of
   Avril et al. (sec. 3.2, Table 3), interpolated from the engine's nodal-averaged field.
 
@@ -57,37 +62,82 @@ class ContourMismatchObjective:
 
 
 class DisplacementResidualObjective:
-    """F(theta) of Bouten and Drapier eq. 2 at measured points, and its residual vector."""
+    """F of Bouten and Drapier eq. 2, weighted by the measurements' covariance (module text), and its residual vector."""
 
     name = "displacement_residual"
     needs_vtu = False
 
-    def __init__(self, mesh, positions_mm: np.ndarray, measured_mm: np.ndarray, sigma_mm: np.ndarray | None = None):
-        self.positions_mm = np.asarray(positions_mm, float).reshape(-1, 2)
-        self.measured_mm = np.asarray(measured_mm, float).reshape(-1, 2)
-        if len(self.positions_mm) == 0 or self.positions_mm.shape != self.measured_mm.shape:
-            raise ValueError("the displacement residual needs as many measured displacements as points, at least one")
-        self.sigma_mm = np.ones(len(self.positions_mm)) if sigma_mm is None else np.asarray(sigma_mm, float).ravel()
-        self.weights = MeshInterpolator(mesh).weights(self.positions_mm)
-        self.fingerprint = f"F:{_array_sha(self.positions_mm, self.measured_mm, self.sigma_mm)}"
+    def __init__(self, mesh, measurements):
+        self.positions_mm = np.asarray(measurements.position_mm, float)
+        self.measured = np.asarray(measurements.displacement_mm, float).ravel()
+        if len(self.positions_mm) == 0:
+            raise ValueError("the displacement residual needs at least one measured displacement")
+        self.source = measurements.source
+        self.observation = measurements.observation(mesh)
+        covariance = np.asarray(measurements.covariance_mm2, float)
+        if np.count_nonzero(covariance - np.diag(np.diagonal(covariance))) == 0:
+            sigma = np.sqrt(np.diagonal(covariance))
+            self._whiten, self._colour = np.diag(1.0 / sigma), np.diag(sigma)
+        else:
+            values, vectors = np.linalg.eigh(covariance)
+            if values[0] <= 0:
+                raise ValueError("the measurement covariance is not positive definite")
+            self._whiten = (vectors / np.sqrt(values)) @ vectors.T
+            self._colour = (vectors * np.sqrt(values)) @ vectors.T
+        self.nuisance_dof = 0
+        self._nuisance = np.zeros((len(self.measured), 0))
+        if measurements.rigid_nuisance:
+            basis, _ = np.linalg.qr(self._whiten @ measurements.rigid_columns(self.positions_mm.mean(axis=0)))
+            self._nuisance, self.nuisance_dof = basis, basis.shape[1]
+        self.reference_variance_mm2 = measurements.reference_variance_mm2
+        self.fingerprint = (f"F:{measurements.source}:{_array_sha(self.positions_mm, self.measured, covariance)}:"
+                            f"{_array_sha(self.observation.data, self.observation.indices)}")
+
+    @classmethod
+    def at_points(cls, mesh, positions_mm, measured_mm, sigma_mm=None) -> "DisplacementResidualObjective":
+        """The residual at points (points.csv rows; sigma 1 mm when not given, so that F = r.r / (2N))."""
+        from .imaging.case import DisplacementPoints
+        from .measure import points_measurements
+
+        points = DisplacementPoints(np.asarray(positions_mm, float).reshape(-1, 2),
+                                    np.asarray(measured_mm, float).reshape(-1, 2), sigma_mm)
+        return cls(mesh, points_measurements(points))
+
+    @property
+    def n_residuals(self) -> int:
+        return len(self.measured)
+
+    def _project(self, whitened: np.ndarray) -> np.ndarray:
+        return whitened - self._nuisance @ (self._nuisance.T @ whitened)
 
     def residuals(self, nodal_u: np.ndarray) -> np.ndarray:
-        simulated = self.weights @ np.asarray(nodal_u, float)
-        return ((simulated - self.measured_mm) / self.sigma_mm[:, None]).ravel()
+        simulated = self.observation @ np.asarray(nodal_u, float).ravel()
+        return self._project(self._whiten @ (simulated - self.measured))
 
-    def cost(self, nodal_u: np.ndarray) -> float:
-        simulated = self.weights @ np.asarray(nodal_u, float)
-        return float(np.sum((simulated - self.measured_mm) ** 2) / (2 * len(self.measured_mm)))
+    def cost_of(self, residuals: np.ndarray) -> float:
+        """F (mm^2) of a residual vector."""
+        residuals = np.asarray(residuals, float)
+        return float(self.reference_variance_mm2 * (residuals @ residuals) / len(residuals))
+
+    def noise_floor(self, n_parameters: int) -> float:
+        """Expected F of a correct model with n_parameters fitted to these measurements."""
+        n = len(self.measured)
+        return float(self.reference_variance_mm2 * (n - n_parameters - self.nuisance_dof) / n)
+
+    def residual_mm(self, residuals: np.ndarray) -> np.ndarray:
+        """(N, 2) u_model - u_measured in mm (the fitted residual rigid motion removed) of a residual vector."""
+        return (self._colour @ np.asarray(residuals, float)).reshape(-1, 2)
 
     def outputs(self, nodal_u: np.ndarray, outdir: Path) -> dict:
         """Cost and residuals; with the engine's sensitivities (a deck with *SENSITIVITY), also
-        dr/d(engine parameter) = W du/dtheta / sigma per engine parameter name."""
+        dr/d(engine parameter) = P C^-1/2 O du/dtheta per engine parameter name."""
         from .results import EngineResults
 
-        out = {"cost": self.cost(nodal_u), "residuals": self.residuals(nodal_u).tolist()}
+        r = self.residuals(nodal_u)
+        out = {"cost": self.cost_of(r), "residuals": r.tolist()}
         sensitivities = EngineResults(Path(outdir)).sensitivities()
         if sensitivities:
-            out["sensitivity"] = {name: ((self.weights @ du) / self.sigma_mm[:, None]).ravel().tolist()
+            out["sensitivity"] = {name: self._project(self._whiten @ (self.observation @ np.asarray(du, float).ravel())).tolist()
                                   for name, du in sensitivities.items()}
         return out
 

@@ -21,39 +21,77 @@ from dataclasses import asdict
 from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, settle_ties, summarize_fit
 from .forward import TABLE2_CENTRAL_KPA
 from .identify import FitResult, levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
+from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
+from .objectives import DisplacementResidualObjective
 from .runner import LOG_NAME, EvaluationLog, Evaluator
-from .study import RunSetup, load_run, prepare_run, read_json, write_json
+from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
 
-OBJECTIVES = ("mismatch", "displacement")
+OBJECTIVES = ("contour", "displacement")
+OBJECTIVE_ALIASES = {"mismatch": "contour"}   # the name runs written before the images-first path used
 
 
-def choose_objective(setup: RunSetup, objective: str, method: str) -> str:
+def choose_objective(objective: str, method: str) -> str:
+    """auto: the displacement residual (measured from the images, or points.csv); contour: the mismatch M."""
+    objective = OBJECTIVE_ALIASES.get(objective, objective)
     if objective == "auto":
-        objective = "displacement" if (method == "lm" or setup.case.points is not None) else "mismatch"
+        objective = "displacement"
+    if objective not in OBJECTIVES:
+        raise ValueError(f"the objective is one of auto, {', '.join(OBJECTIVES)}, not {objective!r}")
     if method == "lm" and objective != "displacement":
-        raise ValueError("Levenberg-Marquardt needs a residual vector: use --objective displacement (points.csv)")
+        raise ValueError("Levenberg-Marquardt needs a residual vector: use --objective displacement")
     return objective
 
 
-def _objective(setup: RunSetup, name: str):
-    return setup.mismatch_objective() if name == "mismatch" else setup.displacement_objective()
+def _objective(setup: RunSetup, name: str, data: str = "auto"):
+    if OBJECTIVE_ALIASES.get(name, name) == "contour":
+        return setup.mismatch_objective()
+    return setup.displacement_objective(data)
 
 
-def run_identify(case_dir, run_dir, *, method: str = "nm", objective: str = "auto", start: Sequence[float] | None = None,
-                 starts: str = "one", n_elements: int = 400, order: int = 1, effects: Sequence[str] = (),
-                 engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
-                 timeout_s: float = 120.0, progress: bool = True) -> dict:
-    """Prepare (or reload) the run folder and identify; returns and writes identification.json.
-    effects: catalog effects whose parameters are fitted too (they start at zero, effect off); order: 1 for CPE3
-    (Avril et al.), 2 for CPE6 (volumetric effects such as drainage need it: CPE3 is too stiff in dilatation)."""
+def _setup(case_dir, run_dir: Path, n_elements: int, order: int) -> RunSetup:
+    return (load_run(run_dir) if (run_dir / SETUP_JSON).is_file()
+            else prepare_run(case_dir, run_dir, n_elements=n_elements, order=order))
+
+
+def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
+                roi_spacing_mm: float | None = None, n_elements: int = 400, order: int = 1) -> dict:
+    """Measure the displacements from the two images by DIC (`measure.measure_dic`) into the run folder
+    (measurements.csv, .npz, .json, .png); returns the summary."""
     run_dir = Path(run_dir)
-    setup = (load_run(run_dir) if (run_dir / "setup.json").is_file()
-             else prepare_run(case_dir, run_dir, n_elements=n_elements, order=order))
-    objective = choose_objective(setup, objective, method)
+    setup = _setup(case_dir, run_dir, n_elements, order)
+    case = setup.case
+    _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
+                                    landmarks=case.landmarks, window_px=window_px, step_px=step_px,
+                                    roi_spacing_mm=roi_spacing_mm)
+    write_measurements(run_dir, table, summary, case.unloaded, case.pixel_size_mm)
+    return summary
+
+
+def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "auto", data: str = "auto",
+                 window_px: int = DEFAULT_WINDOW_PX, start: Sequence[float] | None = None, starts: str = "one",
+                 n_elements: int = 400, order: int = 1, effects: Sequence[str] = (), engine_sensitivities: bool = True,
+                 workers: int = 1, scheduler: str | None = None, timeout_s: float = 120.0,
+                 progress: bool = True) -> dict:
+    """Prepare (or reload) the run folder and identify; returns and writes identification.json.
+    data: "points" (points.csv), "dic" (measured from the images, now if the run folder has no measurements yet,
+    with `window_px`) or "auto" (points.csv when the case has one); effects: catalog effects whose parameters are
+    fitted too (they start at zero, effect off); order: 1 for CPE3 (Avril et al.), 2 for CPE6 (volumetric effects
+    such as drainage need it: CPE3 is too stiff in dilatation)."""
+    run_dir = Path(run_dir)
+    setup = _setup(case_dir, run_dir, n_elements, order)
+    objective = choose_objective(objective, method)
+    source = setup.data_source(data)
+    measured = None
+    if objective == "displacement":
+        if source == "dic" and read_window_table(run_dir) is None:
+            run_measure(case_dir, run_dir, window_px=window_px)
+        measured = setup.measurements(source)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
-    with Evaluator(setup.model, _objective(setup, objective), run_dir, workers=workers, scheduler=scheduler,
+    scorer = (DisplacementResidualObjective(setup.mesh, measured) if measured is not None
+              else setup.mismatch_objective())
+    with Evaluator(setup.model, scorer, run_dir, workers=workers, scheduler=scheduler,
                    timeout_s=timeout_s, progress=progress) as evaluator:
         if method == "lm":
             fits = [levenberg_marquardt(evaluator, s) for s in start_points]
@@ -61,12 +99,24 @@ def run_identify(case_dir, run_dir, *, method: str = "nm", objective: str = "aut
             fits = multistart(evaluator, start_points)
     best = min(fits, key=lambda fit: fit.cost)
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
+              "data": {"source": source if measured is not None else "contours",
+                       "description": measured.description if measured is not None else "contours of I0 and I1",
+                       "count": len(measured) if measured is not None else 0},
               "effects": list(setup.model.effects), "parameters": list(setup.model.space.names),
               "units": setup.model.space.units, "unit_of": list(setup.model.space.unit_of),
               "best": best.as_dict(), "fits": [fit.as_dict() for fit in fits],
               "engine_runs_total": len(EvaluationLog(run_dir / LOG_NAME))}
+    if measured is not None:
+        result["noise_floor"] = scorer.noise_floor(setup.model.space.size)
+        result["misfit_over_floor"] = best.cost / result["noise_floor"]
     write_json(run_dir / "identification.json", result)
     return result
+
+
+def identified_data(identification: dict) -> str:
+    """The data source an identification used ("points" or "dic"), for the stages after it."""
+    source = identification.get("data", {}).get("source", "points")
+    return "points" if source in ("points", "points.csv") else source
 
 
 def run_montecarlo(run_dir, *, draws: int = 400, threshold: float | None = None, threshold_factor: float = 1.5,
@@ -77,7 +127,8 @@ def run_montecarlo(run_dir, *, draws: int = 400, threshold: float | None = None,
     identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
     setup.model = setup.model_with(identification.get("effects", ()))
     best = identification["best"]
-    with Evaluator(setup.model, _objective(setup, identification["objective"]), run_dir, workers=workers,
+    with Evaluator(setup.model, _objective(setup, identification["objective"], identified_data(identification)),
+                   run_dir, workers=workers,
                    scheduler=scheduler, timeout_s=timeout_s, progress=progress) as evaluator:
         result = monte_carlo(evaluator, identification["parameters"], best["theta"], best["cost"], draws=draws,
                              threshold=threshold, threshold_factor=threshold_factor, seed=seed).as_dict()
@@ -111,38 +162,36 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     setup = load_run(run_dir)
     identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
     if identification["objective"] != "displacement":
-        raise ValueError("the diagnosis compares the model with measured displacements: identify with "
-                         "--objective displacement (points.csv) first")
+        raise ValueError("the diagnosis compares the model with measured displacements (DIC from the images, or "
+                         "points.csv): identify with --objective displacement (the default) first")
     model = setup.model_with(identification.get("effects", ()), sensitivities=engine_sensitivities)
-    objective = setup.displacement_objective()
-    points = setup.case.points
+    objective = setup.displacement_objective(identified_data(identification))
 
     def evaluator_for(m):
         return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
                          progress=progress)
 
     theta = identification["best"]["theta"]
-    regions, centre = setup.point_regions(), setup.leg_centre_mm()
-    diagnosis = diagnose(evaluator_for, model, theta, points.position_mm, points.sigma_mm, regions, centre,
-                         alpha=alpha, engine_sensitivities=engine_sensitivities)
+    frame = setup.frame()
+    diagnosis = diagnose(evaluator_for, model, theta, objective, frame, alpha=alpha,
+                         engine_sensitivities=engine_sensitivities)
     with evaluator_for(model) as evaluator:
-        before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), points.sigma_mm)
+        before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), objective)
     requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
     top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
     names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
     names += [n for n in requested if n not in ("auto", "none") and n not in names]
     after, after_maps = [], []
     for name in names:
-        fit, residual = refit(evaluator_for, model, theta, [name], points.sigma_mm)
+        fit, residual = refit(evaluator_for, model, theta, [name], objective)
         after.append(fit)
-        after_maps.append(residual_maps(points.position_mm, residual, regions, centre))
+        after_maps.append(residual_maps(objective.positions_mm, residual, frame))
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
-    if not diagnosis.explained:
+    if not diagnosis.explained and diagnosis.maps.worst_region:
         maps = diagnosis.maps
-        diagnosis.verdict += (f"; the residual is largest in the sector around {maps.worst_sector_deg:.0f} deg "
-                              f"(RMS {max(maps.sector_rms_mm):.3f} mm) and in the "
-                              f"{max(maps.per_region_rms_mm, key=maps.per_region_rms_mm.get)}")
+        diagnosis.verdict += (f"; the residual is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f}"
+                              f" mm, {100 * maps.worst_region_share:.0f} % of the squared residual)")
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]

@@ -3,7 +3,7 @@
 `prepare_run` does once what every later command of a run needs (DESIGN.md data flow):
 read the case, segment I0 if the case has no labels, align the loaded image on the bones
 (rigid motion, Bouten and Drapier sec. 3.1), segment the aligned loaded image, mesh the
-labels of I0 (400 T3 elements by default, Avril et al. sec. 2.2.1), and stores the labels, the
+labels of I0 with their interfaces moved onto the edges of I0 (`meshing.mesh_from_labels`), and stores the labels, the
 motion and the mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then
 renamed). `load_run` gives them back with the model and the objectives, so that `calfit
 identify`, `montecarlo`, `pressures` and `report` all see the same mesh.
@@ -31,11 +31,15 @@ from .imaging.case import Case, read_case
 from .imaging.frame import RigidMotion
 from .imaging.segment import segment_t1
 from .meshing import Mesh, mesh_from_labels
+from .measure import FILES as MEASURE_FILES
+from .measure import Measurements, dic_measurements, points_measurements, read_window_table
 from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure
+from .regions import LegFrame
 
 SETUP_ARRAYS = "setup.npz"
 SETUP_JSON = "setup.json"
 PARAMETERS_FILE = "parameters.json"
+DATA_SOURCES = ("auto", "dic", "points")
 
 
 class RunFolderError(ValueError):
@@ -93,27 +97,40 @@ class RunSetup:
         return LegModel(self.mesh, self.case.tension_N_per_mm, effects=parse_effects(list(effects)),
                         engine_sensitivities=sensitivities)
 
-    def point_regions(self) -> np.ndarray:
-        """The tissue label of I0 under each measured point (1 fat, 2 muscle, ...)."""
-        dy, dx = self.case.pixel_size_mm
-        xy = self.case.points.position_mm
-        rows = np.clip((xy[:, 1] / dy).astype(int), 0, self.labels_unloaded.shape[0] - 1)
-        cols = np.clip((xy[:, 0] / dx).astype(int), 0, self.labels_unloaded.shape[1] - 1)
-        return self.labels_unloaded[rows, cols]
-
-    def leg_centre_mm(self) -> np.ndarray:
-        """Centroid of the skin contour: the centre of the angular sectors of the residual maps."""
-        return self.mesh.nodes[self.mesh.skin_loop].mean(axis=0)
+    def frame(self) -> LegFrame:
+        """Leg centre, anatomical orientation and skin distance of I0: how residual regions are named."""
+        return LegFrame.from_labels(self.labels_unloaded, self.case.pixel_size_mm)
 
     def mismatch_objective(self) -> ContourMismatchObjective:
         return ContourMismatchObjective(self.mesh, self.labels_unloaded, self.labels_loaded, self.case.pixel_size_mm)
 
-    def displacement_objective(self) -> DisplacementResidualObjective:
-        points = self.case.points
-        if points is None:
-            raise RunFolderError(f"{self.case.folder} has no points.csv: the displacement residual (F, LM) needs "
-                                 "measured displacements; use --objective mismatch or add points.csv")
-        return DisplacementResidualObjective(self.mesh, points.position_mm, points.displacement_mm, points.sigma_mm)
+    def data_source(self, data: str = "auto") -> str:
+        """"points" or "dic": auto takes points.csv when the case has one, otherwise the images (DIC)."""
+        if data not in DATA_SOURCES:
+            raise ValueError(f"the measured data are one of {', '.join(DATA_SOURCES)}, not {data!r}")
+        if data == "auto":
+            return "points" if self.case.points is not None else "dic"
+        if data == "points" and self.case.points is None:
+            raise RunFolderError(f"{self.case.folder} has no points.csv: measure the displacements from the images "
+                                 "(--data dic, the default without points.csv)")
+        return data
+
+    def measurements(self, data: str = "auto") -> Measurements:
+        """The measured displacements the fit compares the model with: points.csv, or the DIC windows that
+        `calfit measure` stored in the run folder."""
+        if self.data_source(data) == "points":
+            return points_measurements(self.case.points)
+        table = read_window_table(self.run_dir)
+        summary_path = self.run_dir / MEASURE_FILES["summary"]
+        if table is None or not summary_path.is_file():
+            raise RunFolderError(f"{self.run_dir} holds no DIC measurements: run `calfit measure CASE_DIR --out "
+                                 f"{self.run_dir}` first")
+        summary = read_json(summary_path, "calfit measure")
+        return dic_measurements(self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm,
+                                summary["noise_sigma"][0])
+
+    def displacement_objective(self, data: str = "auto") -> DisplacementResidualObjective:
+        return DisplacementResidualObjective(self.mesh, self.measurements(data))
 
     def pressure_objective(self) -> LandmarkPressure:
         if not self.case.landmarks:
@@ -133,7 +150,7 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
               if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
     labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
-    mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order)
+    mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order, image=case.unloaded)
     temporary = run_dir / f".{SETUP_ARRAYS}.tmp.npz"
     np.savez_compressed(temporary, labels_unloaded=labels_unloaded, labels_loaded=labels_loaded,
                         loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))

@@ -4,8 +4,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose import (design_effect, information_criteria, neighbour_correlation, noise_floor,
-                                   residual_maps, score_effect)
+from orchestrator.diagnose import design_effect, information_criteria, neighbour_correlation, residual_maps, score_effect
+from orchestrator.forward import annulus_mesh
+from orchestrator.measure import Measurements
+from orchestrator.objectives import DisplacementResidualObjective
+from orchestrator.regions import LegFrame
 
 
 def _linear_problem(seed=0, n=400, p=4):
@@ -65,19 +68,76 @@ def test_neighbour_correlation_tells_noise_from_a_smooth_field():
     assert design_effect(0.5) == pytest.approx(3.0)
 
 
-def test_noise_floor_and_information_criteria():
-    assert noise_floor(np.full(100, 0.05), 4) == pytest.approx(0.0025 * 196 / 200)
+def _correlated_measurements(n_points=150, rigid=False, seed=0):
+    """Points on an annulus with a covariance that couples neighbours (as overlapping DIC windows do)."""
+    rng = np.random.default_rng(seed)
+    angles = rng.uniform(0, 2 * np.pi, n_points)
+    radii = rng.uniform(12.0, 38.0, n_points)
+    xy = np.stack([radii * np.cos(angles), radii * np.sin(angles)], 1)
+    distance = np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
+    sigma = rng.uniform(0.005, 0.02, n_points)
+    correlation = np.exp(-(distance / 4.0) ** 2)
+    covariance = np.kron(correlation * np.outer(sigma, sigma), np.eye(2))
+    return Measurements("test", xy, np.zeros_like(xy), covariance, None, rigid)
+
+
+@pytest.mark.parametrize("rigid", [False, True])
+def test_the_whitened_misfit_of_correlated_noise_sits_at_its_floor(rigid):
+    """F / floor of pure noise drawn from the measurement covariance averages 1: the whitening by C^-1/2 and the
+    rigid nuisance projection (3 degrees of freedom) are what the floor assumes."""
+    measurements = _correlated_measurements(rigid=rigid)
+    mesh = annulus_mesh()
+    rng = np.random.default_rng(1)
+    factor = np.linalg.cholesky(measurements.covariance_mm2)
+    ratios = []
+    for _ in range(300):
+        measurements.displacement_mm = (factor @ rng.normal(size=factor.shape[0])).reshape(-1, 2)
+        objective = DisplacementResidualObjective(mesh, measurements)
+        ratios.append(objective.cost_of(objective.residuals(np.zeros((len(mesh.nodes), 2)))) / objective.noise_floor(0))
+    assert objective.nuisance_dof == (3 if rigid else 0)
+    assert np.mean(ratios) == pytest.approx(1.0, abs=0.02)
+    assert objective.noise_floor(4) == pytest.approx(measurements.reference_variance_mm2 * (300 - 4 - objective.nuisance_dof) / 300)
+
+
+def test_information_criteria():
     ic = information_criteria(250.0, 5, 400)
     assert ic["aic"] == 260.0 and ic["bic"] == pytest.approx(250.0 + 5 * np.log(400))
 
 
-def test_residual_maps_put_the_residual_in_its_sector():
+def _leg_labels():
+    """A round leg (0.5 mm pixels): fat ring, muscle, the tibia at the top of the image, the fibula to its right."""
+    rows, cols = np.indices((200, 200))
+    x, y = (cols + 0.5) * 0.5, (rows + 0.5) * 0.5
+    labels = np.zeros((200, 200), np.uint8)
+    labels[np.hypot(x - 50, y - 50) < 40] = 1
+    labels[np.hypot(x - 50, y - 50) < 30] = 2
+    labels[np.hypot(x - 50, y - 28) < 6] = 3
+    labels[np.hypot(x - 70, y - 52) < 4] = 3
+    return labels
+
+
+def test_residual_maps_put_the_residual_in_its_sector_and_name_it():
+    frame = LegFrame.from_labels(_leg_labels(), (0.5, 0.5))
     angles = np.radians(np.arange(0, 360, 5) + 2.5)
-    xy = 50.0 + 20.0 * np.stack([np.cos(angles), np.sin(angles)], 1)
+    xy = 50.0 + 33.0 * np.stack([np.cos(angles), -np.sin(angles)], 1)   # display angles: y points down
     residual = np.zeros_like(xy)
     hot = (np.degrees(angles) > 90) & (np.degrees(angles) < 120)
-    residual[hot] = 0.3 * (xy[hot] - 50.0) / 20.0     # outwards, in the sector 90-120 degrees
-    maps = residual_maps(xy, residual, np.ones(len(xy), int), np.array([50.0, 50.0]))
+    residual[hot] = 0.3 * (xy[hot] - 50.0) / 33.0     # outwards, in the sector 90-120 degrees
+    maps = residual_maps(xy, residual, frame)
     assert maps.worst_sector_deg == 105.0
     assert maps.sector_radial_mm[3] == pytest.approx(0.3)
     assert maps.per_region_rms_mm["fat"] == pytest.approx(np.sqrt(hot.mean()) * 0.3)
+    assert maps.worst_region == "fat, anterior sector 90-120 deg, 5-10 mm under the skin"
+    assert maps.worst_region_share == pytest.approx(1.0)
+    assert "label" not in " ".join(maps.sector_names)
+
+
+def test_the_leg_frame_names_directions_from_the_bones():
+    frame = LegFrame.from_labels(_leg_labels(), (0.5, 0.5))
+    assert frame.direction(90.0) == "anterior"        # the tibia is at the top of the image
+    assert frame.direction(0.0) == "lateral"          # the fibula is to the right of it
+    assert frame.direction(270.0) == "posterior" and frame.direction(180.0) == "medial"
+    assert frame.tissues(np.array([[50.0, 50.0], [50.0, 15.0], [0.5, 0.5]])) == ["muscle", "fat", "outside the leg"]
+    assert frame.depth_mm(np.array([[50.0, 12.0]]))[0] == pytest.approx(2.0, abs=0.5)
+    mirrored = LegFrame.from_labels(_leg_labels()[:, ::-1], (0.5, 0.5))
+    assert mirrored.direction(180.0) == "lateral" and mirrored.direction(0.0) == "medial"

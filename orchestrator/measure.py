@@ -1,0 +1,279 @@
+"""Measured displacements, from the two images (DIC) or from points.csv: what the fit compares the model with.
+
+Images first (DESIGN.md). A user brings two slices, not a table. `measure_dic` measures the displacement of
+the tissue relative to the bones between them (Bouten and Drapier sec. 2.2 and 3.1):
+
+1. windows of `window_px` (16, 32 or 64) on a grid inside the leg, every `step_px` (default half a window),
+   plus windows on the regions of interest of sec. 3.1: along the skin and the fascia every `roi_spacing_mm`,
+   and at the vessels named among the case's landmarks;
+2. each window correlated with the bones' rigid motion composed into its warp (`imaging.dic`), so the
+   displacement is relative to the bones, with its 2x2 covariance;
+3. outliers rejected, each counted by reason, as OpenPIV validates: a low match (ZNCC below
+   `min_confidence`), a high predicted uncertainty (above `max_uncertainty_px`), and the normalised median
+   test of Westerweel and Scarano (Exp. Fluids 39, 2005): with u_m the median of the 8 nearest accepted
+   neighbours and r_m the median of their distances to u_m, a window whose |u - u_m| / (r_m + eps) exceeds
+   `median_threshold` (2, eps = 0.1 px) in either component is an outlier;
+4. the kept windows' full covariance, overlaps included (`imaging.windows`), and the operator that observes
+   a model's displacement field as the windows do (so the fit compares like with like).
+
+`Measurements` is the same object for points.csv (points, diagonal covariance from sigma_mm, the model
+read at the points) and for DIC (windows, full covariance, the model observed through the windows, and three
+nuisance degrees of freedom for the residual rigid motion between the two images' bones, which the fit
+profiles out: the alignment is good to about 0.003 mm, a third of a 32-pixel window's noise, but common to
+every window).
+
+In a run folder: measurements.csv (every window tried, kept or why not, with its covariance), measurements.npz
+(what rebuilds the Measurements), measurements.json (summary) and measurements.png (the vectors on the image).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import sparse
+from scipy.spatial import cKDTree
+
+from .imaging.case import DisplacementPoints
+from .imaging.dic import correlate, grid_centres, roi_centres
+from .imaging.frame import RigidMotion
+from .imaging.mismatch import tissue_mask
+from .imaging.segment import FAT, MUSCLE
+from .imaging.windows import WindowOperators
+
+WINDOW_CHOICES = (16, 32, 64)
+DEFAULT_WINDOW_PX = 32
+MIN_CONFIDENCE = 0.8
+MAX_UNCERTAINTY_PX = 0.25
+MEDIAN_THRESHOLD = 2.0
+MEDIAN_EPSILON_PX = 0.1
+MEDIAN_NEIGHBOURS = 8
+VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
+KINDS = ("grid", "skin", "fascia", "vessel")
+KEPT = "kept"
+FILES = {"table": "measurements.csv", "arrays": "measurements.npz", "summary": "measurements.json",
+         "figure": "measurements.png"}
+
+
+@dataclass
+class WindowTable:
+    """Every window tried: where, what it found, and whether it is kept (status "kept") or why not."""
+
+    centres_rc: np.ndarray        # (N, 2) integer centre pixels in I0
+    kind: list[str]               # grid, skin, fascia or vessel
+    position_mm: np.ndarray       # (N, 2)
+    displacement_mm: np.ndarray   # (N, 2), relative to the bones
+    covariance_mm2: np.ndarray    # (N, 2, 2)
+    confidence: np.ndarray        # (N,) ZNCC
+    intensity_variance: np.ndarray
+    tissue: list[str]             # tissue of I0 under the centre
+    status: list[str]
+
+    @property
+    def kept(self) -> np.ndarray:
+        return np.array([s == KEPT for s in self.status], bool)
+
+    def counts(self) -> dict[str, int]:
+        values, counts = np.unique(self.status, return_counts=True)
+        return {str(v): int(c) for v, c in zip(values, counts)}
+
+
+@dataclass
+class Measurements:
+    """Measured displacements and how to compare a model with them (module text).
+
+    displacement (mm) and covariance (mm^2) are interleaved (u_x, u_y per window or point); `operators` is
+    None for points (the model is read at the points), the windows' operators for DIC."""
+
+    source: str
+    position_mm: np.ndarray
+    displacement_mm: np.ndarray
+    covariance_mm2: np.ndarray
+    operators: WindowOperators | None = None
+    rigid_nuisance: bool = False
+    description: str = ""
+    kind: list[str] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.position_mm)
+
+    @property
+    def reference_variance_mm2(self) -> float:
+        """Mean variance of one displacement component: the unit of the misfit F and of its noise floor."""
+        return float(np.trace(self.covariance_mm2) / self.covariance_mm2.shape[0])
+
+    def observation(self, mesh) -> sparse.csr_matrix:
+        """Sparse (2N, 2M) map from the nodal displacement of `mesh` (interleaved) to what was measured."""
+        from .forward import MeshInterpolator
+
+        interpolator = MeshInterpolator(mesh)
+        if self.operators is None:
+            return sparse.kron(interpolator.weights(self.position_mm), sparse.identity(2), format="csr")
+        windows, pixels = self.operators.observation()
+        rows, cols = np.divmod(pixels, self.operators.shape[1])
+        dx, dy = self.operators.to_mm
+        centres = np.column_stack([(cols + 0.5) * dx, (rows + 0.5) * dy])
+        return (windows @ sparse.kron(interpolator.weights(centres), sparse.identity(2), format="csr")).tocsr()
+
+    def rigid_columns(self, centre_mm) -> np.ndarray:
+        """(2N, 3) displacement of the measured places under a unit translation along x, y and a unit rotation
+        (rad) about centre_mm: the residual rigid motion of the bones between the two images."""
+        offset = self.position_mm - np.asarray(centre_mm, float)
+        columns = np.zeros((2 * len(self), 3))
+        columns[0::2, 0] = 1.0
+        columns[1::2, 1] = 1.0
+        columns[0::2, 2] = -offset[:, 1]
+        columns[1::2, 2] = offset[:, 0]
+        return columns
+
+
+def points_measurements(points: DisplacementPoints, sigma_default_mm: float = 1.0) -> Measurements:
+    """points.csv as measurements: independent points, sigma_mm per point (1 mm when the file has none)."""
+    sigma = (np.full(len(points), sigma_default_mm) if points.sigma_mm is None else np.asarray(points.sigma_mm, float))
+    return Measurements("points.csv", np.asarray(points.position_mm, float), np.asarray(points.displacement_mm, float),
+                        np.diag(np.repeat(sigma ** 2, 2)), None, False, f"{len(points)} points of points.csv",
+                        ["point"] * len(points))
+
+
+# --- DIC ----------------------------------------------------------------------------------------
+
+def window_centres(labels: np.ndarray, pixel_size_mm, window_px: int, step_px: int, roi_spacing_mm: float,
+                   vessels_mm) -> tuple[np.ndarray, list[str]]:
+    """Grid windows whose centre is in fat or muscle, then skin, fascia and vessel windows (module text)."""
+    leg = tissue_mask(labels, FAT) | tissue_mask(labels, MUSCLE)
+    grid = grid_centres(labels.shape, window_px, step_px, mask=leg)
+    skin = roi_centres(labels, pixel_size_mm, roi_spacing_mm, skin=True, fascia=False)
+    fascia = roi_centres(labels, pixel_size_mm, roi_spacing_mm, skin=False, fascia=True)
+    vessels = roi_centres(labels, pixel_size_mm, roi_spacing_mm, skin=False, fascia=False, vessels_mm=vessels_mm)
+    parts = [(grid, "grid"), (skin, "skin"), (fascia, "fascia"), (vessels, "vessel")]
+    centres = np.concatenate([p.reshape(-1, 2) for p, _ in parts]).astype(int)
+    kinds = [kind for p, kind in parts for _ in range(len(p))]
+    return centres, kinds
+
+
+def vessel_landmarks(landmarks: dict[str, tuple[float, float]]) -> list[tuple[float, float]]:
+    """The landmarks that name a vessel (a vein, artery, saphenous...): DIC windows go there too."""
+    return [tuple(xy) for name, xy in landmarks.items() if any(word in name.lower() for word in VESSEL_WORDS)]
+
+
+def normalised_median_outliers(positions_mm: np.ndarray, displacement_px: np.ndarray, candidates: np.ndarray, *,
+                               threshold: float = MEDIAN_THRESHOLD, epsilon_px: float = MEDIAN_EPSILON_PX,
+                               neighbours: int = MEDIAN_NEIGHBOURS, radius_mm: float = np.inf) -> np.ndarray:
+    """Westerweel and Scarano's normalised median test (module text) over the `candidates` windows, each against
+    its nearest candidate neighbours within radius_mm; True where a window fails. Windows with fewer than 3
+    neighbours cannot be tested and pass."""
+    index = np.flatnonzero(candidates)
+    outlier = np.zeros(len(positions_mm), bool)
+    if len(index) < 4:
+        return outlier
+    tree = cKDTree(positions_mm[index])
+    k = min(neighbours + 1, len(index))
+    distance, nearest = tree.query(positions_mm[index], k=k)
+    for row, i in enumerate(index):
+        others = nearest[row][(nearest[row] != row) & np.isfinite(distance[row]) & (distance[row] <= radius_mm)]
+        if len(others) < 3:
+            continue
+        values = displacement_px[index[others]]
+        median = np.median(values, axis=0)
+        spread = np.median(np.abs(values - median), axis=0)
+        outlier[i] = bool(np.any(np.abs(displacement_px[i] - median) / (spread + epsilon_px) > threshold))
+    return outlier
+
+
+def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm, motion: RigidMotion, *,
+                landmarks: dict | None = None, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
+                roi_spacing_mm: float | None = None, min_confidence: float = MIN_CONFIDENCE,
+                max_uncertainty_px: float = MAX_UNCERTAINTY_PX) -> tuple[Measurements, WindowTable, dict]:
+    """DIC between the two images (module text). Returns the kept windows as Measurements, every window tried,
+    and a summary."""
+    if window_px not in WINDOW_CHOICES:
+        raise ValueError(f"the DIC window must be one of {WINDOW_CHOICES} pixels, not {window_px}")
+    began = time.perf_counter()
+    step_px = int(step_px or window_px // 2)
+    pixel = float(min(pixel_size_mm))
+    roi_spacing_mm = float(roi_spacing_mm or step_px * pixel)
+    vessels = vessel_landmarks(landmarks or {})
+    centres, kinds = window_centres(labels, pixel_size_mm, window_px, step_px, roi_spacing_mm, vessels)
+    if len(centres) == 0:
+        raise ValueError("the segmentation holds no fat or muscle where a DIC window could sit")
+    result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion)
+    status = np.full(len(centres), KEPT, dtype=object)
+    correlated = np.all(np.isfinite(result.displacement_px), axis=1)
+    status[~correlated] = "not correlated (outside the image or no texture)"
+    low = correlated & (result.confidence < min_confidence)
+    status[low] = f"low match (ZNCC < {min_confidence:g})"
+    uncertain = correlated & ~low & ~(result.uncertainty_px <= max_uncertainty_px)
+    status[uncertain] = f"uncertain (> {max_uncertainty_px:g} px)"
+    candidates = status == KEPT
+    outliers = normalised_median_outliers(result.position_mm, result.displacement_px, candidates,
+                                          radius_mm=3.0 * step_px * pixel)
+    status[outliers & candidates] = f"median test (> {MEDIAN_THRESHOLD:g})"
+    tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
+    tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
+    table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
+                        result.confidence, result.intensity_variance, tissue, [str(s) for s in status])
+    measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0])
+    summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
+               "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
+               "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},
+               "noise_sigma": list(result.noise_sigma),
+               "median_sigma_mm": float(np.median(np.sqrt(np.diagonal(measurements.covariance_mm2)))),
+               "rigid_motion": {"angle_deg": motion.angle_deg, "translation_mm": list(motion.translation_mm),
+                                "centre_mm": list(motion.centre_mm)},
+               "min_confidence": min_confidence, "max_uncertainty_px": max_uncertainty_px,
+               "wall_time_s": time.perf_counter() - began}
+    return measurements, table, summary
+
+
+def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, pixel_size_mm,
+                     reference_noise_sigma: float) -> Measurements:
+    """The kept windows of a table as Measurements (operators and covariance rebuilt from I0)."""
+    kept = table.kept
+    if kept.sum() < 10:
+        raise ValueError(f"only {int(kept.sum())} DIC windows passed the checks ({table.counts()}); the images do "
+                         "not correlate: check that both slices show the same level of the leg")
+    operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma)
+    covariance = operators.covariance(table.intensity_variance[kept])
+    kinds = [k for k, keep in zip(table.kind, kept) if keep]
+    return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept], covariance, operators, True,
+                        f"DIC: {int(kept.sum())} windows of {window_px} px kept of {len(kept)}", kinds)
+
+
+# --- run folder ---------------------------------------------------------------------------------
+
+def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: np.ndarray, pixel_size_mm) -> None:
+    """The table, the arrays, the summary and the picture, each written to a temporary name then renamed."""
+    from .figures import dic_vectors_figure
+    from .study import write_json
+
+    run_dir = Path(run_dir)
+    temporary = run_dir / f".{FILES['arrays']}.tmp.npz"
+    np.savez_compressed(temporary, centres_rc=table.centres_rc, kind=np.array(table.kind), position_mm=table.position_mm,
+                        displacement_mm=table.displacement_mm, covariance_mm2=table.covariance_mm2,
+                        confidence=table.confidence, intensity_variance=table.intensity_variance,
+                        tissue=np.array(table.tissue), status=np.array(table.status))
+    temporary.replace(run_dir / FILES["arrays"])
+    rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,kind,tissue,status"]
+    for k in range(len(table.status)):
+        c = table.covariance_mm2[k]
+        values = [*table.position_mm[k], *table.displacement_mm[k], c[0, 0], c[1, 1], c[0, 1], table.confidence[k]]
+        rows.append(",".join(f"{v:.6g}" for v in values) + f",{table.kind[k]},{table.tissue[k]},{table.status[k]}")
+    temporary = run_dir / f".{FILES['table']}.tmp"
+    temporary.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    temporary.replace(run_dir / FILES["table"])
+    dic_vectors_figure(run_dir / FILES["figure"], image, pixel_size_mm, table, summary)
+    write_json(run_dir / FILES["summary"], summary)
+
+
+def read_window_table(run_dir: Path) -> WindowTable | None:
+    path = Path(run_dir) / FILES["arrays"]
+    if not path.is_file():
+        return None
+    with np.load(path) as arrays:
+        return WindowTable(arrays["centres_rc"], [str(v) for v in arrays["kind"]], arrays["position_mm"],
+                           arrays["displacement_mm"], arrays["covariance_mm2"], arrays["confidence"],
+                           arrays["intensity_variance"], [str(v) for v in arrays["tissue"]],
+                           [str(v) for v in arrays["status"]])
+
