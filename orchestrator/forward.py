@@ -238,16 +238,22 @@ class LegModel:
                                            for line, f in state.sensitivity["C10_muscle"]]
         return state
 
-    def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None) -> str:
+    def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None,
+             extra_sensitivities: Sequence[str] = ()) -> str:
+        """The deck of theta; extra_sensitivities: more `*SENSITIVITY` lines (a `PROFILE` line defines the garment's
+        Fourier profile, at zero, when the model has none)."""
         from .decks import StepEffects
 
         state = self.deck_state(theta)
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
         lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
+        lines = (lines if self.engine_sensitivities else []) + [line for line in extra_sensitivities if line not in lines]
+        if any(line.startswith("PROFILE") for line in extra_sensitivities) and not self.tension_profile:
+            state.fourier_profile.setdefault(1, (0.0, 0.0))
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,
                               tuple((n, *m) for n, m in state.rigid_motions.items()),
                               tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
-                              tuple(lines) if self.engine_sensitivities else ())
+                              tuple(lines))
         stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
         materials = {elset: ("AVRIL", tuple(c) if stiffening else tuple(c[:2])) for elset, c in state.constants.items()}
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,

@@ -29,16 +29,17 @@ In a run folder: measurements.csv (every window tried, kept or why not, with its
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import sparse
+from scipy import ndimage, sparse
+from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from .imaging.case import DisplacementPoints
 from .imaging.dic import correlate, grid_centres, roi_centres
-from .imaging.frame import RigidMotion
+from .imaging.frame import RigidMotion, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
 from .imaging.windows import WindowOperators
@@ -50,6 +51,7 @@ MAX_UNCERTAINTY_PX = 0.25
 MEDIAN_THRESHOLD = 2.0
 MEDIAN_EPSILON_PX = 0.1
 MEDIAN_NEIGHBOURS = 8
+PRIOR_SMOOTHING = 1e-3      # thin-plate smoothing of the first pass (it only has to bend the windows, not fit noise)
 VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
 KINDS = ("grid", "skin", "fascia", "vessel")
 KEPT = "kept"
@@ -70,6 +72,7 @@ class WindowTable:
     intensity_variance: np.ndarray
     tissue: list[str]             # tissue of I0 under the centre
     status: list[str]
+    prior_offset_mm: np.ndarray | None = None   # (N, 2) prior at the centre less what the window sees of it
 
     @property
     def kept(self) -> np.ndarray:
@@ -95,6 +98,7 @@ class Measurements:
     rigid_nuisance: bool = False
     description: str = ""
     kind: list[str] = field(default_factory=list)
+    measurement_covariance_mm2: np.ndarray | None = None   # the measurement's part when a model part is added
 
     def __len__(self) -> int:
         return len(self.position_mm)
@@ -104,18 +108,32 @@ class Measurements:
         """Mean variance of one displacement component: the unit of the misfit F and of its noise floor."""
         return float(np.trace(self.covariance_mm2) / self.covariance_mm2.shape[0])
 
-    def observation(self, mesh) -> sparse.csr_matrix:
-        """Sparse (2N, 2M) map from the nodal displacement of `mesh` (interleaved) to what was measured."""
-        from .forward import MeshInterpolator
+    @property
+    def measurement_share(self) -> float:
+        """The share of the measurement noise (not the model's geometry) in the mean variance."""
+        if self.measurement_covariance_mm2 is None:
+            return 1.0
+        return float(np.trace(self.measurement_covariance_mm2) / np.trace(self.covariance_mm2))
 
-        interpolator = MeshInterpolator(mesh)
+    def observer(self) -> "Observer":
+        """What the measurement sees of a model (picklable, without the images)."""
         if self.operators is None:
-            return sparse.kron(interpolator.weights(self.position_mm), sparse.identity(2), format="csr")
+            return Observer(self.position_mm, None)
         windows, pixels = self.operators.observation()
         rows, cols = np.divmod(pixels, self.operators.shape[1])
         dx, dy = self.operators.to_mm
-        centres = np.column_stack([(cols + 0.5) * dx, (rows + 0.5) * dy])
-        return (windows @ sparse.kron(interpolator.weights(centres), sparse.identity(2), format="csr")).tocsr()
+        return Observer(np.column_stack([(cols + 0.5) * dx, (rows + 0.5) * dy]), windows)
+
+    def observation(self, mesh) -> sparse.csr_matrix:
+        """Sparse (2N, 2M) map from the nodal displacement of `mesh` (interleaved) to what was measured."""
+        return self.observer()(mesh)
+
+    def with_model_covariance(self, covariance_mm2: np.ndarray, description: str) -> "Measurements":
+        """The same measurements with the covariance of the model's own predictions added (geometry_uncertainty)."""
+        return replace(self, covariance_mm2=self.covariance_mm2 + covariance_mm2,
+                       description=f"{self.description}; {description}",
+                       measurement_covariance_mm2=(self.covariance_mm2 if self.measurement_covariance_mm2 is None
+                                                   else self.measurement_covariance_mm2))
 
     def rigid_columns(self, centre_mm) -> np.ndarray:
         """(2N, 3) displacement of the measured places under a unit translation along x, y and a unit rotation
@@ -127,6 +145,21 @@ class Measurements:
         columns[0::2, 2] = -offset[:, 1]
         columns[1::2, 2] = offset[:, 0]
         return columns
+
+
+@dataclass(frozen=True)
+class Observer:
+    """The model seen at points (`windows` None: FE interpolation there) or through DIC windows (`windows` maps
+    the displacement at the pixel centres `positions_mm`, interleaved, to what each window measures)."""
+
+    positions_mm: np.ndarray
+    windows: sparse.csr_matrix | None
+
+    def __call__(self, mesh) -> sparse.csr_matrix:
+        from .forward import MeshInterpolator
+
+        at_positions = sparse.kron(MeshInterpolator(mesh).weights(self.positions_mm), sparse.identity(2), format="csr")
+        return at_positions if self.windows is None else (self.windows @ at_positions).tocsr()
 
 
 def points_measurements(points: DisplacementPoints, sigma_default_mm: float = 1.0) -> Measurements:
@@ -141,16 +174,22 @@ def points_measurements(points: DisplacementPoints, sigma_default_mm: float = 1.
 
 def window_centres(labels: np.ndarray, pixel_size_mm, window_px: int, step_px: int, roi_spacing_mm: float,
                    vessels_mm) -> tuple[np.ndarray, list[str]]:
-    """Grid windows whose centre is in fat or muscle, then skin, fascia and vessel windows (module text)."""
+    """Grid windows whose centre is in fat or muscle, then vessel, skin and fascia windows (module text), each at
+    least half a step (in rows or columns) from those before it."""
     leg = tissue_mask(labels, FAT) | tissue_mask(labels, MUSCLE)
     grid = grid_centres(labels.shape, window_px, step_px, mask=leg)
     skin = roi_centres(labels, pixel_size_mm, roi_spacing_mm, skin=True, fascia=False)
     fascia = roi_centres(labels, pixel_size_mm, roi_spacing_mm, skin=False, fascia=True)
     vessels = roi_centres(labels, pixel_size_mm, roi_spacing_mm, skin=False, fascia=False, vessels_mm=vessels_mm)
-    parts = [(grid, "grid"), (skin, "skin"), (fascia, "fascia"), (vessels, "vessel")]
-    centres = np.concatenate([p.reshape(-1, 2) for p, _ in parts]).astype(int)
-    kinds = [kind for p, kind in parts for _ in range(len(p))]
-    return centres, kinds
+    parts = [(grid, "grid"), (vessels, "vessel"), (skin, "skin"), (fascia, "fascia")]
+    centres, kinds = [], []
+    for points, kind in parts:
+        for point in points.reshape(-1, 2):
+            # a window next to one already placed measures nearly the same pixels, with nearly the same error
+            if not centres or np.min(np.max(np.abs(np.array(centres) - point), axis=1)) >= step_px / 2:
+                centres.append(point)
+                kinds.append(kind)
+    return np.array(centres, dtype=int).reshape(-1, 2), kinds
 
 
 def vessel_landmarks(landmarks: dict[str, tuple[float, float]]) -> list[tuple[float, float]]:
@@ -198,22 +237,25 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     centres, kinds = window_centres(labels, pixel_size_mm, window_px, step_px, roi_spacing_mm, vessels)
     if len(centres) == 0:
         raise ValueError("the segmentation holds no fat or muscle where a DIC window could sit")
-    result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion)
-    status = np.full(len(centres), KEPT, dtype=object)
-    correlated = np.all(np.isfinite(result.displacement_px), axis=1)
-    status[~correlated] = "not correlated (outside the image or no texture)"
-    low = correlated & (result.confidence < min_confidence)
-    status[low] = f"low match (ZNCC < {min_confidence:g})"
-    uncertain = correlated & ~low & ~(result.uncertainty_px <= max_uncertainty_px)
-    status[uncertain] = f"uncertain (> {max_uncertainty_px:g} px)"
-    candidates = status == KEPT
-    outliers = normalised_median_outliers(result.position_mm, result.displacement_px, candidates,
-                                          radius_mm=3.0 * step_px * pixel)
-    status[outliers & candidates] = f"median test (> {MEDIAN_THRESHOLD:g})"
+    first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion)
+    trusted = _checks(first, min_confidence, max_uncertainty_px, step_px * pixel) == KEPT
+    prior = prior_field(first.position_mm[trusted], first.displacement_mm[trusted], unloaded.shape, pixel_size_mm)
+    result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion,
+                       prior_field_mm=prior, noise_sigma=first.noise_sigma)
+    status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
+    kept = status == KEPT
+    offset = np.full((len(centres), 2), np.nan)
+    if kept.any():
+        # what the windows see of the prior is not the prior at their centres: the data the model is compared with
+        # are the displacements less that difference (measure_dic text)
+        seen = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0]).observe(prior)
+        centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
+                                  for c in range(2)], axis=1)
+        offset[kept] = centre_values - seen
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
-                        result.confidence, result.intensity_variance, tissue, [str(s) for s in status])
+                        result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0])
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
@@ -227,6 +269,35 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     return measurements, table, summary
 
 
+def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: float) -> np.ndarray:
+    """Status of every window: kept, or the first check it fails (module text)."""
+    status = np.full(len(result.confidence), KEPT, dtype=object)
+    correlated = np.all(np.isfinite(result.displacement_px), axis=1)
+    status[~correlated] = "not correlated (outside the image or no texture)"
+    low = correlated & (result.confidence < min_confidence)
+    status[low] = f"low match (ZNCC < {min_confidence:g})"
+    uncertain = correlated & ~low & ~(result.uncertainty_px <= max_uncertainty_px)
+    status[uncertain] = f"uncertain (> {max_uncertainty_px:g} px)"
+    candidates = status == KEPT
+    outliers = normalised_median_outliers(result.position_mm, result.displacement_px, candidates, radius_mm=3.0 * step_mm)
+    status[outliers & candidates] = f"median test (> {MEDIAN_THRESHOLD:g})"
+    return status
+
+
+def prior_field(positions_mm: np.ndarray, displacement_mm: np.ndarray, shape, pixel_size_mm,
+                smoothing: float = PRIOR_SMOOTHING) -> np.ndarray:
+    """(2, H, W) thin-plate spline through the trusted first-pass displacements (mm), the prior by which the
+    second pass deforms its windows (`imaging.dic`, window deformation)."""
+    if len(positions_mm) < 10:
+        raise ValueError(f"only {len(positions_mm)} DIC windows matched in the first pass: the images do not correlate; "
+                         "check that both slices show the same level of the leg")
+    spline = RBFInterpolator(positions_mm, displacement_mm, kernel="thin_plate_spline", smoothing=smoothing)
+    x, y = pixel_centres_mm(shape, pixel_size_mm)
+    values = np.concatenate([spline(np.column_stack([x.ravel()[k:k + 65536], y.ravel()[k:k + 65536]]))
+                             for k in range(0, x.size, 65536)])
+    return np.ascontiguousarray(values.T.reshape(2, *shape))
+
+
 def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, pixel_size_mm,
                      reference_noise_sigma: float) -> Measurements:
     """The kept windows of a table as Measurements (operators and covariance rebuilt from I0)."""
@@ -237,7 +308,8 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
     operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma)
     covariance = operators.covariance(table.intensity_variance[kept])
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
-    return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept], covariance, operators, True,
+    offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]
+    return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept] - offset, covariance, operators, True,
                         f"DIC: {int(kept.sum())} windows of {window_px} px kept of {len(kept)}", kinds)
 
 
@@ -253,12 +325,14 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
     np.savez_compressed(temporary, centres_rc=table.centres_rc, kind=np.array(table.kind), position_mm=table.position_mm,
                         displacement_mm=table.displacement_mm, covariance_mm2=table.covariance_mm2,
                         confidence=table.confidence, intensity_variance=table.intensity_variance,
-                        tissue=np.array(table.tissue), status=np.array(table.status))
+                        tissue=np.array(table.tissue), status=np.array(table.status),
+                        prior_offset_mm=table.prior_offset_mm)
     temporary.replace(run_dir / FILES["arrays"])
-    rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,kind,tissue,status"]
+    rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,offset_x_mm,offset_y_mm,kind,tissue,status"]
     for k in range(len(table.status)):
         c = table.covariance_mm2[k]
-        values = [*table.position_mm[k], *table.displacement_mm[k], c[0, 0], c[1, 1], c[0, 1], table.confidence[k]]
+        values = [*table.position_mm[k], *table.displacement_mm[k], c[0, 0], c[1, 1], c[0, 1], table.confidence[k],
+                  *table.prior_offset_mm[k]]
         rows.append(",".join(f"{v:.6g}" for v in values) + f",{table.kind[k]},{table.tissue[k]},{table.status[k]}")
     temporary = run_dir / f".{FILES['table']}.tmp"
     temporary.write_text("\n".join(rows) + "\n", encoding="utf-8")
@@ -275,5 +349,5 @@ def read_window_table(run_dir: Path) -> WindowTable | None:
         return WindowTable(arrays["centres_rc"], [str(v) for v in arrays["kind"]], arrays["position_mm"],
                            arrays["displacement_mm"], arrays["covariance_mm2"], arrays["confidence"],
                            arrays["intensity_variance"], [str(v) for v in arrays["tissue"]],
-                           [str(v) for v in arrays["status"]])
+                           [str(v) for v in arrays["status"]], arrays["prior_offset_mm"])
 

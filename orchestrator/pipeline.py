@@ -21,6 +21,10 @@ from dataclasses import asdict
 from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, settle_ties, summarize_fit
 from .forward import TABLE2_CENTRAL_KPA
 from .identify import FitResult, levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
+from .geometry_uncertainty import SKIN_UNCERTAINTY_PX, skin_covariance
+from .geometry_uncertainty import read_covariance as read_geometry_covariance
+from .geometry_uncertainty import write as write_geometry
+from .meshing.labels import SKIN_CUTOFF_MM
 from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
 from .objectives import DisplacementResidualObjective
 from .runner import LOG_NAME, EvaluationLog, Evaluator
@@ -70,8 +74,8 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
 def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "auto", data: str = "auto",
                  window_px: int = DEFAULT_WINDOW_PX, start: Sequence[float] | None = None, starts: str = "one",
                  n_elements: int = 400, order: int = 1, effects: Sequence[str] = (), engine_sensitivities: bool = True,
-                 workers: int = 1, scheduler: str | None = None, timeout_s: float = 120.0,
-                 progress: bool = True) -> dict:
+                 skin_sigma_mm: float | None = None, skin_uncertainty: bool = True, workers: int = 1,
+                 scheduler: str | None = None, timeout_s: float = 120.0, progress: bool = True) -> dict:
     """Prepare (or reload) the run folder and identify; returns and writes identification.json.
     data: "points" (points.csv), "dic" (measured from the images, now if the run folder has no measurements yet,
     with `window_px`) or "auto" (points.csv when the case has one); effects: catalog effects whose parameters are
@@ -89,15 +93,34 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
+
+    def fit_from(points, scorer):
+        with Evaluator(setup.model, scorer, run_dir, workers=workers, scheduler=scheduler,
+                       timeout_s=timeout_s, progress=progress) as evaluator:
+            found = ([levenberg_marquardt(evaluator, s) for s in points] if method == "lm"
+                     else multistart(evaluator, points))
+        return found, min(found, key=lambda fit: fit.cost)
+
+    fits, best = fit_from(start_points, DisplacementResidualObjective(setup.mesh, measured) if measured is not None
+                          else setup.mismatch_objective())
+    geometry = None
+    if measured is not None and source == "dic" and skin_uncertainty:
+        # the uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit
+        # again with it in the weights (geometry_uncertainty)
+        stored = read_geometry_covariance(run_dir, 2 * len(measured))
+        if stored is None or not np.allclose(stored[1]["theta"], best.theta, rtol=1e-9):
+            sigma = SKIN_UNCERTAINTY_PX * min(setup.case.pixel_size_mm) if skin_sigma_mm is None else skin_sigma_mm
+            covariance, info = skin_covariance(setup.model, best.theta, measured, skin_sigma_mm=sigma,
+                                               cutoff_mm=SKIN_CUTOFF_MM)
+            write_geometry(run_dir, covariance, info)
+        measured = setup.measurements(source)
+        first = best
+        fits, best = fit_from([first.theta], DisplacementResidualObjective(setup.mesh, measured))
+        fits = [first] + fits
+        geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured))[1],
+                        measurement_share_of_variance=measured.measurement_share)
     scorer = (DisplacementResidualObjective(setup.mesh, measured) if measured is not None
               else setup.mismatch_objective())
-    with Evaluator(setup.model, scorer, run_dir, workers=workers, scheduler=scheduler,
-                   timeout_s=timeout_s, progress=progress) as evaluator:
-        if method == "lm":
-            fits = [levenberg_marquardt(evaluator, s) for s in start_points]
-        else:
-            fits = multistart(evaluator, start_points)
-    best = min(fits, key=lambda fit: fit.cost)
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
               "data": {"source": source if measured is not None else "contours",
                        "description": measured.description if measured is not None else "contours of I0 and I1",
@@ -106,6 +129,8 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
               "units": setup.model.space.units, "unit_of": list(setup.model.space.unit_of),
               "best": best.as_dict(), "fits": [fit.as_dict() for fit in fits],
               "engine_runs_total": len(EvaluationLog(run_dir / LOG_NAME))}
+    if geometry is not None:
+        result["geometry_uncertainty"] = geometry
     if measured is not None:
         result["noise_floor"] = scorer.noise_floor(setup.model.space.size)
         result["misfit_over_floor"] = best.cost / result["noise_floor"]
@@ -188,7 +213,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
-    if not diagnosis.explained and diagnosis.maps.worst_region:
+    if not diagnosis.explained and diagnosis.lack_of_fit_p < alpha and diagnosis.maps.worst_region:
         maps = diagnosis.maps
         diagnosis.verdict += (f"; the residual is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f}"
                               f" mm, {100 * maps.worst_region_share:.0f} % of the squared residual)")

@@ -66,6 +66,48 @@ def smooth_points(points: np.ndarray, closed: bool, sigma: float) -> np.ndarray:
     return smoothed
 
 
+def lowpass_closed(points: np.ndarray, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """A closed curve low-pass filtered along its arc length: resampled at equal steps, its coordinates' Fourier
+    series multiplied by the Butterworth response 1 / (1 + (lambda_c / lambda)^(2 order)), lambda the wavelength.
+    Shapes longer than the cut-off wavelength are kept as they are (a Gaussian shrinks every convex curve); the
+    pixel staircase and the noise of a segmentation, shorter, are removed."""
+    if cutoff_mm <= 0 or len(points) < 8:
+        return points.copy()
+    closed_loop = np.vstack([points, points[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed_loop, axis=0), axis=1))])
+    count = len(points)
+    even = np.linspace(0.0, arc[-1], count, endpoint=False)
+    samples = np.column_stack([np.interp(even, arc, closed_loop[:, k]) for k in range(2)])
+    return lowpass_periodic(samples, arc[-1] / count, cutoff_mm, order)
+
+
+def lowpass_periodic(values: np.ndarray, spacing_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """Columns of periodic samples `spacing_mm` apart, through the Butterworth low-pass of `lowpass_closed`."""
+    values = np.asarray(values, float)
+    frequency = np.fft.rfftfreq(len(values), d=spacing_mm)     # cycles per mm
+    response = 1.0 / (1.0 + (frequency * cutoff_mm) ** (2 * order))
+    shape = (-1,) + (1,) * (values.ndim - 1)
+    return np.fft.irfft(np.fft.rfft(values, axis=0) * response.reshape(shape), n=len(values), axis=0)
+
+
+def unit_normals(points: np.ndarray, closed: bool) -> np.ndarray:
+    """Unit normals (k, 2) of a sampled curve, pointing to the left of its direction."""
+    tangent = np.gradient(points, axis=0)
+    if closed and len(points) > 2:
+        tangent[0], tangent[-1] = points[1] - points[-1], points[0] - points[-2]
+    normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
+    return normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+
+
+def offset_points(points: np.ndarray, closed: bool, move) -> np.ndarray:
+    """The curve moved along its normals by `move` (mm, scalar or one per point); open curves keep their ends
+    (the junctions other curves share)."""
+    move = np.broadcast_to(np.asarray(move, float), (len(points),)).copy()
+    if not closed and len(points):
+        move[0] = move[-1] = 0.0
+    return points + move[:, None] * unit_normals(points, closed)
+
+
 def curvature(points: np.ndarray, closed: bool, sigma: float) -> np.ndarray:
     """Unsigned curvature (1/mm) at each point, from Gaussian derivatives of width sigma samples."""
     if len(points) < 5:

@@ -17,14 +17,18 @@ Method.
    0.5 on either region's mask, but each interface exists once, and at triple points
    the curves meet at the shared pixel corner (marching squares on each mask
    separately would leave a gap there). Curves are smoothed with a Gaussian of
-   `smoothing_pixels` samples, junction end points fixed; the skin (the interface
-   with the background) with `skin_smoothing_pixels` samples, because the garment
-   presses it by Laplace's law, p = T kappa: a staircase of pixels left in the
-   skin curve is curvature the finite elements resolve better the finer they are,
-   so the pressure near the skin never converges (on the phantom calf, displacements
-   1 mm under the skin still changed by 0.02 mm from 8,000 to 16,000 elements with
-   1 sample, against 0.002 mm with 4). Four samples (about 1.4 mm at 0.36 mm pixels)
-   keep the shape of the leg at the scale of its curvature radii.
+   `smoothing_pixels` samples, junction end points fixed. With the image the labels
+   come from, each interface is moved onto the image's edge (`EdgeMap`).
+   The skin (the closed interface with the background) is then low-pass filtered at
+   the wavelength `skin_cutoff_mm` (`curves.lowpass_closed`, which does not shrink it),
+   because the garment presses it by Laplace's law, p = T kappa, and curvature
+   amplifies short wavelengths: a bump of 0.02 mm over 6 mm of skin doubles the local
+   pressure. The pixel staircase and the segmentation's noise are such bumps; left in
+   the skin they make the pressure near it depend on the mesh (on the phantom calf,
+   displacements 1 mm under the skin still changed by 0.02 mm from 8,000 to 16,000
+   elements) and on the segmentation (0.05 mm bumps in the skin's displacement, 10
+   times what DIC resolves there). A calf's skin has no real shape shorter than the
+   default 8 mm.
 3. The curves go to triangulate.mesh_curves (resampling to the element size with
    area-preserving vertex placement, Triangle with minimum angle and maximum area,
    element-count targeting, node sets and skin surface).
@@ -40,11 +44,12 @@ import numpy as np
 from scipy import ndimage
 from scipy.ndimage import gaussian_filter1d
 
-from .curves import Curve, SpacingRules, smooth_points
+from .curves import Curve, SpacingRules, lowpass_closed, offset_points, smooth_points, unit_normals
 from .mesh import Mesh
 from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
 
 BONE_LABEL = 3
+SKIN_CUTOFF_MM = 8.0
 
 
 def mesh_from_labels(
@@ -55,23 +60,28 @@ def mesh_from_labels(
     min_angle_deg: float = 25.0,
     smoothing_pixels: float = 1.0,
     min_component_pixels: int = 20,
-    skin_smoothing_pixels: float = 4.0,
+    skin_cutoff_mm: float = SKIN_CUTOFF_MM,
     image: np.ndarray | None = None,
+    interface_offsets=None,
 ) -> Mesh:
     """Mesh the tissues of `labels` with about n_elements CPE3 (order 1) or CPE6 (order 2); with the `image` the
-    labels were segmented from, the interfaces are moved to the image's edges (`snap_to_edges`).
+    labels were segmented from, the interfaces are moved to the image's edges (`EdgeMap`). interface_offsets(curve)
+    -> normal moves (mm, one per point of the curve, positive to the left of its direction): a perturbed geometry.
 
     T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary).
     """
     row_mm, col_mm = _pixel_size(pixel_size_mm)
     regions = region_image(labels, min_component_pixels)
-    curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels, skin_smoothing_pixels)
+    curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
     if image is not None:
         if np.shape(image) != np.shape(labels):
             raise ValueError("the image and its labels must have the same shape")
         edges = EdgeMap(image, (row_mm, col_mm))
-        curves = [Curve(edges.snap(c.points, c.closed, skin_smoothing_pixels if c.sides[0] == 0 else smoothing_pixels),
-                        c.closed, c.sides) for c in curves]
+        curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides) for c in curves]
+    curves = [Curve(lowpass_closed(c.points, skin_cutoff_mm), True, c.sides) if c.closed and c.sides[0] == 0 else c
+              for c in curves]
+    if interface_offsets is not None:
+        curves = [Curve(offset_points(c.points, c.closed, interface_offsets(c)), c.closed, c.sides) for c in curves]
     rules = SpacingRules(min_spacing=min(row_mm, col_mm))
 
     def classify(points: np.ndarray) -> np.ndarray:
@@ -108,11 +118,7 @@ class EdgeMap:
         if len(points) < 5:
             return points
         row_mm, col_mm = self.pixel_size
-        tangent = np.gradient(points, axis=0)
-        if closed:
-            tangent[0], tangent[-1] = points[1] - points[-1], points[0] - points[-2]
-        normal = np.column_stack([-tangent[:, 1], tangent[:, 0]])
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+        normal = unit_normals(points, closed)
         offsets = np.arange(-self.max_move - self.STEP, self.max_move + 1.5 * self.STEP, self.STEP)
         pixel = np.sqrt(row_mm * col_mm)
         samples = points[:, None, :] + offsets[None, :, None] * pixel * normal[:, None, :]   # (k, m, 2) mm
@@ -212,15 +218,8 @@ def _lookup(regions: np.ndarray, pixel_size: tuple[float, float], points: np.nda
     return keys
 
 
-def interface_curves(regions: np.ndarray, pixel_size: tuple[float, float], smoothing_pixels: float = 1.0,
-                     skin_smoothing_pixels: float | None = None) -> list[Curve]:
-    """The interfaces of a region image that border at least one tissue, as smoothed curves (mm); the skin
-    (tissue against background) smoothed with skin_smoothing_pixels (default: smoothing_pixels)."""
-    skin_smoothing_pixels = smoothing_pixels if skin_smoothing_pixels is None else skin_smoothing_pixels
-
-    def sigma(edge: int) -> float:
-        return skin_smoothing_pixels if sides[edge, 0] == 0 else smoothing_pixels
-
+def interface_curves(regions: np.ndarray, pixel_size: tuple[float, float], smoothing_pixels: float = 1.0) -> list[Curve]:
+    """The interfaces of a region image that border at least one tissue, as smoothed curves (mm)."""
     padded = np.pad(regions, 1)
     width = padded.shape[1] + 1  # corners per row of the padded image
 
@@ -283,13 +282,13 @@ def interface_curves(regions: np.ndarray, pixel_size: tuple[float, float], smoot
             points = np.vstack(
                 [corner_position(junction)] + [edge_midpoint(e) for e in chain] + [corner_position(end)]
             )
-            points = smooth_points(points, closed=False, sigma=sigma(first))
+            points = smooth_points(points, closed=False, sigma=smoothing_pixels)
             curves.append(Curve(points, False, (int(sides[first, 0]), int(sides[first, 1]))))
     for first in range(len(corners)):
         if visited[first]:
             continue
         chain, _ = walk(int(corners[first, 0]), first)
         points = np.vstack([edge_midpoint(e) for e in chain])
-        points = smooth_points(points, closed=True, sigma=sigma(first))
+        points = smooth_points(points, closed=True, sigma=smoothing_pixels)
         curves.append(Curve(points, True, (int(sides[first, 0]), int(sides[first, 1]))))
     return curves

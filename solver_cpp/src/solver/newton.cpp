@@ -604,10 +604,16 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     apply_prescribed(u, lambda);
     rec.converged = newton(u, lambda, rec, time == 0.0 && result.cutbacks == 0);
     result.records.push_back(rec);
-    result.newton_iterations += static_cast<int>(rec.residual_norms.size()) - 1;
+    // An increment whose prescribed displacements invert an element stops before its first residual.
+    const int iterations = std::max(static_cast<int>(rec.residual_norms.size()) - 1, 0);
+    result.newton_iterations += iterations;
     std::ostringstream line;
-    line << "step " << step + 1 << " time " << rec.time << " dt " << dt << ": " << rec.residual_norms.size() - 1
-         << " iterations, residual " << rec.residual_norms.back() << (rec.converged ? "" : " (cut back: " + rec.note + ")");
+    line << "step " << step + 1 << " time " << rec.time << " dt " << dt << ": " << iterations << " iterations, residual ";
+    if (rec.residual_norms.empty())
+      line << "none";
+    else
+      line << rec.residual_norms.back();
+    line << (rec.converged ? "" : " (cut back: " + rec.note + ")");
     log(line.str());
     if (rec.converged) {
       u_ = u;

@@ -1,0 +1,115 @@
+"""The model's skin is only as good as the segmentation: its uncertainty belongs to the error budget.
+
+DIC measures the skin's motion to a few micrometres (a 32-pixel window on the skin edge: 0.002-0.003 mm across
+the edge). The model cannot predict it that well, because its skin comes from a segmentation and the garment
+presses it by Laplace's law, p = T kappa (Avril et al. eq. 1): curvature amplifies short shape errors, and a
+bump of 0.01 mm over 15 mm of skin changes the local pressure by several percent. On the phantom calf, whose
+true shape is known, the skin `meshing.mesh_from_labels` takes from the image (edges snapped, low-pass at 8 mm)
+is off the true skin by 0.011 mm RMS at wavelengths over 8 mm, and that alone puts the model's predictions 0.2
+times the DIC variance away from the truth's (the fascia and the bones, segmented as well, by under 0.05;
+moving the whole skin by 0.14 mm, by under 0.1). Ignored, it makes every fit look worse than the noise and
+every diagnosis find physics that is missing only from the outline.
+
+Shape error as pressure error. A normal offset delta(theta) of a contour of radius R changes its curvature by
+-(delta + delta'') / R^2 (theta the polar angle), so the offset's Fourier mode k (alpha_k cos k theta + ...)
+changes the Laplace pressure by the relative amount a_k = (k^2 - 1) alpha_k / R: exactly a garment tension
+profile T (1 + sum a_k cos k theta + b_k sin k theta), whose sensitivities du/da_k the engine gives in one run
+(`*SENSITIVITY`, `PROFILE, GARMENT, A<k>`). With the skin offset modelled as white noise low-passed at the
+skin's cut-off wavelength (`meshing.labels.SKIN_CUTOFF_MM`, Butterworth H_k at the wavelength L / k, L the
+perimeter) and of RMS `skin_sigma_mm` (default `SKIN_UNCERTAINTY_PX` pixels), mode k has the variance
+v_k = sigma^2 H_k^2 / sum_j H_j^2 in each of alpha_k and beta_k, and the predictions the covariance
+
+    C_geo = sum_{k >= 2} (k^2 - 1)^2 v_k / R^2 (g_Ak g_Ak^T + g_Bk g_Bk^T),   g = O du/da (what is measured of it),
+
+which `measure.Measurements.with_model_covariance` adds to the measurements'. k = 1 (a shift of the contour)
+changes no curvature, so the first harmonic of a real tension profile (the `tension_profile` effect) stays
+fully visible. The floor then counts both parts, and the identification reports the measurement's share.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+SKIN_UNCERTAINTY_PX = 0.05
+RESPONSE_FLOOR = 1e-3        # modes whose low-pass response is below this carry no uncertainty
+FILE = "geometry_uncertainty.npz"
+
+
+def skin_perimeter_mm(mesh) -> float:
+    loop = mesh.nodes[mesh.skin_loop]
+    return float(np.sum(np.linalg.norm(np.diff(np.vstack([loop, loop[:1]]), axis=0), axis=1)))
+
+
+def mode_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """Variance of the relative pressure coefficients a_k (= of b_k), k = 1 .. K, for a skin offset of RMS
+    skin_sigma_mm low-passed at cutoff_mm (module text); K is where the low-pass response falls below
+    RESPONSE_FLOOR."""
+    last = int(np.ceil(perimeter_mm / cutoff_mm * (1.0 / RESPONSE_FLOOR - 1.0) ** (1.0 / (2 * order))))
+    k = np.arange(1, max(last, 2) + 1, dtype=float)
+    response = 1.0 / (1.0 + (k * cutoff_mm / perimeter_mm) ** (2 * order))
+    offset_variance = skin_sigma_mm ** 2 * response ** 2 / np.sum(response ** 2)
+    radius = perimeter_mm / (2 * np.pi)
+    return (k ** 2 - 1.0) ** 2 * offset_variance / radius ** 2
+
+
+def profile_lines(count: int) -> list[str]:
+    from .effects import PROFILE_NAME
+
+    return [f"PROFILE, {PROFILE_NAME}, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
+
+
+def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> dict[str, np.ndarray]:
+    """du/da_k and du/db_k (k = 1 .. count, nodal (M, 2) each) of the model at theta, from one engine run."""
+    from .forward import write_mesh_include
+    from .results import EngineResults
+    from .runner import run_engine
+
+    with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:
+        write_mesh_include(model, Path(scratch))
+        deck = Path(scratch) / "deck.inp"
+        deck.write_text(model.deck(theta, extra_sensitivities=profile_lines(count)))
+        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
+        if not outcome.converged:
+            raise RuntimeError(f"the engine did not converge at {list(theta)} for the skin's pressure sensitivities")
+        found = EngineResults(outcome.outdir).sensitivities()
+    return {line: found[line.replace(", ", ":")] for line in profile_lines(count)}
+
+
+def skin_covariance(model, theta: Sequence[float], measurements, *, skin_sigma_mm: float,
+                    cutoff_mm: float) -> tuple[np.ndarray, dict]:
+    """C_geo of the module text (mm^2, interleaved like the measurements) and what made it."""
+    perimeter = skin_perimeter_mm(model.mesh)
+    variances = mode_variances(perimeter, skin_sigma_mm, cutoff_mm)
+    sensitivities = skin_pressure_sensitivities(model, theta, len(variances))
+    observation = measurements.observation(model.mesh)
+    lines = profile_lines(len(variances))
+    columns = np.column_stack([observation @ sensitivities[line].ravel() for line in lines])
+    weights = np.repeat(variances, 2)
+    covariance = (columns * weights) @ columns.T
+    info = {"skin_sigma_mm": skin_sigma_mm, "cutoff_mm": cutoff_mm, "modes": len(variances),
+            "perimeter_mm": perimeter, "theta": [float(v) for v in theta]}
+    return covariance, info
+
+
+def write(run_dir: Path, covariance: np.ndarray, info: dict) -> None:
+    temporary = Path(run_dir) / f".{FILE}.tmp.npz"
+    np.savez_compressed(temporary, covariance=covariance, **{k: np.asarray(v) for k, v in info.items()})
+    temporary.replace(Path(run_dir) / FILE)
+
+
+def read_covariance(run_dir: Path, size: int) -> tuple[np.ndarray, dict] | None:
+    """The stored C_geo (mm^2) and what made it; None without the file or when it belongs to other
+    measurements (another count)."""
+    path = Path(run_dir) / FILE
+    if not path.is_file():
+        return None
+    with np.load(path) as stored:
+        covariance = stored["covariance"]
+        info = {key: stored[key].tolist() for key in stored.files if key != "covariance"}
+    if covariance.shape != (size, size):
+        return None
+    return covariance, info
