@@ -200,8 +200,8 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
     Effect("stiffening", "higher-order strain-energy term C20 (I1bar - 3)^2",
            "Soft tissue stiffens with strain (collagen recruitment); the neo-Hookean law cannot: regions of large "
            "strain (under the skin, near the bones) move less than the model says.",
-           _fixed(EffectParameter("C20_fat", "kPa", 0.0, 5000.0, 10.0, "C20 of fat"),
-                  EffectParameter("C20_muscle", "kPa", 0.0, 5000.0, 10.0, "C20 of muscle")),
+           _fixed(EffectParameter("C20_fat", "kPa", 0.0, 5000.0, 500.0, "C20 of fat"),
+                  EffectParameter("C20_muscle", "kPa", 0.0, 5000.0, 500.0, "C20 of muscle")),
            _apply_stiffening),
     Effect("out_of_plane", "generalized plane strain: uniform axial stretch",
            "A calf squeezed by a garment lengthens along the leg (or the slice is not where the two scans cut it): "

@@ -20,8 +20,9 @@ from dataclasses import asdict
 
 from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, settle_ties, summarize_fit
 from .forward import TABLE2_CENTRAL_KPA
-from .identify import FitResult, levenberg_marquardt, monte_carlo, multistart, pressure_uncertainty, table1_starts
-from .geometry_uncertainty import SKIN_UNCERTAINTY_PX, skin_covariance
+from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
+                       pressure_uncertainty, table1_starts)
+from .geometry_uncertainty import INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, geometry_covariance
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .geometry_uncertainty import write as write_geometry
 from .meshing.labels import SKIN_CUTOFF_MM
@@ -109,9 +110,11 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         # again with it in the weights (geometry_uncertainty)
         stored = read_geometry_covariance(run_dir, 2 * len(measured))
         if stored is None or not np.allclose(stored[1]["theta"], best.theta, rtol=1e-9):
-            sigma = SKIN_UNCERTAINTY_PX * min(setup.case.pixel_size_mm) if skin_sigma_mm is None else skin_sigma_mm
-            covariance, info = skin_covariance(setup.model, best.theta, measured, skin_sigma_mm=sigma,
-                                               cutoff_mm=SKIN_CUTOFF_MM)
+            pixel = min(setup.case.pixel_size_mm)
+            covariance, info = geometry_covariance(
+                setup, best.theta, measured, effects=setup.model.effects,
+                skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
+                interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM)
             write_geometry(run_dir, covariance, info)
         measured = setup.measurements(source)
         first = best
@@ -144,19 +147,37 @@ def identified_data(identification: dict) -> str:
     return "points" if source in ("points", "points.csv") else source
 
 
-def run_montecarlo(run_dir, *, draws: int = 400, threshold: float | None = None, threshold_factor: float = 1.5,
-                   seed: int = 0, workers: int = 1, scheduler: str | None = None, timeout_s: float = 120.0,
-                   progress: bool = True) -> dict:
+def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, threshold: float | None = None,
+                   threshold_factor: float = 1.5, seed: int = 0, workers: int = 1, scheduler: str | None = None,
+                   timeout_s: float = 120.0, progress: bool = True) -> dict:
+    """Parameter intervals of an identified run, written to montecarlo.json. method: "noise" (refits to data sets
+    drawn from the measurements' covariance, `identify.noise_monte_carlo`; the default with measured
+    displacements), "threshold" (Avril et al.'s acceptance below a misfit threshold, `identify.monte_carlo`; the
+    default, and the only way, with the contour mismatch)."""
     run_dir = Path(run_dir)
     setup = load_run(run_dir)
     identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
-    setup.model = setup.model_with(identification.get("effects", ()))
+    objective_name = identification["objective"]
+    if method == "auto":
+        method = "noise" if objective_name == "displacement" else "threshold"
+    if method not in ("noise", "threshold"):
+        raise ValueError(f"the Monte-Carlo method is auto, noise or threshold, not {method!r}")
+    if method == "noise" and objective_name != "displacement":
+        raise ValueError("the noise Monte-Carlo needs measured displacements (their covariance): identify with "
+                         "--objective displacement, or use --method threshold")
+    setup.model = setup.model_with(identification.get("effects", ()), sensitivities=(method == "noise"))
+    objective = _objective(setup, objective_name, identified_data(identification))
     best = identification["best"]
-    with Evaluator(setup.model, _objective(setup, identification["objective"], identified_data(identification)),
-                   run_dir, workers=workers,
-                   scheduler=scheduler, timeout_s=timeout_s, progress=progress) as evaluator:
-        result = monte_carlo(evaluator, identification["parameters"], best["theta"], best["cost"], draws=draws,
-                             threshold=threshold, threshold_factor=threshold_factor, seed=seed).as_dict()
+    with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
+                   progress=progress) as evaluator:
+        if method == "noise":
+            result = noise_monte_carlo(evaluator, best["theta"], draws=draws or NOISE_DRAWS, seed=seed,
+                                       nuisance_dof=objective.nuisance_dof).as_dict()
+        else:
+            result = monte_carlo(evaluator, identification["parameters"], best["theta"], best["cost"],
+                                 draws=draws or 400, threshold=threshold, threshold_factor=threshold_factor,
+                                 seed=seed).as_dict()
+            result["method"] = "threshold"
     write_json(run_dir / "montecarlo.json", result)
     return result
 
@@ -235,10 +256,20 @@ def pressure_summary(result: dict) -> list[str]:
 
 
 def intervals_summary(result: dict) -> list[str]:
+    noise = result.get("method") == "noise"
     lines = [f"{'parameter':<12} {'lower':>8} {'upper':>8} {'central':>8}  identification"]
     for k, name in enumerate(result["names"]):
-        flag = "POOR" if name in result["poorly_identified"] else "good"
+        if noise:
+            flag = (f"+-{100 * result['relative_half_width'][k]:.1f} % " +
+                    ("identifiable" if result["identifiable"][k] else "NOT identifiable") +
+                    (", ON A BOUND" if name in result["on_bound"] else ""))
+        else:
+            flag = "POOR" if name in result["poorly_identified"] else "good"
         lines.append(f"{name:<12} {result['lower'][k]:8.2f} {result['upper'][k]:8.2f} {result['central'][k]:8.2f}  {flag}")
+    if noise:
+        lines.append(f"{100 * result['confidence']:.0f} % intervals from {result['draws'] - result['failed']} refitted "
+                     f"noise draws" + (f", noise variance inflated x{result['inflation']:.2f} (misfit above its floor)"
+                                       if result["inflation"] > 1.0 else ""))
     return lines
 
 

@@ -50,6 +50,7 @@ from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
 
 BONE_LABEL = 3
 SKIN_CUTOFF_MM = 8.0
+SNAP_PASSES = 8
 
 
 def mesh_from_labels(
@@ -77,7 +78,8 @@ def mesh_from_labels(
         if np.shape(image) != np.shape(labels):
             raise ValueError("the image and its labels must have the same shape")
         edges = EdgeMap(image, (row_mm, col_mm))
-        curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides) for c in curves]
+        for _ in range(SNAP_PASSES):
+            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides) for c in curves]
     curves = [Curve(lowpass_closed(c.points, skin_cutoff_mm), True, c.sides) if c.closed and c.sides[0] == 0 else c
               for c in curves]
     if interface_offsets is not None:
@@ -142,6 +144,30 @@ class EdgeMap:
             move[0] = move[-1] = 0.0
         moved = points + (move * pixel)[:, None] * normal
         return smooth_points(moved, closed, sigma)
+
+
+def interface_shift(labels: np.ndarray, pixel_size_mm: Sequence[float], interface: str, distance_mm: float,
+                    min_component_pixels: int = 20):
+    """interface_offsets for `mesh_from_labels` that move one interface uniformly: the "skin" outwards (the leg
+    grows) or the "fascia" (fat against muscle) towards the muscle (the fat thickens), by distance_mm."""
+    if interface not in ("skin", "fascia"):
+        raise ValueError(f"the interface to shift is skin or fascia, not {interface!r}")
+    pixel_size = _pixel_size(pixel_size_mm)
+    regions = region_image(labels, min_component_pixels)
+
+    def selected(sides) -> bool:
+        low, high = sorted(sides)
+        return low == 0 if interface == "skin" else (low == 1 and is_tissue(high) and high != 1)
+
+    def offsets(curve):
+        if not selected(curve.sides):
+            return 0.0
+        probe = curve.points + 0.5 * min(pixel_size) * unit_normals(curve.points, curve.closed)
+        left = _lookup(regions, pixel_size, probe)
+        towards = (left == 0) if interface == "skin" else (left != 1) & (left != 0)
+        return distance_mm if np.mean(towards) >= 0.5 else -distance_mm
+
+    return offsets
 
 
 def _pixel_size(pixel_size_mm: Sequence[float]) -> tuple[float, float]:
