@@ -278,18 +278,32 @@ td,th{{border:1px solid #999;padding:3px 8px;text-align:right}} img{{max-width:1
 
 def _montecarlo_section(names, theta, montecarlo: dict, truth: dict | None) -> str:
     poorly = montecarlo["poorly_identified"]
+    noise = montecarlo.get("method") == "noise"
     rows2 = [["lower bound"] + montecarlo["lower"], ["upper bound"] + montecarlo["upper"],
              ["central value"] + montecarlo["central"], ["identified"] + theta]
     if truth:
         rows2.append(["truth (phantom)"] + [truth[n] for n in names])
-    rows2.append(["identification"] + ["POOR" if n in poorly else "good" for n in names])
+    if noise:
+        rows2.append(["half width (%)"] + [100 * w for w in montecarlo["relative_half_width"]])
+    rows2.append(["identification"] + [("NOT identifiable" if noise else "POOR") if n in poorly else "good"
+                                       for n in names])
     table2 = _table([""] + [f"{n} (kPa)" for n in names], rows2)
-    poorly_text = (f"Poorly identified: <b>{', '.join(poorly)}</b> (their accepted values span more than a factor "
-                   f"1.5 or reach the edge of the explored range); the pressures below carry that uncertainty."
-                   if poorly else "All parameters are well identified (accepted values within a factor 1.5).")
-    return (f"<h2>Table 2: parameter intervals (Monte-Carlo, misfit below {montecarlo['threshold']:.4g}, "
-            f"{montecarlo['accepted']} of {montecarlo['draws']} draws kept, {montecarlo['failed']} failed)</h2>"
-            f"{table2}<p>{poorly_text}</p>")
+    if noise:
+        poorly_text = (f"Not identifiable: <b>{', '.join(poorly)}</b> (95 % interval wider than +-10 % of the value)."
+                       if poorly else "Every parameter is identifiable (95 % interval within +-10 % of its value).")
+        if montecarlo["on_bound"]:
+            poorly_text += f" On a bound of the search box: <b>{', '.join(montecarlo['on_bound'])}</b>."
+        inflation = (f", noise variance inflated x{montecarlo['inflation']:.2f} because the misfit is above its floor"
+                     if montecarlo["inflation"] > 1.0 else "")
+        title = (f"Table 2: parameter intervals ({100 * montecarlo['confidence']:.0f} % Monte-Carlo over the "
+                 f"measurement noise, {montecarlo['draws'] - montecarlo['failed']} refitted draws{inflation})")
+    else:
+        poorly_text = (f"Poorly identified: <b>{', '.join(poorly)}</b> (their accepted values span more than a factor "
+                       f"1.5 or reach the edge of the explored range); the pressures below carry that uncertainty."
+                       if poorly else "All parameters are well identified (accepted values within a factor 1.5).")
+        title = (f"Table 2: parameter intervals (Monte-Carlo, misfit below {montecarlo['threshold']:.4g}, "
+                 f"{montecarlo['accepted']} of {montecarlo['draws']} draws kept, {montecarlo['failed']} failed)")
+    return f"<h2>{html.escape(title)}</h2>{table2}<p>{poorly_text}</p>"
 
 
 def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -> str:

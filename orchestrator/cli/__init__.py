@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import argparse
 
-from . import _demo, _diagnose, _identify, _montecarlo, _phantom, _pressures, _report, _solve
+from . import _demo, _diagnose, _identify, _measure, _montecarlo, _phantom, _pressures, _report, _solve
 
 COMMANDS = {
     "demo": _demo,
     "phantom": _phantom,
     "solve": _solve,
+    "measure": _measure,
     "identify": _identify,
     "montecarlo": _montecarlo,
     "pressures": _pressures,
@@ -29,7 +30,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, module in COMMANDS.items():
-        sub = commands.add_parser(name, help=module.HELP, description=module.__doc__)
+        sub = commands.add_parser(name, help=module.HELP, description=module.__doc__,
+                                  formatter_class=argparse.RawDescriptionHelpFormatter)
         module.add_arguments(sub)
         sub.set_defaults(handler=module.run)
     return parser

@@ -1,15 +1,20 @@
 """Identify the tissue parameters of a case (Avril et al. sec. 2.2.5; Bouten and Drapier sec. 2.6).
 
-    calfit identify CASE_DIR --out RUN_DIR [--method nm|lm] [--objective auto|mismatch|displacement]
-                    [--starts one|table1] [--start C10f C10m Kvf Kvm] [--effects NAME[,NAME]] [--workers N]
-                    [--scheduler ADDRESS] [--json]
+    calfit identify CASE_DIR --out RUN_DIR [--method lm|nm] [--objective auto|displacement|contour]
+                    [--data auto|dic|points] [--window 16|32|64] [--starts one|table1] [--start C10f C10m Kvf Kvm]
+                    [--elements N] [--order 1|2] [--effects NAME[,NAME]] [--skin-uncertainty MM]
+                    [--workers N] [--scheduler ADDRESS] [--json]
 
-The case is read, segmented, aligned on the bones and meshed (400 T3 elements; --order 2: T6), then the four
-parameters (C10 and Kv of fat and muscle, kPa) are fitted: Nelder-Mead on the contour mismatch M
-or on the displacement residual F (points.csv), or Levenberg-Marquardt on F's residual vector.
+From the two images alone: the loaded image is aligned on the bones, the displacements are measured by DIC
+(`calfit measure`, run here when the run folder has none; --data points takes points.csv instead, which is the
+default when the case has one), I0 is segmented and meshed (1,000 CPE6 by default), and the four parameters
+(C10 and Kv of fat and muscle, kPa) are fitted by Levenberg-Marquardt with the engine's sensitivities, the
+residual weighted by the DIC covariance. The uncertainty of the model's skin is then estimated at that point
+and the fit repeated with it in the weights (--skin-uncertainty sets it, mm RMS; default 0.05 pixel).
+--objective contour fits the contour mismatch M of Avril et al. instead (Nelder-Mead, 400 T3 by default).
 --starts table1 runs from the initial values of Avril et al. Table 1 (each parameter +-10 %).
-Every evaluation is logged in RUN_DIR/evaluations.jsonl: run the same command again after an
-interruption and it resumes without repeating one. Writes RUN_DIR/identification.json.
+Every evaluation is logged in RUN_DIR/evaluations.jsonl: run the same command again after an interruption and
+it resumes without repeating one. Writes RUN_DIR/identification.json (which data, misfit against its floor).
 --effects adds catalog effects (`calfit diagnose --catalog`), their parameters fitted from zero.
 """
 
@@ -19,8 +24,10 @@ import argparse
 import sys
 
 from ..effects import EffectError, parse_effects
-from ..imaging.errors import CaseError
-from ..pipeline import OBJECTIVES, fit_summary, run_identify
+from ..imaging.errors import CaseError, ImagingError
+from ..measure import DEFAULT_WINDOW_PX, WINDOW_CHOICES
+from ..pipeline import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, run_identify
+from ..study import DATA_SOURCES
 from ._common import add_parallel_arguments, emit, fail, parallel_options
 
 HELP = "fit the tissue parameters of a case (Nelder-Mead or Levenberg-Marquardt)"
@@ -29,30 +36,42 @@ HELP = "fit the tissue parameters of a case (Nelder-Mead or Levenberg-Marquardt)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("case_dir", help="case folder (case.toml, unloaded and loaded images, ...)")
     parser.add_argument("--out", required=True, help="run folder (created; reused to resume)")
-    parser.add_argument("--method", choices=("nm", "lm"), default="nm", help="nm: Nelder-Mead (default), lm: Levenberg-Marquardt")
-    parser.add_argument("--objective", choices=("auto",) + OBJECTIVES, default="auto",
-                        help="mismatch: contour mismatch M; displacement: F at points.csv (auto: F if points.csv exists)")
+    parser.add_argument("--method", choices=("lm", "nm"), default="lm",
+                        help="lm: Levenberg-Marquardt with the engine's sensitivities (default); nm: Nelder-Mead")
+    parser.add_argument("--objective", choices=("auto",) + OBJECTIVES + tuple(OBJECTIVE_ALIASES), default="auto",
+                        help="displacement: measured displacements (default); contour: the contour mismatch M "
+                             "(Avril et al.; with --method nm)")
+    parser.add_argument("--data", choices=DATA_SOURCES, default="auto",
+                        help="dic: measure from the images; points: points.csv; auto: points.csv when present, else dic")
+    parser.add_argument("--window", type=int, choices=WINDOW_CHOICES, default=DEFAULT_WINDOW_PX,
+                        help=f"DIC window side in pixels when the displacements are measured here (default {DEFAULT_WINDOW_PX})")
     parser.add_argument("--starts", choices=("one", "table1"), default="one", help="one start, or the starts of Table 1")
     parser.add_argument("--start", type=float, nargs=4, metavar=("C10F", "C10M", "KVF", "KVM"),
                         help="initial values in kPa (default: Avril et al. Table 2 central values)")
-    parser.add_argument("--elements", type=int, default=400, help="elements of the identification mesh (default 400)")
-    parser.add_argument("--order", type=int, choices=(1, 2), default=1,
-                        help="1: CPE3 (the first paper, default); 2: CPE6, for effects that change volume")
+    parser.add_argument("--elements", type=int, help="elements of the identification mesh (default 1000; 400 with "
+                                                     "--objective contour)")
+    parser.add_argument("--order", type=int, choices=(1, 2),
+                        help="1: CPE3; 2: CPE6 (default; 1 with --objective contour, as in Avril et al.)")
     parser.add_argument("--effects", help="comma-separated catalog effects whose parameters are fitted too "
                                            "(calfit diagnose --catalog lists them)")
+    parser.add_argument("--skin-uncertainty", type=float, metavar="MM",
+                        help="RMS uncertainty of the segmented skin's shape, mm (default 0.05 pixel)")
     add_parallel_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        result = run_identify(args.case_dir, args.out, method=args.method, objective=args.objective, start=args.start,
-                              starts=args.starts, n_elements=args.elements, order=args.order,
-                              effects=parse_effects(args.effects),
-                              progress=True, **parallel_options(args))
-    except (CaseError, EffectError, ValueError, RuntimeError) as error:
+        result = run_identify(args.case_dir, args.out, method=args.method, objective=args.objective, data=args.data,
+                              window_px=args.window, start=args.start, starts=args.starts, n_elements=args.elements,
+                              order=args.order, effects=parse_effects(args.effects),
+                              skin_sigma_mm=args.skin_uncertainty, progress=True, **parallel_options(args))
+    except (CaseError, ImagingError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
     lines = [fit_summary(fit, result["parameters"]) for fit in result["fits"]]
-    lines.append(f"best ({result['objective']}): " + fit_summary(result["best"], result["parameters"]))
+    lines.append(f"best ({result['objective']}, {result['data']['description']}): "
+                 + fit_summary(result["best"], result["parameters"]))
+    if "noise_floor" in result:
+        lines.append(f"misfit {result['misfit_over_floor']:.2f} x its noise floor {result['noise_floor']:.4g} mm^2")
     lines.append(f"run folder {args.out}; next: calfit montecarlo {args.out}")
     emit(args, result, lines)
     print(f"identification written to {args.out}/identification.json", file=sys.stderr)
