@@ -172,10 +172,15 @@ def diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pat
                           f["misfit"], f["misfit_over_floor"], f["aic"], f["bic"], m,
                           ", ".join(f"{n} = {v:.4g}" for n, v in zip(f["parameters"], f["theta"]))]
                          for f, m in zip(fits, mismatch_values)])
-    sectors = _table(["sector centre (deg)"] + [f"{c:.0f}" for c in diagnosis["maps"]["sector_centre_deg"]],
-                     [["RMS residual (mm)"] + diagnosis["maps"]["sector_rms_mm"],
-                      ["mean radial (mm, + outwards)"] + diagnosis["maps"]["sector_radial_mm"],
-                      ["points"] + diagnosis["maps"]["sector_count"]])
+    maps = diagnosis["maps"]
+    names = maps.get("sector_names") or [f"{c:.0f} deg" for c in maps["sector_centre_deg"]]
+    sectors = _table(["sector"] + names,
+                     [["RMS residual (mm)"] + maps["sector_rms_mm"],
+                      ["mean radial (mm, + outwards)"] + maps["sector_radial_mm"],
+                      ["measurements"] + maps["sector_count"]])
+    worst = (f"<p>Largest share of the squared residual: the {html.escape(maps['worst_region'])} "
+             f"({100 * maps['worst_region_share']:.0f} %, RMS {maps['worst_region_rms_mm']:.3f} mm).</p>"
+             if maps.get("worst_region") else "")
     labels = " | ".join(["identified model"] + ["+ " + ", ".join(f["effects"]) for f in diagnosis["refits"]])
     return f"""<h2>Diagnosis: where the model fails and which effect is missing</h2>
 <p>{html.escape(diagnosis['verdict'])}.</p>
@@ -184,7 +189,8 @@ def diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pat
 neighbour correlation of the residual {diagnosis['neighbour_correlation']:.2f}, design effect {diagnosis['design_effect']:.2f};
 sensitivities from {html.escape(diagnosis['sensitivities_from'])}, {diagnosis['engine_runs']} engine runs.</p>
 {ranking}
-<h3>Residual per angular sector around the leg (0 deg = +x, 90 deg = +y, image frame)</h3>{sectors}
+<h3>Residual per sector around the leg (angles counter-clockwise on the image from its +x axis, 90 deg at the
+top; anterior towards the tibia, lateral towards the fibula)</h3>{sectors}{worst}
 <p>RMS residual per tissue: {html.escape(', '.join(f'{k} {v:.3f} mm' for k, v in diagnosis['maps']['per_region_rms_mm'].items()))}.</p>
 <h3>Before and after the refit</h3>{comparison}
 <h3>Displacement residual vectors at the measured points ({html.escape(labels)}; 0 to {high:.3f} mm, drawn x{scale * setup.case.pixel_size_mm[1]:.0f})</h3>

@@ -1,16 +1,18 @@
-"""The demonstration, end to end on a phantom case made by the engine:
+"""The demonstration, end to end on a phantom case made by the engine, from its two images only:
 
     calfit demo [--out DIR] [--workers N]
 
-1. `calfit phantom`: a calf slice whose loaded image is computed by calfit-fe with the
-   Avril law at the central values of Avril et al. Table 2 and a garment of 0.16 N/mm
-   (about 20 mmHg), with image noise and noisy measured displacements (points.csv);
-2. `calfit identify --method lm --starts table1`: Levenberg-Marquardt on the displacement
-   residual F (Bouten and Drapier eq. 2) from the starts of Avril et al. Table 1;
-3. `calfit montecarlo`: intervals (Table 2) and which parameters are poorly identified;
-4. `calfit pressures`: the five landmark pressures, their spread (Table 3) and the garment
-   tension +-10 % (Table 4);
-5. `calfit report`: the HTML page; its path is printed last.
+1. `calfit phantom`: a calf slice whose loaded image is computed by calfit-fe with the Avril law at
+   parameters that are not the fit's start, a garment of 0.16 N/mm (about 20 mmHg), image noise and a
+   scanner motion; the case folder holds the two images and case.toml, nothing else (no segmentation,
+   no points.csv); the truth is kept apart;
+2. `calfit measure`: bones aligned, displacements measured by DIC with their covariance;
+3. `calfit identify`: Levenberg-Marquardt on the measured displacements from Avril et al.'s Table 2
+   central values, the engine's sensitivities, then again with the skin's uncertainty in the weights;
+4. `calfit montecarlo`: 95 % intervals over the measurement noise, and which parameters are identifiable;
+5. `calfit pressures`: the five landmark pressures, their spread (Table 3) and the tension +-10 % (Table 4);
+6. `calfit diagnose`: the misfit against its floor and the ranking of the effects the model lacks;
+7. `calfit report`: the HTML page; its path is printed last.
 The phantom and every evaluation are kept in DIR, so running the demo again resumes.
 
 `calfit demo --leg-slice` runs the earlier quick demonstration instead: the analytic leg slice
@@ -26,11 +28,15 @@ from pathlib import Path
 
 
 from ..meshing import leg_slice_deck
-from ..pipeline import fit_summary, intervals_summary, pressure_summary, run_identify, run_montecarlo, run_pressures
+from ..imaging.frame import RigidMotion
+from ..measure import read_window_table
+from ..pipeline import (fit_summary, intervals_summary, pressure_summary, run_diagnose, run_identify, run_measure,
+                        run_montecarlo, run_pressures)
 from ..report import write_report
 from ..results import EngineResults
 from ..runner import run_engine
 from ..study import PARAMETERS_FILE, make_phantom_case, read_json
+from ._measure import summary_lines
 from ._solve import describe
 
 HELP = "phantom case -> identification -> uncertainty -> HTML report (or --leg-slice: one solve)"
@@ -38,12 +44,15 @@ HELP = "phantom case -> identification -> uncertainty -> HTML report (or --leg-s
 # Avril et al. (2010), Table 2, central values, in MPa: (C10, Kv).
 TABLE2_CENTRAL = {"FAT": ("AVRIL", (4.5e-3, 106e-3)), "MUSCLE": ("AVRIL", (11.2e-3, 69.5e-3))}
 KPA_PER_MPA = 1e3
+# the phantom's truth, kPa: not the fit's start (Table 2 central values), within Avril et al.'s Table 1 ranges
+DEMO_TRUTH_KPA = (3.6, 12.4, 92.0, 74.0)
+DEMO_SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="demo-out", help="folder for the case, the run and the report (default demo-out)")
     parser.add_argument("--workers", type=int, default=2, help="engine evaluations in parallel (default 2)")
-    parser.add_argument("--draws", type=int, default=400, help="Monte-Carlo draws (default 400)")
+    parser.add_argument("--draws", type=int, default=200, help="Monte-Carlo draws (default 200)")
     parser.add_argument("--leg-slice", action="store_true", help="only solve the analytic leg slice once")
     parser.add_argument("--elements", type=int, default=5500, help="--leg-slice: number of elements (default 5500)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="--leg-slice: 1: CPE3, 2: CPE6 (default)")
@@ -63,27 +72,35 @@ def run_full(args: argparse.Namespace) -> int:
     out = Path(args.out)
     case_dir, truth_dir, run_dir = out / "case", out / "case.truth", out / "run"
     if not (case_dir / "case.toml").is_file():
-        _say(f"[1/5] phantom case made by the engine -> {case_dir}")
-        make_phantom_case(case_dir, truth_dir, tension_N_per_mm=args.tension, overwrite=True)
+        _say(f"[1/7] phantom case made by the engine (two images, no segmentation, no points) -> {case_dir}")
+        make_phantom_case(case_dir, truth_dir, theta_kPa=DEMO_TRUTH_KPA, tension_N_per_mm=args.tension,
+                          rigid=DEMO_SCANNER_MOTION, labels=None, points_spacing_mm=None, overwrite=True)
     else:
-        _say(f"[1/5] reusing the phantom case in {case_dir}")
+        _say(f"[1/7] reusing the phantom case in {case_dir}")
     truth = read_json(truth_dir / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
-    _say("[2/5] identification: Levenberg-Marquardt on F from the starts of Table 1")
-    identification = run_identify(case_dir, run_dir, method="lm", objective="displacement", starts="table1",
-                                  workers=args.workers)
+    _say("[2/7] displacements measured from the images (DIC)")
+    measured = run_measure(case_dir, run_dir) if read_window_table(run_dir) is None else None
+    _say("[3/7] identification: Levenberg-Marquardt on the measured displacements")
+    identification = run_identify(case_dir, run_dir, workers=args.workers)
     names = identification["parameters"]
-    _say("[3/5] Monte-Carlo intervals")
+    _say("[4/7] Monte-Carlo intervals over the measurement noise")
     montecarlo = run_montecarlo(run_dir, draws=args.draws, workers=args.workers)
-    _say("[4/5] landmark pressures: 30 draws in the intervals, tension +-10 %")
+    _say("[5/7] landmark pressures: 30 draws in the intervals, tension +-10 %")
     pressures = run_pressures(run_dir, workers=args.workers)
-    _say("[5/5] report")
+    _say("[6/7] diagnosis: misfit against its floor, missing effects")
+    diagnosis = run_diagnose(run_dir, workers=args.workers)
+    _say("[7/7] report")
     page = write_report(run_dir, truth)
     best = identification["best"]
+    if measured is not None:
+        print("\n".join(summary_lines(measured, str(run_dir))))
     print(fit_summary(best, names))
     print("truth:      " + ", ".join(f"{n} = {truth[n]:.3f}" for n in names) + " kPa")
     print("error:      " + ", ".join(f"{n} {100 * (v - truth[n]) / truth[n]:+.1f} %" for n, v in zip(names, best["theta"])))
+    print(f"misfit {identification['misfit_over_floor']:.2f} x its noise floor")
     print("\n".join(intervals_summary(montecarlo)))
     print("\n".join(pressure_summary(pressures)))
+    print(f"diagnosis: {diagnosis['verdict']}")
     print(f"demo finished in {time.perf_counter() - began:.0f} s")
     print(f"report: {page}")
     return 0

@@ -79,6 +79,9 @@ SEARCH_FACTOR = 4
 GAUSS_NEWTON_ITERATIONS = 20
 GAUSS_NEWTON_TOLERANCE_PX = 1e-4
 MAX_REFINEMENT_PX = 3.0   # Gauss-Newton may leave the integer peak of a ridge-shaped ZNCC, not wander off
+# Gauss-Newton has failed when it ends at a lower ZNCC than the integer peak it started from; both are interpolated
+# (the search patch is resampled through the priors), so a hair lower is not a failure
+ZNCC_SLACK = 0.02
 
 
 def _spline_derivative_noise_gain() -> float:
@@ -281,7 +284,8 @@ def _correlate_window(reference, spline, grad_rows, grad_cols, row, col, window_
     refined = _inverse_compositional(template, grad_cols[window], grad_rows[window], spline, to_deformed, r0, c0, start,
                                      noise_sigma, window_prior)
     peak_score = float(score[peak_row, peak_col])
-    if refined is None or np.max(np.abs(refined[0] - start)) > MAX_REFINEMENT_PX or refined[1] < peak_score:
+    if (refined is None or np.max(np.abs(refined[0] - start)) > MAX_REFINEMENT_PX
+            or refined[1] < peak_score - ZNCC_SLACK):
         return start, peak_score, np.full((2, 2), np.inf), np.inf, np.full((2, 2), np.nan)
     return refined
 
