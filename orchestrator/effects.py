@@ -109,7 +109,7 @@ def _add_sensitivity(state: LegDeckState, parameter: str, line: str, factor: flo
 def _compartment_parameters(element_sets, node_sets):
     """One relative change per compartment but the first, whose C10 stays the muscle's C10_muscle (a change in
     every compartment would duplicate C10_muscle and leave the fit without a unique optimum)."""
-    return tuple(EffectParameter(f"dC10_{name}", "1", -0.8, 4.0, 0.05,
+    return tuple(EffectParameter(f"dC10_{name}", "1", -0.8, 4.0, 0.5,
                                  f"relative change of the muscle C10 in {name}") for name in compartment_sets(element_sets)[1:])
 
 

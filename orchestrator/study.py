@@ -204,20 +204,21 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
                       n_elements: int = 8000, order: int = 2, points_spacing_mm: float | None = 6.0,
                       points_sigma_mm: float = 0.02, noise_seeds: tuple[int, int] = (0, 1), rigid: RigidMotion | None = None,
                       effects: dict[str, dict[str, float]] | None = None, labels: str = "segmented",
-                      edit_deck=None, overwrite: bool = False) -> tuple[Path, Path]:
+                      edit_deck=None, phantom=None, overwrite: bool = False) -> tuple[Path, Path]:
     """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text).
 
     effects: catalog effects switched on in the truth, {effect: {parameter: value}} (a case with a hidden
     effect); with `compartments` the truth is meshed with the muscle compartments, and `labels` should then be
     "compartments" so that the fit can separate them. labels: what the case's labels.png holds
     (`orchestrator.phantom.write_case`). edit_deck(deck_text, mesh) -> deck_text: physics outside the catalog
-    written into the truth's deck directly (how a case with an unknown effect is made)."""
+    written into the truth's deck directly (how a case with an unknown effect is made). phantom: the
+    `orchestrator.phantom.CalfPhantom` to render (default: the standard calf and scanner)."""
     from .phantom import CalfPhantom, write_case
     from .results import EngineResults
     from .runner import run_engine
 
     effects = {name: dict(values) for name, values in (effects or {}).items()}
-    phantom = CalfPhantom()
+    phantom = phantom or CalfPhantom()
     mesh = truth_mesh(phantom, compartments="compartments" in effects, n_elements=n_elements, order=order)
     model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects)
     with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:

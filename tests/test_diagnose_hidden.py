@@ -1,18 +1,21 @@
-"""Diagnosis on data with a hidden effect (issue 6): the case is made by the engine with an effect of the
-catalog switched on, on a finer mesh (2,000 CPE6 of the phantom's exact labels) than the fit (400 or
-1,000 CPE6 of the segmentation), with image noise, a rigid scanner motion and Gaussian noise of 0.05 mm
-on the measured displacements (points every 3 mm), so that no inverse crime helps. The baseline model
-(Avril et al.: C10 and Kv of fat and muscle) is identified by Levenberg-Marquardt, then diagnosed.
+"""Diagnosis on data with a hidden effect, from the images only (issues 6 and 12): the case is made by the
+engine with an effect of the catalog switched on, on a finer mesh of the phantom's own geometry (8,000 CPE6)
+than the fit (1,000 CPE6 of calfit's segmentation of I0), with image noise and a rigid scanner motion; the case
+folder holds the two images and case.toml only (no labels beyond what calfit segments, no points.csv). The
+displacements are measured by DIC, the baseline model (Avril et al.: C10 and Kv of fat and muscle) is
+identified by Levenberg-Marquardt, then diagnosed.
 
-For each hidden effect: the baseline misfit is at least 2x the noise floor, the hidden effect ranks first,
-the refit with it comes within 1.2x the floor, and a refit with a wrong effect lowers the misfit far less
-(at most a quarter of the hidden effect's drop) with a BIC that says so. A control case (no hidden
-effect) reports nothing significant; a case with a local swelling of the fat (outside the catalog) is
-reported as not explained by any catalog effect, with the residual located in its sector.
+For each hidden effect: the baseline misfit is far above the noise floor (lack of fit p < 1e-6), the hidden
+effect ranks first and is significant, the refit with it comes within 1.2x the floor, and a refit with a wrong
+effect lowers the misfit far less (at most a quarter of the hidden effect's drop) with a BIC that says so. A
+control case (no hidden effect) reports nothing significant; a case with a local swelling of the fat (outside
+the catalog) is reported as not explained by any catalog effect, with the residual located in its sector.
 
-Measured (this machine, engine sensitivities): see the issue note; the effect sizes are those of a
-calf under a garment: 5 % fluid loss of the muscle, 5 % axial elongation, 0.2 mm of fibular motion, a
-8 % and 5 % first harmonics of the garment tension, compartments stiffer or softer by a factor 3.
+The effect sizes are those of a calf under a garment: 5 % fluid loss of the muscle, 5 % axial elongation,
+0.2 mm of fibular motion, 8 % and 5 % first harmonics of the garment tension, C20 of 1.5 and 3 MPa (strain
+stiffening: the smaller values C10 absorbs), compartments stiffer or softer by a factor 3 (with a
+segmentation that labels them, the only case with more than fat, muscle and bone).
+Measured (this machine, engine sensitivities), misfit / floor: see the issue note.
 """
 
 import numpy as np
@@ -20,22 +23,22 @@ import pytest
 
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.pipeline import run_diagnose, run_identify
+from orchestrator.regions import display_angle_deg
 from orchestrator.study import make_phantom_case
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
-POINTS_SIGMA_MM = 0.05
-POINTS_SPACING_MM = 3.0
-OEDEMA_SECTOR_DEG = (60.0, 150.0)
+OEDEMA_SECTOR_DEG = (210.0, 300.0)     # display angles (counter-clockwise, 90 at the top of the image)
+CLEAR_LACK_OF_FIT_P = 1e-6
 
 HIDDEN = {
     "drainage": dict(values={"dv_muscle": -0.05}, wrong="bone_motion"),
-    "out_of_plane": dict(values={"eps_z": 0.05}, wrong="bone_motion"),
-    "bone_motion": dict(values={"ux_BONE2": 0.2, "uy_BONE2": -0.15}, wrong="drainage"),
     "tension_profile": dict(values={"a1": 0.08, "b1": -0.05}, wrong="drainage"),
-    # four compartments at 3x contrast are not resolved by 400 elements (misfit 1.34x the floor at the truth);
+    "bone_motion": dict(values={"ux_BONE2": 0.2, "uy_BONE2": -0.15}, wrong="drainage"),
+    "stiffening": dict(values={"C20_fat": 1500.0, "C20_muscle": 3000.0}, wrong="drainage"),
+    "out_of_plane": dict(values={"eps_z": 0.05}, wrong="bone_motion"),
     # a fibular motion mimics a third of the lateral compartment's signature, so the wrong effect is drainage
     "compartments": dict(values={"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
-                         wrong="drainage", labels="compartments", n_elements=1000),
+                         wrong="drainage", labels="compartments"),
 }
 FAST = {"drainage"}
 
@@ -44,21 +47,19 @@ def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
     """Swelling of the fat in one angular sector: physics that no effect of the catalog describes."""
     centre = mesh.nodes[mesh.skin_loop].mean(axis=0)
     fat = mesh.element_sets()["FAT"]
-    offset = mesh.nodes[mesh.elements[fat][:, :3]].mean(axis=1) - centre
-    angle = np.degrees(np.arctan2(offset[:, 1], offset[:, 0])) % 360.0
+    angle = display_angle_deg(mesh.nodes[mesh.elements[fat][:, :3]].mean(axis=1), centre)
     ids = fat[(angle > OEDEMA_SECTOR_DEG[0]) & (angle < OEDEMA_SECTOR_DEG[1])] + 1
     elset = "*ELSET, ELSET=OEDEMA\n" + "\n".join(", ".join(map(str, ids[k:k + 12])) for k in range(0, len(ids), 12))
     deck_text = deck_text.replace("*BOUNDARY\n", elset + "\n*BOUNDARY\n", 1)
     return deck_text.replace("*NODE FILE", f"*VOLUME CHANGE, ELSET=OEDEMA\n{dv}\n*NODE FILE", 1)
 
 
-def diagnosed(tmp_path_factory, name, *, effects=None, refit="auto", labels="segmented", n_elements=400,
-              edit_deck=None):
+def diagnosed(tmp_path_factory, name, *, effects=None, refit="auto", labels=None, edit_deck=None):
     folder = tmp_path_factory.mktemp(name)
     case, _ = make_phantom_case(folder / "case", effects=effects, labels=labels, rigid=SCANNER_MOTION,
-                                points_sigma_mm=POINTS_SIGMA_MM, points_spacing_mm=POINTS_SPACING_MM,
-                                edit_deck=edit_deck)
-    run_identify(case, folder / "run", method="lm", n_elements=n_elements, order=2, workers=2, progress=False)
+                                points_spacing_mm=None, edit_deck=edit_deck)
+    identification = run_identify(case, folder / "run", workers=2, progress=False)
+    assert identification["data"]["source"] == "dic"
     return run_diagnose(folder / "run", refit_effects=refit, workers=2, progress=False)
 
 
@@ -71,7 +72,7 @@ def hidden(request, tmp_path_factory):
     name = request.param
     spec = HIDDEN[name]
     result = diagnosed(tmp_path_factory, name, effects={name: spec["values"]}, refit=["auto", spec["wrong"]],
-                       labels=spec.get("labels", "segmented"), n_elements=spec.get("n_elements", 400))
+                       labels=spec.get("labels"))
     return name, spec, result
 
 
@@ -79,9 +80,9 @@ def _refit(result, effect):
     return next(fit for fit in result["refits"] if fit["effects"] == [effect])
 
 
-def test_the_baseline_misfit_is_well_above_the_noise_floor(hidden):
+def test_the_baseline_misfit_is_clearly_above_the_noise_floor(hidden):
     _, _, result = hidden
-    assert result["before"]["misfit_over_floor"] >= 2.0
+    assert result["lack_of_fit_p"] < CLEAR_LACK_OF_FIT_P and result["before"]["misfit_over_floor"] > 1.25
 
 
 def test_the_hidden_effect_ranks_first(hidden):
@@ -107,7 +108,7 @@ def test_a_wrong_effect_lowers_the_misfit_far_less_and_the_bic_says_so(hidden):
 def test_without_a_hidden_effect_nothing_is_significant(tmp_path_factory):
     result = diagnosed(tmp_path_factory, "control")
     assert not any(score["significant"] for score in result["ranking"]), result["verdict"]
-    assert result["misfit"] / result["noise_floor"] < 1.2
+    assert 0.8 < result["misfit"] / result["noise_floor"] < 1.2
     assert "noise floor" in result["verdict"] and not result["refits"]
 
 
@@ -120,3 +121,7 @@ def test_physics_outside_the_catalog_is_reported_as_unexplained_and_located(tmp_
     maps = result["maps"]
     assert OEDEMA_SECTOR_DEG[0] <= maps["worst_sector_deg"] <= OEDEMA_SECTOR_DEG[1]
     assert max(maps["per_region_rms_mm"], key=maps["per_region_rms_mm"].get) == "fat"
+    # the region is named as a clinician reads it: tissue, anatomical sector in degrees, depth under the skin
+    assert maps["worst_region"].startswith("fat, ") and " sector " in maps["worst_region"]
+    assert "under the skin" in maps["worst_region"] and maps["worst_region"] in result["verdict"]
+    assert "label" not in result["verdict"]

@@ -79,7 +79,8 @@ def mesh_from_labels(
             raise ValueError("the image and its labels must have the same shape")
         edges = EdgeMap(image, (row_mm, col_mm))
         for _ in range(SNAP_PASSES):
-            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides) for c in curves]
+            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides)
+                      if is_edge(c.sides) else c for c in curves]
     curves = [Curve(lowpass_closed(c.points, skin_cutoff_mm), True, c.sides) if c.closed and c.sides[0] == 0 else c
               for c in curves]
     if interface_offsets is not None:
@@ -90,6 +91,14 @@ def mesh_from_labels(
         return _lookup(regions, (row_mm, col_mm), points)
 
     return mesh_curves(curves, classify, n_elements, order=order, min_angle_deg=min_angle_deg, rules=rules)
+
+
+def is_edge(sides) -> bool:
+    """Whether an interface is a step of grey level, which `EdgeMap` finds: not the septum between two muscle
+    compartments, a thin line whose middle is the boundary (the gradient peaks at either side of it)."""
+    low, high = sorted(int(v) for v in sides)
+    muscle = (2,) + tuple(range(4, BONE_KEY_OFFSET))
+    return not (low in muscle and high in muscle)
 
 
 class EdgeMap:
