@@ -1,13 +1,15 @@
-"""The stages of a run, each reading and writing JSON files in the run folder (what the CLI calls).
+"""The stages of a run, each reading and writing files in the run folder (what the CLI calls).
 
-identify (RUN_DIR/identification.json): Nelder-Mead or Levenberg-Marquardt from one start or
-from the starts of Avril et al. Table 1, on the contour mismatch M (sec. 2.2.5) or the
-displacement residual F (Bouten and Drapier eq. 2); montecarlo (montecarlo.json): intervals
-around the best fit (Table 2); pressures (pressures.json): landmark pressures over draws in the
-intervals and with the tension +-10 % (Tables 3 and 4). Every engine evaluation goes through
-one `runner.Evaluator` per stage on the run's log (evaluations.jsonl), so any stage interrupted
-and started again resumes without repeating an evaluation.
-"""
+measure (measurements.*): DIC between the two images, relative to the bones (`measure`);
+identify (identification.json): Levenberg-Marquardt (or Nelder-Mead) from one start or from the
+starts of Avril et al. Table 1, on the displacement residual F (Bouten and Drapier eq. 2) at the
+DIC windows or at points.csv, weighted by their covariance, then again with the model's geometry
+uncertainty (`geometry_uncertainty`); or on the contour mismatch M (Avril et al. sec. 2.2.5);
+montecarlo (montecarlo.json): intervals around the best fit (Table 2), over the measurement noise or
+by Avril et al.'s acceptance; pressures (pressures.json): landmark pressures over draws in the
+intervals and with the tension +-10 % (Tables 3 and 4); diagnose (diagnosis.json). Every engine
+evaluation goes through one `runner.Evaluator` per stage on the run's log (evaluations.jsonl), so
+any stage interrupted and started again resumes without repeating an evaluation."""
 
 from __future__ import annotations
 

@@ -4,9 +4,11 @@
                     [--workers N] [--json]
     calfit diagnose --catalog
 
-Compares the model identified by `calfit identify --objective displacement` with the measured
-displacements: the misfit against the noise floor of the measurements, the residual per tissue
-and per angular sector around the leg, and for every catalog effect not in the model its score
+Compares the model identified by `calfit identify` with the measured displacements (the DIC windows
+measured from the images, or points.csv): the misfit against the noise floor of the measurements (their
+covariance and the model's geometry uncertainty), the residual per tissue and per sector around the leg
+(named by anatomy: "fat, posterior sector 240-270 deg, 0-5 mm under the skin"), and for every catalog
+effect not in the model its score
 statistic, p-value (corrected for residuals correlated in space) and the misfit a refit with it
 would reach. Then refits with the best-ranked effect when it is significant (--refit auto), with
 the effects named, or not at all, and prints the before/after table (misfit, AIC, BIC,
@@ -29,7 +31,7 @@ HELP = "rank the physical effects missing from an identified model, refit with o
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("run_dir", nargs="?", help="run folder of `calfit identify --objective displacement`")
+    parser.add_argument("run_dir", nargs="?", help="run folder of `calfit identify` (measured displacements)")
     parser.add_argument("--refit", default="auto",
                         help="auto: refit with the best effect when significant (default); none; effect names, "
                              "comma-separated, each refitted on its own; or both, e.g. auto,bone_motion")

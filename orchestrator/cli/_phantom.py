@@ -1,13 +1,13 @@
 """Write a phantom case whose loaded image is made by the engine from chosen parameters.
 
     calfit phantom CASE_DIR [--truth TRUTH_DIR] [--params C10f C10m Kvf Kvm] [--tension T]
-                   [--elements 2000] [--order 2] [--points-spacing MM] [--overwrite] [--json]
+                   [--elements 8000] [--order 2] [--points-spacing MM] [--overwrite] [--json]
 
-The phantom calf's exact labels are meshed (T6, 2,000 elements by default, finer than any fit
-mesh), the Avril law with the given parameters (kPa; default Avril et al. Table 2 central values)
+The phantom calf's own geometry (its labels sampled 4 times finer than the image) is meshed (T6,
+8,000 elements by default, finer than any fit mesh), the Avril law with the given parameters (kPa; default Avril et al. Table 2 central values)
 is solved under the Laplace-law garment, and the loaded image is rendered by inverse warping with
-that displacement. CASE_DIR gets what a user would bring (images, segmentation, landmarks,
-points.csv with measurement noise); the truth (parameters, displacement) goes to TRUTH_DIR
+that displacement. CASE_DIR gets what a user would bring (images, segmentation, landmarks, and
+points.csv with measurement noise unless --points-spacing 0: then the images are all there is); the truth (parameters, displacement) goes to TRUTH_DIR
 (default CASE_DIR.truth).
 """
 
@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--params", type=float, nargs=4, default=list(TABLE2_CENTRAL_KPA),
                         metavar=("C10F", "C10M", "KVF", "KVM"), help="true parameters in kPa (default Table 2 central)")
     parser.add_argument("--tension", type=float, default=0.16, help="garment tension N/mm (default 0.16, about 20 mmHg)")
-    parser.add_argument("--elements", type=int, default=2000, help="elements of the engine mesh (default 2000)")
+    parser.add_argument("--elements", type=int, default=8000, help="elements of the engine mesh (default 8000)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="1: T3, 2: T6 (default)")
     parser.add_argument("--points-spacing", type=float, default=6.0, help="points.csv grid spacing mm (0: none)")
     parser.add_argument("--points-sigma", type=float, default=0.02, help="noise on points.csv displacements, mm")
