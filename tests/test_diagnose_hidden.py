@@ -18,7 +18,6 @@ segmentation that labels them, the only case with more than fat, muscle and bone
 Measured (this machine, engine sensitivities), misfit / floor: see the issue note.
 """
 
-import numpy as np
 import pytest
 
 from orchestrator.imaging.frame import RigidMotion
