@@ -2,7 +2,8 @@
 
     cd /work/main && .venv/bin/python benchmarks/engine.py [--runs 5] [--ccx-runs 5] [--no-ccx]
                                                           [--dofs 1000,3000,...,200000] [--threads N]
-                                                          [--only paper,hybrid,garment,sensitivities,scaling]
+                                                          [--only paper,hybrid,garment,sensitivities,scaling,
+                                                                  compression]
 
 1. The leg-like slice at the size of the second paper (about 5,500 T6 elements, about
    25,000 DOF; that paper reports about 1,200 s per FE solve): median wall time of
@@ -23,6 +24,10 @@
 5. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
    process (os.wait4 resource usage of that child, i.e. /usr/bin/time -v's "Maximum
    resident set size"; target: under 1 GiB at 200k DOF).
+6. Prescribed displacements (issue 18): a 50 mm square pushed down by 2, 10 and 20 % at
+   3.4k and 22k DOF, Newton iterations per increment, beside CalculiX and FElupe (pip
+   install felupe) on the same mesh, agreement with CalculiX (targets: <= 5 iterations
+   per increment, >= 10x CalculiX, faster than FElupe).
 
 The deck comes from orchestrator.meshing.leg_slice_deck (Table 2 materials of Avril et
 al., bones clamped, 20 mmHg follower pressure on the skin). This script prints; it never
@@ -310,6 +315,100 @@ def scaling(args, root: Path) -> None:
               f"{status:>14} {r.get('newton', '-'):>6}{note}", flush=True)
 
 
+# --- issue 18: the square pushed down by prescribed displacements ------------------------------------------
+
+SQUARE_MM = 50.0
+SQUARE_C10, SQUARE_D1 = 0.005, 2.0     # NEO HOOKE, MPa and 1/MPa
+SQUARE_PUSHES = ((1.0, "2 %"), (5.0, "10 %"), (10.0, "20 %"))
+SQUARE_SIZES = ((20, "3.4k"), (52, "22k"))   # cells per side: 2 (2 n + 1)^2 DOF
+
+
+def _square_case(n: int, push: float):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from engine_closed_forms import Law
+    from fe_cases import deck, unit_square
+
+    mesh = unit_square(n, 2, SQUARE_MM)
+    text = deck(mesh, Law("NEO HOOKE", (SQUARE_C10, SQUARE_D1)), fixed=[("BOTTOM", 1, 2), ("TOP", 1, 1)],
+                prescribed=[("TOP", 2, -push)], static=(0.2, 1.0))
+    return mesh, text
+
+
+def _felupe_square(mesh, push: float, increments: int = 5) -> tuple[float, list[int], np.ndarray] | None:
+    """FElupe on the same T6 mesh (3-point rule like CPE6): NeoHooke mu = 2 C10, bulk = 2 / D1 is Abaqus's NEO
+    HOOKE; five equal increments of the push (the deck's *STATIC 0.2, 1.0), Newton to FElupe's default tolerance."""
+    try:
+        import felupe as fem
+    except ImportError:
+        return None
+    import time
+
+    region = fem.RegionQuadraticTriangle(fem.Mesh(mesh.nodes, mesh.elems, "triangle6"))
+    field = fem.FieldContainer([fem.FieldPlaneStrain(region, dim=2)])
+    y = mesh.nodes[:, 1]
+    bottom, top = np.isclose(y, 0.0), np.isclose(y, SQUARE_MM)
+    boundaries = {"bottom": fem.Boundary(field[0], mask=bottom),
+                  "top_x": fem.Boundary(field[0], mask=top, skip=(0, 1)),
+                  "top_y": fem.Boundary(field[0], mask=top, skip=(1, 0))}
+    solid = fem.SolidBody(fem.NeoHooke(mu=2 * SQUARE_C10, bulk=2 / SQUARE_D1), field)
+    step = fem.Step(items=[solid], ramp={boundaries["top_y"]: -push * np.arange(1, increments + 1) / increments},
+                    boundaries=boundaries)
+    job = fem.Job(steps=[step])
+    began = time.perf_counter()
+    job.evaluate(verbose=0)
+    iterations = [len(norms) for norms in job.fnorms]
+    return time.perf_counter() - began, iterations, solid.field[0].values
+
+
+def compression(args, root: Path) -> None:
+    print("\nthe square of issue 18 (50 mm, NEO HOOKE C10 = 0.005 MPa, D1 = 2, CPE6; bottom clamped, top pushed down "
+          "with x held; *STATIC 0.2, 1.0), beside CalculiX and FElupe on the same mesh:")
+    print(f"  {'DOF':>6} {'push':>5} {'calfit-fe s':>11} {'iterations per increment':<30} {'ccx s':>7} {'ratio':>6} "
+          f"{'|u - u_ccx|':>11} {'FElupe s':>9} {'ratio':>6} {'FElupe iterations':<18}")
+    for n, label in SQUARE_SIZES:
+        for push, strain in SQUARE_PUSHES:
+            mesh, text = _square_case(n, push)
+            folder = root / f"square{n}_{push:g}"
+            times, histories = [], []
+            for k in range(args.runs):
+                d = folder / f"fe{k}"
+                d.mkdir(parents=True)
+                (d / "leg.inp").write_text(text)
+                r = run_engine(d / "leg.inp", args.threads, args.timeout)
+                times.append(r["wall_s"] if r["exit"] == 0 else float("nan"))
+                summary = d / "out" / "summary.json"
+                if summary.is_file():
+                    histories = [len(i["residual_norms"]) - 1
+                                 for i in json.loads(summary.read_text())["steps"][0]["increments"]]
+            fe = statistics.median(times)
+            ccx_s, ccx_ratio, diff = float("nan"), float("nan"), float("nan")
+            if not args.no_ccx and shutil.which("ccx"):
+                ccx_times = []
+                for k in range(args.ccx_runs):
+                    d = folder / f"ccx{k}"
+                    d.mkdir()
+                    (d / "leg.inp").write_text(text)
+                    ccx_times.append(run_ccx(d / "leg.inp", args.timeout)["wall_s"])
+                ccx_s = statistics.median(ccx_times)
+                ccx_ratio = ccx_s / fe
+                sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+                from engine_run import parse_ccx_dat
+
+                ours = np.load(sorted((folder / "fe0" / "out").glob("step-*.u.npy"))[-1])[:, 3:5]
+                disp = parse_ccx_dat(folder / "ccx0" / "leg.dat")
+                theirs = np.array([disp[i + 1][:2] for i in range(len(mesh.nodes))])
+                diff = np.abs(ours - theirs).max() / np.abs(theirs).max()
+            try:
+                felupe = _felupe_square(mesh, push)
+                fl_s, fl_ratio, fl_its = ((felupe[0], felupe[0] / fe, str(felupe[1])) if felupe
+                                          else (float("nan"), float("nan"), "not installed"))
+            except Exception as error:   # FElupe's own failure is a result of the comparison, not of this script
+                fl_s, fl_ratio, fl_its = float("nan"), float("nan"), f"failed: {str(error)[:40]}"
+            print(f"  {2 * (2 * n + 1) ** 2:>6} {strain:>5} {fe:>11.3f} {str(histories):<30} {ccx_s:>7.2f} {ccx_ratio:>5.1f}x "
+                  f"{diff:>11.1e} {fl_s:>9.3f} {fl_ratio:>5.1f}x {fl_its:<18}", flush=True)
+    print("  targets: converged, <= 5 iterations per increment, ccx / calfit-fe >= 10x, faster than FElupe")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=5)
@@ -320,7 +419,7 @@ def main() -> None:
     ap.add_argument("--garment-elements", type=int, default=1000, help="T6 elements of the garment case")
     ap.add_argument("--dofs", type=lambda s: [int(x) for x in s.split(",")], default=list(DEFAULT_DOFS))
     sections = {"paper": paper_size, "hybrid": nearly_incompressible, "garment": explicit_garment,
-                "sensitivities": sensitivities, "scaling": scaling}
+                "sensitivities": sensitivities, "scaling": scaling, "compression": compression}
     ap.add_argument("--only", type=lambda s: s.split(","), default=list(sections),
                     help=f"comma-separated sections to run, of {','.join(sections)} (default: all)")
     args = ap.parse_args()

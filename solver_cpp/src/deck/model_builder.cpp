@@ -86,6 +86,10 @@ ParameterState Model::parameter_state() const {
 
 namespace {
 
+// CalculiX *STATIC: the default minimum time increment is this fraction of the step's period (or the initial
+// increment, if smaller).
+constexpr double kMinIncrementFraction = 1e-5;
+
 struct Context {
   const DataLine& line;
   std::size_t field_count() const { return line.fields.size(); }
@@ -731,7 +735,9 @@ private:
     };
     s.initial_dt = get(0, s.initial_dt, "initial time increment");
     s.period = get(1, s.period, "time period");
-    s.min_dt = get(2, std::min(s.min_dt, s.initial_dt), "minimum time increment");
+    // CalculiX's defaults: the minimum is the initial increment or 1e-5 of the period, whichever is smaller; the
+    // maximum is the period (CalculiX: 1e30, which the period bounds anyway)
+    s.min_dt = get(2, std::min(kMinIncrementFraction * s.period, s.initial_dt), "minimum time increment");
     s.max_dt = get(3, s.period, "maximum time increment");
     require(s.period > 0.0, line, "time period must be > 0");
     require(s.initial_dt > 0.0 && s.initial_dt <= s.period, line, "initial increment must lie in (0, period]");

@@ -21,8 +21,30 @@ namespace calfit {
 namespace {
 
 constexpr double kPi = 3.14159265358979323846;
+// The directional difference of the residual along a prescribed increment moves the prescribed dofs by this
+// fraction of the model's size: far above round-off, far below any strain the elements could notice.
+constexpr double kDirectionalStep = 1e-7;
 
 double ramp(double start, double end, double lambda) { return start + lambda * (end - start); }
+
+// The next increment after one that converged in `iterations` Newton iterations (`previous`: the increment
+// before it, 0 if none).
+// - Driven by prescribed displacements: the iteration count measures how nonlinear the increment was, and the
+//   next one is scaled by (N_d / N)^(1/2) when it took more than N_d = kEasyIterations (Crisfield, Non-linear
+//   Finite Element Analysis of Solids and Structures, vol. 1, sec. 9.5.1), at least halved; easy twice in a row,
+//   1.5 times longer (CalculiX's growth rule). A compressed block then keeps to 3-4 iterations per increment
+//   instead of meeting a 9-iteration one near its barrelling.
+// - Driven by loads alone, or with penalty contact, the count follows other things (a nearly incompressible
+//   displacement element's volumetric overshoot, changes of contact status) and shrinking only crawls: there an
+//   increment grows 1.5 times after one of at most kLoadEasyIterations and shrinks only when it fails.
+constexpr int kEasyIterations = 3;
+constexpr int kLoadEasyIterations = 5;
+double next_increment_factor(int iterations, int previous, bool displacement_driven) {
+  if (!displacement_driven) return iterations <= kLoadEasyIterations ? 1.5 : 1.0;
+  if (iterations > kEasyIterations)
+    return std::max(std::sqrt(static_cast<double>(kEasyIterations) / iterations), 0.5);
+  return previous > 0 && previous <= kEasyIterations ? 1.5 : 1.0;
+}
 
 // Adds the wall time of its scope to a counter.
 class ScopedTimer {
@@ -499,23 +521,105 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
   const StepDef& s = model_.steps[step];
   StepResult result;
   double time = 0.0, dt = s.initial_dt;
+  double last_lambda_in_step = 0.0;  // the load fraction of the committed state within this step
+  int previous_iterations = 0;       // Newton iterations of the last converged increment
+  bool factorization_committed = false;  // the last factorization is Newton's last at the committed state
+  const bool contact_in_step = std::any_of(s.loads.contact_active.begin(), s.loads.contact_active.end(),
+                                           [](char active) { return active != 0; });
+  bool moves_prescribed = !rigid_motions_.empty();
+  for (const Ramp& r : prescribed_) moves_prescribed = moves_prescribed || r.start != r.end;
+  const bool displacement_driven = moves_prescribed && !contact_in_step;
   const int n = system_->size();
   Eigen::VectorXd rhs(n), du(n);
 
-  // One Newton solve of the increment ending at load fraction lambda; u is updated in place.
-  auto newton = [&](Eigen::VectorXd& u, double lambda, IncrementRecord& rec, bool first_of_step) {
-    Evaluation ev = evaluate(u, lambda, true);
-    if (!ev.ok) {
-      rec.note = "an element turned inside out (det F <= 0) under the prescribed displacement increment";
+  // The linear solve of one Newton correction: du of the free dofs for R + coupling, or false with a note.
+  auto correction = [&](const Eigen::VectorXd& coupling, bool first_of_step, int it, IncrementRecord& rec,
+                        Eigen::VectorXd& full) {
+    for (int d = 0; d < n_dofs_; ++d)
+      if (system_->equation(d) >= 0) rhs[system_->equation(d)] = -(residual_[d] + coupling[d]);
+    if (!system_->finite()) {
+      rec.note = "the tangent stiffness is not finite (an element's stiffness overflowed)";
       return false;
     }
-    int rises = 0;
-    double last_correction = std::numeric_limits<double>::infinity();
+    bool solved;
+    {
+      const ScopedTimer timer(timings_.factorization_s);
+      solved = system_->solve(rhs, du);
+    }
+    if (system_->became_indefinite())
+      log("step " + std::to_string(step + 1) + ": the tangent is not positive definite; UMFPACK LU solves it "
+          "for the rest of the step");
+    if (!solved) {
+      if (first_of_step && it == 0)
+        throw std::runtime_error("the tangent stiffness is singular at the start of step " + std::to_string(step + 1) +
+                                 ": part of the model can move freely; fix rigid-body motions with *BOUNDARY");
+      rec.note = "singular tangent (a structural instability?)";
+      return false;
+    }
+    linear_solver_ = system_->solver_name();
+    full.setZero(n_dofs_);
+    for (int d = 0; d < n_dofs_; ++d)
+      if (system_->equation(d) >= 0) full[d] = du[system_->equation(d)];
+    return true;
+  };
+
+  // One Newton solve of the increment ending at load fraction lambda; u is updated in place. u starts at the
+  // committed state, its prescribed dofs where the previous increment left them; prescribed_step moves them to
+  // this increment's values. The first correction solves for the free dofs' response to that move, K_ff du_f =
+  // -(R_f + K_fp du_p), with K_fp du_p the directional derivative of R along du_p (Wriggers, Nonlinear Finite
+  // Element Methods, sec. 5.1): the boundary and the interior move together, so no row of elements next to the
+  // boundary is squashed, and Newton converges quadratically from its first iteration.
+  // The predictor's K_ff is the tangent at the committed state. After a converged increment the factorization
+  // of Newton's last iteration is that tangent to within the last correction, and is reused: one factorization
+  // less per increment. After a cut-back, or at a step's start, the tangent is assembled and factorized there.
+  auto newton = [&](Eigen::VectorXd& u, double lambda, const Eigen::VectorXd& prescribed_step, IncrementRecord& rec,
+                    bool first_of_step, bool committed_factorization) {
+    const double largest_step = prescribed_step.cwiseAbs().maxCoeff();
+    const bool reuse = largest_step > 0.0 && committed_factorization && system_->factorized();
+    Evaluation ev = evaluate(u, lambda, !reuse);
+    if (!ev.ok) {
+      rec.note = "the residual at the start of the increment is not finite";
+      return false;
+    }
     // The force scale is at least the one the increment started from: a volume change or
     // an axial stretch of a free body, or a rigid motion, ends in a state where every
     // nodal force vanishes with the residual, which would then never be small relative
     // to the current forces alone.
     const double increment_reference = ev.reference;
+    if (largest_step > 0.0) {
+      const Eigen::VectorXd start_residual = residual_;
+      const double h = kDirectionalStep * model_size_ / largest_step;
+      const Evaluation shifted = evaluate(u + h * prescribed_step, lambda, false);
+      if (!shifted.ok) {
+        rec.note = "the residual next to the start of the increment is not finite";
+        return false;
+      }
+      const Eigen::VectorXd coupling = (residual_ - start_residual) / h;
+      residual_ = start_residual;
+      Eigen::VectorXd full;
+      if (reuse) {
+        for (int d = 0; d < n_dofs_; ++d)
+          if (system_->equation(d) >= 0) rhs[system_->equation(d)] = -(residual_[d] + coupling[d]);
+        const ScopedTimer timer(timings_.factorization_s);
+        if (!system_->solve_factored(rhs, du)) {
+          rec.note = "the committed state's factorization gave no finite predictor";
+          return false;
+        }
+        full.setZero(n_dofs_);
+        for (int d = 0; d < n_dofs_; ++d)
+          if (system_->equation(d) >= 0) full[d] = du[system_->equation(d)];
+      } else if (!correction(coupling, first_of_step, 0, rec, full)) {
+        return false;
+      }
+      u += prescribed_step + full;
+      ev = evaluate(u, lambda, true);
+      if (!ev.ok) {
+        rec.note = "an element turned inside out (det F <= 0) under the prescribed displacement increment";
+        return false;
+      }
+    }
+    int rises = 0;
+    double last_correction = std::numeric_limits<double>::infinity();
     for (int it = 0;; ++it) {
       const double relative = ev.norm / std::max(ev.reference, increment_reference);
       rec.residual_norms.push_back(relative);
@@ -533,25 +637,8 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
         rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
         return false;
       }
-      for (int d = 0; d < n_dofs_; ++d)
-        if (system_->equation(d) >= 0) rhs[system_->equation(d)] = -residual_[d];
-      bool solved;
-      {
-        const ScopedTimer timer(timings_.factorization_s);
-        solved = system_->solve(rhs, du);
-      }
-      if (!solved) {
-        if (first_of_step && it == 0)
-          throw std::runtime_error(
-              "the tangent stiffness is singular at the start of step " + std::to_string(step + 1) +
-              ": part of the model can move freely; fix rigid-body motions with *BOUNDARY");
-        rec.note = "singular tangent (a structural instability?)";
-        return false;
-      }
-      linear_solver_ = system_->solver_name();
-      Eigen::VectorXd full = Eigen::VectorXd::Zero(n_dofs_);
-      for (int d = 0; d < n_dofs_; ++d)
-        if (system_->equation(d) >= 0) full[d] = du[system_->equation(d)];
+      Eigen::VectorXd full;
+      if (!correction(Eigen::VectorXd::Zero(n_dofs_), first_of_step && largest_step == 0.0, it, rec, full)) return false;
 
       // Backtracking line search on |R|: full step first, halved while it fails to
       // reduce the residual (or inverts an element).
@@ -601,8 +688,11 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     rec.time = time + dt;
     rec.dt = dt;
     Eigen::VectorXd u = u_;
-    apply_prescribed(u, lambda);
-    rec.converged = newton(u, lambda, rec, time == 0.0 && result.cutbacks == 0);
+    apply_prescribed(u, last_lambda_in_step);
+    Eigen::VectorXd target = u;
+    apply_prescribed(target, lambda);
+    rec.converged = newton(u, lambda, target - u, rec, time == 0.0 && result.cutbacks == 0, factorization_committed);
+    factorization_committed = rec.converged;
     result.records.push_back(rec);
     // An increment whose prescribed displacements invert an element stops before its first residual.
     const int iterations = std::max(static_cast<int>(rec.residual_norms.size()) - 1, 0);
@@ -619,13 +709,16 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       u_ = u;
       for (ContactState& c : contacts_) c.history = c.trial;
       last_lambda_ = lambda;
+      last_lambda_in_step = lambda;
       time += dt;
       result.time_reached = time;
       ++result.increments;
-      if (rec.residual_norms.size() <= 6) dt = std::min(1.5 * dt, s.max_dt);
+      dt = std::min(dt * next_increment_factor(iterations, previous_iterations, displacement_driven), s.max_dt);
+      previous_iterations = iterations;
       continue;
     }
     ++result.cutbacks;
+    previous_iterations = 0;
     dt *= 0.25;
     if (dt < s.min_dt * (1.0 - 1e-12)) {
       result.message = "increment below the minimum " + std::to_string(s.min_dt) + " at step time " +

@@ -73,6 +73,16 @@ bool SparseSystem::symmetric() const {
   return asymmetry <= 1e-12 * largest;
 }
 
+bool SparseSystem::finite() const {
+  return Eigen::Map<const Eigen::VectorXd>(matrix_.valuePtr(), matrix_.nonZeros()).allFinite();
+}
+
+bool SparseSystem::became_indefinite() {
+  if (!indefinite_ || reported_indefinite_) return false;
+  reported_indefinite_ = true;
+  return true;
+}
+
 bool SparseSystem::accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const {
   return x.allFinite() && (matrix_ * x - b).norm() <= 1e-8 * std::max(b.norm(), 1e-300);
 }
@@ -81,7 +91,7 @@ bool SparseSystem::solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (!ldlt_) {
     ldlt_ = std::make_unique<Eigen::CholmodDecomposition<Eigen::SparseMatrix<double>, Eigen::Lower>>();
     ldlt_->setMode(Eigen::CholmodLDLt);
-    ldlt_->cholmod().print = 1;
+    ldlt_->cholmod().print = 0;  // a failure is handled here, by UMFPACK
     ldlt_->analyzePattern(matrix_);
   }
   ldlt_->factorize(matrix_);
@@ -111,10 +121,10 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     return true;
   }
   const bool is_symmetric = symmetric();
-  if (!saddle_point_ && is_symmetric) {
+  if (!saddle_point_ && is_symmetric && !indefinite_) {
     if (!cholesky_) {
       cholesky_ = std::make_unique<Eigen::CholmodSupernodalLLT<Eigen::SparseMatrix<double>, Eigen::Lower>>();
-      cholesky_->cholmod().print = 1;  // errors only: a lost definiteness is handled by UMFPACK
+      cholesky_->cholmod().print = 0;  // a lost definiteness is handled below, by UMFPACK, not printed
       cholesky_->analyzePattern(matrix_);
     }
     cholesky_->factorize(matrix_);
@@ -124,6 +134,7 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
       factor_ = Factor::Cholesky;
       if (cholesky_->info() == Eigen::Success && x.allFinite()) return true;
     }
+    indefinite_ = true;
   }
   if (saddle_point_ && is_symmetric && choice_ != Choice::Lu) {
     if (choice_ == Choice::Ldlt) {
@@ -159,6 +170,12 @@ Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B) const {
     case Factor::None: break;
   }
   return Eigen::MatrixXd::Constant(B.rows(), B.cols(), std::numeric_limits<double>::quiet_NaN());
+}
+
+bool SparseSystem::solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
+  if (factor_ == Factor::None) return false;
+  x = solve_factored(Eigen::MatrixXd(b)).col(0);
+  return x.allFinite();
 }
 
 bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, double tolerance) {

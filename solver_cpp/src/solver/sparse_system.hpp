@@ -3,7 +3,8 @@
 // connectivity, per-element scatter maps into its value array (so assembly is a
 // plain indexed add), and the direct solve: CHOLMOD supernodal LL^T when the
 // assembled tangent is symmetric positive definite, UMFPACK LU otherwise (follower
-// loads make it unsymmetric; a loss of definiteness near an instability too). The
+// loads make it unsymmetric; a loss of definiteness near an instability too, detected
+// once and then remembered, with the libraries' own messages silenced). The
 // saddle-point systems of the hybrid elements are symmetric indefinite: on the first
 // solve both CHOLMOD's LDL^T (no pivoting: valid for the quasi-definite D1 > 0 case,
 // and checked by its residual) and UMFPACK are timed, and the faster valid one is kept.
@@ -41,8 +42,18 @@ public:
   // near a converged Newton state. Factorizes the current matrix when there is no
   // factorization yet or refinement stalls. Returns false when singular.
   bool solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, double tolerance);
+  // Solves with the factorization of the last solve() (of an earlier matrix, possibly), without factorizing.
+  // Returns false when there is none or the result is not finite.
+  bool solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) const;
+  bool factorized() const { return factor_ != Factor::None; }
   const std::string& solver_name() const { return solver_name_; }
   bool symmetric() const;
+  // Whether every entry of the matrix is finite (an overflowed element must not reach a factorization).
+  bool finite() const;
+  // True once, right after the solve in which a symmetric tangent turned out not to be positive definite: from
+  // then on this system skips the Cholesky attempt and solves with LU (an instability, a compressed structure
+  // whose geometric stiffness went negative), without a library message at every iteration.
+  bool became_indefinite();
 
 private:
   std::vector<int> equation_;
@@ -56,6 +67,7 @@ private:
   enum class Choice { Undecided, Ldlt, Lu };
   enum class Factor { None, Cholesky, Ldlt, Lu };  // the factorization the last solve used
   bool saddle_point_ = false;
+  bool indefinite_ = false, reported_indefinite_ = false;
   Choice choice_ = Choice::Undecided;
   Factor factor_ = Factor::None;
   std::string solver_name_ = "none";
