@@ -47,9 +47,9 @@ def _newton_health(run) -> list[int]:
     histories = run.residual_histories()
     iterations = [len(h) - 1 for h in histories]
     assert histories and max(iterations) <= MAX_ITERATIONS_PER_INCREMENT, iterations
-    for history in histories:   # the end of every increment converges quadratically: log r_k+1 >= 1.5 log r_k
+    for history in histories:   # the end of every increment converges quadratically: log r_k+1 <= 1.5 log r_k
         if len(history) >= 2 and 1e-7 < history[-2] < 0.1:
-            assert np.log(history[-1]) >= 1.5 * np.log(history[-2]), history
+            assert np.log(history[-1]) <= 1.5 * np.log(history[-2]), history
     return iterations
 
 
