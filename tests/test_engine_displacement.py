@@ -156,12 +156,13 @@ def test_the_issue_square_converges_quickly_and_matches_calculix(tmp_path, push_
 
 
 def test_a_failing_increment_is_cut_back_under_calculix_defaults(tmp_path):
-    """*STATIC 1, 1 (no minimum given: CalculiX's 1e-5 of the period): 30 % barrelling in one increment turns an
-    element inside out in every line-search step, so the engine cuts the increment back and goes on to the end,
-    instead of stopping at the initial increment."""
+    """*STATIC 1, 1 (no minimum given: CalculiX's 1e-5 of the period): 30 % barrelling in one increment is too
+    much (Newton converges slowly, or every line-search step turns an element inside out), so the engine cuts
+    the increment back and goes on to the end, instead of stopping at the initial increment."""
     text, _ = issue_square_deck(15.0, n=10)
     run = run_engine(text.replace("*STATIC\n0.2, 1", "*STATIC\n1, 1"), tmp_path)
     assert run.returncode == 0, run.stderr
     step = run.summary["steps"][0]
     assert step["n_cutbacks"] >= 1 and step["increments"][0]["dt"] == 1.0 and not step["increments"][0]["converged"]
-    assert "inside out" in step["increments"][0]["note"]
+    assert step["increments"][0]["note"] in ("converging slowly: a smaller increment",
+                                              "every line-search step turns an element inside out")

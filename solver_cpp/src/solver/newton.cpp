@@ -38,6 +38,8 @@ double ramp(double start, double end, double lambda) { return start + lambda * (
 //   displacement element's volumetric overshoot, changes of contact status) and shrinking only crawls: there an
 //   increment grows 1.5 times after one of at most kLoadEasyIterations and shrinks only when it fails.
 constexpr int kEasyIterations = 3;
+constexpr int kRateCheckIterations = 3;     // Newton iterations before the contraction is checked
+constexpr double kSlowContraction = 0.1;    // a residual that falls by less than this per iteration is slow
 constexpr int kLoadEasyIterations = 5;
 double next_increment_factor(int iterations, int previous, bool displacement_driven) {
   if (!displacement_driven) return iterations <= kLoadEasyIterations ? 1.5 : 1.0;
@@ -635,6 +637,13 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       if (last_correction <= 1e-13 * model_size_) return true;
       if (!std::isfinite(relative) || it >= settings_.max_iterations) {
         rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
+        return false;
+      }
+      // The convergence-rate check of CalculiX and Abaqus (I_0 iterations): a displacement-driven increment
+      // whose residual is still far from the quadratic regime after kRateCheckIterations is too large; cutting
+      // it back costs less than iterating on
+      if (displacement_driven && it >= kRateCheckIterations && relative > kSlowContraction * rec.residual_norms[it - 1]) {
+        rec.note = "converging slowly: a smaller increment";
         return false;
       }
       Eigen::VectorXd full;
