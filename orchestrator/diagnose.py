@@ -44,8 +44,9 @@ import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from .effects import CATALOG, effect
+from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
+from .heterogeneity import SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
 from .identify import FitResult, levenberg_marquardt, residual_jacobian
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator
@@ -58,6 +59,7 @@ MAX_DESIGN_EFFECT = 100.0
 ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
 MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
+PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 
 
 @dataclass
@@ -95,6 +97,25 @@ class ResidualMaps:
 
 
 @dataclass
+class PatchScore:
+    """A candidate place for a local stiffness change: contiguous material groups of one tissue (module text)."""
+
+    effect: str                       # patch:<groups>, the effect that refits it
+    tissue: str                       # fat or muscle
+    sector_deg: list[float]           # [start, end], display angles counter-clockwise
+    centre_deg: float
+    depth_mm: list[float]             # [min, max] distance to the skin of its elements' centroids
+    area_cm2: float
+    place: str                        # "muscle, posterior sector 240-330 deg, 12-35 mm under the skin"
+    statistic: float
+    p_value: float                    # Bonferroni over the candidates tried
+    predicted_misfit: float
+    predicted_ratio: float            # C10 in the patch / C10 of the tissue, linearized
+    significant: bool = False
+    places_tried: int = 1             # candidates scored: the choice of this one costs 2 ln N on BIC
+
+
+@dataclass
 class Diagnosis:
     effects_in_model: list[str]
     parameters: list[str]
@@ -114,6 +135,7 @@ class Diagnosis:
     sensitivities_from: str
     wall_time_s: float
     not_ranked: dict[str, str] = field(default_factory=dict)
+    patches: list[PatchScore] = field(default_factory=list)   # where a local stiffness change would help, best first
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -124,6 +146,7 @@ class Diagnosis:
         values = {k: v for k, v in data.items() if k in names}
         values["ranking"] = [EffectScore(**s) for s in data["ranking"]]
         values["maps"] = ResidualMaps(**data["maps"])
+        values["patches"] = [PatchScore(**p) for p in data.get("patches", [])]
         return cls(**values)
 
 
@@ -249,8 +272,12 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     how regions are named."""
     began = time.perf_counter()
     candidates, skipped = candidate_effects(model)
-    probe = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile, model.effects + tuple(candidates),
-                     dict(model.fixed_effects), engine_sensitivities)
+    # the local probe's many columns are one back-substitution each with the engine's sensitivities, an engine run
+    # each by finite differences: without the former, the diagnosis does not locate
+    probing = (LOCAL_PROBE.name,) if engine_sensitivities else ()
+    probe = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile,
+                     model.effects + tuple(candidates) + probing, dict(model.fixed_effects), engine_sensitivities)
+    probe_sets = list(model.mesh.element_sets()) + [group.name for group in probe.groups]
     p = model.space.size
     theta_probe = list(map(float, theta)) + [0.0] * (probe.space.size - p)
     with evaluator_factory(probe) as evaluator:
@@ -271,7 +298,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     ranking = []
     column = p
     for name in candidates:
-        parameters = [prm.name for prm in effect(name).parameters(list(model.mesh.element_sets()), list(model.mesh.node_sets))]
+        parameters = [prm.name for prm in effect(name).parameters(probe_sets, list(model.mesh.node_sets))]
         G = jacobian[:, column:column + len(parameters)]
         column += len(parameters)
         score = score_effect(r, J, G, chi2_to_misfit, deff)
@@ -291,9 +318,61 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         top.tied_with = [s.effect for s in ranking[1:] if s.significant and s.statistic >= (1 - TIE_FRACTION) * top.statistic]
     explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
     maps = residual_maps(positions_mm, residual_mm, frame)
+    patches = []
+    if probing and lack_of_fit and source == "engine":
+        local = jacobian[:, column:column + len(probe.groups)]
+        patches = locate(r, J, local, probe.groups, frame, chi2_to_misfit, deff, misfit, alpha)
     return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,
                      lack_of_fit_p, deff, rho, ranking, explained, verdict, maps, runs, source,
-                     time.perf_counter() - began, skipped)
+                     time.perf_counter() - began, skipped, patches)
+
+
+def locate(r: np.ndarray, J: np.ndarray, local: np.ndarray, groups: Sequence[Group], frame: LegFrame,
+           chi2_to_misfit: float, deff: float, misfit: float, alpha: float = ALPHA,
+           keep: int = PATCHES_KEPT) -> list[PatchScore]:
+    """Score every candidate patch (`heterogeneity.patch_candidates`) as a one-parameter effect whose column is
+    the sum of its groups' dr/dlnC10 (module text); the best `keep` places that share no group, best first."""
+    Q, _ = np.linalg.qr(J)
+    r_perp = r - Q @ (Q.T @ r)
+    local_perp = local - Q @ (Q.T @ local)
+    candidates = patch_candidates(list(groups))
+    scored = []
+    for members, start, width in candidates:
+        g = local[:, members].sum(axis=1)
+        g_perp = local_perp[:, members].sum(axis=1)
+        norm2 = float(g_perp @ g_perp)
+        if norm2 <= (ORTHOGONAL_ROUNDOFF * np.linalg.norm(g)) ** 2:
+            continue
+        projection = float(g_perp @ r_perp)
+        scored.append((projection ** 2 / norm2, -projection / norm2, members, start, width))
+    scored.sort(key=lambda item: -item[0])
+    chosen, used = [], set()
+    for reduction, step, members, start, width in scored:
+        if used & set(members):
+            continue
+        used |= set(members)
+        statistic = reduction / deff
+        p_value = float(min(1.0, stats.chi2.sf(statistic, 1) * len(candidates)))
+        chosen.append(_patch_score([groups[k] for k in members], start, width, frame, statistic, p_value,
+                                   misfit - reduction * chi2_to_misfit, float(np.exp(step)), p_value < alpha,
+                                   len(candidates)))
+        if len(chosen) == keep:
+            break
+    return chosen
+
+
+def _patch_score(members: Sequence[Group], start: int, width: int, frame: LegFrame, statistic: float,
+                 p_value: float, predicted_misfit: float, ratio: float, significant: bool,
+                 places_tried: int) -> PatchScore:
+    low, high = start * SECTOR_DEG, (start + width) * SECTOR_DEG
+    centre = ((low + high) / 2.0) % 360.0
+    depth = [min(g.depth_range_mm[0] for g in members), max(g.depth_range_mm[1] for g in members)]
+    tissue = members[0].kind
+    place = (f"{tissue}, {frame.direction(centre)} sector {low % 360:.0f}-{high % 360 or 360:.0f} deg, "
+             f"{depth[0]:.0f}-{depth[1]:.0f} mm under the skin")
+    return PatchScore(patch_name([g.name for g in members]), tissue, [low % 360.0, high % 360.0 or 360.0], centre, depth,
+                      sum(g.area_mm2 for g in members) / 100.0, place, statistic, p_value, predicted_misfit, ratio,
+                      significant, places_tried)
 
 
 def settle_ties(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> None:
@@ -390,6 +469,44 @@ def summarize_fit(model: LegModel, fit: FitResult, record: dict, objective) -> R
     floor = objective.noise_floor(model.space.size)
     return Refit(list(model.effects), list(model.space.names), list(fit.theta), float(record["cost"]),
                  float(record["cost"]) / floor, chi2, criteria["aic"], criteria["bic"], fit.as_dict())
+
+
+def weigh_local(diagnosis: Diagnosis, patch: PatchScore, before: Refit, after: Refit,
+                catalog_refits: Sequence[Refit]) -> dict:
+    """Does a stiffness change in the best-scored place bring the misfit to the floor, and pay on BIC for its
+    parameter and for the choice of its place among the places tried (2 ln N: each place a priori 1/N)? When a
+    catalog effect explained the residual, the local change is its rival: if the local change wins on that BIC,
+    the catalog no longer explains (`explained` false) and the verdict says so. Updates the diagnosis' verdict;
+    returns the local refit's summary (diagnosis.json "local")."""
+    ratio = float(np.exp(after.theta[after.parameters.index("dlnC10_patch")]))
+    bic = after.bic + 2.0 * np.log(max(patch.places_tried, 1))
+    explains = after.misfit_over_floor <= EXPLAINED_FACTOR and bic < before.bic
+    numbers = (f"C10 x{ratio:.2f} there, {patch.area_cm2:.1f} cm2; refitted, the misfit is {after.misfit_over_floor:.2f} "
+               f"x the floor, BIC {bic:.1f} with the choice of place counted, against {before.bic:.1f}")
+    rival = None
+    if diagnosis.explained:
+        explaining = [f for f in catalog_refits if f.misfit_over_floor <= EXPLAINED_FACTOR]
+        rival = min(explaining, key=lambda f: f.bic) if explaining else None
+    if rival is not None and explains and bic < rival.bic:
+        diagnosis.explained = False
+        diagnosis.verdict += (f"; but a local stiffness change in the {patch.place} fits better ({numbers}; "
+                              f"{', '.join(rival.effects[-1:])} BIC {rival.bic:.1f}): no catalog effect explains the "
+                              f"residual better than a local change")
+    elif rival is None and explains:
+        diagnosis.verdict += f"; a local stiffness change in the {patch.place} does ({numbers})"
+    elif rival is None:
+        diagnosis.verdict += f"; nor does a local stiffness change in the {patch.place}, the best place found ({numbers})"
+    return {"patch": asdict(patch), "ratio": ratio, "explains": bool(explains and (rival is None or bic < rival.bic)),
+            "misfit_over_floor": after.misfit_over_floor, "bic": bic, "bic_unpenalized": after.bic,
+            "bic_before": before.bic, "bic_catalog": rival.bic if rival is not None else None,
+            "aic": after.aic, "aic_before": before.aic, "verdict": diagnosis.verdict}
+
+
+def patch_elements(model: LegModel, patch_effect: str) -> np.ndarray:
+    """0-based elements of the model's mesh in a patch (to draw it)."""
+    members = set(patch_groups(patch_effect))
+    groups = groups_for(model.mesh, [patch_effect])
+    return np.concatenate([g.elements for g in groups if g.name in members] or [np.zeros(0, int)])
 
 
 def ranking_lines(diagnosis: Diagnosis) -> list[str]:

@@ -16,6 +16,14 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | bone_motion     | ux_BONE2, uy_BONE2              | *RIGID MOTION, NSET=BONE2           |
 | stiffening      | C20_fat, C20_muscle             | *HYPERELASTIC, AVRIL third constant |
 | out_of_plane    | eps_z                           | *AXIAL STRETCH                      |
+| heterogeneity   | h_<mode>_<fat, muscle>          | one *MATERIAL per group             |
+
+Beyond the catalog, three effects act on the material groups of `orchestrator.heterogeneity` (every tissue cut
+by sector and depth, one material each): `patch:<groups>` (dlnC10_patch: C10 times exp(dlnC10_patch) in those
+groups, the local stiffness change the diagnosis proposes where the catalog explains nothing),
+`region:<fat|muscle>:<start deg>:<end deg>` (dlnC10: the same in an angular sector, cut on any mesh: how a
+phantom with a stiff patch is made) and `local` (dlnC10_<group> of every group: the diagnosis' probe of where
+a stiffness change would reduce the residual).
 
 `friction` and `bridging` need the explicit garment band (`templates/leg_garment.inp.j2`, contact with
 path-dependent friction, minutes per solve on a fitting mesh); they are in the catalog for their
@@ -25,10 +33,14 @@ explanation and for the garment studies, and the diagnosis of a Laplace-law mode
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
+import numpy as np
+
 from .decks import KPA_PER_MPA
+from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
 
 MUSCLE_SET = "MUSCLE"
 COMPARTMENT_PREFIX = "COMPARTMENT"
@@ -75,6 +87,9 @@ class LegDeckState:
     fourier_profile: dict[int, tuple[float, float]] = field(default_factory=dict)
     sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     c10_factor: dict[str, float] = field(default_factory=dict)   # sensitivity line -> C10 / C10_muscle (compartments)
+    groups: list = field(default_factory=list)                   # heterogeneity.Group of the model, [] if none
+    c10_log_factor: dict[str, float] = field(default_factory=dict)   # group -> ln(C10_group / C10_tissue)
+    group_sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)  # parameter -> (group, dlnC10/dp)
 
 
 @dataclass(frozen=True)
@@ -152,6 +167,100 @@ def _apply_out_of_plane(state: LegDeckState, values: dict[str, float]) -> None:
     _add_sensitivity(state, "eps_z", "AXIAL STRETCH", 1.0)
 
 
+HETEROGENEITY_BOUND = 1.5   # |c_m| <= 1.5: C10 within a factor e^1.5 = 4.5 of the tissue's across the leg
+
+
+def _heterogeneity_parameters(element_sets, node_sets):
+    return tuple(EffectParameter(f"h_{mode}_{kind}", "1", -HETEROGENEITY_BOUND, HETEROGENEITY_BOUND, 0.25,
+                                 f"{mode} mode of ln C10 in the {kind}")
+                 for kind in KINDS for mode in (FAT_MODES if kind == "fat" else MODES))
+
+
+def _add_log_factor(state: LegDeckState, parameter: str, group: str, weight: float, value: float) -> None:
+    state.c10_log_factor[group] = state.c10_log_factor.get(group, 0.0) + weight * value
+    state.group_sensitivity.setdefault(parameter, []).append((group, weight))
+
+
+def _apply_heterogeneity(state: LegDeckState, values: dict[str, float]) -> None:
+    for name, value in values.items():
+        _, mode, kind = name.split("_")
+        for group in state.groups:
+            if group.kind == kind:
+                _add_log_factor(state, name, group.name, group.mode(mode), value)
+
+
+def _needs_groups(element_sets, node_sets):
+    return None if any(is_group(name) for name in element_sets) else "the model has no material groups"
+
+
+def _apply_local(state: LegDeckState, values: dict[str, float]) -> None:
+    for name, value in values.items():
+        _add_log_factor(state, name, name[len("dlnC10_"):], 1.0, value)
+
+
+def patch_effect(name: str) -> Effect:
+    """C10 times exp(dlnC10_patch) in the groups of `name` (patch:G1+G2+...)."""
+    members = patch_groups(name)
+
+    def apply(state: LegDeckState, values: dict[str, float]) -> None:
+        for group in members:
+            _add_log_factor(state, "dlnC10_patch", group, 1.0, values["dlnC10_patch"])
+
+    def requirement(element_sets, node_sets):
+        missing = sorted(set(members) - set(element_sets))
+        return f"the model has no material group {', '.join(missing)}" if missing else None
+
+    return Effect(name, "stiffness change in a patch of material groups",
+                  "A region of one tissue stiffer or softer than the rest (scar, oedema, a muscle unlike its neighbours).",
+                  _fixed(EffectParameter("dlnC10_patch", "1", -2.5, 2.5, 0.25, "ln of the patch's C10 ratio")),
+                  apply, requirement=requirement)
+
+
+def region_effect(name: str) -> Effect:
+    """C10 times exp(dlnC10) in an angular sector of one tissue (`heterogeneity.region_groups`)."""
+    try:
+        parse_region(name)
+    except ValueError as error:
+        raise EffectError(str(error)) from None
+
+    def apply(state: LegDeckState, values: dict[str, float]) -> None:
+        for group in state.groups:
+            if group.region == name:
+                _add_log_factor(state, "dlnC10", group.name, 1.0, values["dlnC10"])
+
+    return Effect(name, "stiffness change in an angular sector of one tissue",
+                  "A stiff or soft patch of tissue, wherever the mesh's elements lie (phantoms with physics outside the catalog).",
+                  _fixed(EffectParameter("dlnC10", "1", -2.5, 2.5, 0.25, "ln of the region's C10 ratio")), apply,
+                  requirement=_needs_groups)
+
+
+def split_into_groups(state: LegDeckState) -> None:
+    """Give every group its tissue's constants with C10 times exp(its log factor), and rewrite the sensitivity
+    lines of a tissue's constants into the lines of its groups (dC10_group/dC10_tissue = the group's factor)."""
+    members: dict[str, list] = {}
+    for group in state.groups:
+        members.setdefault(group.tissue_set, []).append(group)
+    factor = {g.name: float(np.exp(state.c10_log_factor.get(g.name, 0.0))) for g in state.groups}
+    constants = {g.name: [state.constants[g.tissue_set][0] * factor[g.name], *state.constants[g.tissue_set][1:]]
+                 for g in state.groups}
+    material_line = re.compile(r"MATERIAL, (\S+), (\S+)$")
+    for parameter, lines in state.sensitivity.items():
+        rewritten = []
+        for line, weight in lines:
+            match = material_line.match(line)
+            if match and match.group(1) in members:
+                rewritten += [(f"MATERIAL, {g.name}, {match.group(2)}",
+                               weight * (factor[g.name] if match.group(2) == "C10" else 1.0)) for g in members[match.group(1)]]
+            else:
+                rewritten.append((line, weight))
+        state.sensitivity[parameter] = rewritten
+    for parameter, entries in state.group_sensitivity.items():
+        # du/dp = sum_g dC10_g/dp du/dC10_g, dC10_g/dp = C10_g dlnC10_g/dp
+        state.sensitivity[parameter] = [(f"MATERIAL, {group}, C10", constants[group][0] * weight)
+                                        for group, weight in entries if weight != 0.0]
+    state.constants = constants
+
+
 def _fixed(*parameters: EffectParameter):
     return lambda element_sets, node_sets: parameters
 
@@ -208,14 +317,33 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            "a uniform axial strain eps_z changes the in-plane area at no cost, a dilatation everywhere.",
            _fixed(EffectParameter("eps_z", "1", -0.2, 0.2, 0.01, "axial strain lambda_z - 1")),
            _apply_out_of_plane),
+    Effect("heterogeneity", "C10 varying smoothly around the leg and with depth, in fat and in muscle",
+           "Muscle groups differ in stiffness (the compartments), and fat is thicker and looser at the back; a "
+           "segmentation into fat and muscle holds none of it: ln C10 = ln C10_tissue + sum_m c_m phi_m with the modes "
+           "cos, sin of the angle and of twice it, and depth through the muscle, on material groups cut by sector and "
+           "depth. Needs no compartment labels.",
+           _heterogeneity_parameters, _apply_heterogeneity),
 )}
+LOCAL_PROBE = Effect("local", "a separate C10 factor in every material group (diagnosis probe, not fitted)",
+                     "Where a local stiffness change would reduce the residual.",
+                     lambda element_sets, node_sets: tuple(
+                         EffectParameter(f"dlnC10_{name}", "1", -2.5, 2.5, 0.25, f"ln C10 factor of {name}")
+                         for name in element_sets if is_group(name)),
+                     _apply_local, requirement=_needs_groups)
 
 
 def effect(name: str) -> Effect:
-    try:
+    """A catalog effect, or one of the group effects (`patch:...`, `region:...`, `local`)."""
+    if name in CATALOG:
         return CATALOG[name]
-    except KeyError:
-        raise EffectError(f"unknown effect {name!r}; the catalog has: {', '.join(CATALOG)}") from None
+    if name.startswith(PATCH_PREFIX):
+        return patch_effect(name)
+    if name.startswith(REGION_PREFIX):
+        return region_effect(name)
+    if name == LOCAL_PROBE.name:
+        return LOCAL_PROBE
+    raise EffectError(f"unknown effect {name!r}; the catalog has: {', '.join(CATALOG)} (and patch:<groups>, "
+                      "region:<fat|muscle>:<start deg>:<end deg>)")
 
 
 def parse_effects(text: str | Sequence[str] | None) -> tuple[str, ...]:

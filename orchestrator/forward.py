@@ -27,6 +27,7 @@ from scipy import sparse
 from scipy.spatial import cKDTree
 
 from .decks import KPA_PER_MPA, disk_deck, leg_laplace_deck, text_sha256
+from .heterogeneity import group_elsets_text, groups_for
 from .meshing import Mesh
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")
@@ -204,10 +205,12 @@ class LegModel:
         overlap = set(self.effects) & set(self.fixed_effects)
         if overlap:
             raise ValueError(f"effects {sorted(overlap)} are both fitted and fixed")
+        self.groups = groups_for(self.mesh, self.effects + tuple(self.fixed_effects))
+        element_sets = list(sets) + [group.name for group in self.groups]
         base = ParameterSpace(LEG_PARAMETERS, tuple(b[0] for b in LEG_BOUNDS_KPA), tuple(b[1] for b in LEG_BOUNDS_KPA))
-        self.space = base.join(_effect_space(self.effects, list(sets), list(self.mesh.node_sets)))
-        _effect_space(list(self.fixed_effects), list(sets), list(self.mesh.node_sets))  # checks they fit the mesh
-        self.mesh_text = self.mesh.include_text()
+        self.space = base.join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets)))
+        _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets))  # checks they fit the mesh
+        self.mesh_text = self.mesh.include_text() + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
 
     def start(self, base_kPa: Sequence[float] = TABLE2_CENTRAL_KPA) -> list[float]:
@@ -216,26 +219,30 @@ class LegModel:
 
     def deck_state(self, theta: Sequence[float]):
         """The materials and step keywords of theta, with the *SENSITIVITY lines of every parameter."""
-        from .effects import LegDeckState, effect
+        from .effects import LegDeckState, effect, split_into_groups
 
         theta = [float(v) for v in theta]
         if len(theta) != self.space.size:
             raise ValueError(f"theta has {len(theta)} values; this model has {self.space.size}: {self.space.names}")
         c10_fat, c10_muscle, kv_fat, kv_muscle = (v / KPA_PER_MPA for v in theta[:4])
-        state = LegDeckState({"FAT": [c10_fat, kv_fat, 0.0], **{m: [c10_muscle, kv_muscle, 0.0] for m in self.muscle_sets}})
+        state = LegDeckState({"FAT": [c10_fat, kv_fat, 0.0], **{m: [c10_muscle, kv_muscle, 0.0] for m in self.muscle_sets}},
+                             groups=self.groups)
         for j, (name, elsets) in enumerate((("C10_fat", ["FAT"]), ("C10_muscle", self.muscle_sets),
                                             ("Kv_fat", ["FAT"]), ("Kv_muscle", self.muscle_sets))):
             constant = "C10" if j < 2 else "KV"
             state.sensitivity[name] = [(f"MATERIAL, {elset}, {constant}", 1.0 / KPA_PER_MPA) for elset in elsets]
         values = dict(zip(self.space.names[4:], theta[4:]))
+        element_sets = list(state.constants) + [group.name for group in self.groups]
         for name in self.effects:
             item = effect(name)
-            item.apply(state, {p.name: values[p.name] for p in item.parameters(list(state.constants), list(self.mesh.node_sets))})
+            item.apply(state, {p.name: values[p.name] for p in item.parameters(element_sets, list(self.mesh.node_sets))})
         for name, fixed in self.fixed_effects.items():
             effect(name).apply(state, dict(fixed))
         # the compartments effect scales C10 of a compartment by (1 + c): du/dC10_muscle gets that factor
         state.sensitivity["C10_muscle"] = [(line, f * state.c10_factor.get(line, 1.0))
                                            for line, f in state.sensitivity["C10_muscle"]]
+        if self.groups:
+            split_into_groups(state)
         return state
 
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None,

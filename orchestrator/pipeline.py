@@ -20,7 +20,9 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import ALPHA, diagnose, refit, refit_verdict, residual_maps, settle_ties, summarize_fit
+from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, residual_maps, settle_ties, weigh_local,
+                       summarize_fit)
+from .figures import diagnosis_figure
 from .forward import TABLE2_CENTRAL_KPA
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_uncertainty, table1_starts)
@@ -252,15 +254,27 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
-    if not diagnosis.explained and diagnosis.lack_of_fit_p < alpha and diagnosis.maps.worst_region:
+    unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
+    if unexplained and diagnosis.maps.worst_region:
         maps = diagnosis.maps
         diagnosis.verdict += (f"; the residual is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f}"
                               f" mm, {100 * maps.worst_region_share:.0f} % of the squared residual)")
+    local = None
+    if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
+        patch = diagnosis.patches[0]
+        fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
+        local = weigh_local(diagnosis, patch, before, fit, after)
+        after.append(fit)
+        after_maps.append(residual_maps(objective.positions_mm, residual, frame))
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]
     result["maps_after"] = [asdict(m) for m in after_maps]
+    result["local"] = local
     write_json(run_dir / "diagnosis.json", result)
+    diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
+                     setup.mesh, patch_elements(model, local["patch"]["effect"]) if local else None,
+                     local["patch"]["place"] if local else "")
     return result
 
 

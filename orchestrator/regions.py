@@ -24,6 +24,7 @@ from .imaging.segment import BONE, FAT, MUSCLE
 
 SECTORS = 12                   # 30-degree sectors
 DEPTH_BANDS_MM = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf)
+DEEP_COMPARTMENT_MM = 15.0
 DIRECTIONS = ("anterior", "anterolateral", "lateral", "posterolateral", "posterior", "posteromedial", "medial",
               "anteromedial")
 
@@ -34,7 +35,7 @@ def tissue_name(label: int) -> str:
     if label == MUSCLE:
         return "muscle"
     if label >= FIRST_COMPARTMENT:
-        return f"muscle compartment {label - FIRST_COMPARTMENT + 1}"
+        return "muscle"
     return "bone" if label == BONE else "outside the leg"
 
 
@@ -100,6 +101,24 @@ class LegFrame:
 
     def sectors(self, points_mm: np.ndarray) -> np.ndarray:
         return np.minimum((self.angles_deg(points_mm) / (360.0 / SECTORS)).astype(int), SECTORS - 1)
+
+
+def compartment_names(labels: np.ndarray, pixel_size_mm) -> dict[int, str]:
+    """A name per muscle compartment (label >= 4) a reader can find on the image: its number, the direction of its
+    centroid from the leg centre ("deep" when it lies more than DEEP_COMPARTMENT_MM under the skin everywhere: the
+    direction of a compartment between the bones says little), its depth range and its area, e.g.
+    "compartment 2: posterior, 12-48 mm under the skin, 38.4 cm2"."""
+    frame = LegFrame.from_labels(labels, pixel_size_mm)
+    dy, dx = frame.pixel_size_mm
+    names = {}
+    for number, label in enumerate(sorted(int(v) for v in np.unique(labels[labels >= FIRST_COMPARTMENT])), start=1):
+        rows, cols = np.nonzero(labels == label)
+        centroid = np.array([[(cols.mean() + 0.5) * dx, (rows.mean() + 0.5) * dy]])
+        depth = frame.skin_distance_mm[rows, cols]
+        where = "deep" if depth.min() > DEEP_COMPARTMENT_MM else frame.direction(frame.angles_deg(centroid)[0])
+        names[label] = (f"compartment {number}: {where}, "
+                        f"{depth.min():.0f}-{depth.max():.0f} mm under the skin, {len(rows) * dx * dy / 100.0:.1f} cm2")
+    return names
 
 
 def display_angle_deg(points_mm: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:

@@ -1,7 +1,9 @@
 """From a case folder to a run folder, and phantom cases made by the engine.
 
 `prepare_run` does once what every later command of a run needs (DESIGN.md data flow):
-read the case, segment I0 if the case has no labels, align the loaded image on the bones
+read the case, segment I0 if the case has no labels, cut its muscle into compartments at the septa seen in I0
+when the labels hold none (`imaging.compartments`, drawn in RUN_DIR/compartments.png for the user to check;
+the compartments share the muscle's constants until the `compartments` effect separates them), align the loaded image on the bones
 (rigid motion, Bouten and Drapier sec. 3.1), segment the aligned loaded image, mesh the
 labels of I0 with their interfaces moved onto the edges of I0 (`meshing.mesh_from_labels`), and stores the labels, the
 motion and the mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then
@@ -28,16 +30,19 @@ import numpy as np
 from .forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
+from .imaging.compartments import FIRST_COMPARTMENT, find_compartments
 from .imaging.frame import RigidMotion
 from .imaging.segment import segment_t1
 from .meshing import Mesh, mesh_from_labels
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .measure import FILES as MEASURE_FILES
 from .measure import Measurements, dic_measurements, points_measurements, read_window_table
+from .figures import compartments_figure
 from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure
 from .regions import LegFrame
 
 SETUP_ARRAYS = "setup.npz"
+COMPARTMENTS_FIGURE = "compartments.png"
 SETUP_JSON = "setup.json"
 PARAMETERS_FILE = "parameters.json"
 DATA_SOURCES = ("auto", "dic", "points")
@@ -149,12 +154,20 @@ class RunSetup:
 
 
 def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 400, order: int = 1,
-                align: bool = True) -> RunSetup:
+                align: bool = True, compartments: bool = True) -> RunSetup:
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
     case = read_case(case_dir)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     labels_unloaded = case.labels if case.labels is not None else segment_t1(case.unloaded, case.pixel_size_mm)
+    compartment_info = {"source": "labels" if labels_unloaded.max() >= FIRST_COMPARTMENT else "none"}
+    if compartments and compartment_info["source"] == "none":
+        found = find_compartments(case.unloaded, labels_unloaded, case.pixel_size_mm)
+        compartments_figure(run_dir / COMPARTMENTS_FIGURE, case.unloaded, case.pixel_size_mm, found)
+        if found.count >= 2:
+            labels_unloaded = found.labels
+            compartment_info = {"source": "image", "figure": COMPARTMENTS_FIGURE}
+    compartment_info["areas_mm2"] = {str(k): round(v, 1) for k, v in _compartment_areas(labels_unloaded, case.pixel_size_mm).items()}
     motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded)
               if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
@@ -165,10 +178,15 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                         loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))
     temporary.replace(run_dir / SETUP_ARRAYS)
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
-                                      "order": order, "rigid_motion": {"angle_deg": motion.angle_deg,
+                                      "order": order, "compartments": compartment_info, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
                                                                        "centre_mm": list(motion.centre_mm)}})
     return load_run(run_dir)
+
+
+def _compartment_areas(labels: np.ndarray, pixel_size_mm) -> dict[int, float]:
+    values, counts = np.unique(labels[labels >= FIRST_COMPARTMENT], return_counts=True)
+    return {int(v): float(c * pixel_size_mm[0] * pixel_size_mm[1]) for v, c in zip(values, counts)}
 
 
 def load_run(run_dir: str | Path) -> RunSetup:

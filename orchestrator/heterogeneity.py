@@ -1,0 +1,251 @@
+"""A tissue whose stiffness is not one number, without labels beyond fat and muscle: material groups.
+
+A calf's muscle is four compartments of different muscles, its fat is thicker and looser at the back; a
+segmentation into fat, muscle and bone knows none of it. Here every tissue element set (FAT, MUSCLE,
+COMPARTMENTk) is cut into groups by where its elements lie: `SECTORS` angular sectors of 30 degrees about the
+leg's centre (display angles, as `regions` names them) and depth bands (the fat in one, the muscle in
+`MUSCLE_BANDS` bands of equal element count by distance to the skin). Each group gets its own material: the
+tissue's constants with C10 multiplied by
+
+    exp( sum_m c_m phi_m(group) + sum_patches p [group in patch] + ln r [group in a region] ),
+
+- `heterogeneity` (a catalog effect): c_m for the modes phi = cos theta, sin theta, cos 2 theta, sin 2 theta and
+  the depth d (-1 at the tissue's outside, +1 at its inside), per tissue kind (fat, muscle): a smooth field, as
+  the first harmonics of the garment tension are for the pressure; du/dc_m = sum_g C10_g phi_m(g) du/dC10_g;
+- patches (`patch_effect`): one factor exp(p) on a set of groups, the local stiffness change the diagnosis
+  proposes where the catalog explains nothing; du/dp = sum_(g in patch) C10_g du/dC10_g;
+- regions (`region_effect`, for the phantom's truth): a stiffness ratio in an angular sector of one tissue,
+  cut on the element centroids of whatever mesh carries it (not the groups of the fit).
+
+The exponential keeps every C10 positive for any parameter value; at zero the derivative is the mode itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .regions import display_angle_deg
+
+SECTORS = 12
+MUSCLE_BANDS = 3
+MODES = ("cos1", "sin1", "cos2", "sin2", "depth")
+FAT_MODES = ("cos1", "sin1")   # the fat is one thin layer: looser at the back than at the front, nothing finer
+KINDS = ("fat", "muscle")
+SECTOR_DEG = 360.0 / SECTORS
+PATCH_PREFIX = "patch:"
+REGION_PREFIX = "region:"
+GROUP_PREFIX = "G_"
+GROUPED_EFFECTS = ("heterogeneity", "local")
+
+
+def tissue_kind(element_set: str) -> str:
+    return "fat" if element_set == "FAT" else "muscle"
+
+
+@dataclass(frozen=True)
+class Group:
+    """Elements of one tissue set in one sector and depth band."""
+
+    name: str
+    tissue_set: str
+    elements: np.ndarray
+    sector: int
+    band: int
+    angle_deg: float      # display angle of the group's centroid
+    depth: float          # -1 (next to the skin) .. +1 (deepest) within the tissue; 0 with one band
+    area_mm2: float
+    depth_range_mm: tuple[float, float]   # distance of its element centroids to the skin
+    region: str = ""      # the region effect that made it (truth cases), "" for mesh groups
+
+    @property
+    def kind(self) -> str:
+        return tissue_kind(self.tissue_set)
+
+    def mode(self, name: str) -> float:
+        angle = np.radians(self.angle_deg)
+        return {"cos1": np.cos(angle), "sin1": np.sin(angle), "cos2": np.cos(2 * angle), "sin2": np.sin(2 * angle),
+                "depth": self.depth}[name]
+
+
+def element_geometry(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per element: centroid (mm), display angle about the leg centre (deg), distance to the skin (mm), area.
+    The leg centre is the centroid of the area inside the skin (bones included), as `regions.LegFrame` takes it
+    from the labels, so that the groups' sectors are the sectors the diagnosis names."""
+    corners = mesh.nodes[mesh.elements[:, :3]]
+    centroid = corners.mean(axis=1)
+    edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    area = 0.5 * np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0])
+    skin = mesh.nodes[mesh.skin_loop]
+    angle = display_angle_deg(centroid, polygon_centroid(skin))
+    a, b = skin, np.roll(skin, -1, axis=0)
+    segment = b - a
+    t = np.clip(np.einsum("ekd,kd->ek", centroid[:, None, :] - a[None], segment) / np.sum(segment ** 2, axis=1), 0.0, 1.0)
+    nearest = a[None] + t[..., None] * segment[None]
+    depth = np.min(np.linalg.norm(centroid[:, None, :] - nearest, axis=2), axis=1)
+    return centroid, angle, depth, area
+
+
+def polygon_centroid(loop: np.ndarray) -> np.ndarray:
+    """Centroid of the area a closed polygon encloses (shoelace formula)."""
+    x, y = loop[:, 0], loop[:, 1]
+    xn, yn = np.roll(x, -1), np.roll(y, -1)
+    cross = x * yn - xn * y
+    area = cross.sum() / 2.0
+    return np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6.0 * area)
+
+
+def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray]) -> list[Group]:
+    """The groups of every tissue set (module text), empty ones left out; names like G_MUSCLE_S03B1. The depth
+    bands are cut over all the sets of a kind (the muscle compartments together), so that a band means the same
+    depth in every compartment."""
+    _, angle, depth, area = element_geometry(mesh)
+    sector = np.minimum((angle / SECTOR_DEG).astype(int), SECTORS - 1)
+    band, unit_depth = np.zeros(len(depth), int), np.zeros(len(depth))
+    for kind in KINDS:
+        members = np.concatenate([np.asarray(ids, int) for name, ids in tissue_sets.items() if tissue_kind(name) == kind]
+                                 or [np.zeros(0, int)])
+        if len(members) == 0 or kind == "fat":
+            continue
+        edges = np.quantile(depth[members], np.linspace(0.0, 1.0, MUSCLE_BANDS + 1)[1:-1])
+        band[members] = np.searchsorted(edges, depth[members])
+        low, high = depth[members].min(), depth[members].max()
+        unit_depth[members] = 2.0 * (depth[members] - low) / max(high - low, 1e-12) - 1.0
+    groups = []
+    for tissue_set, members in tissue_sets.items():
+        members = np.asarray(members)
+        bands = 1 if tissue_kind(tissue_set) == "fat" else MUSCLE_BANDS
+        for s in range(SECTORS):
+            for b in range(bands):
+                chosen = members[(sector[members] == s) & (band[members] == b)]
+                if len(chosen) == 0:
+                    continue
+                unit = float(np.average(unit_depth[chosen], weights=area[chosen]))
+                groups.append(Group(f"{GROUP_PREFIX}{tissue_set}_S{s:02d}B{b}", tissue_set, chosen, s, b,
+                                    float((s + 0.5) * SECTOR_DEG), unit, float(area[chosen].sum()),
+                                    (float(depth[chosen].min()), float(depth[chosen].max()))))
+    return groups
+
+
+def region_groups(mesh, tissue_sets: dict[str, np.ndarray], regions: dict[str, "Region"]) -> list[Group]:
+    """Each tissue set cut by the regions (truth patches, by effect name): a region's elements, and the rest."""
+    _, angle, depth, area = element_geometry(mesh)
+    groups = []
+    for tissue_set, members in tissue_sets.items():
+        members = np.asarray(members)
+        taken = np.zeros(len(members), bool)
+        for k, (name, region) in enumerate(regions.items()):
+            if region.kind != tissue_kind(tissue_set):
+                continue
+            inside = region.contains(angle[members]) & ~taken
+            taken |= inside
+            if inside.any():
+                chosen = members[inside]
+                groups.append(Group(f"{GROUP_PREFIX}{tissue_set}_R{k}", tissue_set, chosen, -1, -1, region.centre_deg,
+                                    0.0, float(area[chosen].sum()), (float(depth[chosen].min()), float(depth[chosen].max())),
+                                    name))
+        if (~taken).any():
+            chosen = members[~taken]
+            groups.append(Group(f"{GROUP_PREFIX}{tissue_set}_REST", tissue_set, chosen, -1, -1, 0.0, 0.0,
+                                float(area[chosen].sum()), (float(depth[chosen].min()), float(depth[chosen].max()))))
+    return groups
+
+
+@dataclass(frozen=True)
+class Region:
+    """An angular sector of one tissue (display angles, counter-clockwise from start to end)."""
+
+    kind: str
+    start_deg: float
+    end_deg: float
+
+    @property
+    def width_deg(self) -> float:
+        return (self.end_deg - self.start_deg) % 360.0
+
+    @property
+    def centre_deg(self) -> float:
+        return (self.start_deg + self.width_deg / 2.0) % 360.0
+
+    def contains(self, angle_deg: np.ndarray) -> np.ndarray:
+        return ((np.asarray(angle_deg) - self.start_deg) % 360.0) < self.width_deg
+
+
+def region_name(kind: str, start_deg: float, end_deg: float) -> str:
+    return f"{REGION_PREFIX}{kind}:{start_deg:g}:{end_deg:g}"
+
+
+def parse_region(name: str) -> Region:
+    try:
+        _, kind, start, end = name.split(":")
+        region = Region(kind, float(start), float(end))
+    except ValueError:
+        raise ValueError(f"a region effect reads region:<fat|muscle>:<start deg>:<end deg>, not {name!r}") from None
+    if kind not in KINDS:
+        raise ValueError(f"a region's tissue is fat or muscle, not {kind!r} (in {name!r})")
+    if not 0.0 < region.width_deg < 360.0:
+        raise ValueError(f"a region spans between 0 and 360 degrees: {name!r}")
+    return region
+
+
+def patch_name(groups: list[str]) -> str:
+    return PATCH_PREFIX + "+".join(sorted(groups))
+
+
+def patch_groups(name: str) -> list[str]:
+    return name[len(PATCH_PREFIX):].split("+")
+
+
+def is_group(element_set: str) -> bool:
+    return element_set.startswith(GROUP_PREFIX)
+
+
+def groups_for(mesh, effect_names) -> list[Group]:
+    """The groups a model with these effects (fitted and fixed) needs: the regions' when the truth has regions,
+    the mesh groups when an effect works on them (heterogeneity, patches, the diagnosis' local probe), else none."""
+    from .effects import muscle_sets
+
+    names = list(effect_names)
+    regions = {n: parse_region(n) for n in names if n.startswith(REGION_PREFIX)}
+    grouped = [n for n in names if n in GROUPED_EFFECTS or n.startswith(PATCH_PREFIX)]
+    if regions and grouped:
+        raise ValueError(f"region effects {sorted(regions)} cut the tissues differently from {grouped}: use one or the other")
+    sets = mesh.element_sets()
+    tissue_sets = {name: ids for name, ids in sets.items() if name == "FAT" or name in muscle_sets(list(sets))}
+    if regions:
+        return region_groups(mesh, tissue_sets, regions)
+    return mesh_groups(mesh, tissue_sets) if grouped else []
+
+
+def patch_candidates(groups: list[Group], max_sectors: int = 3) -> list[tuple[list[int], int, int]]:
+    """Places a local stiffness change may take: within one tissue kind (across muscle compartments), 1 to
+    max_sectors contiguous sectors and a contiguous run of depth bands. Returns (group indices, first sector,
+    number of sectors), each set once."""
+    cells: dict[tuple[str, int, int], list[int]] = {}
+    for k, g in enumerate(groups):
+        if g.sector >= 0:
+            cells.setdefault((g.kind, g.sector, g.band), []).append(k)
+    found, seen = [], set()
+    for kind in dict.fromkeys(g.kind for g in groups if g.sector >= 0):
+        bands = 1 if kind == "fat" else MUSCLE_BANDS
+        runs = [range(low, high) for low in range(bands) for high in range(low + 1, bands + 1)]
+        for start in range(SECTORS):
+            for width in range(1, max_sectors + 1):
+                for run in runs:
+                    members = [k for key in ((kind, (start + w) % SECTORS, b) for w in range(width) for b in run)
+                               for k in cells.get(key, [])]
+                    if members and frozenset(members) not in seen:
+                        seen.add(frozenset(members))
+                        found.append((members, start, width))
+    return found
+
+
+def group_elsets_text(groups: list[Group]) -> str:
+    """*ELSET definitions of the groups, for the mesh include."""
+    lines = []
+    for group in groups:
+        ids = np.asarray(group.elements) + 1
+        lines.append(f"*ELSET, ELSET={group.name}")
+        lines += [", ".join(str(v) for v in ids[k:k + 16]) for k in range(0, len(ids), 16)]
+    return "\n".join(lines) + "\n"
