@@ -28,6 +28,16 @@ explains it and points at where the residual is, in words (`regions.LegFrame`): 
 anatomical sector around the leg in degrees and the depth under the skin of the region that holds the
 largest share of the squared residual.
 
+Locate. When the misfit is above the floor, every place a local stiffness change may take is scored the
+same way, as a one-parameter effect: the material groups of `heterogeneity` (15-degree sectors, depth bands),
+contiguous in one tissue kind over 1 to 6 sectors (up to 90 degrees) and a run of bands, its column the sum of
+its groups' dr/dln C10 (the `local` probe, one engine run). The best places that share no group are reported
+(tissue, sector, depth, area; Bonferroni over the N places tried), and the best is refitted (`patch:...`). Its
+BIC counts the choice of the place among N, 2 ln N on top of its parameter's ln n (a prior 1/N on each place).
+It explains when it reaches EXPLAINED_FACTOR x the floor with a BIC below the baseline's; when a catalog
+effect explained the residual too, the lower BIC wins, and a local change that wins takes "explained" away
+from the catalog (`weigh_local`).
+
 Refit. `refit` identifies again with the effect's parameters free (Levenberg-Marquardt from the fitted
 point, effect at zero) and compares misfit, AIC = chi^2 + 2k and BIC = chi^2 + k ln n (known sigma:
 -2 ln L = chi^2 + const) before and after, so that an effect that does not pay for its parameters is
@@ -46,7 +56,7 @@ from scipy.spatial import cKDTree
 
 from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
-from .heterogeneity import SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
+from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
 from .identify import FitResult, levenberg_marquardt, residual_jacobian
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator
@@ -522,14 +532,25 @@ def ranking_lines(diagnosis: Diagnosis) -> list[str]:
                      + (f"  (tied with {', '.join(s.tied_with)}: settled by refit)" if s.tied_with else ""))
     for name, reason in diagnosis.not_ranked.items():
         lines.append(f"     {name:<17} not ranked: {reason}")
+    if diagnosis.patches:
+        lines.append("places for a local stiffness change (score, predicted misfit, C10 ratio, linearized):")
+        lines += [f"  {k}. {p.place}, {p.area_cm2:.1f} cm2: statistic {p.statistic:.1f}, p = {p.p_value:.2g} over "
+                  f"{p.places_tried} places, {p.predicted_misfit / diagnosis.noise_floor:.2f} x the floor, "
+                  f"C10 x{p.predicted_ratio:.2f}{'' if p.significant else ' (not significant)'}"
+                  for k, p in enumerate(diagnosis.patches, 1)]
     lines.append(diagnosis.verdict)
     return lines
+
+
+def effect_label(name: str) -> str:
+    """An effect as a table shows it: a patch by its size, not its list of groups."""
+    return f"local change ({len(patch_groups(name))} groups)" if name.startswith(PATCH_PREFIX) else name
 
 
 def comparison_lines(before: Refit, after: Sequence[Refit]) -> list[str]:
     lines = [f"{'model':<28}{'k':>3}{'misfit mm^2':>13}{'x floor':>9}{'AIC':>11}{'BIC':>11}  parameters"]
     for fit in (before, *after):
-        label = "baseline" if not fit.effects else "+ " + ", ".join(fit.effects)
+        label = "baseline" if not fit.effects else "+ " + ", ".join(map(effect_label, fit.effects))
         values = ", ".join(f"{n}={v:.4g}" for n, v in zip(fit.parameters, fit.theta))
         lines.append(f"{label:<28}{len(fit.parameters):>3}{fit.misfit:>13.4g}{fit.misfit_over_floor:>9.2f}"
                      f"{fit.aic:>11.1f}{fit.bic:>11.1f}  {values}")

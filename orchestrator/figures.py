@@ -93,8 +93,8 @@ def compartments_figure(path: Path, image: np.ndarray, pixel_size_mm, compartmen
 def diagnosis_figure(path: Path, image: np.ndarray, pixel_size_mm, maps, mesh, patch_elements: np.ndarray | None = None,
                      place: str = "") -> Path:
     """The residual of the identified model (u_model - u_measured) as arrows coloured by length (mm, colour bar)
-    on the unloaded image, the 30-degree sectors about the leg centre with their anatomical names, and the place
-    of the proposed local stiffness change shaded."""
+    on the unloaded image, the 30-degree sectors of `regions` about the leg centre with their anatomical names, and
+    the place of the proposed local stiffness change shaded."""
     from matplotlib.collections import PolyCollection
     from scipy.spatial import cKDTree
 

@@ -2,7 +2,7 @@
 
 A calf's muscle is four compartments of different muscles, its fat is thicker and looser at the back; a
 segmentation into fat, muscle and bone knows none of it. Here every tissue element set (FAT, MUSCLE,
-COMPARTMENTk) is cut into groups by where its elements lie: `SECTORS` angular sectors of 30 degrees about the
+COMPARTMENTk) is cut into groups by where its elements lie: `SECTORS` angular sectors of 15 degrees about the
 leg's centre (display angles, as `regions` names them) and depth bands (the fat in one, the muscle in
 `MUSCLE_BANDS` bands of equal element count by distance to the skin). Each group gets its own material: the
 tissue's constants with C10 multiplied by
@@ -28,7 +28,8 @@ import numpy as np
 
 from .regions import display_angle_deg
 
-SECTORS = 12
+SECTORS = 24
+PATCH_MAX_DEG = 90.0   # the widest local change the diagnosis proposes
 MUSCLE_BANDS = 3
 MODES = ("cos1", "sin1", "cos2", "sin2", "depth")
 FAT_MODES = ("cos1", "sin1")   # the fat is one thin layer: looser at the back than at the front, nothing finer
@@ -218,7 +219,7 @@ def groups_for(mesh, effect_names) -> list[Group]:
     return mesh_groups(mesh, tissue_sets) if grouped else []
 
 
-def patch_candidates(groups: list[Group], max_sectors: int = 3) -> list[tuple[list[int], int, int]]:
+def patch_candidates(groups: list[Group], max_sectors: int = int(PATCH_MAX_DEG // (360.0 / SECTORS))) -> list[tuple[list[int], int, int]]:
     """Places a local stiffness change may take: within one tissue kind (across muscle compartments), 1 to
     max_sectors contiguous sectors and a contiguous run of depth bands. Returns (group indices, first sector,
     number of sectors), each set once."""

@@ -21,6 +21,7 @@ import imageio.v3 as iio
 import numpy as np
 from skimage.draw import line as draw_line, disk as draw_disk
 
+from .diagnose import effect_label
 from .forward import MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.warp import warp_image
 from .results import EngineResults
@@ -168,7 +169,7 @@ def diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pat
                        "YES" if s["significant"] else "no"] for k, s in enumerate(diagnosis["ranking"], 1)])
     fits = [diagnosis["before"]] + diagnosis["refits"]
     comparison = _table(["model", "k", "misfit (mm^2)", "misfit / floor", "AIC", "BIC", "M (mm^2)", "parameters"],
-                        [["baseline" if not f["effects"] else "+ " + ", ".join(f["effects"]), len(f["parameters"]),
+                        [[_model_label(f), len(f["parameters"]),
                           f["misfit"], f["misfit_over_floor"], f["aic"], f["bic"], m,
                           ", ".join(f"{n} = {v:.4g}" for n, v in zip(f["parameters"], f["theta"]))]
                          for f, m in zip(fits, mismatch_values)])
@@ -181,7 +182,12 @@ def diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pat
     worst = (f"<p>Largest share of the squared residual: the {html.escape(maps['worst_region'])} "
              f"({100 * maps['worst_region_share']:.0f} %, RMS {maps['worst_region_rms_mm']:.3f} mm).</p>"
              if maps.get("worst_region") else "")
-    labels = " | ".join(["identified model"] + ["+ " + ", ".join(f["effects"]) for f in diagnosis["refits"]])
+    labels = " | ".join(["identified model"] + [_model_label(f) for f in diagnosis["refits"]])
+    located = ""
+    if _copy_figure(setup.run_dir / "diagnosis.png", staging):
+        patch = (diagnosis.get("local") or {}).get("patch")
+        located = (f"<h3>Where the residual lies{': the place of a local stiffness change, ' + html.escape(patch['place']) if patch else ''}"
+                   "</h3><img src=\"diagnosis.png\">")
     return f"""<h2>Diagnosis: where the model fails and which effect is missing</h2>
 <p>{html.escape(diagnosis['verdict'])}.</p>
 <p>Misfit {diagnosis['misfit']:.4g} mm^2 against a noise floor of {diagnosis['noise_floor']:.4g} mm^2
@@ -192,12 +198,25 @@ sensitivities from {html.escape(diagnosis['sensitivities_from'])}, {diagnosis['e
 <h3>Residual per sector around the leg (angles counter-clockwise on the image from its +x axis, 90 deg at the
 top; anterior towards the tibia, lateral towards the fibula)</h3>{sectors}{worst}
 <p>RMS residual per tissue: {html.escape(', '.join(f'{k} {v:.3f} mm' for k, v in diagnosis['maps']['per_region_rms_mm'].items()))}.</p>
+{located}
 <h3>Before and after the refit</h3>{comparison}
 <h3>Displacement residual vectors at the measured points ({html.escape(labels)}; 0 to {high:.3f} mm, drawn x{scale * setup.case.pixel_size_mm[1]:.0f})</h3>
 <img src="residuals_before_after.png">
 <h3>Contour distances d_k (Avril et al. Fig. 4; {html.escape(labels)}; 0 to {d_max:.2f} mm)</h3>
 <img src="dk_before_after.png">
 """
+
+
+def _model_label(fit: dict) -> str:
+    return "+ " + ", ".join(map(effect_label, fit["effects"])) if fit["effects"] else "baseline"
+
+
+def _copy_figure(path: Path, staging: Path) -> bool:
+    """Put a figure of the run folder into the report; False when the run has none."""
+    if not path.is_file():
+        return False
+    shutil.copy(path, staging / path.name)
+    return True
 
 
 def _optional_json(path: Path) -> dict | None:
@@ -253,6 +272,9 @@ def _page(setup, identification: dict, montecarlo: dict | None, pressures: dict 
     table1 = _table(["start " + n for n in names] + ["misfit"] + ["found " + n for n in names] + ["iterations", "engine runs"],
                     [f["start"] + [f["cost"]] + f["theta"] + [f["iterations"], f["engine_runs"]] for f in fits])
     effects = identification.get("effects", [])
+    compartments = "".join(f"<p>{html.escape(line)}.</p>" for line in setup.compartment_lines())
+    if _copy_figure(setup.run_dir / "compartments.png", staging):
+        compartments = f"<h2>Muscle compartments found at the septa of I0</h2>{compartments}<img src=\"compartments.png\">"
     sections = [f"""<h1>calfit report: {html.escape(case.name)}</h1>
 <p>Case <code>{html.escape(str(case.folder))}</code>; garment tension {case.tension_N_per_mm:g} N/mm;
 mesh {len(setup.mesh.elements)} {setup.mesh.element_type} elements; objective {html.escape(identification['objective'])},
@@ -260,6 +282,7 @@ method {html.escape(identification['method'])}; effects in the model: {html.esca
 {identification['engine_runs_total']} engine runs in the log.</p>
 <h2>Images (unloaded I0, loaded I1)</h2><img src="images.png">
 <h2>Segmentation and mesh</h2><img src="segmentation_mesh.png">
+{compartments}
 <h2>Warped image at the identified parameters, target I0, contour distances d_k (0 to {d_max:.2f} mm)</h2>
 <p>M = sum d_k^2 = {result.value_mm2:.1f} mm^2 over {result.contour_pixel_count} contour pixels (rms {result.rms_mm:.3f} mm).</p>
 <img src="warped_dk.png">

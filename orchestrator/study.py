@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import json
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -32,8 +32,8 @@ from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
 from .imaging.compartments import FIRST_COMPARTMENT, find_compartments
 from .imaging.frame import RigidMotion
-from .imaging.segment import segment_t1
-from .meshing import Mesh, mesh_from_labels
+from .imaging.segment import MUSCLE, segment_t1
+from .meshing import Mesh, MeshingError, mesh_from_labels
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .measure import FILES as MEASURE_FILES
 from .measure import Measurements, dic_measurements, points_measurements, read_window_table
@@ -95,6 +95,19 @@ class RunSetup:
     motion: RigidMotion
     mesh: Mesh
     model: LegModel
+    compartments: dict = field(default_factory=lambda: {"source": "none"})   # setup.json "compartments"
+
+    def compartment_lines(self) -> list[str]:
+        """What the user should know of the muscle compartments: found in I0 (and where to check them), not meshed
+        (and why), or given by the labels."""
+        info = self.compartments
+        count = len(info.get("areas_mm2", {}))
+        if info["source"] == "image":
+            return [f"muscle compartments: {count} found at the septa of I0, check them in "
+                    f"{self.run_dir / info['figure']}"]
+        if info["source"] == "image, not meshed":
+            return [f"muscle compartments found in I0 but not meshed: {info['reason']}"]
+        return [f"muscle compartments: {count} from the labels"] if info["source"] == "labels" else []
 
     def model_with(self, effects: Sequence[str] = (), sensitivities: bool = False) -> LegModel:
         """The run's leg model with these catalog effects fitted too; with `sensitivities` its decks ask the engine
@@ -172,7 +185,17 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
               if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
     labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
-    mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order, image=case.unloaded)
+    try:
+        mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order, image=case.unloaded)
+    except MeshingError as error:
+        if compartment_info["source"] != "image":
+            raise
+        # the septa add boundary a coarse mesh cannot hold: one muscle then, said where the user looks
+        labels_unloaded = np.where(labels_unloaded >= FIRST_COMPARTMENT, MUSCLE, labels_unloaded).astype(labels_unloaded.dtype)
+        compartment_info.update(source="image, not meshed",
+                                reason=f"{error}; the muscle is one set and the compartments effect unavailable: "
+                                       "mesh with more elements to keep them")
+        mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order, image=case.unloaded)
     temporary = run_dir / f".{SETUP_ARRAYS}.tmp.npz"
     np.savez_compressed(temporary, labels_unloaded=labels_unloaded, labels_loaded=labels_loaded,
                         loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))
@@ -200,7 +223,7 @@ def load_run(run_dir: str | Path) -> RunSetup:
     motion = RigidMotion(info["rigid_motion"]["angle_deg"], tuple(info["rigid_motion"]["translation_mm"]),
                          tuple(info["rigid_motion"]["centre_mm"]))
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
-                    LegModel(mesh, case.tension_N_per_mm))
+                    LegModel(mesh, case.tension_N_per_mm), info.get("compartments", {"source": "none"}))
 
 
 def truth_mesh(phantom, *, compartments: bool = False, n_elements: int = 2000, order: int = 2,

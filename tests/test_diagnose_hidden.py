@@ -109,6 +109,7 @@ def test_without_a_hidden_effect_nothing_is_significant(tmp_path_factory):
     assert not any(score["significant"] for score in result["ranking"]), result["verdict"]
     assert 0.8 < result["misfit"] / result["noise_floor"] < 1.2
     assert "noise floor" in result["verdict"] and not result["refits"]
+    assert not any(p["significant"] for p in result["patches"]) and result["local"] is None   # no patch proposed
 
 
 @pytest.mark.slow
