@@ -1,7 +1,8 @@
 # calfit: set-up, demo and tests on a fresh Debian machine.
 #   make demo   set-up + the main job (built-in phantom leg, end to end)
 #   make test   set-up + the whole fast test suite (C++ unit tests + pytest)
-# Other targets: setup, test-slow, bench, clean.
+# Other targets: setup, test-slow, bench, fuzz (100,000 mutated decks), sanitize (ASan + UBSan build, ctest and
+# the fuzz corpus), clean.
 
 SHELL := /bin/bash
 PYTHON ?= python3
@@ -10,7 +11,7 @@ PY     := $(VENV)/bin/python
 DEBIAN_PACKAGES := g++ cmake make pkg-config libeigen3-dev libsuitesparse-dev libopenblas-dev calculix-ccx
 ENGINE_SOURCES := $(shell find solver_cpp -type f \( -name '*.cpp' -o -name '*.hpp' -o -name 'CMakeLists.txt' \))
 
-.PHONY: setup system-packages demo test test-slow test-cpp bench clean
+.PHONY: setup system-packages demo test test-slow test-cpp bench fuzz sanitize clean
 
 setup: system-packages $(VENV)/.installed
 
@@ -48,8 +49,19 @@ test: test-cpp
 test-slow: setup
 	$(PY) -m pytest -m slow -q
 
+fuzz: setup
+	$(PY) tests/fuzz_decks.py --inputs 100000 --seed 1
+
+SANITIZE_BUILD := build-sanitize
+sanitize: setup
+	cmake -S . -B $(SANITIZE_BUILD) -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCALFIT_SANITIZE=ON
+	cmake --build $(SANITIZE_BUILD) -j $$(nproc)
+	ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1 ctest --test-dir $(SANITIZE_BUILD) --output-on-failure
+	ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1 $(PY) tests/fuzz_decks.py \
+	  --engine $(SANITIZE_BUILD)/solver_cpp/calfit-fe --inputs 3000 --seed 1 --timeout 120
+
 bench: setup
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf build $(VENV) *.egg-info
+	rm -rf build $(SANITIZE_BUILD) $(VENV) *.egg-info

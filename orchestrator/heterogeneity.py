@@ -10,8 +10,10 @@ tissue's constants with C10 multiplied by
     exp( sum_m c_m phi_m(group) + sum_patches p [group in patch] + ln r [group in a region] ),
 
 - `heterogeneity` (a catalog effect): c_m for the modes phi = cos theta, sin theta, cos 2 theta, sin 2 theta and
-  the depth d (-1 at the tissue's outside, +1 at its inside), per tissue kind (fat, muscle): a smooth field, as
-  the first harmonics of the garment tension are for the pressure; du/dc_m = sum_g C10_g phi_m(g) du/dC10_g;
+  the depth d (-1 at the muscle's outside, +1 at its inside) in the muscle, cos theta and sin theta in the fat
+  (a thin layer: looser at the back than at the front, nothing finer that a stiff patch would not mimic): a
+  smooth field, as the first harmonics of the garment tension are for the pressure;
+  du/dc_m = sum_g C10_g phi_m(g) du/dC10_g;
 - patches (`patch_effect`): one factor exp(p) on a set of groups, the local stiffness change the diagnosis
   proposes where the catalog explains nothing; du/dp = sum_(g in patch) C10_g du/dC10_g;
 - regions (`region_effect`, for the phantom's truth): a stiffness ratio in an angular sector of one tissue,
@@ -26,13 +28,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .meshing.garment import polygon_centroid
 from .regions import display_angle_deg
 
 SECTORS = 24
 PATCH_MAX_DEG = 90.0   # the widest local change the diagnosis proposes
 MUSCLE_BANDS = 3
 MODES = ("cos1", "sin1", "cos2", "sin2", "depth")
-FAT_MODES = ("cos1", "sin1")   # the fat is one thin layer: looser at the back than at the front, nothing finer
+FAT_MODES = ("cos1", "sin1")
 KINDS = ("fat", "muscle")
 SECTOR_DEG = 360.0 / SECTORS
 PATCH_PREFIX = "patch:"
@@ -54,7 +57,7 @@ class Group:
     elements: np.ndarray
     sector: int
     band: int
-    angle_deg: float      # display angle of the group's centroid
+    angle_deg: float      # display angle of the middle of the group's sector
     depth: float          # -1 (next to the skin) .. +1 (deepest) within the tissue; 0 with one band
     area_mm2: float
     depth_range_mm: tuple[float, float]   # distance of its element centroids to the skin
@@ -86,15 +89,6 @@ def element_geometry(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     nearest = a[None] + t[..., None] * segment[None]
     depth = np.min(np.linalg.norm(centroid[:, None, :] - nearest, axis=2), axis=1)
     return centroid, angle, depth, area
-
-
-def polygon_centroid(loop: np.ndarray) -> np.ndarray:
-    """Centroid of the area a closed polygon encloses (shoelace formula)."""
-    x, y = loop[:, 0], loop[:, 1]
-    xn, yn = np.roll(x, -1), np.roll(y, -1)
-    cross = x * yn - xn * y
-    area = cross.sum() / 2.0
-    return np.array([((x + xn) * cross).sum(), ((y + yn) * cross).sum()]) / (6.0 * area)
 
 
 def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray]) -> list[Group]:

@@ -67,6 +67,19 @@ KeywordBlock parse_keyword_line(const std::string& text, const SourceLocation& w
   return block;
 }
 
+// A deck is text: a control byte (other than tab) means a binary or corrupted file, and quoting the line
+// would send that byte to the user's terminal.
+void reject_control_bytes(const std::string& raw, const SourceLocation& where) {
+  for (std::size_t i = 0; i < raw.size(); ++i) {
+    const auto byte = static_cast<unsigned char>(raw[i]);
+    if ((byte < 0x20 && byte != '\t') || byte == 0x7f) {
+      static const char* hex = "0123456789abcdef";
+      throw DeckError(where, std::string("byte 0x") + hex[byte >> 4] + hex[byte & 15] + " at column " +
+                                 std::to_string(i + 1) + " is not text: is this file a deck?");
+    }
+  }
+}
+
 class Reader {
 public:
   std::vector<KeywordBlock> blocks;
@@ -91,8 +104,9 @@ public:
     while (std::getline(in, raw)) {
       ++line_no;
       if (!raw.empty() && raw.back() == '\r') raw.pop_back();
-      const std::string line = trim(raw);
       const SourceLocation where{path, line_no};
+      reject_control_bytes(raw, where);
+      const std::string line = trim(raw);
       if (!pending_keyword.empty()) {
         if (line.rfind("**", 0) == 0) continue;
         pending_keyword += line;
@@ -178,6 +192,23 @@ std::vector<KeywordBlock> read_deck(const std::string& path) {
   Reader reader;
   reader.read_file(path, nullptr);
   return std::move(reader.blocks);
+}
+
+std::string printable(const std::string& text) {
+  static const char* hex = "0123456789abcdef";
+  std::string out;
+  out.reserve(text.size());
+  for (char c : text) {
+    const auto byte = static_cast<unsigned char>(c);
+    if (byte >= 0x20 && byte < 0x7f) {
+      out += c;
+    } else {
+      out += "\\x";
+      out += hex[byte >> 4];
+      out += hex[byte & 15];
+    }
+  }
+  return out;
 }
 
 double to_double(const std::string& text, const SourceLocation& where, const std::string& what) {

@@ -19,10 +19,13 @@ struct SourceLocation {
 };
 
 // Error in the user's input: reported as "FILE:LINE: message", exit code 2.
+std::string printable(const std::string& text);
+
 class DeckError : public std::runtime_error {
 public:
+  // The message is kept on one printable line: bytes outside printable ASCII are written as \xNN.
   DeckError(const SourceLocation& where, const std::string& message)
-      : std::runtime_error(where.file + ":" + std::to_string(where.line) + ": " + message), where_(where) {}
+      : std::runtime_error(where.file + ":" + std::to_string(where.line) + ": " + printable(message)), where_(where) {}
   const SourceLocation& where() const { return where_; }
 
 private:

@@ -1,0 +1,36 @@
+"""Mutated verification decks (`fuzz_decks.py`, fixed seed): calfit-fe never crashes or hangs, every rejection
+(exit 2) names the file and the line, and no input ends in an unexplained failure (exit 4). `make fuzz` runs
+100,000 inputs; this runs 3,000."""
+
+import pytest
+
+from fuzz_decks import fuzz, mutate
+from orchestrator.engine import find_engine
+
+INPUTS = 3000
+
+
+@pytest.fixture(scope="module")
+def summary():
+    return fuzz(str(find_engine()), INPUTS, seed=2026, workers=2)
+
+
+def test_no_input_crashes_or_hangs_the_engine(summary):
+    assert summary.inputs == INPUTS
+    assert not summary.crashes and not summary.hangs, summary.line()
+
+
+def test_every_rejection_names_its_line(summary):
+    assert summary.codes[2] > INPUTS // 2 and not summary.unlocated, [o.message for o in summary.unlocated[:5]]
+
+
+def test_no_input_ends_in_an_unexplained_failure(summary):
+    assert not summary.failures, [f"{o.mutation}: {o.message}" for o in summary.failures[:5]]
+
+
+def test_the_mutations_are_reproducible():
+    import random
+
+    text = "*NODE\n1, 0.0, 0.0\n2, 1.0, 0.0\n*ELEMENT, TYPE=CPE3, ELSET=E\n1, 1, 2, 3\n"
+    assert [mutate(text, random.Random(f"7-{k}")) for k in range(50)] == \
+        [mutate(text, random.Random(f"7-{k}")) for k in range(50)]
