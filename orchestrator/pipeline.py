@@ -32,6 +32,7 @@ from .geometry_uncertainty import write as write_geometry
 from .meshing.labels import SKIN_CUTOFF_MM
 from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
 from .objectives import DisplacementResidualObjective
+from .runlock import holds_run_folder
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
 
@@ -77,6 +78,7 @@ def _setup(case_dir, run_dir: Path, n_elements: int | None, order: int | None, o
     return prepare_run(case_dir, run_dir, n_elements=n_elements or default_elements, order=order or default_order)
 
 
+@holds_run_folder()
 def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, n_elements: int | None = None, order: int | None = None) -> dict:
     """Measure the displacements from the two images by DIC (`measure.measure_dic`) into the run folder
@@ -91,6 +93,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     return summary
 
 
+@holds_run_folder()
 def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "auto", data: str = "auto",
                  window_px: int = DEFAULT_WINDOW_PX, start: Sequence[float] | None = None, starts: str = "one",
                  n_elements: int | None = None, order: int | None = None, effects: Sequence[str] = (),
@@ -168,6 +171,7 @@ def identified_data(identification: dict) -> str:
     return "points" if source in ("points", "points.csv") else source
 
 
+@holds_run_folder()
 def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, threshold: float | None = None,
                    threshold_factor: float = 1.5, seed: int = 0, workers: int = 1, scheduler: str | None = None,
                    timeout_s: float = 120.0, progress: bool = True) -> dict:
@@ -203,6 +207,7 @@ def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, t
     return result
 
 
+@holds_run_folder()
 def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, scheduler: str | None = None,
                   timeout_s: float = 120.0, progress: bool = True) -> dict:
     run_dir = Path(run_dir)
@@ -219,6 +224,7 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
     return result
 
 
+@holds_run_folder()
 def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
                  engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
                  timeout_s: float = 120.0, progress: bool = True) -> dict:

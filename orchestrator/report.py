@@ -25,6 +25,7 @@ from .diagnose import effect_label
 from .forward import MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.warp import warp_image
 from .results import EngineResults
+from .runlock import holds_run_folder
 from .runner import run_engine
 from .study import load_run, read_json
 
@@ -223,6 +224,7 @@ def _optional_json(path: Path) -> dict | None:
     return read_json(path, "") if path.is_file() else None
 
 
+@holds_run_folder()
 def write_report(run_dir: str | Path, truth: dict | None = None) -> Path:
     """Write RUN_DIR/report/index.html (and its PNGs) from the run's JSON files; returns the page's path.
     identification.json is required; the Monte-Carlo, pressure and diagnosis sections appear when their

@@ -31,7 +31,9 @@ from .engine import find_engine
 from .results import EngineResults
 
 DEFAULT_TIMEOUT_S = 600.0
-TRANSIENT_OUTPUTS = ("sensitivity",)   # outputs kept in memory but not written to the evaluation log
+SENSITIVITY_OUTPUT = "sensitivity"        # objective output: dr/d(engine parameter), one vector per deck line
+SENSITIVITY_LINES = "sensitivity_lines"   # in the log instead: the lines, in the row order of their .npy
+SENSITIVITY_DIR = "sensitivities"
 
 
 class EngineError(RuntimeError):
@@ -144,10 +146,14 @@ class EvaluationLog:
     """The append-only JSON-lines log of a run's evaluations, read back as a cache by key.
 
     A line cut short by a kill (no final newline) is dropped when the log is opened, so the
-    next append starts on a clean line."""
+    next append starts on a clean line. The engine sensitivities of an evaluation (p residual vectors,
+    p times the size of the rest) go to SENSITIVITY_DIR/<key>.npy beside the log, written whole before its
+    line is, and are read back when the record is asked for: a resumed Levenberg-Marquardt gets the same
+    Jacobians, takes the same steps and launches nothing it had finished."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
+        self.sensitivity_dir = self.path.parent / SENSITIVITY_DIR
         self.records: dict[str, dict] = {}
         if self.path.is_file():
             data = self.path.read_bytes()
@@ -168,12 +174,32 @@ class EvaluationLog:
         if self._stream is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._stream = open(self.path, "a", encoding="utf-8")
-        # the engine sensitivities (p residual vectors) stay in memory only: they would multiply the log's size
-        # by p, and a resumed run recomputes a Jacobian it lacks by finite differences
-        kept = {**record, "outputs": {k: v for k, v in record["outputs"].items() if k not in TRANSIENT_OUTPUTS}}
-        self._stream.write(json.dumps(kept, separators=(",", ":")) + "\n")
+        outputs = dict(record["outputs"])
+        sensitivity = outputs.pop(SENSITIVITY_OUTPUT, None)
+        if sensitivity:
+            outputs[SENSITIVITY_LINES] = list(sensitivity)
+            self._write_sensitivity(record["key"], np.array([sensitivity[line] for line in sensitivity], float))
+        self._stream.write(json.dumps({**record, "outputs": outputs}, separators=(",", ":")) + "\n")
         self._stream.flush()
         self.records[record["key"]] = record
+
+    def get(self, key: str) -> dict:
+        """The record of a key, its sensitivities read back from their file when they are not in memory."""
+        record = self.records[key]
+        outputs = record["outputs"]
+        if SENSITIVITY_OUTPUT not in outputs and SENSITIVITY_LINES in outputs:
+            path = self.sensitivity_dir / f"{key}.npy"
+            if path.is_file():
+                rows = np.load(path)
+                outputs = {**outputs, SENSITIVITY_OUTPUT: {line: rows[k] for k, line in enumerate(outputs[SENSITIVITY_LINES])}}
+                record = self.records[key] = {**record, "outputs": outputs}
+        return record
+
+    def _write_sensitivity(self, key: str, rows: np.ndarray) -> None:
+        self.sensitivity_dir.mkdir(parents=True, exist_ok=True)
+        temporary = self.sensitivity_dir / f".{key}.tmp.npy"
+        np.save(temporary, rows)
+        temporary.replace(self.sensitivity_dir / f"{key}.npy")
 
     def close(self) -> None:
         if self._stream is not None:
@@ -400,7 +426,7 @@ class Evaluator:
                 progress.update(failed=record["status"] != OK)
         finally:
             progress.close()
-        return [self.log.records[key] for key in keys]
+        return [self.log.get(key) for key in keys]
 
     def __call__(self, theta: Sequence[float], **options) -> dict:
         return self.evaluate([theta], options=options, label=None)[0]

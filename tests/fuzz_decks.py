@@ -63,12 +63,14 @@ def _node_lines(lines: list[str]) -> list[int]:
 
 def mutate(text: str, rng: random.Random) -> tuple[bytes, str]:
     """One mutation of a deck; returns the bytes and what was done."""
-    lines = text.splitlines()
+    lines = text.splitlines() or [""]     # an earlier mutation may have emptied the file
     kind = rng.choice(("number", "number", "number", "delete", "duplicate", "swap", "truncate_line", "truncate_file",
                        "connectivity", "degenerate", "inverted", "coincident", "flip", "garbage"))
     k = rng.randrange(len(lines))
+    numbered = [i for i, line in enumerate(lines) if NUMBER.search(line)]
+    if kind == "number" and not numbered:
+        kind = "garbage"
     if kind == "number":
-        numbered = [i for i, line in enumerate(lines) if NUMBER.search(line)]
         k = rng.choice(numbered)
         matches = list(NUMBER.finditer(lines[k]))
         m = rng.choice(matches)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import signal
 import stat
 import subprocess
@@ -121,9 +122,10 @@ def _counting_wrapper(folder):
     return wrapper, lambda: len(counter.read_text().splitlines()) if counter.exists() else 0
 
 
-def _identify_command(case, run):
-    return [sys.executable, "-m", "orchestrator.cli", "identify", str(case), "--out", str(run), "--method", "nm",
-            "--objective", "displacement", "--workers", "1", "--json"]
+def _identify_command(case, run, method="nm"):
+    extra = ["--starts", "table1"] if method == "lm" else []   # LM: the five starts of Table 1, ~25 evaluations
+    return [sys.executable, "-m", "orchestrator.cli", "identify", str(case), "--out", str(run), "--method", method,
+            "--objective", "displacement", "--workers", "1", "--json", *extra]
 
 
 def _log_lines(run) -> list[dict]:
@@ -164,3 +166,39 @@ def test_killed_identification_resumes_without_repeating_an_evaluation(phantom, 
     fresh = json.loads(uninterrupted.stdout)
     assert resumed["best"]["theta"] == fresh["best"]["theta"] and resumed["best"]["cost"] == fresh["best"]["cost"]
     assert len(_log_lines(tmp_path / "fresh")) == len(records)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_killed_lm_identification_resumes_with_the_same_steps(phantom, tmp_path, seed):
+    """Levenberg-Marquardt with the engine's sensitivities, killed after a random number of evaluations: the
+    resumed run reads the Jacobians back (RUN_DIR/sensitivities), so it takes the same steps, launches only what
+    was not finished and ends where an uninterrupted run ends."""
+    case, _, _ = phantom
+    uninterrupted = subprocess.run(_identify_command(case, tmp_path / "fresh", "lm"), capture_output=True, text=True,
+                                   timeout=600)
+    assert uninterrupted.returncode == 0, uninterrupted.stderr
+    fresh, total = json.loads(uninterrupted.stdout), len(_log_lines(tmp_path / "fresh"))
+    kill_after = random.Random(seed).randint(1, total - 2)
+
+    wrapper, launches = _counting_wrapper(tmp_path)
+    environment = dict(os.environ, CALFIT_FE=str(wrapper))
+    run = tmp_path / "run"
+    process = subprocess.Popen(_identify_command(case, run, "lm"), env=environment, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while len(_log_lines(run)) < kill_after and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert process.poll() is None, "the identification finished before it could be interrupted"
+        process.send_signal(signal.SIGKILL)
+    finally:
+        process.wait(timeout=60)
+    logged_before, launched_before = len(_log_lines(run)), launches()
+
+    finished = subprocess.run(_identify_command(case, run, "lm"), env=environment, capture_output=True, text=True,
+                              timeout=600)
+    assert finished.returncode == 0, finished.stderr
+    resumed, records = json.loads(finished.stdout), _log_lines(run)
+    assert len({record["key"] for record in records}) == len(records) == total     # the same evaluations, once each
+    assert launches() - launched_before == total - logged_before                     # only the missing ones launched
+    assert resumed["best"]["theta"] == fresh["best"]["theta"] and resumed["best"]["cost"] == fresh["best"]["cost"]

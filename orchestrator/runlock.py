@@ -1,0 +1,88 @@
+"""One command at a time in a run folder.
+
+Two commands writing the same run folder (its evaluation log, setup, results) would interleave their
+writes. Every pipeline command takes an exclusive lock on RUN_DIR/.calfit.lock (`fcntl.flock`, released by
+the kernel when the process ends, however it ends) and writes who holds it there; a second command on the
+same folder stops at once with a sentence naming the holder. A command that calls another in the same
+process (identify measures first) holds the lock once: the depth is counted per folder in this process.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import functools
+import inspect
+import json
+import os
+import sys
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+from .study import RunFolderError
+
+LOCK_NAME = ".calfit.lock"
+_held: dict[str, list] = {}   # folder -> [open lock file, depth]: a lock is one per process by nature
+
+
+class RunFolderBusy(RunFolderError):
+    """Another command holds the run folder."""
+
+
+@contextmanager
+def run_folder_lock(run_dir):
+    """Hold RUN_DIR for the duration of the block; RunFolderBusy if another process holds it."""
+    folder = Path(run_dir).resolve()
+    key = str(folder)
+    if key in _held:
+        _held[key][1] += 1
+        try:
+            yield
+        finally:
+            _held[key][1] -= 1
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    stream = open(folder / LOCK_NAME, "a+")
+    try:
+        fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        stream.seek(0)
+        holder = stream.read().strip()
+        stream.close()
+        raise RunFolderBusy(f"{folder} is in use by another calfit command ({_describe(holder)}): wait for it to "
+                            "finish, or give this one another run folder") from None
+    stream.seek(0)
+    stream.truncate()
+    stream.write(json.dumps({"pid": os.getpid(), "command": " ".join([Path(sys.argv[0]).name, *sys.argv[1:2]]),
+                             "since": time.strftime("%Y-%m-%d %H:%M:%S")}))
+    stream.flush()
+    _held[key] = [stream, 1]
+    try:
+        yield
+    finally:
+        del _held[key]
+        stream.seek(0)
+        stream.truncate()
+        fcntl.flock(stream, fcntl.LOCK_UN)
+        stream.close()
+
+
+def _describe(holder: str) -> str:
+    try:
+        info = json.loads(holder)
+        return f"pid {info['pid']}, {info['command']}, since {info['since']}"
+    except (ValueError, KeyError, TypeError):
+        return "holder unknown"
+
+
+def holds_run_folder(argument: str = "run_dir"):
+    """Decorator: the function runs holding the lock of its `argument` (a run folder)."""
+    def decorate(function):
+        signature = inspect.signature(function)
+
+        @functools.wraps(function)
+        def locked(*args, **kwargs):
+            with run_folder_lock(signature.bind(*args, **kwargs).arguments[argument]):
+                return function(*args, **kwargs)
+        return locked
+    return decorate

@@ -1,0 +1,65 @@
+"""One command at a time in a run folder (`orchestrator.runlock`): a second process is told who holds the folder,
+the same process may nest commands, and the lock goes with the process however it ends."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+from orchestrator.runlock import LOCK_NAME, RunFolderBusy, holds_run_folder, run_folder_lock
+
+HOLDER = """
+import sys, time
+from orchestrator.runlock import run_folder_lock
+with run_folder_lock(sys.argv[1]):
+    print("held", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def _hold(folder, seconds):
+    process = subprocess.Popen([sys.executable, "-c", HOLDER, str(folder), str(seconds)], stdout=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "held"
+    return process
+
+
+def test_a_second_process_is_told_who_holds_the_folder(tmp_path):
+    holder = _hold(tmp_path, 30)
+    try:
+        with pytest.raises(RunFolderBusy, match=rf"in use by another calfit command \(pid {holder.pid}, .* since"):
+            with run_folder_lock(tmp_path):
+                pass
+    finally:
+        holder.kill()
+        holder.communicate()
+    with run_folder_lock(tmp_path):     # a killed holder leaves the folder free
+        assert (tmp_path / LOCK_NAME).read_text().startswith("{")
+
+
+def test_the_same_process_nests_commands_and_releases_at_the_end(tmp_path):
+    @holds_run_folder()
+    def inner(run_dir):
+        return "inner"
+
+    @holds_run_folder()
+    def outer(case, run_dir):
+        return inner(run_dir)
+
+    assert outer("case", run_dir=tmp_path) == "inner"
+    holder = _hold(tmp_path, 0.2)     # released: another process takes it at once
+    holder.communicate(timeout=30)
+    assert holder.returncode == 0
+
+
+def test_the_lock_waits_for_nobody(tmp_path):
+    holder = _hold(tmp_path, 30)
+    try:
+        began = time.monotonic()
+        with pytest.raises(RunFolderBusy):
+            with run_folder_lock(tmp_path):
+                pass
+        assert time.monotonic() - began < 5.0    # says so at once instead of hanging
+    finally:
+        holder.kill()
+        holder.communicate()
