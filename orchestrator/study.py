@@ -1,14 +1,15 @@
 """From a case folder to a run folder, and phantom cases made by the engine.
 
-`prepare_run` does once what every later command of a run needs (DESIGN.md data flow):
-read the case, segment I0 if the case has no labels, cut its muscle into compartments at the septa seen in I0
-when the labels hold none (`imaging.compartments`, drawn in RUN_DIR/compartments.png for the user to check;
-the compartments share the muscle's constants until the `compartments` effect separates them), align the loaded image on the bones
-(rigid motion, Bouten and Drapier sec. 3.1), segment the aligned loaded image, mesh the
-labels of I0 with their interfaces moved onto the edges of I0 (`meshing.mesh_from_labels`), and stores the labels, the
-motion and the mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then
-renamed). `load_run` gives them back with the model and the objectives, so that `calfit
-identify`, `montecarlo`, `pressures` and `report` all see the same mesh.
+`prepare_run` does once what every later command of a run needs (DESIGN.md data flow): read the case,
+segment I0 if the case has no labels, align the loaded image on the bones (rigid motion, Bouten and Drapier
+sec. 3.1), segment the aligned loaded image, check that the leg lies inside both images and that the garment
+compressed it (`imaging.field_checks`), cut the muscle into compartments at the septa seen in I0 when the
+labels hold none (`imaging.compartments`, drawn in RUN_DIR/compartments.png for the user to check; they share
+the muscle's constants until the `compartments` effect separates them), mesh the labels of I0 with their
+interfaces moved onto the edges of I0 (`meshing.mesh_from_labels`), and store the labels, the motion and the
+mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then renamed). `load_run` gives them back
+with the model and the objectives, so that `calfit identify`, `montecarlo`, `pressures` and `report` all see
+the same mesh.
 
 `make_phantom_case` writes a phantom case whose loaded image is made by the engine: the
 phantom's exact geometry (its labels sampled 4 times finer than the image) is meshed finely
@@ -31,6 +32,7 @@ from .forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpola
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
 from .imaging.compartments import FIRST_COMPARTMENT, find_compartments
+from .imaging.field_checks import check_compression, check_leg_in_view
 from .imaging.frame import RigidMotion
 from .imaging.segment import MUSCLE, segment_t1
 from .meshing import Mesh, MeshingError, mesh_from_labels
@@ -43,6 +45,7 @@ from .regions import LegFrame
 
 SETUP_ARRAYS = "setup.npz"
 COMPARTMENTS_FIGURE = "compartments.png"
+COMPARTMENT_MIN_ELEMENTS = 600   # a coarser mesh keeps one muscle: the paper's 400 CPE3 cannot hold the septa as well
 SETUP_JSON = "setup.json"
 PARAMETERS_FILE = "parameters.json"
 DATA_SOURCES = ("auto", "dic", "points")
@@ -170,21 +173,33 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                 align: bool = True, compartments: bool = True) -> RunSetup:
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
     case = read_case(case_dir)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    labels_unloaded = case.labels if case.labels is not None else segment_t1(case.unloaded, case.pixel_size_mm)
-    compartment_info = {"source": "labels" if labels_unloaded.max() >= FIRST_COMPARTMENT else "none"}
-    if compartments and compartment_info["source"] == "none":
-        found = find_compartments(case.unloaded, labels_unloaded, case.pixel_size_mm)
-        compartments_figure(run_dir / COMPARTMENTS_FIGURE, case.unloaded, case.pixel_size_mm, found)
-        if found.count >= 2:
-            labels_unloaded = found.labels
-            compartment_info = {"source": "image", "figure": COMPARTMENTS_FIGURE}
-    compartment_info["areas_mm2"] = {str(k): round(v, 1) for k, v in _compartment_areas(labels_unloaded, case.pixel_size_mm).items()}
+    unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
+    segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm)
+    labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
+    check_leg_in_view(labels_unloaded, case.pixel_size_mm, unloaded_name)
+    check_leg_in_view(segment_t1(case.loaded, case.pixel_size_mm), case.pixel_size_mm, loaded_name)
     motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded)
               if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
     labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
+    area_change = check_compression(segmented_unloaded > 0, labels_loaded > 0, unloaded_name, loaded_name)
+
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    compartment_info = {"source": "labels" if labels_unloaded.max() >= FIRST_COMPARTMENT else "none"}
+    if compartments and compartment_info["source"] == "none":
+        found = find_compartments(case.unloaded, labels_unloaded, case.pixel_size_mm)
+        compartments_figure(run_dir / COMPARTMENTS_FIGURE, case.unloaded, case.pixel_size_mm, found)
+        if found.count >= 2 and n_elements < COMPARTMENT_MIN_ELEMENTS:
+            compartment_info = {"source": "image, not meshed", "figure": COMPARTMENTS_FIGURE,
+                                "reason": f"{n_elements} elements are too few for the septa (the mesh would give up "
+                                          f"boundary detail to hold them); mesh with {COMPARTMENT_MIN_ELEMENTS} or "
+                                          "more to keep them"}
+        elif found.count >= 2:
+            labels_unloaded = found.labels
+            compartment_info = {"source": "image", "figure": COMPARTMENTS_FIGURE}
+    compartment_info["areas_mm2"] = {str(k): round(v, 1)
+                                      for k, v in _compartment_areas(labels_unloaded, case.pixel_size_mm).items()}
     try:
         mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order, image=case.unloaded)
     except MeshingError as error:
@@ -201,7 +216,8 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                         loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))
     temporary.replace(run_dir / SETUP_ARRAYS)
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
-                                      "order": order, "compartments": compartment_info, "rigid_motion": {"angle_deg": motion.angle_deg,
+                                      "order": order, "compartments": compartment_info,
+                                      "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
                                                                        "centre_mm": list(motion.centre_mm)}})
     return load_run(run_dir)

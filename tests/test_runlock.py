@@ -63,3 +63,17 @@ def test_the_lock_waits_for_nobody(tmp_path):
     finally:
         holder.kill()
         holder.communicate()
+
+
+def test_a_calfit_command_on_a_busy_folder_says_so_and_writes_nothing(tmp_path):
+    holder = _hold(tmp_path, 60)
+    try:
+        before = sorted(p.name for p in tmp_path.iterdir())
+        second = subprocess.run([sys.executable, "-m", "orchestrator.cli", "diagnose", str(tmp_path)],
+                                capture_output=True, text=True, timeout=120)
+        assert second.returncode != 0
+        assert f"is in use by another calfit command (pid {holder.pid}" in second.stderr
+        assert sorted(p.name for p in tmp_path.iterdir()) == before
+    finally:
+        holder.kill()
+        holder.communicate()

@@ -2,7 +2,8 @@
 
 The first paper segments the T1 slice into tibia, fibula, fat and muscle
 (section 2.1.1); the second thresholds fat first, as it is bright in T1
-(section 3.2). Here, on an image smoothed by a small Gaussian:
+(section 3.2). Here, on the image smoothed by a Gaussian of `smoothing_mm` (lengths in mm, so that
+a finer matrix of the same leg segments the same):
 
 1. three-class Otsu thresholds (`skimage.filters.threshold_multiotsu`) split
    dark (air, cortex, flowing blood, fascia), intermediate (muscle, skin) and
@@ -40,20 +41,22 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
     return labelled == int(np.argmax(sizes))
 
 
-def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothing_px: float = 1.0,
+def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothing_mm: float = 0.36,
                skin_opening_mm: float = 0.8, min_bone_area_mm2: float = 40.0,
                max_vein_hole_mm2: float = 30.0) -> np.ndarray:
     """Label map (uint8) of a T1 slice: 0 background, 1 fat (with skin), 2 muscle, 3 bone."""
     image = np.asarray(image, dtype=float)
     pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
-    smooth = ndimage.gaussian_filter(image, smoothing_px)
+    # lengths in mm, not pixels: a 2048-pixel slice of the same leg has the same anatomy and the same noise per pixel
+    scale_px = smoothing_mm / min(pixel_size_mm)
+    smooth = ndimage.gaussian_filter(image, scale_px)
     dark_level, bright_level = filters.threshold_multiotsu(smooth, classes=3)
 
     leg = ndimage.binary_fill_holes(largest_component(smooth > dark_level))
     if leg.sum() * pixel_area < 100.0:
         raise ImagingError("no leg found in the image: it has no large region brighter than the background")
 
-    dark = ndimage.binary_opening(leg & (smooth <= dark_level), structure=morphology.disk(1))
+    dark = ndimage.binary_opening(leg & (smooth <= dark_level), structure=morphology.disk(max(1, int(round(scale_px)))))
     components, count = ndimage.label(dark)
     bone = np.zeros_like(leg)
     for index, piece in enumerate(ndimage.find_objects(components), start=1):

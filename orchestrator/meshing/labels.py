@@ -51,6 +51,7 @@ from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
 BONE_LABEL = 3
 SKIN_CUTOFF_MM = 8.0
 SNAP_PASSES = 8
+MESH_PIXEL_MM = 0.25   # finer images are meshed from blocks of pixels at least this size
 
 
 def mesh_from_labels(
@@ -69,14 +70,20 @@ def mesh_from_labels(
     labels were segmented from, the interfaces are moved to the image's edges (`EdgeMap`). interface_offsets(curve)
     -> normal moves (mm, one per point of the curve, positive to the left of its direction): a perturbed geometry.
 
-    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary).
+    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary). Images finer than
+    MESH_PIXEL_MM are meshed from blocks of pixels that size or coarser: a mesh of a few thousand elements needs
+    no finer boundary, and the contours of a 2048-pixel slice are pixel-level jagged enough to cross.
     """
     row_mm, col_mm = _pixel_size(pixel_size_mm)
+    if image is not None and np.shape(image) != np.shape(labels):
+        raise ValueError("the image and its labels must have the same shape")
+    factor = int(MESH_PIXEL_MM // min(row_mm, col_mm))
+    if factor > 1:
+        labels, image = coarsen_labels(labels, factor), None if image is None else coarsen_image(image, factor)
+        row_mm, col_mm = row_mm * factor, col_mm * factor
     regions = region_image(labels, min_component_pixels)
     curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
     if image is not None:
-        if np.shape(image) != np.shape(labels):
-            raise ValueError("the image and its labels must have the same shape")
         edges = EdgeMap(image, (row_mm, col_mm))
         for _ in range(SNAP_PASSES):
             curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides)
@@ -91,6 +98,21 @@ def mesh_from_labels(
         return _lookup(regions, (row_mm, col_mm), points)
 
     return mesh_curves(curves, classify, n_elements, order=order, min_angle_deg=min_angle_deg, rules=rules)
+
+
+def coarsen_labels(labels: np.ndarray, factor: int) -> np.ndarray:
+    """Labels of factor x factor blocks (the most frequent in each; the last partial row and column dropped)."""
+    rows, cols = (np.shape(labels)[0] // factor) * factor, (np.shape(labels)[1] // factor) * factor
+    blocks = np.asarray(labels)[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor)
+    values = np.unique(blocks)
+    counts = np.stack([(blocks == v).sum(axis=(1, 3)) for v in values])
+    return values[np.argmax(counts, axis=0)].astype(np.asarray(labels).dtype)
+
+
+def coarsen_image(image: np.ndarray, factor: int) -> np.ndarray:
+    """Mean grey level of factor x factor blocks (as `coarsen_labels` cuts them)."""
+    rows, cols = (np.shape(image)[0] // factor) * factor, (np.shape(image)[1] // factor) * factor
+    return np.asarray(image, float)[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
 
 
 def is_edge(sides) -> bool:

@@ -58,7 +58,7 @@ def mesh_curves(
     min_angle_deg: float = 25.0,
     rules: SpacingRules | None = None,
     count_tolerance: float = 0.02,
-    max_iterations: int = 14,
+    max_iterations: int = 20,
     accept_closest: bool = False,
 ) -> Mesh:
     """Conforming T3 (order 1) or T6 (order 2) mesh of the tissue faces bounded by `curves`,
@@ -77,7 +77,10 @@ def mesh_curves(
     history: list[tuple[float, int, dict]] = []  # every run
     secant: list[tuple[float, int, dict]] = []  # runs with the current boundary limits
     max_area = first_area
-    relax = 1.0  # grows when the boundary limits alone give too many elements
+    # relax scales the boundary limits: up when they alone give too many elements (a larger max_area no longer
+    # lowers the count), down when they alone give too few (max_area 1.5x smaller, the count the same), bisecting
+    # between the last too-fine and too-coarse values once both are known (fine images: dense boundary detail)
+    relax, too_fine, too_coarse = 1.0, None, None
     for _ in range(max_iterations):
         relaxed = [np.maximum(limit * relax, rules.min_spacing) for limit in limits]
         result = _refine(curves, classify, relaxed, max_area, min_angle_deg)
@@ -87,7 +90,12 @@ def mesh_curves(
         if abs(count - n_elements) <= count_tolerance * n_elements:
             break
         if len(secant) >= 2 and count > n_elements and max_area > secant[-2][0] and count >= 0.98 * secant[-2][1]:
-            relax *= 1.3
+            too_fine = relax
+            relax = relax * 1.3 if too_coarse is None else float(np.sqrt(relax * too_coarse))
+            secant = secant[-1:]
+        elif count < n_elements and max_area * 1.5 < secant[0][0] and count <= 1.01 * secant[0][1]:
+            too_coarse = relax
+            relax = relax / 1.3 if too_fine is None else float(np.sqrt(relax * too_fine))
             secant = secant[-1:]
         max_area = _next_area(secant, n_elements)
     best_area, best_count, best = min(history, key=lambda t: abs(t[1] - n_elements))
