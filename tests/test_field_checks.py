@@ -62,3 +62,28 @@ def test_segmentation_jitter_without_a_garment_stays_under_the_growth_bound(seed
     first, second = (segment_t1(render_unloaded(phantom, noise_seed=s), phantom.pixel_size_mm) > 0 for s in seeds)
     assert abs(check_compression(first, second, "a", "b")) < MAX_GROWTH / 2
     check_leg_in_view(first.astype(np.uint8), phantom.pixel_size_mm, "a")
+
+
+def test_labels_with_holes_and_islands_mesh_the_leg_alone(compressed_case, tmp_path):
+    """A hand segmentation with a pinhole of background in the muscle, a speck of muscle in the fat and a fleck of
+    fat in the air outside the leg: the specks are dropped, the mesh covers the leg and nothing else."""
+    case = _copy(compressed_case, tmp_path, "speckled")
+    unloaded = iio.imread(case / "unloaded.png")
+    labels = segment_t1(unloaded.astype(float), CalfPhantom().pixel_size_mm)
+    clean = labels.copy()
+    rows, cols = np.nonzero(labels == 2)
+    r, c = rows[len(rows) // 2], cols[len(cols) // 2]
+    labels[r:r + 2, c:c + 2] = 0                      # hole in the muscle
+    rows, cols = np.nonzero(labels == 1)
+    labels[rows[0] + 1, cols[0]] = 2                  # island of muscle in the fat
+    labels[3:5, 3:5] = 1                              # island of fat in the air
+    iio.imwrite(case / "labels.png", labels)
+    setup = prepare_run(case, tmp_path / "run", n_elements=1000, order=2)
+    mesh = setup.mesh
+    corners = mesh.nodes[mesh.elements[:, :3]]
+    edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    area = 0.5 * np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0]).sum()
+    pixel = CalfPhantom().pixel_size_mm
+    soft = np.isin(clean, (1, 2)).sum() * pixel[0] * pixel[1]
+    assert abs(area / soft - 1.0) < 0.02                # the soft tissue of the clean segmentation, within 2 %
+    assert corners[:, :, 0].min() > 10.0 and corners[:, :, 1].min() > 10.0    # nothing meshed at the fleck

@@ -202,3 +202,15 @@ def test_killed_lm_identification_resumes_with_the_same_steps(phantom, tmp_path,
     assert len({record["key"] for record in records}) == len(records) == total     # the same evaluations, once each
     assert launches() - launched_before == total - logged_before                     # only the missing ones launched
     assert resumed["best"]["theta"] == fresh["best"]["theta"] and resumed["best"]["cost"] == fresh["best"]["cost"]
+
+
+def test_monte_carlo_and_pressures_run_again_replay_everything(study):
+    """Every evaluation of the Monte-Carlo and of the pressures is in the log: run again, they launch nothing and
+    give the same numbers."""
+    run, _, montecarlo, pressures = study
+    logged = len(_log_lines(run))
+    again = run_montecarlo(run, method="threshold", draws=400, workers=2, progress=False)
+    again_pressures = run_pressures(run, workers=2, progress=False)
+    assert len(_log_lines(run)) == logged
+    assert again["lower"] == montecarlo["lower"] and again["upper"] == montecarlo["upper"]
+    assert again_pressures["mean_kPa"] == pressures["mean_kPa"]
