@@ -128,6 +128,19 @@ def _identify_command(case, run, method="nm"):
             "--objective", "displacement", "--workers", "1", "--json", *extra]
 
 
+def _kill_after(command, environment, run, evaluations: int) -> None:
+    """Start the command and SIGKILL it once the run's log holds `evaluations` lines."""
+    process = subprocess.Popen(command, env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while len(_log_lines(run)) < evaluations and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert process.poll() is None, "the identification finished before it could be interrupted"
+        process.send_signal(signal.SIGKILL)
+    finally:
+        process.wait(timeout=60)
+
+
 def _log_lines(run) -> list[dict]:
     path = run / LOG_NAME
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
@@ -138,16 +151,7 @@ def test_killed_identification_resumes_without_repeating_an_evaluation(phantom, 
     wrapper, launches = _counting_wrapper(tmp_path)
     environment = dict(os.environ, CALFIT_FE=str(wrapper))
     run = tmp_path / "run"
-    process = subprocess.Popen(_identify_command(case, run), env=environment, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 120
-        while len(_log_lines(run)) < 40 and process.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert process.poll() is None, "the identification finished before it could be interrupted"
-        process.send_signal(signal.SIGKILL)
-    finally:
-        process.wait(timeout=60)
+    _kill_after(_identify_command(case, run), environment, run, 40)
     logged_before, launched_before = len(_log_lines(run)), launches()
     assert logged_before >= 40 and launched_before - logged_before <= 1   # at most the run in flight is lost
 
@@ -183,16 +187,7 @@ def test_killed_lm_identification_resumes_with_the_same_steps(phantom, tmp_path,
     wrapper, launches = _counting_wrapper(tmp_path)
     environment = dict(os.environ, CALFIT_FE=str(wrapper))
     run = tmp_path / "run"
-    process = subprocess.Popen(_identify_command(case, run, "lm"), env=environment, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 120
-        while len(_log_lines(run)) < kill_after and process.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert process.poll() is None, "the identification finished before it could be interrupted"
-        process.send_signal(signal.SIGKILL)
-    finally:
-        process.wait(timeout=60)
+    _kill_after(_identify_command(case, run, "lm"), environment, run, kill_after)
     logged_before, launched_before = len(_log_lines(run)), launches()
 
     finished = subprocess.run(_identify_command(case, run, "lm"), env=environment, capture_output=True, text=True,
