@@ -70,16 +70,17 @@ def mesh_from_labels(
     labels were segmented from, the interfaces are moved to the image's edges (`EdgeMap`). interface_offsets(curve)
     -> normal moves (mm, one per point of the curve, positive to the left of its direction): a perturbed geometry.
 
-    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary). Images finer than
-    MESH_PIXEL_MM are meshed from blocks of pixels that size or coarser: a mesh of a few thousand elements needs
-    no finer boundary, and the contours of a 2048-pixel slice are pixel-level jagged enough to cross.
+    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary). An `image` finer than
+    MESH_PIXEL_MM is meshed from blocks of pixels that size or coarser: a mesh of a few thousand elements needs
+    no finer boundary, and the contours of a 2048-pixel slice are pixel-level jagged enough to cross. Labels
+    without an image (a phantom's geometry sampled finer than its image, on purpose) are meshed as they are.
     """
     row_mm, col_mm = _pixel_size(pixel_size_mm)
     if image is not None and np.shape(image) != np.shape(labels):
         raise ValueError("the image and its labels must have the same shape")
-    factor = int(MESH_PIXEL_MM // min(row_mm, col_mm))
+    factor = int(MESH_PIXEL_MM // min(row_mm, col_mm)) if image is not None else 1
     if factor > 1:
-        labels, image = coarsen_labels(labels, factor), None if image is None else coarsen_image(image, factor)
+        labels, image = coarsen_labels(labels, factor), coarsen_image(image, factor)
         row_mm, col_mm = row_mm * factor, col_mm * factor
     regions = region_image(labels, min_component_pixels)
     curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
