@@ -547,10 +547,15 @@ def effect_label(name: str) -> str:
     return f"local change ({len(patch_groups(name))} groups)" if name.startswith(PATCH_PREFIX) else name
 
 
+def model_label(effects: Sequence[str]) -> str:
+    """A refitted model as tables name it: "baseline" or "+ " and its added effects."""
+    return "+ " + ", ".join(map(effect_label, effects)) if effects else "baseline"
+
+
 def comparison_lines(before: Refit, after: Sequence[Refit]) -> list[str]:
     lines = [f"{'model':<28}{'k':>3}{'misfit mm^2':>13}{'x floor':>9}{'AIC':>11}{'BIC':>11}  parameters"]
     for fit in (before, *after):
-        label = "baseline" if not fit.effects else "+ " + ", ".join(map(effect_label, fit.effects))
+        label = model_label(fit.effects)
         values = ", ".join(f"{n}={v:.4g}" for n, v in zip(fit.parameters, fit.theta))
         lines.append(f"{label:<28}{len(fit.parameters):>3}{fit.misfit:>13.4g}{fit.misfit_over_floor:>9.2f}"
                      f"{fit.aic:>11.1f}{fit.bic:>11.1f}  {values}")

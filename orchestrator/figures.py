@@ -82,7 +82,7 @@ def compartments_figure(path: Path, image: np.ndarray, pixel_size_mm, compartmen
     ax.imshow(septa, cmap=matplotlib.colors.ListedColormap(["red"]), extent=extent, interpolation="nearest")
     ax.plot([], [], "-", color="red", label="septa found")
     ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
-    ax.set_title(f"muscle compartments found at the septa of I0: {len(found) or 'none'}" if found else
+    ax.set_title(f"muscle compartments found at the septa of I0: {len(found)}" if found else
                  "no muscle compartments found: no septum closes one", fontsize=10)
     figure.tight_layout()
     figure.savefig(path, dpi=DPI)

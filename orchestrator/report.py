@@ -21,7 +21,7 @@ import imageio.v3 as iio
 import numpy as np
 from skimage.draw import line as draw_line, disk as draw_disk
 
-from .diagnose import effect_label
+from .diagnose import model_label
 from .forward import MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.warp import warp_image
 from .results import EngineResults
@@ -170,7 +170,7 @@ def diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pat
                        "YES" if s["significant"] else "no"] for k, s in enumerate(diagnosis["ranking"], 1)])
     fits = [diagnosis["before"]] + diagnosis["refits"]
     comparison = _table(["model", "k", "misfit (mm^2)", "misfit / floor", "AIC", "BIC", "M (mm^2)", "parameters"],
-                        [[_model_label(f), len(f["parameters"]),
+                        [[model_label(f["effects"]), len(f["parameters"]),
                           f["misfit"], f["misfit_over_floor"], f["aic"], f["bic"], m,
                           ", ".join(f"{n} = {v:.4g}" for n, v in zip(f["parameters"], f["theta"]))]
                          for f, m in zip(fits, mismatch_values)])
@@ -183,7 +183,7 @@ def diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pat
     worst = (f"<p>Largest share of the squared residual: the {html.escape(maps['worst_region'])} "
              f"({100 * maps['worst_region_share']:.0f} %, RMS {maps['worst_region_rms_mm']:.3f} mm).</p>"
              if maps.get("worst_region") else "")
-    labels = " | ".join(["identified model"] + [_model_label(f) for f in diagnosis["refits"]])
+    labels = " | ".join(["identified model"] + [model_label(f["effects"]) for f in diagnosis["refits"]])
     located = ""
     if _copy_figure(setup.run_dir / "diagnosis.png", staging):
         patch = (diagnosis.get("local") or {}).get("patch")
@@ -206,10 +206,6 @@ top; anterior towards the tibia, lateral towards the fibula)</h3>{sectors}{worst
 <h3>Contour distances d_k (Avril et al. Fig. 4; {html.escape(labels)}; 0 to {d_max:.2f} mm)</h3>
 <img src="dk_before_after.png">
 """
-
-
-def _model_label(fit: dict) -> str:
-    return "+ " + ", ".join(map(effect_label, fit["effects"])) if fit["effects"] else "baseline"
 
 
 def _copy_figure(path: Path, staging: Path) -> bool:

@@ -33,7 +33,7 @@ from scipy import ndimage
 from .forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
-from .imaging.compartments import FIRST_COMPARTMENT, find_compartments
+from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
 from .imaging.field_checks import check_compression, check_leg_in_view
 from .imaging.frame import RigidMotion
 from .imaging.segment import MUSCLE, segment_t1
@@ -196,7 +196,7 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
             mesh = assign_compartments(mesh, found.labels, case.pixel_size_mm)
             compartment_info = {"source": "image", "figure": COMPARTMENTS_FIGURE}
     compartment_info["areas_mm2"] = {str(k): round(v, 1)
-                                      for k, v in _compartment_areas(compartment_labels, case.pixel_size_mm).items()}
+                                      for k, v in compartment_areas_mm2(compartment_labels, case.pixel_size_mm).items()}
     temporary = run_dir / f".{SETUP_ARRAYS}.tmp.npz"
     np.savez_compressed(temporary, labels_unloaded=labels_unloaded, labels_loaded=labels_loaded,
                         loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))
@@ -225,11 +225,6 @@ def assign_compartments(mesh: Mesh, compartment_labels: np.ndarray, pixel_size_m
     muscle = regions == MUSCLE
     regions[muscle] = nearest[rows[muscle], cols[muscle]]
     return replace(mesh, element_regions=regions)
-
-
-def _compartment_areas(labels: np.ndarray, pixel_size_mm) -> dict[int, float]:
-    values, counts = np.unique(labels[labels >= FIRST_COMPARTMENT], return_counts=True)
-    return {int(v): float(c * pixel_size_mm[0] * pixel_size_mm[1]) for v, c in zip(values, counts)}
 
 
 def load_run(run_dir: str | Path) -> RunSetup:

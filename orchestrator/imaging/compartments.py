@@ -28,9 +28,9 @@ import numpy as np
 from scipy import ndimage
 from skimage import draw, filters, measure, morphology, segmentation
 
+from .case import FIRST_COMPARTMENT
 from .segment import MUSCLE
 
-FIRST_COMPARTMENT = 4
 LINE_DIRECTIONS = 24
 
 
@@ -47,9 +47,13 @@ class Compartments:
         return int(len(np.unique(self.labels[self.labels >= FIRST_COMPARTMENT])))
 
     def areas_mm2(self, pixel_size_mm) -> dict[int, float]:
-        pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
-        values, counts = np.unique(self.labels[self.labels >= FIRST_COMPARTMENT], return_counts=True)
-        return {int(v): float(c * pixel_area) for v, c in zip(values, counts)}
+        return compartment_areas_mm2(self.labels, pixel_size_mm)
+
+
+def compartment_areas_mm2(labels: np.ndarray, pixel_size_mm) -> dict[int, float]:
+    """Area of each compartment label (>= FIRST_COMPARTMENT) of a label map."""
+    values, counts = np.unique(labels[labels >= FIRST_COMPARTMENT], return_counts=True)
+    return {int(v): float(c * pixel_size_mm[0] * pixel_size_mm[1]) for v, c in zip(values, counts)}
 
 
 def _robust_z(values: np.ndarray, where: np.ndarray) -> np.ndarray:

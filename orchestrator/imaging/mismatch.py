@@ -29,10 +29,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .case import FIRST_COMPARTMENT
 from .frame import displacement_on_grid
 
 FAT, MUSCLE = 1, 2
-FIRST_COMPARTMENT = 4
 TISSUE_NAMES = {FAT: "fat", MUSCLE: "muscle"}
 
 

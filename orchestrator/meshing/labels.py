@@ -101,10 +101,16 @@ def mesh_from_labels(
     return mesh_curves(curves, classify, n_elements, order=order, min_angle_deg=min_angle_deg, rules=rules)
 
 
+def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
+    """(rows // factor, factor, cols // factor, factor) view of an image's whole factor x factor blocks (the last
+    partial row and column dropped)."""
+    rows, cols = (np.shape(array)[0] // factor) * factor, (np.shape(array)[1] // factor) * factor
+    return np.asarray(array)[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor)
+
+
 def coarsen_labels(labels: np.ndarray, factor: int) -> np.ndarray:
-    """Labels of factor x factor blocks (the most frequent in each; the last partial row and column dropped)."""
-    rows, cols = (np.shape(labels)[0] // factor) * factor, (np.shape(labels)[1] // factor) * factor
-    blocks = np.asarray(labels)[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor)
+    """Labels of factor x factor blocks (the most frequent in each)."""
+    blocks = _blocks(labels, factor)
     values = np.unique(blocks)
     counts = np.stack([(blocks == v).sum(axis=(1, 3)) for v in values])
     return values[np.argmax(counts, axis=0)].astype(np.asarray(labels).dtype)
@@ -112,8 +118,7 @@ def coarsen_labels(labels: np.ndarray, factor: int) -> np.ndarray:
 
 def coarsen_image(image: np.ndarray, factor: int) -> np.ndarray:
     """Mean grey level of factor x factor blocks (as `coarsen_labels` cuts them)."""
-    rows, cols = (np.shape(image)[0] // factor) * factor, (np.shape(image)[1] // factor) * factor
-    return np.asarray(image, float)[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor).mean(axis=(1, 3))
+    return _blocks(np.asarray(image, float), factor).mean(axis=(1, 3))
 
 
 def is_edge(sides) -> bool:
