@@ -21,21 +21,17 @@ from __future__ import annotations
 import json
 import os
 import random
-import signal
-import stat
 import subprocess
-import sys
-import time
 
 import numpy as np
 import pytest
 
+from killing import calfit_command, counting_wrapper, kill_after, log_lines
+
 from orchestrator.cli import main
-from orchestrator.engine import find_engine
 from orchestrator.forward import LEG_PARAMETERS
 from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
 from orchestrator.report import write_report
-from orchestrator.runner import LOG_NAME
 from orchestrator.study import PARAMETERS_FILE, make_phantom_case, read_json
 
 
@@ -114,52 +110,26 @@ def test_unknown_effects_are_refused_with_the_catalog(phantom, tmp_path, capsys)
     assert "unknown effect 'oedema'" in message and "drainage" in message
 
 
-def _counting_wrapper(folder):
-    counter = folder / "launches.txt"
-    wrapper = folder / "calfit-fe-counting"
-    wrapper.write_text(f'#!/bin/bash\necho launch >> "{counter}"\nexec "{find_engine()}" "$@"\n')
-    wrapper.chmod(wrapper.stat().st_mode | stat.S_IEXEC)
-    return wrapper, lambda: len(counter.read_text().splitlines()) if counter.exists() else 0
-
-
 def _identify_command(case, run, method="nm"):
     extra = ["--starts", "table1"] if method == "lm" else []   # LM: the five starts of Table 1, ~25 evaluations
-    return [sys.executable, "-m", "orchestrator.cli", "identify", str(case), "--out", str(run), "--method", method,
-            "--objective", "displacement", "--workers", "1", "--json", *extra]
-
-
-def _kill_after(command, environment, run, evaluations: int) -> None:
-    """Start the command and SIGKILL it once the run's log holds `evaluations` lines."""
-    process = subprocess.Popen(command, env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.monotonic() + 120
-        while len(_log_lines(run)) < evaluations and process.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert process.poll() is None, "the identification finished before it could be interrupted"
-        process.send_signal(signal.SIGKILL)
-    finally:
-        process.wait(timeout=60)
-
-
-def _log_lines(run) -> list[dict]:
-    path = run / LOG_NAME
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    return calfit_command("identify", case, "--out", run, "--method", method, "--objective", "displacement",
+                          "--workers", "1", "--json", *extra)
 
 
 def test_killed_identification_resumes_without_repeating_an_evaluation(phantom, tmp_path):
     case, _, _ = phantom
-    wrapper, launches = _counting_wrapper(tmp_path)
+    wrapper, launches = counting_wrapper(tmp_path)
     environment = dict(os.environ, CALFIT_FE=str(wrapper))
     run = tmp_path / "run"
-    _kill_after(_identify_command(case, run), environment, run, 40)
-    logged_before, launched_before = len(_log_lines(run)), launches()
+    kill_after(_identify_command(case, run), environment, run, 40)
+    logged_before, launched_before = len(log_lines(run)), launches()
     assert logged_before >= 40 and launched_before - logged_before <= 1   # at most the run in flight is lost
 
     finished = subprocess.run(_identify_command(case, run), env=environment, capture_output=True, text=True,
                               timeout=600)
     assert finished.returncode == 0, finished.stderr
     resumed = json.loads(finished.stdout)
-    records = _log_lines(run)
+    records = log_lines(run)
     assert len({record["key"] for record in records}) == len(records)        # nothing evaluated twice
     assert launches() - launched_before == len(records) - logged_before      # only the missing ones launched
     assert resumed["best"]["from_log"] >= logged_before - 1
@@ -169,7 +139,7 @@ def test_killed_identification_resumes_without_repeating_an_evaluation(phantom, 
     assert uninterrupted.returncode == 0, uninterrupted.stderr
     fresh = json.loads(uninterrupted.stdout)
     assert resumed["best"]["theta"] == fresh["best"]["theta"] and resumed["best"]["cost"] == fresh["best"]["cost"]
-    assert len(_log_lines(tmp_path / "fresh")) == len(records)
+    assert len(log_lines(tmp_path / "fresh")) == len(records)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -181,19 +151,19 @@ def test_killed_lm_identification_resumes_with_the_same_steps(phantom, tmp_path,
     uninterrupted = subprocess.run(_identify_command(case, tmp_path / "fresh", "lm"), capture_output=True, text=True,
                                    timeout=600)
     assert uninterrupted.returncode == 0, uninterrupted.stderr
-    fresh, total = json.loads(uninterrupted.stdout), len(_log_lines(tmp_path / "fresh"))
-    kill_after = random.Random(seed).randint(1, total - 2)
+    fresh, total = json.loads(uninterrupted.stdout), len(log_lines(tmp_path / "fresh"))
+    kill_at = random.Random(seed).randint(1, total - 2)
 
-    wrapper, launches = _counting_wrapper(tmp_path)
+    wrapper, launches = counting_wrapper(tmp_path)
     environment = dict(os.environ, CALFIT_FE=str(wrapper))
     run = tmp_path / "run"
-    _kill_after(_identify_command(case, run, "lm"), environment, run, kill_after)
-    logged_before, launched_before = len(_log_lines(run)), launches()
+    kill_after(_identify_command(case, run, "lm"), environment, run, kill_at)
+    logged_before, launched_before = len(log_lines(run)), launches()
 
     finished = subprocess.run(_identify_command(case, run, "lm"), env=environment, capture_output=True, text=True,
                               timeout=600)
     assert finished.returncode == 0, finished.stderr
-    resumed, records = json.loads(finished.stdout), _log_lines(run)
+    resumed, records = json.loads(finished.stdout), log_lines(run)
     assert len({record["key"] for record in records}) == len(records) == total     # the same evaluations, once each
     assert launches() - launched_before == total - logged_before                     # only the missing ones launched
     assert resumed["best"]["theta"] == fresh["best"]["theta"] and resumed["best"]["cost"] == fresh["best"]["cost"]
@@ -203,9 +173,9 @@ def test_monte_carlo_and_pressures_run_again_replay_everything(study):
     """Every evaluation of the Monte-Carlo and of the pressures is in the log: run again, they launch nothing and
     give the same numbers."""
     run, _, montecarlo, pressures = study
-    logged = len(_log_lines(run))
+    logged = len(log_lines(run))
     again = run_montecarlo(run, method="threshold", draws=400, workers=2, progress=False)
     again_pressures = run_pressures(run, workers=2, progress=False)
-    assert len(_log_lines(run)) == logged
+    assert len(log_lines(run)) == logged
     assert again["lower"] == montecarlo["lower"] and again["upper"] == montecarlo["upper"]
     assert again_pressures["mean_kPa"] == pressures["mean_kPa"]
