@@ -154,7 +154,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
               "effects": list(setup.model.effects), "parameters": list(setup.model.space.names),
               "units": setup.model.space.units, "unit_of": list(setup.model.space.unit_of),
               "best": best.as_dict(), "fits": [fit.as_dict() for fit in fits], "compartments": setup.compartments,
-              "compartment_lines": setup.compartment_lines(),
+              "setup_lines": setup.setup_lines(),
               "engine_runs_total": len(EvaluationLog(run_dir / LOG_NAME))}
     if geometry is not None:
         result["geometry_uncertainty"] = geometry

@@ -270,7 +270,7 @@ def _page(setup, identification: dict, montecarlo: dict | None, pressures: dict 
     table1 = _table(["start " + n for n in names] + ["misfit"] + ["found " + n for n in names] + ["iterations", "engine runs"],
                     [f["start"] + [f["cost"]] + f["theta"] + [f["iterations"], f["engine_runs"]] for f in fits])
     effects = identification.get("effects", [])
-    compartments = "".join(f"<p>{html.escape(line)}.</p>" for line in setup.compartment_lines())
+    compartments = "".join(f"<p>{html.escape(line)}.</p>" for line in setup.setup_lines())
     if _copy_figure(setup.run_dir / "compartments.png", staging):
         compartments = f"<h2>Muscle compartments found at the septa of I0</h2>{compartments}<img src=\"compartments.png\">"
     sections = [f"""<h1>calfit report: {html.escape(case.name)}</h1>

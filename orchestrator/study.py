@@ -34,7 +34,7 @@ from .forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpola
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
-from .imaging.field_checks import check_compression, check_leg_in_view
+from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
 from .imaging.segment import MUSCLE, segment_t1
 from .meshing import Mesh, mesh_from_labels
@@ -100,16 +100,21 @@ class RunSetup:
     mesh: Mesh
     model: LegModel
     compartments: dict = field(default_factory=lambda: {"source": "none"})   # setup.json "compartments"
+    missing_pixels: dict = field(default_factory=dict)    # setup.json "missing_pixels": image name -> count
 
-    def compartment_lines(self) -> list[str]:
-        """What the user should know of the muscle compartments: found in I0 (and where to check them) or given by
-        the labels."""
+    def setup_lines(self) -> list[str]:
+        """What the user should know of how the images were read: pixels with no value given the background's grey
+        level, and the muscle compartments, found in I0 (and where to check them) or given by the labels."""
+        lines = [f"{name}: {count} pixels with no value (NaN), all outside the leg, read as background"
+                 for name, count in self.missing_pixels.items()]
         info = self.compartments
         count = len(info.get("areas_mm2", {}))
         if info["source"] == "image":
-            return [f"muscle compartments: {count} found at the septa of I0, check them in "
-                    f"{self.run_dir / info['figure']}"]
-        return [f"muscle compartments: {count} from the labels"] if info["source"] == "labels" else []
+            lines.append(f"muscle compartments: {count} found at the septa of I0, check them in "
+                         f"{self.run_dir / info['figure']}")
+        elif info["source"] == "labels":
+            lines.append(f"muscle compartments: {count} from the labels")
+        return lines
 
     def model_with(self, effects: Sequence[str] = (), sensitivities: bool = False) -> LegModel:
         """The run's leg model with these catalog effects fitted too; with `sensitivities` its decks ask the engine
@@ -175,8 +180,13 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
     segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm)
     labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
-    check_leg_in_view(labels_unloaded, case.pixel_size_mm, unloaded_name)
-    check_leg_in_view(segment_t1(case.loaded, case.pixel_size_mm), case.pixel_size_mm, loaded_name)
+    segmented_loaded = segment_t1(case.loaded, case.pixel_size_mm)
+    missing_pixels = {}
+    for role, name, labels in (("unloaded", unloaded_name, labels_unloaded), ("loaded", loaded_name, segmented_loaded)):
+        check_leg_in_view(labels, case.pixel_size_mm, name)
+        count = check_missing_pixels(case.missing.get(role), labels > 0, case.pixel_size_mm, name)
+        if count:
+            missing_pixels[name] = count
     motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded)
               if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
@@ -203,6 +213,7 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     temporary.replace(run_dir / SETUP_ARRAYS)
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
                                       "order": order, "compartments": compartment_info,
+                                      "missing_pixels": missing_pixels,
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
                                                                        "centre_mm": list(motion.centre_mm)}})
@@ -238,7 +249,8 @@ def load_run(run_dir: str | Path) -> RunSetup:
     motion = RigidMotion(info["rigid_motion"]["angle_deg"], tuple(info["rigid_motion"]["translation_mm"]),
                          tuple(info["rigid_motion"]["centre_mm"]))
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
-                    LegModel(mesh, case.tension_N_per_mm), info.get("compartments", {"source": "none"}))
+                    LegModel(mesh, case.tension_N_per_mm), info.get("compartments", {"source": "none"}),
+                    info.get("missing_pixels", {}))
 
 
 def truth_mesh(phantom, *, compartments: bool = False, n_elements: int = 2000, order: int = 2,

@@ -1,6 +1,8 @@
 """The two slices must show what the model assumes (`imaging.field_checks`, run by `prepare_run` before it
 writes anything): the leg inside the field of view, and a garment that compresses it. Phantom cases with the
-analytic bone-clamped compression (2.5 % radial strain: the leg loses about 5 % of its area)."""
+analytic bone-clamped compression (2.5 % radial strain: the leg loses about 5 % of its area). Float slices with
+NaN (as a reslicing leaves them) are read with the NaN outside the leg as background, and refused with the
+place named where the NaN touch the leg."""
 
 import json
 import shutil
@@ -10,7 +12,7 @@ import numpy as np
 import pytest
 
 from orchestrator.imaging.errors import ImagingError
-from orchestrator.imaging.field_checks import MAX_GROWTH, check_compression, check_leg_in_view
+from orchestrator.imaging.field_checks import MAX_GROWTH, MISSING_MARGIN_MM, check_compression, check_leg_in_view
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.phantom import CalfPhantom, write_case
 from orchestrator.study import prepare_run
@@ -79,11 +81,68 @@ def test_labels_with_holes_and_islands_mesh_the_leg_alone(compressed_case, tmp_p
     labels[3:5, 3:5] = 1                              # island of fat in the air
     iio.imwrite(case / "labels.png", labels)
     setup = prepare_run(case, tmp_path / "run", n_elements=1000, order=2)
-    mesh = setup.mesh
-    corners = mesh.nodes[mesh.elements[:, :3]]
-    edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
-    area = 0.5 * np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0]).sum()
+    corners = setup.mesh.nodes[setup.mesh.elements[:, :3]]
+    area = _mesh_area(setup.mesh)
     pixel = CalfPhantom().pixel_size_mm
     soft = np.isin(clean, (1, 2)).sum() * pixel[0] * pixel[1]
     assert abs(area / soft - 1.0) < 0.02                # the soft tissue of the clean segmentation, within 2 %
     assert corners[:, :, 0].min() > 10.0 and corners[:, :, 1].min() > 10.0    # nothing meshed at the fleck
+
+
+def _mesh_area(mesh) -> float:
+    corners = mesh.nodes[mesh.elements[:, :3]]
+    edge1, edge2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    return 0.5 * float(np.abs(edge1[:, 0] * edge2[:, 1] - edge1[:, 1] * edge2[:, 0]).sum())
+
+
+def _as_float_nifti(case, edit):
+    """Replace the case's PNG slices by float32 NIfTI files, each edited by edit(pixels, name)."""
+    import nibabel
+
+    affine = np.diag([*CalfPhantom().pixel_size_mm, 1.0, 1.0])
+    for name in ("unloaded", "loaded"):
+        pixels = iio.imread(case / f"{name}.png").astype(np.float32)
+        edit(pixels, name)
+        (case / f"{name}.png").unlink()
+        nibabel.save(nibabel.Nifti1Image(pixels[:, :, None], affine), case / f"{name}.nii.gz")
+
+
+def test_float_slices_with_nan_outside_the_leg_are_read_as_background(compressed_case, tmp_path):
+    """NaN in the corners and along the top rows (a reslicing's empty wedge): counted, announced, and the leg
+    segmented and meshed as from the clean slices."""
+    case = _copy(compressed_case, tmp_path, "nan-outside")
+
+    def blank_corners(pixels, name):
+        pixels[:6, :] = np.nan
+        for rows in (slice(0, 25), slice(-25, None)):
+            for cols in (slice(0, 25), slice(-25, None)):
+                pixels[rows, cols] = np.nan
+    _as_float_nifti(case, blank_corners)
+    setup = prepare_run(case, tmp_path / "run", n_elements=1000, order=2)
+    clean = prepare_run(compressed_case, tmp_path / "clean", n_elements=1000, order=2)
+    shape = setup.case.shape
+    expected = 6 * shape[1] + 2 * 25 * 25 + 2 * 19 * 25
+    assert setup.missing_pixels == {"unloaded.nii.gz": expected, "loaded.nii.gz": expected}
+    assert f"unloaded.nii.gz: {expected} pixels with no value (NaN), all outside the leg" in setup.setup_lines()[0]
+    differ = np.count_nonzero(setup.labels_unloaded != clean.labels_unloaded)
+    print(f"{differ} of {np.count_nonzero(clean.labels_unloaded)} leg pixels labelled otherwise")
+    assert differ <= 0.001 * np.count_nonzero(clean.labels_unloaded)
+    assert abs(_mesh_area(setup.mesh) / _mesh_area(clean.mesh) - 1.0) < 0.002
+
+
+def test_nan_in_the_leg_is_refused_with_its_place(compressed_case, tmp_path):
+    case = _copy(compressed_case, tmp_path, "nan-inside")
+    pixel = CalfPhantom().pixel_size_mm
+    labels = segment_t1(iio.imread(case / "loaded.png").astype(float), pixel)
+    rows, cols = np.nonzero(labels == 2)
+    r, c = rows[len(rows) // 2], cols[len(cols) // 2]
+
+    def hole_in_loaded(pixels, name):
+        if name == "loaded":
+            pixels[r - 2:r + 3, c - 2:c + 3] = np.nan
+    _as_float_nifti(case, hole_in_loaded)
+    where = rf"\({c * pixel[1]:.1f}, {r * pixel[0]:.1f}\) mm"
+    with pytest.raises(ImagingError, match=rf"loaded.nii.gz has 25 pixels with no value \(NaN\) in the leg or "
+                                           rf"within {MISSING_MARGIN_MM:g} mm of its skin, around \(x, y\) = {where}"):
+        prepare_run(case, tmp_path / "run", n_elements=1000, order=2)
+    assert not (tmp_path / "run").exists()

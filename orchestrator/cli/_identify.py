@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
                  + fit_summary(result["best"], result["parameters"]))
     if "noise_floor" in result:
         lines.append(f"misfit {result['misfit_over_floor']:.2f} x its noise floor {result['noise_floor']:.4g} mm^2")
-    lines += result.get("compartment_lines", [])
+    lines += result.get("setup_lines", [])
     lines.append(f"run folder {args.out}; next: calfit montecarlo {args.out}")
     emit(args, result, lines)
     print(f"identification written to {args.out}/identification.json", file=sys.stderr)

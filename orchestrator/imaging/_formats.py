@@ -5,6 +5,13 @@ the rescale slope/intercept from the header, via pydicom) and NIfTI (``zooms``
 from the header, via nibabel; array axis 0 is taken as rows, axis 1 as
 columns, as nibabel stores it, with no reorientation). Every failure is a
 `CaseError` naming the file and the fix.
+
+Float images (NIfTI, .npy, float TIFF) may hold NaN where the scanner or a
+reslicing left no value, usually outside the field of view. Those pixels are
+given the darkest grey level of the slice (background, in an MRI) and their mask
+is kept, so that the run can refuse them where they would be read as tissue
+(`field_checks.check_missing_pixels`). A slice missing more than half of its
+pixels is refused here.
 """
 
 from __future__ import annotations
@@ -18,15 +25,18 @@ from .errors import CaseError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".dcm", ".nii", ".nii.gz")
 _GREY_FIX = "save it as a single-channel (greyscale) 8 or 16-bit image"
+MAX_MISSING_FRACTION = 0.5
 
 
 @dataclass(frozen=True)
 class SliceFile:
-    """One 2D image read from a file, with the pixel spacing its header gives (None if none)."""
+    """One 2D image read from a file, with the pixel spacing its header gives (None if none) and the mask of the
+    pixels that had no value (NaN or infinite; None when every pixel has one)."""
 
     path: Path
     pixels: np.ndarray
     header_pixel_size_mm: tuple[float, float] | None
+    missing: np.ndarray | None = None
 
 
 def file_suffix(path: Path) -> str:
@@ -45,11 +55,17 @@ def read_slice(path: Path) -> SliceFile:
     pixels = _as_2d(path, pixels)
     if not np.issubdtype(pixels.dtype, np.number) or np.issubdtype(pixels.dtype, np.complexfloating):
         raise CaseError(path, f"holds {pixels.dtype} values, not real numbers", _GREY_FIX)
-    if not np.all(np.isfinite(pixels)):
-        raise CaseError(path, "holds NaN or infinite pixel values", "replace them with finite grey levels")
     if min(pixels.shape) < 16:
         raise CaseError(path, f"is only {pixels.shape[0]}x{pixels.shape[1]} pixels", "give the full slice")
-    return SliceFile(path, pixels, spacing)
+    missing = ~np.isfinite(pixels)
+    if not missing.any():
+        return SliceFile(path, pixels, spacing)
+    if missing.mean() > MAX_MISSING_FRACTION:
+        raise CaseError(path, f"has no value (NaN or infinite) in {100 * missing.mean():.0f} % of its pixels",
+                        "export the slice from the scanner's series itself, not a masked or resliced copy")
+    filled = pixels.astype(float)
+    filled[missing] = filled[~missing].min()
+    return SliceFile(path, filled, spacing, missing)
 
 
 def _as_2d(path: Path, pixels: np.ndarray) -> np.ndarray:

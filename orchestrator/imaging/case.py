@@ -68,6 +68,7 @@ class Case:
     points: DisplacementPoints | None = None
     landmarks: dict[str, tuple[float, float]] = field(default_factory=dict)
     files: dict[str, Path] = field(default_factory=dict)
+    missing: dict[str, np.ndarray] = field(default_factory=dict)   # "unloaded"/"loaded": pixels with no value
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -121,7 +122,9 @@ def read_case(folder: str | os.PathLike) -> Case:
                 unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
                 tension_N_per_mm=tension,
                 tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else rel,
-                labels=labels, points=points, landmarks=landmarks, files=files)
+                labels=labels, points=points, landmarks=landmarks, files=files,
+                missing={role: image.missing for role, image in (("unloaded", unloaded), ("loaded", loaded))
+                         if image.missing is not None})
 
 
 def _dims(pixels: np.ndarray) -> str:

@@ -6,6 +6,9 @@
   garment squeezes fluid out and the leg loses about 1 % of its area (the phantom: 1.1 %). A loaded leg larger
   than the unloaded one by more than `MAX_GROWTH` (segmentation jitter is about 0.2 %) is the signature of
   the two images swapped, and no garment model can fit it.
+- Pixels with no value (NaN in a float image, given the background's grey level when read) lie in the
+  background: within `MISSING_MARGIN_MM` of the leg they would be segmented and measured as if they were
+  tissue or skin.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from .errors import ImagingError
 
 MAX_BORDER_CONTACT_MM = 1.0
 MAX_GROWTH = 0.005
+MISSING_MARGIN_MM = 2.0
 
 
 def check_leg_in_view(labels: np.ndarray, pixel_size_mm, image_name: str) -> None:
@@ -41,3 +45,20 @@ def check_compression(leg_unloaded: np.ndarray, leg_loaded: np.ndarray, unloaded
                            f"{unloaded_name} (without): a garment compresses the leg; are the unloaded and loaded "
                            "images swapped? Rename them, or check that both are the same slice")
     return change
+
+
+def check_missing_pixels(missing: np.ndarray | None, leg: np.ndarray, pixel_size_mm, image_name: str) -> int:
+    """Number of pixels with no value; ImagingError when any lies in the leg or within MISSING_MARGIN_MM of it."""
+    from scipy import ndimage
+
+    if missing is None or not missing.any():
+        return 0
+    distance_mm = ndimage.distance_transform_edt(~np.asarray(leg, bool), sampling=pixel_size_mm)
+    near = missing & (distance_mm <= MISSING_MARGIN_MM)
+    if near.any():
+        rows, cols = np.nonzero(near)
+        x_mm, y_mm = cols.mean() * pixel_size_mm[1], rows.mean() * pixel_size_mm[0]
+        raise ImagingError(f"{image_name} has {int(near.sum())} pixels with no value (NaN) in the leg or within "
+                           f"{MISSING_MARGIN_MM:g} mm of its skin, around (x, y) = ({x_mm:.1f}, {y_mm:.1f}) mm: "
+                           "they would be measured as tissue; export the slice without a mask over the leg")
+    return int(missing.sum())
