@@ -89,6 +89,8 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
                                     landmarks=case.landmarks, window_px=window_px, step_px=step_px,
                                     roi_spacing_mm=roi_spacing_mm)
+    summary["window_mm"] = window_px * min(case.pixel_size_mm)
+    summary["setup_lines"] = setup.setup_lines()
     write_measurements(run_dir, table, summary, case.unloaded, case.pixel_size_mm)
     return summary
 

@@ -36,6 +36,7 @@ from .imaging.case import Case, read_case
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
 from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
+from .imaging.resolution import working_resolution
 from .imaging.segment import MUSCLE, segment_t1
 from .meshing import Mesh, mesh_from_labels
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
@@ -100,13 +101,20 @@ class RunSetup:
     mesh: Mesh
     model: LegModel
     compartments: dict = field(default_factory=lambda: {"source": "none"})   # setup.json "compartments"
-    missing_pixels: dict = field(default_factory=dict)    # setup.json "missing_pixels": image name -> count
+    missing_fraction: dict = field(default_factory=dict)    # setup.json "missing_fraction": image name -> share
 
     def setup_lines(self) -> list[str]:
-        """What the user should know of how the images were read: pixels with no value given the background's grey
-        level, and the muscle compartments, found in I0 (and where to check them) or given by the labels."""
-        lines = [f"{name}: {count} pixels with no value (NaN), all outside the leg, read as background"
-                 for name, count in self.missing_pixels.items()]
+        """What the user should know of how the images were read: averaged over blocks of pixels, pixels with no
+        value given the background's grey level, and the muscle compartments, found in I0 (and where to check
+        them) or given by the labels."""
+        case, lines = self.case, []
+        if case.block_factor > 1:
+            k, (rows, cols), (dy, dx) = case.block_factor, case.shape, case.pixel_size_mm
+            lines.append(f"{case.files['unloaded'].name} and {case.files['loaded'].name}: pixels of {dy / k:.3f} x "
+                         f"{dx / k:.3f} mm worked at {dy:.3f} x {dx:.3f} mm ({rows}x{cols} pixels, means of {k}x{k} "
+                         "blocks), the pixel the DIC windows and the segmentation are made for")
+        lines += [f"{name}: no value (NaN) in {100 * share:.1f} % of the slice, all outside the leg, read as background"
+                  for name, share in self.missing_fraction.items()]
         info = self.compartments
         count = len(info.get("areas_mm2", {}))
         if info["source"] == "image":
@@ -176,17 +184,16 @@ class RunSetup:
 def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 400, order: int = 1,
                 align: bool = True, compartments: bool = True) -> RunSetup:
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
-    case = read_case(case_dir)
+    case = working_resolution(read_case(case_dir))
     unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
     segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm)
     labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
     segmented_loaded = segment_t1(case.loaded, case.pixel_size_mm)
-    missing_pixels = {}
+    missing_fraction = {}
     for role, name, labels in (("unloaded", unloaded_name, labels_unloaded), ("loaded", loaded_name, segmented_loaded)):
         check_leg_in_view(labels, case.pixel_size_mm, name)
-        count = check_missing_pixels(case.missing.get(role), labels > 0, case.pixel_size_mm, name)
-        if count:
-            missing_pixels[name] = count
+        if check_missing_pixels(case.missing.get(role), labels > 0, case.pixel_size_mm, name):
+            missing_fraction[name] = float(case.missing[role].mean())
     motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded)
               if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
@@ -213,7 +220,7 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     temporary.replace(run_dir / SETUP_ARRAYS)
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
                                       "order": order, "compartments": compartment_info,
-                                      "missing_pixels": missing_pixels,
+                                      "missing_fraction": missing_fraction,
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
                                                                        "centre_mm": list(motion.centre_mm)}})
@@ -241,7 +248,7 @@ def assign_compartments(mesh: Mesh, compartment_labels: np.ndarray, pixel_size_m
 def load_run(run_dir: str | Path) -> RunSetup:
     run_dir = Path(run_dir)
     info = read_json(run_dir / SETUP_JSON, "calfit identify CASE_DIR --out RUN_DIR")
-    case = read_case(info["case_dir"])
+    case = working_resolution(read_case(info["case_dir"]))
     with np.load(run_dir / SETUP_ARRAYS) as arrays:
         mesh = _mesh_from_arrays(arrays)
         labels_unloaded, labels_loaded = arrays["labels_unloaded"], arrays["labels_loaded"]
@@ -250,7 +257,7 @@ def load_run(run_dir: str | Path) -> RunSetup:
                          tuple(info["rigid_motion"]["centre_mm"]))
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
                     LegModel(mesh, case.tension_N_per_mm), info.get("compartments", {"source": "none"}),
-                    info.get("missing_pixels", {}))
+                    info.get("missing_fraction", {}))
 
 
 def truth_mesh(phantom, *, compartments: bool = False, n_elements: int = 2000, order: int = 2,

@@ -2,13 +2,15 @@
 
     calfit measure CASE_DIR --out RUN_DIR [--window 16|32|64] [--step PX] [--roi-spacing MM] [--json]
 
-The loaded image is aligned on the bones (a rigid motion), then windows of --window pixels (default 32) on a
-grid inside the leg (every --step pixels, default half a window) and on the skin, the fascia and the vessels
-named among the case's landmarks are correlated in two passes (the second deforms each window by the first
-pass's field). Windows with a poor match, a large predicted uncertainty or that fail the normalised median test
-are rejected and counted. For every kept window: its displacement relative to the bones and its 2x2 covariance;
-overlapping windows' correlation is kept for the fit. Writes RUN_DIR/measurements.csv (every window, kept or
-why not), measurements.png (the vectors on the image), measurements.json (summary) and measurements.npz.
+Slices with pixels finer than 0.18 mm are first averaged over blocks of pixels (reported), so that a window
+spans several grains of the texture. The loaded image is aligned on the bones (a rigid motion), then windows of
+--window pixels (default 32) on a grid inside the leg (every --step pixels, default half a window) and on the
+skin, the fascia and the vessels named among the case's landmarks are correlated in two passes (the second
+deforms each window by the first pass's field). Windows with a poor match, a large predicted uncertainty or
+that fail the normalised median test are rejected and counted. For every kept window: its displacement
+relative to the bones and its 2x2 covariance; overlapping windows' correlation is kept for the fit. Writes
+RUN_DIR/measurements.csv (every window, kept or why not), measurements.png (the vectors on the image),
+measurements.json (summary) and measurements.npz.
 `calfit identify` runs this itself when the case has no points.csv.
 """
 
@@ -28,14 +30,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("case_dir", help="case folder (case.toml, unloaded and loaded images, optional labels)")
     parser.add_argument("--out", required=True, help="run folder (created; later commands use it)")
     parser.add_argument("--window", type=int, choices=WINDOW_CHOICES, default=DEFAULT_WINDOW_PX,
-                        help=f"correlation window side in pixels (default {DEFAULT_WINDOW_PX})")
+                        help=f"correlation window side in working pixels (default {DEFAULT_WINDOW_PX})")
     parser.add_argument("--step", type=int, help="grid step in pixels (default half a window)")
     parser.add_argument("--roi-spacing", type=float, help="spacing of the skin and fascia windows in mm (default: the step)")
     parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
 
 
 def summary_lines(summary: dict, run_dir: str) -> list[str]:
-    lines = [f"DIC: {summary['kept']} of {summary['windows']} windows of {summary['window_px']} px kept "
+    lines = list(summary.get("setup_lines", []))
+    lines += [f"DIC: {summary['kept']} of {summary['windows']} windows of {summary['window_px']} px "
+              f"({summary['window_mm']:.1f} mm) kept "
              f"(grid step {summary['step_px']} px; {', '.join(f'{n} {k}' for k, n in summary['kinds'].items())})"]
     lines += [f"  {count:5d}  {status}" for status, count in sorted(summary["status"].items(), key=lambda kv: -kv[1])]
     lines.append(f"image noise {summary['noise_sigma'][0]:.4g} (unloaded) and {summary['noise_sigma'][1]:.4g} (loaded); "

@@ -69,6 +69,7 @@ class Case:
     landmarks: dict[str, tuple[float, float]] = field(default_factory=dict)
     files: dict[str, Path] = field(default_factory=dict)
     missing: dict[str, np.ndarray] = field(default_factory=dict)   # "unloaded"/"loaded": pixels with no value
+    block_factor: int = 1     # pixels of the files per pixel side of these arrays (`resolution.working_resolution`)
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -51,7 +51,6 @@ from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
 BONE_LABEL = 3
 SKIN_CUTOFF_MM = 8.0
 SNAP_PASSES = 8
-MESH_PIXEL_MM = 0.25   # finer images are meshed from blocks of pixels at least this size
 
 
 def mesh_from_labels(
@@ -70,18 +69,11 @@ def mesh_from_labels(
     labels were segmented from, the interfaces are moved to the image's edges (`EdgeMap`). interface_offsets(curve)
     -> normal moves (mm, one per point of the curve, positive to the left of its direction): a perturbed geometry.
 
-    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary). An `image` finer than
-    MESH_PIXEL_MM is meshed from blocks of pixels that size or coarser: a mesh of a few thousand elements needs
-    no finer boundary, and the contours of a 2048-pixel slice are pixel-level jagged enough to cross. Labels
-    without an image (a phantom's geometry sampled finer than its image, on purpose) are meshed as they are.
+    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary).
     """
     row_mm, col_mm = _pixel_size(pixel_size_mm)
     if image is not None and np.shape(image) != np.shape(labels):
         raise ValueError("the image and its labels must have the same shape")
-    factor = int(MESH_PIXEL_MM // min(row_mm, col_mm)) if image is not None else 1
-    if factor > 1:
-        labels, image = coarsen_labels(labels, factor), coarsen_image(image, factor)
-        row_mm, col_mm = row_mm * factor, col_mm * factor
     regions = region_image(labels, min_component_pixels)
     curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
     if image is not None:
@@ -99,26 +91,6 @@ def mesh_from_labels(
         return _lookup(regions, (row_mm, col_mm), points)
 
     return mesh_curves(curves, classify, n_elements, order=order, min_angle_deg=min_angle_deg, rules=rules)
-
-
-def _blocks(array: np.ndarray, factor: int) -> np.ndarray:
-    """(rows // factor, factor, cols // factor, factor) view of an image's whole factor x factor blocks (the last
-    partial row and column dropped)."""
-    rows, cols = (np.shape(array)[0] // factor) * factor, (np.shape(array)[1] // factor) * factor
-    return np.asarray(array)[:rows, :cols].reshape(rows // factor, factor, cols // factor, factor)
-
-
-def coarsen_labels(labels: np.ndarray, factor: int) -> np.ndarray:
-    """Labels of factor x factor blocks (the most frequent in each)."""
-    blocks = _blocks(labels, factor)
-    values = np.unique(blocks)
-    counts = np.stack([(blocks == v).sum(axis=(1, 3)) for v in values])
-    return values[np.argmax(counts, axis=0)].astype(np.asarray(labels).dtype)
-
-
-def coarsen_image(image: np.ndarray, factor: int) -> np.ndarray:
-    """Mean grey level of factor x factor blocks (as `coarsen_labels` cuts them)."""
-    return _blocks(np.asarray(image, float), factor).mean(axis=(1, 3))
 
 
 def is_edge(sides) -> bool:
