@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .results import MMHG_PER_KPA
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -133,3 +135,263 @@ def diagnosis_figure(path: Path, image: np.ndarray, pixel_size_mm, maps, mesh, p
     figure.savefig(path, dpi=DPI)
     plt.close(figure)
     return Path(path)
+
+
+# ----------------------------------------------------------------------------- the report's figures
+
+TISSUE_COLOURS = {1: ("fat", "#f2c14e"), 2: ("muscle", "#c0392b"), 3: ("bone", "#ecf0f1")}
+COMPARTMENT_COLOURS = "tab10"
+
+
+def _save(figure, path: Path) -> Path:
+    figure.savefig(path, dpi=DPI, bbox_inches="tight")
+    plt.close(figure)
+    return Path(path)
+
+
+def _extent(shape, pixel_size_mm) -> tuple[float, float, float, float]:
+    return (0.0, shape[1] * pixel_size_mm[1], shape[0] * pixel_size_mm[0], 0.0)
+
+
+def _landmark_markers(ax, landmarks: dict[str, tuple[float, float]], colour: str = "white") -> None:
+    """Numbered markers at the landmarks, named in the legend (1 great_saphenous, ...)."""
+    for number, (name, (x, y)) in enumerate(landmarks.items(), start=1):
+        ax.plot(x, y, "o", markersize=9, markerfacecolor="black", markeredgecolor=colour, markeredgewidth=1.2,
+                label=f"{number} {name}")
+        ax.text(x, y, str(number), color=colour, fontsize=6.5, ha="center", va="center", weight="bold")
+
+
+def images_figure(path: Path, unloaded: np.ndarray, loaded: np.ndarray, pixel_size_mm,
+                  titles=("I0, without the garment", "I1, with the garment (aligned on the bones)")) -> Path:
+    """The two slices side by side (Avril et al. Fig. 1), axes in mm."""
+    figure, axes = plt.subplots(1, 2, figsize=(11.0, 5.2))
+    for ax, image, title in zip(axes, (unloaded, loaded), titles):
+        _image_axes(ax, image, pixel_size_mm)
+        ax.set_title(title, fontsize=10)
+    return _save(figure, path)
+
+
+def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh, pixel_size_mm,
+                        landmarks: dict[str, tuple[float, float]]) -> Path:
+    """The tissues of I0 tinted (fat, muscle, bone, compartments), the mesh's edges and the named landmarks
+    (Avril et al. Fig. 2)."""
+    from matplotlib.collections import LineCollection
+    from matplotlib.patches import Patch
+
+    figure, ax = plt.subplots(figsize=(8.0, 7.5))
+    _image_axes(ax, image, pixel_size_mm)
+    tint = np.zeros(labels.shape + (4,))
+    handles = []
+    for label, (name, colour) in TISSUE_COLOURS.items():
+        tint[labels == label] = (*matplotlib.colors.to_rgb(colour), 0.40)
+        handles.append(Patch(color=colour, alpha=0.6, label=name))
+    compartments = sorted(int(v) for v in np.unique(labels[labels >= 4]))
+    cycle = plt.get_cmap(COMPARTMENT_COLOURS)
+    for k, label in enumerate(compartments):
+        tint[labels == label] = (*cycle(k % 10)[:3], 0.40)
+        handles.append(Patch(color=cycle(k % 10), alpha=0.6, label=f"muscle compartment {k + 1}"))
+    ax.imshow(tint, extent=_extent(labels.shape, pixel_size_mm), interpolation="nearest")
+    corners = mesh.nodes[mesh.elements[:, :3]]
+    edges = np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]], corners[:, [2, 0]]])
+    ax.add_collection(LineCollection(edges, colors="black", linewidths=0.25, alpha=0.7))
+    handles.append(matplotlib.lines.Line2D([], [], color="black", linewidth=0.6,
+                                           label=f"mesh: {len(mesh.elements)} {mesh.element_type}"))
+    _landmark_markers(ax, landmarks)
+    _zoom_to(ax, labels > 0, pixel_size_mm)
+    landmark_handles, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=handles + landmark_handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
+    ax.set_title("segmentation of I0 and the finite-element mesh", fontsize=10)
+    return _save(figure, path)
+
+
+def contour_distance_figure(path: Path, panels: list[tuple[str, np.ndarray]], unloaded: np.ndarray, pixel_size_mm,
+                            d_max_mm: float, warped: np.ndarray | None = None) -> Path:
+    """Contour distances d_k (Avril et al. sec. 2.2.5, Fig. 4) on a dimmed I0, one panel per model on a shared
+    scale (mm); with `warped`, the warped I1 and the target I0 first."""
+    images = [("I1 warped by the identified model", warped), ("target I0", unloaded)] if warped is not None else []
+    count = len(images) + len(panels)
+    figure, axes = plt.subplots(1, count, figsize=(4.6 * count, 4.8), squeeze=False)
+    axes = axes[0]
+    for ax, (title, image) in zip(axes, images):
+        _image_axes(ax, image, pixel_size_mm)
+        ax.set_title(title, fontsize=9)
+    shown = None
+    for ax, (title, distance) in zip(axes[len(images):], panels):
+        _image_axes(ax, unloaded, pixel_size_mm)
+        ax.images[0].set_alpha(0.45)
+        shown = ax.imshow(np.ma.masked_invalid(distance), cmap="viridis", vmin=0.0, vmax=d_max_mm,
+                          extent=_extent(distance.shape, pixel_size_mm), interpolation="nearest")
+        _zoom_to(ax, np.isfinite(distance), pixel_size_mm)
+        ax.set_title(title, fontsize=9)
+    if shown is not None:
+        figure.colorbar(shown, ax=list(axes[len(images):]), shrink=0.8, label="contour distance d_k (mm)")
+    return _save(figure, path)
+
+
+def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmarks: dict[str, tuple[float, float]],
+                    landmark_values: dict[str, tuple[float, float]]) -> Path:
+    """Hydrostatic pressure -tr(sigma)/3 in the soft tissues at the central parameters (Avril et al. Fig. 5):
+    colour bar in kPa with mmHg beside it, the landmarks numbered and named with their mean +- standard deviation
+    over the Monte-Carlo draws."""
+    figure, ax = plt.subplots(figsize=(8.6, 7.2))
+    finite = pressure_kPa[np.isfinite(pressure_kPa)]
+    low, high = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
+    shown = ax.imshow(np.ma.masked_invalid(pressure_kPa), cmap="cividis", vmin=low, vmax=high,
+                      extent=_extent(pressure_kPa.shape, pixel_size_mm), interpolation="nearest")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_aspect("equal")
+    ax.set_facecolor("#dddddd")
+    bar = figure.colorbar(shown, ax=ax, shrink=0.8, pad=0.12)
+    bar.ax.yaxis.set_ticks_position("left")
+    bar.ax.yaxis.set_label_position("left")
+    bar.set_label("hydrostatic pressure (kPa)")
+    mmhg = bar.ax.secondary_yaxis("right", functions=(lambda kpa: kpa * MMHG_PER_KPA, lambda mm: mm / MMHG_PER_KPA))
+    mmhg.set_ylabel("(mmHg)")
+    named = {}
+    for name, position in landmarks.items():
+        mean, std = landmark_values.get(name, (np.nan, np.nan))
+        named[f"{name}: {mean:.2f} +- {std:.2f} kPa ({mean * MMHG_PER_KPA:.1f} +- {std * MMHG_PER_KPA:.1f} mmHg)"] = position
+    _landmark_markers(ax, named)
+    _zoom_to(ax, np.isfinite(pressure_kPa), pixel_size_mm)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8, frameon=False)
+    ax.set_title("hydrostatic pressure at the central parameters; landmarks: mean +- std over the draws", fontsize=9)
+    return _save(figure, path)
+
+
+def _scattered_map(positions_mm: np.ndarray, values: np.ndarray, mask: np.ndarray, pixel_size_mm) -> np.ndarray:
+    """Values at scattered points interpolated linearly over the pixels of `mask` (NaN elsewhere and outside the
+    points' convex hull)."""
+    from scipy.interpolate import griddata
+
+    rows, cols = np.nonzero(mask)
+    out = np.full(mask.shape, np.nan)
+    if len(positions_mm) >= 3:
+        out[rows, cols] = griddata(positions_mm, values, ((cols + 0.5) * pixel_size_mm[1], (rows + 0.5) * pixel_size_mm[0]),
+                                   method="linear")
+    return out
+
+
+def _zoom_to(ax, mask: np.ndarray, pixel_size_mm, margin_mm: float = 6.0) -> None:
+    """Show only the part of the image around the mask (the leg), axes still in mm of the image frame."""
+    rows, cols = np.nonzero(mask)
+    if rows.size:
+        dy, dx = pixel_size_mm
+        ax.set_xlim(cols.min() * dx - margin_mm, (cols.max() + 1) * dx + margin_mm)
+        ax.set_ylim((rows.max() + 1) * dy + margin_mm, rows.min() * dy - margin_mm)
+
+
+def residual_figure(path: Path, image: np.ndarray, leg: np.ndarray, pixel_size_mm, positions_mm: np.ndarray,
+                    measured_mm: np.ndarray | None, fits: list[tuple[str, np.ndarray]], centre_mm) -> Path:
+    """For each model (the identified one, then each refit, in columns): the measured and the model's
+    displacements as arrows (top row, when the measurements are known), the residual's magnitude
+    |u_model - u_measured| (middle row) and its radial component, + outwards, on a diverging map (bottom row).
+    Every row shares one scale across models."""
+    positions = np.asarray(positions_mm, float)
+    rows = 3 if measured_mm is not None else 2
+    figure, axes = plt.subplots(rows, len(fits), figsize=(4.2 * len(fits) + 1.4, 4.2 * rows), squeeze=False,
+                                layout="constrained")
+    radial_unit = positions - np.asarray(centre_mm, float)
+    radial_unit /= np.maximum(np.linalg.norm(radial_unit, axis=1, keepdims=True), 1e-12)
+    largest = max(float(np.linalg.norm(r, axis=1).max()) for _, r in fits) or 1.0
+    radial_max = max(float(np.abs((r * radial_unit).sum(axis=1)).max()) for _, r in fits) or 1.0
+    first = 0
+    if measured_mm is not None:
+        measured = np.asarray(measured_mm, float)
+        reference = float(f"{float(np.linalg.norm(measured, axis=1).max()) / 2:.1g}") or 1.0
+        scale = reference / 5.0            # a displacement of `reference` mm is drawn 5 mm long
+        for column, (title, residual) in enumerate(fits):
+            ax = axes[0, column]
+            _image_axes(ax, image, pixel_size_mm)
+            ax.images[0].set_alpha(0.5)
+            options = dict(angles="xy", scale_units="xy", scale=scale, width=0.005)
+            measured_arrows = ax.quiver(positions[:, 0], positions[:, 1], measured[:, 0], measured[:, 1],
+                                        color="black", label="measured", **options)
+            ax.quiver(positions[:, 0], positions[:, 1], measured[:, 0] + residual[:, 0],
+                      measured[:, 1] + residual[:, 1], color="tab:orange", label="model", alpha=0.85, **options)
+            ax.quiverkey(measured_arrows, 0.80, 0.06, reference, f"{reference:g} mm", labelpos="N", coordinates="axes",
+                         fontproperties={"size": 7})
+            ax.legend(loc="upper left", fontsize=7, framealpha=0.85)
+            _zoom_to(ax, leg, pixel_size_mm)
+            ax.set_title(f"{title}\ndisplacements", fontsize=9)
+        first = 1
+    for column, (title, residual) in enumerate(fits):
+        magnitude = np.linalg.norm(residual, axis=1)
+        radial = (residual * radial_unit).sum(axis=1)
+        for row, values, cmap, limits, heading in (
+                (first, magnitude, "magma", (0.0, largest), f"|residual|, RMS {np.sqrt(np.mean(magnitude ** 2)):.3f} mm"),
+                (first + 1, radial, "RdBu_r", (-radial_max, radial_max), "radial residual")):
+            ax = axes[row, column]
+            _image_axes(ax, image, pixel_size_mm)
+            ax.images[0].set_alpha(0.35)
+            shown = ax.imshow(np.ma.masked_invalid(_scattered_map(positions, values, leg, pixel_size_mm)), cmap=cmap,
+                              vmin=limits[0], vmax=limits[1], extent=_extent(leg.shape, pixel_size_mm),
+                              interpolation="nearest")
+            ax.plot(positions[:, 0], positions[:, 1], ".", color="white", markersize=1.2)
+            _zoom_to(ax, leg, pixel_size_mm)
+            ax.set_title(f"{title}\n{heading}", fontsize=9)
+            if column == len(fits) - 1:
+                label = ("|u_model - u_measured| (mm)" if row == first
+                         else "radial residual (mm, + the model lies outwards)")
+                figure.colorbar(shown, ax=list(axes[row]), shrink=0.9, label=label)
+    return _save(figure, path)
+
+
+def ranking_figure(path: Path, ranking: list[dict], alpha: float) -> Path:
+    """The effect ranking of the diagnosis: -log10 of each effect's p-value (corrected for correlated residuals)
+    as bars, most likely at the top, with the significance line at alpha."""
+    names = [score["effect"] for score in ranking][::-1]
+    strength = [-np.log10(max(score["p_value"], 1e-300)) for score in ranking][::-1]
+    colours = ["tab:red" if score["significant"] else "tab:gray" for score in ranking][::-1]
+    figure, ax = plt.subplots(figsize=(7.5, 0.45 * len(names) + 1.6))
+    ax.barh(names, strength, color=colours)
+    ax.axvline(-np.log10(alpha), color="black", linestyle="--", label=f"significance, alpha = {alpha:g}")
+    ax.set_xlabel("-log10 p-value of the score test (corrected for correlated residuals)")
+    ax.set_ylabel("catalog effect")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title("which missing effect the residual points to (red: significant)", fontsize=10)
+    return _save(figure, path)
+
+
+def misfit_figure(path: Path, fits: list[tuple[str, float]], explained_factor: float) -> Path:
+    """Misfit over its noise floor for the identified model and each refit, with the floor (1) and the level
+    at which an effect is said to explain the residual."""
+    labels = [label for label, _ in fits]
+    ratios = [ratio for _, ratio in fits]
+    figure, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(fits) + 2.0), 4.2))
+    bars = ax.bar(labels, ratios, color=["tab:gray"] + ["tab:blue"] * (len(fits) - 1))
+    ax.bar_label(bars, labels=[f"{r:.2f}x" for r in ratios], fontsize=8)
+    ax.axhline(1.0, color="black", linestyle="-", label="noise floor")
+    ax.axhline(explained_factor, color="black", linestyle="--", label=f"explained ({explained_factor:g}x the floor)")
+    if max(ratios) > 20 * min(ratios):
+        ax.set_yscale("log")
+    ax.set_ylabel("misfit / noise floor")
+    ax.tick_params(axis="x", labelsize=8, labelrotation=15)
+    ax.legend(fontsize=8)
+    ax.set_title("misfit before and after the refits", fontsize=10)
+    return _save(figure, path)
+
+
+def intervals_figure(path: Path, names: list[str], units: list[str], identified, lower, upper, poorly: list[str],
+                     title: str, truth: dict | None = None) -> Path:
+    """The Monte-Carlo intervals as error bars, one small panel per parameter in its own unit (kPa, or the
+    effect's), the identified value as the point; not identifiable or poorly identified ones in red; the
+    phantom's truth as a star when known."""
+    identified, lower, upper = (np.asarray(v, float) for v in (identified, lower, upper))
+    figure, axes = plt.subplots(1, len(names), figsize=(max(5.0, 1.9 * len(names) + 1.0), 3.8), squeeze=False)
+    for k, (ax, name) in enumerate(zip(axes[0], names)):
+        colour = "tab:red" if name in poorly else "tab:blue"
+        ax.errorbar([0], [identified[k]], yerr=[[identified[k] - lower[k]], [upper[k] - identified[k]]], fmt="o",
+                    color=colour, capsize=8, linewidth=2, label="identified, interval")
+        if truth and name in truth:
+            ax.plot([0], [truth[name]], "k*", markersize=10, label="truth (phantom)")
+        ax.set_xticks([0], [name], fontsize=8)
+        ax.set_xlim(-1, 1)
+        ax.set_ylabel(units[k], fontsize=8)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.set_title("NOT identifiable" if name in poorly else "identifiable", fontsize=8, color=colour)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, bbox_to_anchor=(0.5, -0.04))
+    figure.suptitle(title, fontsize=9)
+    figure.tight_layout()
+    return _save(figure, path)

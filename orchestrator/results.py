@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+MMHG_PER_KPA = 7.50062    # 1 mmHg = 133.322 Pa
+
 
 class ResultsError(RuntimeError):
     pass

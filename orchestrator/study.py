@@ -124,6 +124,23 @@ class RunSetup:
             lines.append(f"muscle compartments: {count} from the labels")
         return lines
 
+    def solve(self, theta: Sequence[float], folder: Path, model: LegModel | None = None):
+        """Solve the run's model (or `model`) once at theta in `folder`, keeping the engine's outputs (the VTU of
+        each step: stresses, pressure); returns its `EngineResults`. RuntimeError when it does not converge."""
+        from .results import EngineResults
+        from .runner import run_engine
+
+        model = model if model is not None else self.model
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_mesh_include(model, folder)
+        deck = folder / "deck.inp"
+        deck.write_text(model.deck(theta))
+        outcome = run_engine(deck, folder / "out", threads=1, timeout_s=300)
+        if not outcome.converged:
+            raise RuntimeError(f"the engine did not converge at {list(theta)} (see {outcome.outdir})")
+        return EngineResults(outcome.outdir)
+
     def model_with(self, effects: Sequence[str] = (), sensitivities: bool = False) -> LegModel:
         """The run's leg model with these catalog effects fitted too; with `sensitivities` its decks ask the engine
         for du/dtheta (Levenberg-Marquardt and the diagnosis then need no finite-difference runs)."""

@@ -89,7 +89,7 @@ def test_report_names_the_poorly_identified_parameters(phantom, study):
     run, _, montecarlo, _ = study
     page = write_report(run, read_json(truth_dir / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"])
     text = page.read_text()
-    assert "Poorly identified: <b>" + ", ".join(montecarlo["poorly_identified"]) in text
+    assert ('<p class="alert"><strong>Poorly identified: ' + ", ".join(montecarlo["poorly_identified"])) in text
     for figure in ("images.png", "segmentation_mesh.png", "warped_dk.png", "pressure.png"):
         assert (page.parent / figure).stat().st_size > 1000 and figure in text
     for table in ("Table 1", "Table 2", "Table 3", "Table 4"):

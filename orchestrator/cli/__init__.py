@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import argparse
 
-from . import _demo, _diagnose, _identify, _measure, _montecarlo, _phantom, _pressures, _report, _solve
+from . import _demo, _diagnose, _identify, _measure, _montecarlo, _paraview, _phantom, _pressures, _report, _solve
 
 COMMANDS = {
     "demo": _demo,
@@ -19,6 +19,7 @@ COMMANDS = {
     "pressures": _pressures,
     "diagnose": _diagnose,
     "report": _report,
+    "paraview": _paraview,
 }
 
 

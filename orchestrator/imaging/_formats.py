@@ -4,7 +4,8 @@ PNG and TIFF (8 or 16 bit, grey), NumPy ``.npy``, DICOM (``PixelSpacing`` and
 the rescale slope/intercept from the header, via pydicom) and NIfTI (``zooms``
 from the header, via nibabel; array axis 0 is taken as rows, axis 1 as
 columns, as nibabel stores it, with no reorientation). Every failure is a
-`CaseError` naming the file and the fix.
+`CaseError` naming the file and the fix. A folder holding a DICOM series is read
+by `dicom_series`, one slice of it through `read_dicom_file`.
 
 Float images (NIfTI, .npy, float TIFF) may hold NaN where the scanner or a
 reslicing left no value, usually outside the field of view. Those pixels are
@@ -31,12 +32,14 @@ MAX_MISSING_FRACTION = 0.5
 @dataclass(frozen=True)
 class SliceFile:
     """One 2D image read from a file, with the pixel spacing its header gives (None if none) and the mask of the
-    pixels that had no value (NaN or infinite; None when every pixel has one)."""
+    pixels that had no value (NaN or infinite; None when every pixel has one). A slice of a DICOM series
+    (`dicom_series`) has the series folder as its path and the file it was read from as series_file."""
 
     path: Path
     pixels: np.ndarray
     header_pixel_size_mm: tuple[float, float] | None
     missing: np.ndarray | None = None
+    series_file: Path | None = None
 
 
 def file_suffix(path: Path) -> str:
@@ -51,7 +54,15 @@ def read_slice(path: Path) -> SliceFile:
                ".dcm": _read_dicom, ".nii": _read_nifti, ".nii.gz": _read_nifti}
     if suffix not in readers:
         raise CaseError(path, f"the format '{suffix}' is not supported", "use PNG, TIFF, .npy, DICOM (.dcm) or NIfTI (.nii/.nii.gz)")
-    pixels, spacing = readers[suffix](path)
+    return _checked_slice(path, *readers[suffix](path))
+
+
+def read_dicom_file(path: Path) -> SliceFile:
+    """Read a 2D DICOM slice whatever its file name (a scanner's series files often have no suffix)."""
+    return _checked_slice(path, *_read_dicom(path))
+
+
+def _checked_slice(path: Path, pixels, spacing) -> SliceFile:
     pixels = _as_2d(path, pixels)
     if not np.issubdtype(pixels.dtype, np.number) or np.issubdtype(pixels.dtype, np.complexfloating):
         raise CaseError(path, f"holds {pixels.dtype} values, not real numbers", _GREY_FIX)

@@ -4,7 +4,9 @@ A case is ``case.toml`` + the unloaded image I0 + the loaded image I1, with an
 optional label map of I0 (0 background, 1 fat with skin, 2 muscle, 3 bone,
 labels >= 4 are muscle compartments) and optional measured displacements
 ``points.csv`` (x_mm,y_mm,ux_mm,uy_mm[,sigma_mm], image frame of I0, tissue
-relative to bones). Images may be PNG/TIFF, ``.npy``, DICOM or NIfTI.
+relative to bones). Images may be PNG/TIFF, ``.npy``, DICOM or NIfTI; the unloaded and loaded
+images may also be folders ``unloaded/`` and ``loaded/`` holding a DICOM series each, the slice chosen by the
+optional [images] table of case.toml (`dicom_series`).
 
 Reading checks everything before returning and raises one `CaseError` (one
 sentence: file, what is wrong, the fix) at the first problem; it never writes.
@@ -26,11 +28,11 @@ from pathlib import Path
 import numpy as np
 
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
+from .dicom_series import IMAGES_KEYS, PIXEL_SIZE_RTOL, read_image_pair
 from .errors import CaseError
 
 FAT, MUSCLE, BONE = 1, 2, 3
 FIRST_COMPARTMENT = 4
-PIXEL_SIZE_RTOL = 0.01
 POINTS_COLUMNS = ("x_mm", "y_mm", "ux_mm", "uy_mm")
 DEFAULT_TENSION_REL_UNCERTAINTY = 0.10
 
@@ -38,6 +40,7 @@ _TOML_SCHEMA = {
     "case": {"name", "pixel_size_mm"},
     "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
     "landmarks": None,  # any name
+    "images": set(IMAGES_KEYS),  # which slice of a DICOM series
 }
 
 
@@ -91,8 +94,8 @@ def read_case(folder: str | os.PathLike) -> Case:
         raise CaseError(folder, "is not a folder", "give the path of a case folder holding case.toml and the two images")
     toml_path = folder / "case.toml"
     settings = _read_toml(toml_path)
-    unloaded = read_slice(_find_file(folder, "unloaded", required=True))
-    loaded = read_slice(_find_file(folder, "loaded", required=True))
+    unloaded, loaded = read_image_pair(toml_path, settings.get("images"), _find_file(folder, "unloaded", required=True),
+                                       _find_file(folder, "loaded", required=True))
     if loaded.pixels.shape != unloaded.pixels.shape:
         raise CaseError(loaded.path, f"is {_dims(loaded.pixels)} pixels but {unloaded.path.name} is {_dims(unloaded.pixels)}",
                         "export both slices with the same matrix size and field of view")
@@ -119,6 +122,9 @@ def read_case(folder: str | os.PathLike) -> Case:
         files["labels"] = labels_path
     if points is not None:
         files["points"] = points_path
+    for role, image in (("unloaded", unloaded), ("loaded", loaded)):
+        if image.series_file is not None:
+            files[f"{role}_slice"] = image.series_file    # the file of the slice chosen in a DICOM series
     return Case(folder=folder, name=name, pixel_size_mm=pixel_size,
                 unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
                 tension_N_per_mm=tension,
@@ -152,13 +158,17 @@ def _read_toml(path: Path) -> dict:
 
 
 def _find_file(folder: Path, stem: str, required: bool) -> Path | None:
+    """The image file `stem`.<suffix>, or, for the unloaded and loaded images, a DICOM series folder `stem`/."""
+    series_allowed = stem in ("unloaded", "loaded")
     found = sorted(p for p in folder.iterdir()
-                   if p.is_file() and file_suffix(p) in IMAGE_SUFFIXES and p.name.lower() == stem + file_suffix(p))
+                   if (p.is_file() and file_suffix(p) in IMAGE_SUFFIXES and p.name.lower() == stem + file_suffix(p))
+                   or (series_allowed and p.is_dir() and p.name.lower() == stem))
     if len(found) > 1:
         raise CaseError(found[1], f"competes with {found[0].name} as the {stem} image", "keep only one of them in the folder")
     if not found and required:
         raise CaseError(folder / f"{stem}.png", "is missing",
-                        f"put the {stem} slice in the case folder as {stem}.png (or .tif, .npy, .dcm, .nii)")
+                        f"put the {stem} slice in the case folder as {stem}.png (or .tif, .npy, .dcm, .nii), "
+                        f"or its DICOM series in a folder {stem}/")
     return found[0] if found else None
 
 

@@ -1,0 +1,169 @@
+"""The report of a whole run (identify, Monte-Carlo, pressures, diagnose) on a phantom with a hidden fluid loss
+of the muscle: the page is what the template makes of report.json (every table of the JSON on the page, cell
+by cell as the page prints it, every figure present and a PNG), the user's questions are answered at the top
+(pressure at each landmark in kPa and mmHg with its spread, the diagnosis' verdict), and every figure drawn
+on the image has its axes in mm and colour bars that say their unit."""
+
+from __future__ import annotations
+
+import json
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+
+from orchestrator import figures
+from orchestrator.pipeline import run_diagnose, run_identify, run_montecarlo, run_pressures
+from orchestrator.report import MMHG_PER_KPA, format_cell, write_report
+from orchestrator.study import PARAMETERS_FILE, make_phantom_case, read_json
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+class PageReader(HTMLParser):
+    """Tables (by id: caption, header cells, body rows), image sources and section ids of a page."""
+
+    def __init__(self):
+        super().__init__()
+        self.tables, self.images, self.sections = {}, [], []
+        self._table = self._row = self._cell = None
+        self._in_caption = False
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "table":
+            self._table = self.tables.setdefault(attrs["id"], {"caption": "", "header": [], "rows": []})
+        elif tag == "caption":
+            self._in_caption = True
+        elif tag == "tr" and self._table is not None:
+            self._row = []
+        elif tag in ("td", "th") and self._row is not None:
+            self._cell = ""
+        elif tag == "img":
+            self.images.append(attrs["src"])
+        elif tag == "section":
+            self.sections.append(attrs["id"])
+
+    def handle_endtag(self, tag):
+        if tag == "table":
+            self._table = None
+        elif tag == "caption":
+            self._in_caption = False
+        elif tag in ("td", "th") and self._cell is not None:
+            self._row.append(self._cell.strip())
+            self._cell = None
+        elif tag == "tr" and self._row is not None:
+            if self._table["header"] or not self._row:
+                self._table["rows"].append(self._row)
+            else:
+                self._table["header"] = self._row
+            self._row = None
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell += data
+        elif self._in_caption and self._table is not None:
+            self._table["caption"] += data
+
+
+@pytest.fixture(scope="module")
+def reported(tmp_path_factory):
+    """A run through every stage, then its report; the figures matplotlib drew, with their axes' labels."""
+    folder = tmp_path_factory.mktemp("report")
+    case, truth_folder = make_phantom_case(folder / "case", folder / "case.truth", n_elements=2000,
+                                           effects={"drainage": {"dv_muscle": -0.05}})
+    run = folder / "run"
+    run_identify(case, run, method="lm", objective="displacement", n_elements=400, order=2, workers=2, progress=False)
+    run_montecarlo(run, draws=30, workers=2, progress=False)
+    run_pressures(run, draws=8, workers=2, progress=False)
+    run_diagnose(run, refit_effects=["drainage"], workers=2, progress=False)
+    drawn = {}
+    save = figures._save
+
+    def recording_save(figure, path):
+        axes = [a for ax in figure.axes for a in (ax, *ax.child_axes)]     # secondary axes (mmHg) are children
+        drawn[path.name] = {"x": [ax.get_xlabel() for ax in axes], "y": [ax.get_ylabel() for ax in axes]}
+        return save(figure, path)
+
+    truth = read_json(truth_folder / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
+    figures._save = recording_save
+    try:
+        page = write_report(run, truth)
+    finally:
+        figures._save = save
+    reader = PageReader()
+    reader.feed(page.read_text(encoding="utf-8"))
+    return page, json.loads((page.parent / "report.json").read_text()), reader, drawn
+
+
+def _json_tables(report: dict) -> list[dict]:
+    return [report["answers"]["table"]] + [t for section in report["sections"] for t in section["tables"]]
+
+
+def test_every_table_of_the_json_is_on_the_page_cell_by_cell(reported):
+    _, report, page, _ = reported
+    tables = _json_tables(report)
+    assert {t["id"] for t in tables} == set(page.tables)
+    assert {"answers", "table1", "table2", "table3", "table4", "ranking", "comparison", "sectors"} <= set(page.tables)
+    for table in tables:
+        shown = page.tables[table["id"]]
+        assert shown["caption"].strip() == table["title"]
+        assert shown["header"] == table["header"]
+        assert shown["rows"] == [[format_cell(v) for v in row] for row in table["rows"]], table["id"]
+        for row, values in zip(shown["rows"], table["rows"]):     # the printed numbers are the JSON's, to 4 digits
+            for text, value in zip(row, values):
+                if isinstance(value, float):
+                    assert float(text) == pytest.approx(value, rel=5e-4, abs=1e-300)
+
+
+def test_every_figure_is_on_the_page_and_a_png(reported):
+    page_path, report, page, _ = reported
+    listed = [f["file"] for section in report["sections"] for f in section["figures"]]
+    assert sorted(listed) == sorted(page.images)
+    assert {"images.png", "segmentation_mesh.png", "warped_dk.png", "intervals.png", "pressure.png", "ranking.png",
+            "misfit.png", "residuals_before_after.png", "dk_before_after.png", "diagnosis.png"} <= set(listed)
+    for name in listed:
+        assert (page_path.parent / name).read_bytes()[:8] == PNG_SIGNATURE
+    assert page.sections == ["answers"] + [s["id"] for s in report["sections"]]
+    assert page.sections[-1] == "diagnosis"
+
+
+def test_the_top_of_the_page_answers_pressure_in_mmhg_and_the_verdict(reported):
+    page_path, report, page, _ = reported
+    pressures = read_json(page_path.parent.parent / "pressures.json", "")
+    rows = {row[0]: row for row in report["answers"]["table"]["rows"]}
+    for k, name in enumerate(pressures["landmarks"]):
+        _, mean, std, mean_mmhg, std_mmhg, _ = rows[f"pressure at {name}"]
+        assert mean == pressures["mean_kPa"][k] and std == pressures["std_kPa"][k]
+        assert mean_mmhg == pytest.approx(mean * MMHG_PER_KPA) and std_mmhg == pytest.approx(std * MMHG_PER_KPA)
+    diagnosis = read_json(page_path.parent.parent / "diagnosis.json", "")
+    assert report["answers"]["verdict"] == f"Diagnosis: {diagnosis['verdict']}."
+    text = page_path.read_text(encoding="utf-8")
+    assert text.index('id="answers"') < text.index('id="images"')
+    assert "drainage" in diagnosis["verdict"]       # the hidden effect, said on the page's first screen
+
+
+def test_figures_on_the_image_have_axes_in_mm_and_colour_bars_with_units(reported):
+    _, _, _, drawn = reported
+    for name in ("images.png", "segmentation_mesh.png", "warped_dk.png", "pressure.png", "residuals_before_after.png",
+                 "dk_before_after.png"):
+        labels = drawn[name]
+        image_axes = [k for k, x in enumerate(labels["x"]) if x == "x (mm)"]
+        assert image_axes, name
+        assert all(labels["y"][k] == "y (mm)" for k in image_axes), name
+    assert "hydrostatic pressure (kPa)" in drawn["pressure.png"]["y"] and "(mmHg)" in drawn["pressure.png"]["y"]
+    assert "|u_model - u_measured| (mm)" in drawn["residuals_before_after.png"]["y"]
+    assert any("radial residual (mm" in label for label in drawn["residuals_before_after.png"]["y"])
+    assert "contour distance d_k (mm)" in drawn["dk_before_after.png"]["y"]
+    assert drawn["ranking.png"]["x"][0].startswith("-log10 p-value")
+    assert drawn["misfit.png"]["y"][0] == "misfit / noise floor"
+    assert "kPa" in drawn["intervals.png"]["y"]
+
+
+def test_report_json_is_strict_json(reported):
+    """No NaN or Infinity (which json.dumps writes by default and other readers refuse): what has no value is
+    null, shown as "-"."""
+    page_path, report, _, _ = reported
+    json.loads((page_path.parent / "report.json").read_text(), parse_constant=lambda name: pytest.fail(name))
+    numbers = [v for t in _json_tables(report) for row in t["rows"] for v in row if isinstance(v, float)]
+    assert numbers and all(np.isfinite(numbers))
