@@ -104,10 +104,13 @@ class RunSetup:
     missing_fraction: dict = field(default_factory=dict)    # setup.json "missing_fraction": image name -> share
 
     def setup_lines(self) -> list[str]:
-        """What the user should know of how the images were read: averaged over blocks of pixels, pixels with no
-        value given the background's grey level, and the muscle compartments, found in I0 (and where to check
-        them) or given by the labels."""
+        """What the user should know of how the images were read: the slice taken from a DICOM series, averaged
+        over blocks of pixels, pixels with no value given the background's grey level, and the muscle
+        compartments, found in I0 (and where to check them) or given by the labels."""
         case, lines = self.case, []
+        for role in ("unloaded", "loaded"):
+            if f"{role}_slice" in case.files:
+                lines.append(f"{case.files[role].name}: DICOM series, slice {case.files[f'{role}_slice'].name} used")
         if case.block_factor > 1:
             k, (rows, cols), (dy, dx) = case.block_factor, case.shape, case.pixel_size_mm
             lines.append(f"{case.files['unloaded'].name} and {case.files['loaded'].name}: pixels of {dy / k:.3f} x "

@@ -359,3 +359,5 @@ def test_prepare_run_from_dicom_series_of_the_phantom(tmp_path):
     np.testing.assert_array_equal(setup.case.unloaded, legs["unloaded"] * slope + intercept)
     assert setup.case.pixel_size_mm == pytest.approx((0.36, 0.36))
     assert len(setup.mesh.elements) > 100 and (tmp_path / "run" / "setup.json").is_file()
+    chosen = setup.case.files["unloaded_slice"].name
+    assert f"unloaded: DICOM series, slice {chosen} used" in setup.setup_lines()
