@@ -78,7 +78,7 @@ def _setup(case_dir, run_dir: Path, n_elements: int | None, order: int | None, o
     return prepare_run(case_dir, run_dir, n_elements=n_elements or default_elements, order=order or default_order)
 
 
-@holds_run_folder()
+@holds_run_folder(create=True)
 def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, n_elements: int | None = None, order: int | None = None) -> dict:
     """Measure the displacements from the two images by DIC (`measure.measure_dic`) into the run folder
@@ -95,7 +95,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     return summary
 
 
-@holds_run_folder()
+@holds_run_folder(create=True)
 def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "auto", data: str = "auto",
                  window_px: int = DEFAULT_WINDOW_PX, start: Sequence[float] | None = None, starts: str = "one",
                  n_elements: int | None = None, order: int | None = None, effects: Sequence[str] = (),
@@ -120,15 +120,15 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     base = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
 
-    def fit_from(points, scorer):
+    def fit_from(points, scorer, stage):
         with Evaluator(setup.model, scorer, run_dir, workers=workers, scheduler=scheduler,
-                       timeout_s=timeout_s, progress=progress) as evaluator:
+                       timeout_s=timeout_s, progress=progress, label=stage) as evaluator:
             found = ([levenberg_marquardt(evaluator, s) for s in points] if method == "lm"
                      else multistart(evaluator, points))
         return found, min(found, key=lambda fit: fit.cost)
 
     fits, best = fit_from(start_points, DisplacementResidualObjective(setup.mesh, measured) if measured is not None
-                          else setup.mismatch_objective())
+                          else setup.mismatch_objective(), "identify")
     geometry = None
     if measured is not None and source == "dic" and skin_uncertainty:
         # the uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit
@@ -143,7 +143,8 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
             write_geometry(run_dir, covariance, info)
         measured = setup.measurements(source)
         first = best
-        fits, best = fit_from([first.theta], DisplacementResidualObjective(setup.mesh, measured))
+        fits, best = fit_from([first.theta], DisplacementResidualObjective(setup.mesh, measured),
+                              "identify again, with the skin's uncertainty")
         fits = [first] + fits
         geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured))[1],
                         measurement_share_of_variance=measured.measurement_share)
@@ -196,7 +197,7 @@ def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, t
     objective = _objective(setup, objective_name, identified_data(identification))
     best = identification["best"]
     with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                   progress=progress) as evaluator:
+                   progress=progress, label="montecarlo") as evaluator:
         if method == "noise":
             result = noise_monte_carlo(evaluator, best["theta"], draws=draws or NOISE_DRAWS, seed=seed,
                                        nuisance_dof=objective.nuisance_dof).as_dict()
@@ -216,8 +217,9 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
     setup = load_run(run_dir)
     montecarlo = read_json(run_dir / "montecarlo.json", "calfit montecarlo RUN_DIR")
     objective = setup.pressure_objective()
+    # the pressure objective's cost is the largest landmark pressure, not a misfit: kept off the progress line
     with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                   progress=progress) as evaluator:
+                   progress=progress, label="pressures", cost_is_misfit=False) as evaluator:
         stats = pressure_uncertainty(evaluator, objective.names, montecarlo["lower"], montecarlo["upper"],
                                      montecarlo["central"], setup.case.tension_N_per_mm, draws=draws,
                                      tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
@@ -243,8 +245,12 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     objective = setup.displacement_objective(identified_data(identification))
 
     def evaluator_for(m):
+        # the ranking probes every candidate effect at once; a refit adds one or two
+        added = [name for name in m.effects if name not in model.effects]
+        stage = ("diagnose" if not added else f"diagnose + {', '.join(added)}" if len(added) <= 2
+                 else "diagnose, ranking the candidate effects")
         return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                         progress=progress)
+                         progress=progress, label=stage)
 
     theta = identification["best"]["theta"]
     frame = setup.frame()

@@ -5,6 +5,8 @@ writes. Every pipeline command takes an exclusive lock on RUN_DIR/.calfit.lock (
 the kernel when the process ends, however it ends) and writes who holds it there; a second command on the
 same folder stops at once with a sentence naming the holder. A command that calls another in the same
 process (identify measures first) holds the lock once: the depth is counted per folder in this process.
+Only the commands that make a run folder (measure, identify) create it; the others stop when it is missing
+rather than leave an empty folder behind a mistyped path.
 """
 
 from __future__ import annotations
@@ -30,8 +32,9 @@ class RunFolderBusy(RunFolderError):
 
 
 @contextmanager
-def run_folder_lock(run_dir):
-    """Hold RUN_DIR for the duration of the block; RunFolderBusy if another process holds it."""
+def run_folder_lock(run_dir, create: bool = False):
+    """Hold RUN_DIR for the duration of the block (made first when `create`); RunFolderBusy if another
+    process holds it, RunFolderError if it is missing and not to be made."""
     folder = Path(run_dir).resolve()
     key = str(folder)
     if key in _held:
@@ -41,7 +44,10 @@ def run_folder_lock(run_dir):
         finally:
             _held[key][1] -= 1
         return
-    folder.mkdir(parents=True, exist_ok=True)
+    if create:
+        folder.mkdir(parents=True, exist_ok=True)
+    elif not folder.is_dir():
+        raise RunFolderError(f"{run_dir} is not a run folder: run `calfit identify CASE_DIR --out {run_dir}` first")
     stream = open(folder / LOCK_NAME, "a+")
     try:
         fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -75,14 +81,15 @@ def _describe(holder: str) -> str:
         return "holder unknown"
 
 
-def holds_run_folder(argument: str = "run_dir"):
-    """Decorator: the function runs holding the lock of its `argument` (a run folder)."""
+def holds_run_folder(argument: str = "run_dir", create: bool = False):
+    """Decorator: the function runs holding the lock of its `argument` (a run folder, made first when
+    `create`)."""
     def decorate(function):
         signature = inspect.signature(function)
 
         @functools.wraps(function)
         def locked(*args, **kwargs):
-            with run_folder_lock(signature.bind(*args, **kwargs).arguments[argument]):
+            with run_folder_lock(signature.bind(*args, **kwargs).arguments[argument], create):
                 return function(*args, **kwargs)
         return locked
     return decorate

@@ -77,3 +77,14 @@ def test_a_calfit_command_on_a_busy_folder_says_so_and_writes_nothing(tmp_path):
     finally:
         holder.kill()
         holder.communicate()
+
+
+@pytest.mark.parametrize("command", ["montecarlo", "pressures", "diagnose", "report", "paraview"])
+def test_a_command_on_a_missing_run_folder_says_so_and_creates_nothing(tmp_path, command):
+    """Only measure and identify make a run folder; a mistyped path to any other stage leaves nothing behind."""
+    missing = tmp_path / "no-such-run"
+    finished = subprocess.run([sys.executable, "-m", "orchestrator.cli", command, str(missing)], capture_output=True,
+                              text=True, timeout=120)
+    assert finished.returncode == 2
+    assert f"{missing} is not a run folder: run `calfit identify CASE_DIR --out {missing}` first" in finished.stderr
+    assert not missing.exists()

@@ -1,6 +1,6 @@
 """The demonstration, end to end on a phantom case made by the engine, from its two images only:
 
-    calfit demo [--out DIR] [--workers N]
+    calfit demo [--out DIR] [--workers N] [--quiet]
 
 1. `calfit phantom`: a calf slice whose loaded image is computed by calfit-fe with the Avril law at
    parameters that are not the fit's start, a garment of 0.16 N/mm (about 20 mmHg), image noise and a
@@ -22,7 +22,6 @@ solved once at the Table 2 central values, with the pressures it transmits.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -36,6 +35,7 @@ from ..report import write_report
 from ..results import EngineResults
 from ..runner import run_engine
 from ..study import PARAMETERS_FILE, make_phantom_case, read_json
+from ._common import add_output_arguments, honours_quiet, notice, show_progress
 from ._measure import summary_lines
 from ._solve import describe
 
@@ -57,14 +57,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--elements", type=int, default=5500, help="--leg-slice: number of elements (default 5500)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="--leg-slice: 1: CPE3, 2: CPE6 (default)")
     parser.add_argument("--tension", type=float, default=0.16, help="garment tension in N/mm (default 0.16, about 20 mmHg)")
+    add_output_arguments(parser, json_help=None)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     return run_leg_slice(args) if args.leg_slice else run_full(args)
-
-
-def _say(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 def run_full(args: argparse.Namespace) -> int:
@@ -72,24 +70,25 @@ def run_full(args: argparse.Namespace) -> int:
     out = Path(args.out)
     case_dir, truth_dir, run_dir = out / "case", out / "case.truth", out / "run"
     if not (case_dir / "case.toml").is_file():
-        _say(f"[1/7] phantom case made by the engine (two images, no segmentation, no points) -> {case_dir}")
+        notice(args, f"[1/7] phantom case made by the engine (two images, no segmentation, no points) -> {case_dir}")
         make_phantom_case(case_dir, truth_dir, theta_kPa=DEMO_TRUTH_KPA, tension_N_per_mm=args.tension,
                           rigid=DEMO_SCANNER_MOTION, labels=None, points_spacing_mm=None, overwrite=True)
     else:
-        _say(f"[1/7] reusing the phantom case in {case_dir}")
+        notice(args, f"[1/7] reusing the phantom case in {case_dir}")
     truth = read_json(truth_dir / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
-    _say("[2/7] displacements measured from the images (DIC)")
+    notice(args, "[2/7] displacements measured from the images (DIC)")
     measured = run_measure(case_dir, run_dir) if read_window_table(run_dir) is None else None
-    _say("[3/7] identification: Levenberg-Marquardt on the measured displacements")
-    identification = run_identify(case_dir, run_dir, workers=args.workers)
+    progress = show_progress(args)
+    notice(args, "[3/7] identification: Levenberg-Marquardt on the measured displacements")
+    identification = run_identify(case_dir, run_dir, workers=args.workers, progress=progress)
     names = identification["parameters"]
-    _say("[4/7] Monte-Carlo intervals over the measurement noise")
-    montecarlo = run_montecarlo(run_dir, draws=args.draws, workers=args.workers)
-    _say("[5/7] landmark pressures: 30 draws in the intervals, tension +-10 %")
-    pressures = run_pressures(run_dir, workers=args.workers)
-    _say("[6/7] diagnosis: misfit against its floor, missing effects")
-    diagnosis = run_diagnose(run_dir, workers=args.workers)
-    _say("[7/7] report")
+    notice(args, "[4/7] Monte-Carlo intervals over the measurement noise")
+    montecarlo = run_montecarlo(run_dir, draws=args.draws, workers=args.workers, progress=progress)
+    notice(args, "[5/7] landmark pressures: 30 draws in the intervals, tension +-10 %")
+    pressures = run_pressures(run_dir, workers=args.workers, progress=progress)
+    notice(args, "[6/7] diagnosis: misfit against its floor, missing effects")
+    diagnosis = run_diagnose(run_dir, workers=args.workers, progress=progress)
+    notice(args, "[7/7] report")
     page = write_report(run_dir, truth)
     best = identification["best"]
     if measured is not None:
@@ -110,10 +109,10 @@ def run_leg_slice(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     deck = out / "leg_slice.inp"
-    _say(f"writing {deck} ({args.elements} elements, garment tension {args.tension} N/mm)")
+    notice(args, f"writing {deck} ({args.elements} elements, garment tension {args.tension} N/mm)")
     leg_slice_deck(deck, n_elements=args.elements, order=args.order, materials=TABLE2_CENTRAL,
                    laplace_tension=args.tension)
-    outcome = run_engine(deck, out / "results", threads=None, echo=True)
+    outcome = run_engine(deck, out / "results", threads=None, echo=show_progress(args))
     results = EngineResults(outcome.outdir)
     print(describe(results))
     pressure = results.cell_field("pressure") * KPA_PER_MPA

@@ -1,7 +1,7 @@
 """Where the identified model fails and which physical effect is missing (DESIGN.md, effect catalog).
 
     calfit diagnose RUN_DIR [--refit auto|none|EFFECT[,EFFECT]|auto,EFFECT] [--alpha 0.01] [--no-engine-sensitivities]
-                    [--workers N] [--json]
+                    [--workers N] [--json] [--quiet]
     calfit diagnose --catalog
 
 Compares the model identified by `calfit identify` with the measured displacements (the DIC windows
@@ -25,7 +25,7 @@ from ..diagnose import ALPHA, Diagnosis, Refit, comparison_lines, ranking_lines
 from ..effects import EffectError, describe, parse_effects
 from ..pipeline import run_diagnose
 from ..study import RunFolderError
-from ._common import add_parallel_arguments, emit, fail, parallel_options
+from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "rank the physical effects missing from an identified model, refit with one"
 
@@ -42,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_parallel_arguments(parser)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     if args.catalog:
         print("\n".join(describe()))

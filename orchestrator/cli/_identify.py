@@ -3,7 +3,7 @@
     calfit identify CASE_DIR --out RUN_DIR [--method lm|nm] [--objective auto|displacement|contour]
                     [--data auto|dic|points] [--window 16|32|64] [--starts one|table1] [--start C10f C10m Kvf Kvm]
                     [--elements N] [--order 1|2] [--effects NAME[,NAME]] [--skin-uncertainty MM]
-                    [--workers N] [--scheduler ADDRESS] [--json]
+                    [--workers N] [--scheduler ADDRESS] [--json] [--quiet]
 
 From the two images alone: the loaded image is aligned on the bones, the displacements are measured by DIC
 (`calfit measure`, run here when the run folder has none; --data points takes points.csv instead, which is the
@@ -21,14 +21,13 @@ it resumes without repeating one. Writes RUN_DIR/identification.json (which data
 from __future__ import annotations
 
 import argparse
-import sys
 
 from ..effects import EffectError, parse_effects
 from ..imaging.errors import CaseError, ImagingError
 from ..measure import DEFAULT_WINDOW_PX, WINDOW_CHOICES
 from ..pipeline import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, run_identify
 from ..study import DATA_SOURCES
-from ._common import add_parallel_arguments, emit, fail, parallel_options
+from ._common import add_parallel_arguments, emit, fail, honours_quiet, notice, parallel_options
 
 HELP = "fit the tissue parameters of a case (Nelder-Mead or Levenberg-Marquardt)"
 
@@ -59,12 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_parallel_arguments(parser)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
         result = run_identify(args.case_dir, args.out, method=args.method, objective=args.objective, data=args.data,
                               window_px=args.window, start=args.start, starts=args.starts, n_elements=args.elements,
                               order=args.order, effects=parse_effects(args.effects),
-                              skin_sigma_mm=args.skin_uncertainty, progress=True, **parallel_options(args))
+                              skin_sigma_mm=args.skin_uncertainty, **parallel_options(args))
     except (CaseError, ImagingError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
     lines = [fit_summary(fit, result["parameters"]) for fit in result["fits"]]
@@ -75,5 +75,5 @@ def run(args: argparse.Namespace) -> int:
     lines += result.get("setup_lines", [])
     lines.append(f"run folder {args.out}; next: calfit montecarlo {args.out}")
     emit(args, result, lines)
-    print(f"identification written to {args.out}/identification.json", file=sys.stderr)
+    notice(args, f"identification written to {args.out}/identification.json")
     return 0

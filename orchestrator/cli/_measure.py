@@ -1,6 +1,6 @@
 """Measure the displacements of the tissue between the two images (digital image correlation).
 
-    calfit measure CASE_DIR --out RUN_DIR [--window 16|32|64] [--step PX] [--roi-spacing MM] [--json]
+    calfit measure CASE_DIR --out RUN_DIR [--window 16|32|64] [--step PX] [--roi-spacing MM] [--json] [--quiet]
 
 Slices with pixels finer than 0.18 mm are first averaged over blocks of pixels (reported), so that a window
 spans several grains of the texture. The loaded image is aligned on the bones (a rigid motion), then windows of
@@ -21,7 +21,7 @@ import argparse
 from ..imaging.errors import CaseError, ImagingError
 from ..measure import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
 from ..pipeline import run_measure
-from ._common import emit, fail
+from ._common import add_output_arguments, emit, fail, honours_quiet
 
 HELP = "measure the tissue displacements between the two images (DIC), relative to the bones"
 
@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"correlation window side in working pixels (default {DEFAULT_WINDOW_PX})")
     parser.add_argument("--step", type=int, help="grid step in pixels (default half a window)")
     parser.add_argument("--roi-spacing", type=float, help="spacing of the skin and fascia windows in mm (default: the step)")
-    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_output_arguments(parser)
 
 
 def summary_lines(summary: dict, run_dir: str) -> list[str]:
@@ -49,6 +49,7 @@ def summary_lines(summary: dict, run_dir: str) -> list[str]:
     return lines
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
         summary = run_measure(args.case_dir, args.out, window_px=args.window, step_px=args.step,

@@ -1,7 +1,7 @@
 """Parameter intervals of an identified run (Avril et al. sec. 2.2.6 and 3.1, Table 2).
 
     calfit montecarlo RUN_DIR [--method auto|noise|threshold] [--draws N] [--threshold-factor F | --threshold X]
-                      [--seed S] [--workers N] [--json]
+                      [--seed S] [--workers N] [--json] [--quiet]
 
 noise (the default after a fit to measured displacements): 95 % intervals from refits to N synthetic data
 sets (default 200) drawn from the measurements' covariance (overlapping DIC windows and the model's
@@ -21,7 +21,7 @@ import argparse
 
 from ..pipeline import intervals_summary, run_montecarlo
 from ..study import RunFolderError
-from ._common import add_parallel_arguments, emit, fail, parallel_options
+from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "parameter intervals by Monte-Carlo: over the measurement noise, or below a misfit threshold (Table 2)"
 
@@ -38,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_parallel_arguments(parser)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
         result = run_montecarlo(args.run_dir, method=args.method, draws=args.draws, threshold=args.threshold,

@@ -26,11 +26,10 @@ Arrays (units mm, kPa):
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 from ..paraview import write_paraview
 from ..study import RunFolderError
-from ._common import fail
+from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write the identified model (displacement, stress, pressure) as VTU/PVD files for ParaView"
 
@@ -38,15 +37,13 @@ HELP = "write the identified model (displacement, stress, pressure) as VTU/PVD f
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", help="run folder of `calfit identify`")
     parser.add_argument("--out", metavar="DIR", help="output folder (default: RUN_DIR/paraview)")
+    add_output_arguments(parser, json_help=None)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
-    run_dir = Path(args.run_dir)
-    if not run_dir.is_dir():
-        # checked here: the run-folder lock would otherwise create the missing folder
-        return fail(f"{run_dir} is not a run folder: run `calfit identify CASE_DIR --out {run_dir}` first")
     try:
-        paths = write_paraview(run_dir, args.out)
+        paths = write_paraview(args.run_dir, args.out)
     except (RunFolderError, ValueError, RuntimeError, OSError) as error:
         return fail(str(error))
     print("\n".join(str(path) for path in paths))

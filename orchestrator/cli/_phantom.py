@@ -1,7 +1,7 @@
 """Write a phantom case whose loaded image is made by the engine from chosen parameters.
 
     calfit phantom CASE_DIR [--truth TRUTH_DIR] [--params C10f C10m Kvf Kvm] [--tension T]
-                   [--elements 8000] [--order 2] [--points-spacing MM] [--overwrite] [--json]
+                   [--elements 8000] [--order 2] [--points-spacing MM] [--overwrite] [--json] [--quiet]
 
 The phantom calf's own geometry (its labels sampled 4 times finer than the image) is meshed (T6,
 8,000 elements by default, finer than any fit mesh), the Avril law with the given parameters (kPa; default Avril et al. Table 2 central values)
@@ -18,7 +18,7 @@ import json
 
 from ..forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
 from ..study import make_phantom_case
-from ._common import fail
+from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write a phantom case made by the engine (truth kept apart)"
 
@@ -34,9 +34,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--points-spacing", type=float, default=6.0, help="points.csv grid spacing mm (0: none)")
     parser.add_argument("--points-sigma", type=float, default=0.02, help="noise on points.csv displacements, mm")
     parser.add_argument("--overwrite", action="store_true", help="replace existing folders")
-    parser.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    add_output_arguments(parser)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
         case, truth = make_phantom_case(args.case_dir, args.truth, theta_kPa=args.params, tension_N_per_mm=args.tension,

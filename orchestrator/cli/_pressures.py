@@ -1,6 +1,6 @@
 """Landmark pressures and their uncertainty (Avril et al. sec. 4.2 and 4.5, Tables 3 and 4).
 
-    calfit pressures RUN_DIR [--draws 30] [--seed S] [--workers N] [--json]
+    calfit pressures RUN_DIR [--draws 30] [--seed S] [--workers N] [--json] [--quiet]
 
 Draws the parameters uniformly in the Monte-Carlo intervals, solves each draw and reads the
 hydrostatic pressure -tr(sigma)/3 at the five landmarks of case.toml: mean, standard deviation
@@ -14,7 +14,7 @@ import argparse
 
 from ..pipeline import pressure_summary, run_pressures
 from ..study import RunFolderError
-from ._common import add_parallel_arguments, emit, fail, parallel_options
+from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "pressures at the landmarks with their uncertainty (Tables 3 and 4)"
 
@@ -26,6 +26,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_parallel_arguments(parser)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
         result = run_pressures(args.run_dir, draws=args.draws, seed=args.seed, **parallel_options(args))

@@ -1,6 +1,6 @@
 """Write the HTML report of a run (figures as Avril et al. Figs. 1, 2, 4, 5 and Tables 1-4).
 
-    calfit report RUN_DIR [--truth TRUTH_DIR]
+    calfit report RUN_DIR [--truth TRUTH_DIR] [--quiet]
 
 Needs identification.json, montecarlo.json and pressures.json in RUN_DIR. With --truth (a phantom's
 truth folder) the true parameters are shown beside the intervals. Prints the page's path.
@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..report import write_report
 from ..study import PARAMETERS_FILE, RunFolderError, read_json
-from ._common import fail
+from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write the run's HTML report with its figures and tables"
 
@@ -21,8 +21,10 @@ HELP = "write the run's HTML report with its figures and tables"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", help="run folder")
     parser.add_argument("--truth", help="truth folder of a phantom case (shows the true parameters)")
+    add_output_arguments(parser, json_help=None)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
         truth = (read_json(Path(args.truth) / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]

@@ -1,6 +1,6 @@
 """Run calfit-fe on one deck and print its result summary.
 
-    calfit solve DECK.inp [-o OUTDIR] [--threads N] [--timeout S] [--json]
+    calfit solve DECK.inp [-o OUTDIR] [--threads N] [--timeout S] [--json] [--quiet]
 
 Exit code: 0 converged, 2 bad deck (the engine's FILE:LINE message on stderr),
 3 not converged (the last converged state is written), 4 engine failure.
@@ -14,6 +14,7 @@ import sys
 
 from ..results import EngineResults
 from ..runner import DeckRejected, EngineFailed, run_engine
+from ._common import add_output_arguments, honours_quiet, show_progress
 
 HELP = "run the FE engine on one deck and summarize the result"
 
@@ -23,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-o", "--out", help="output folder (default: DECK without .inp, plus .out)")
     parser.add_argument("--threads", type=int, default=None, help="engine threads (default: all cores)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds before the run is stopped")
-    parser.add_argument("--json", action="store_true", help="print the engine's summary.json on stdout")
+    add_output_arguments(parser, json_help="print the engine's summary.json on stdout")
 
 
 def describe(results: EngineResults) -> str:
@@ -47,9 +48,12 @@ def describe(results: EngineResults) -> str:
     return "\n".join(lines)
 
 
+@honours_quiet
 def run(args: argparse.Namespace) -> int:
     try:
-        outcome = run_engine(args.deck, args.out, threads=args.threads, timeout_s=args.timeout, echo=not args.json)
+        # the engine's progress lines are echoed unless the output is JSON or quiet
+        outcome = run_engine(args.deck, args.out, threads=args.threads, timeout_s=args.timeout,
+                             echo=show_progress(args) and not args.json)
     except DeckRejected as error:
         print(error, file=sys.stderr)
         return 2
