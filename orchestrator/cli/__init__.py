@@ -1,6 +1,7 @@
 """The `calfit` command line: one module per subcommand, each with `add_arguments`
-and `run` (returns the exit code). Progress and logs go to stderr; with --json a
-command prints one JSON object on stdout and nothing else there.
+and `run` (returns the exit code). Progress and logs go to stderr (--quiet: errors only);
+with --json a command prints one JSON object on stdout and nothing else there. The
+options of every command are documented in docs/cli.md (tests/test_docs.py keeps them equal).
 """
 
 from __future__ import annotations
