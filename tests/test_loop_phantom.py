@@ -10,7 +10,7 @@ crime).
   fat C10 comes out poorly identified (as in the first paper).
 - Landmark pressures for a 0.16 N/mm (about 20 mmHg) garment are of the order of Table 3 (2.7 to
   4.4 kPa), with a coefficient of variation; +-10 % tension moves them by about +-10 % (Table 4).
-- The report names the poorly identified parameters; `--json` prints one JSON object.
+- `--json` prints one JSON object (the report is tested in test_report.py).
 - Killing `calfit identify` half-way and running it again finishes with no evaluation repeated:
   the second run launches the engine exactly for the evaluations missing from the log, and ends
   where an uninterrupted run ends.
@@ -31,7 +31,6 @@ from killing import calfit_command, counting_wrapper, kill_after, log_lines
 from orchestrator.cli import main
 from orchestrator.forward import LEG_PARAMETERS
 from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
-from orchestrator.report import write_report
 from orchestrator.study import PARAMETERS_FILE, make_phantom_case, read_json
 
 
@@ -84,18 +83,6 @@ def test_landmark_pressures_are_of_the_order_of_table_3(study):
         assert np.all((5.0 < np.array(deviation)) & (np.array(deviation) < 15.0))
 
 
-def test_report_names_the_poorly_identified_parameters(phantom, study):
-    _, truth_dir, _ = phantom
-    run, _, montecarlo, _ = study
-    page = write_report(run, read_json(truth_dir / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"])
-    text = page.read_text()
-    assert ('<p class="alert"><strong>Poorly identified: ' + ", ".join(montecarlo["poorly_identified"])) in text
-    for figure in ("images.png", "segmentation_mesh.png", "warped_dk.png", "pressure.png"):
-        assert (page.parent / figure).stat().st_size > 1000 and figure in text
-    for table in ("Table 1", "Table 2", "Table 3", "Table 4"):
-        assert table in text
-
-
 def test_pressures_json_prints_one_object(study, capsys):
     run, _, _, pressures = study
     assert main(["pressures", str(run), "--json", "--workers", "1"]) == 0
@@ -142,7 +129,7 @@ def test_killed_identification_resumes_without_repeating_an_evaluation(phantom, 
     assert len(log_lines(tmp_path / "fresh")) == len(records)
 
 
-@pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.parametrize("seed", [1, pytest.param(2, marks=pytest.mark.slow)])
 def test_killed_lm_identification_resumes_with_the_same_steps(phantom, tmp_path, seed):
     """Levenberg-Marquardt with the engine's sensitivities, killed after a random number of evaluations: the
     resumed run reads the Jacobians back (RUN_DIR/sensitivities), so it takes the same steps, launches only what

@@ -13,24 +13,18 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
+from conftest import copy_run
 
 from orchestrator.cli import main
 from orchestrator.decks import KPA_PER_MPA
-from orchestrator.pipeline import run_identify
 from orchestrator.results import MMHG_PER_KPA
-from orchestrator.study import load_run, make_phantom_case
+from orchestrator.study import load_run
 
 
 
 @pytest.fixture(scope="module")
-def identified_run(tmp_path_factory):
-    folder = tmp_path_factory.mktemp("paraview")
-    # a truth mesh of 1,000 elements fails (MeshingError: curve 2 should separate regions [2, 1001]); 2,000 meshes
-    # (as in test_resume_killed) and the whole module still takes about 10 s
-    case, _ = make_phantom_case(folder / "case", folder / "case.truth", n_elements=2000)
-    run_dir = folder / "run"
-    run_identify(case, run_dir, method="lm", objective="displacement", n_elements=300, order=2, progress=False)
-    return run_dir
+def identified_run(drainage_identified, tmp_path_factory):
+    return copy_run(drainage_identified, tmp_path_factory.mktemp("paraview") / "run")
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,6 @@ import pytest
 from orchestrator import runner
 from orchestrator.cli import main
 from orchestrator.runner import BAD_DECK, NOT_CONVERGED, OK, Progress
-from orchestrator.study import make_phantom_case
 
 ESCAPE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
@@ -138,12 +137,11 @@ def test_terminal_line_is_redrawn_in_place_and_stays(terminal_environment):
 
 
 @pytest.fixture(scope="module")
-def identified(tmp_path_factory):
-    """A phantom case and a quick identification (200 CPE3) through `calfit identify --quiet --json`, with what
-    it printed."""
-    folder = tmp_path_factory.mktemp("progress")
-    case, _ = make_phantom_case(folder / "case", folder / "case.truth", n_elements=2000)
-    run = folder / "run"
+def identified(drainage_case, tmp_path_factory):
+    """The phantom case of conftest.py and a quick identification (200 CPE3) through `calfit identify --quiet
+    --json`, with what it printed."""
+    case, _ = drainage_case
+    run = tmp_path_factory.mktemp("progress") / "run"
     capture = pytest.MonkeyPatch()
     out, err = io.StringIO(), io.StringIO()
     capture.setattr("sys.stdout", out)

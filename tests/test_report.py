@@ -11,11 +11,13 @@ from html.parser import HTMLParser
 
 import numpy as np
 import pytest
+from conftest import copy_run
 
 from orchestrator import figures
-from orchestrator.pipeline import run_diagnose, run_identify, run_montecarlo, run_pressures
-from orchestrator.report import MMHG_PER_KPA, format_cell, write_report
-from orchestrator.study import PARAMETERS_FILE, make_phantom_case, read_json
+from orchestrator.pipeline import run_diagnose, run_montecarlo, run_pressures
+from orchestrator.report import format_cell, write_report
+from orchestrator.results import MMHG_PER_KPA
+from orchestrator.study import PARAMETERS_FILE, read_json
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -67,13 +69,10 @@ class PageReader(HTMLParser):
 
 
 @pytest.fixture(scope="module")
-def reported(tmp_path_factory):
+def reported(drainage_case, drainage_identified, tmp_path_factory):
     """A run through every stage, then its report; the figures matplotlib drew, with their axes' labels."""
-    folder = tmp_path_factory.mktemp("report")
-    case, truth_folder = make_phantom_case(folder / "case", folder / "case.truth", n_elements=2000,
-                                           effects={"drainage": {"dv_muscle": -0.05}})
-    run = folder / "run"
-    run_identify(case, run, method="lm", objective="displacement", n_elements=400, order=2, workers=2, progress=False)
+    _, truth_folder = drainage_case
+    run = copy_run(drainage_identified, tmp_path_factory.mktemp("report") / "run")
     run_montecarlo(run, draws=30, workers=2, progress=False)
     run_pressures(run, draws=8, workers=2, progress=False)
     run_diagnose(run, refit_effects=["drainage"], workers=2, progress=False)
@@ -141,6 +140,9 @@ def test_the_top_of_the_page_answers_pressure_in_mmhg_and_the_verdict(reported):
     text = page_path.read_text(encoding="utf-8")
     assert text.index('id="answers"') < text.index('id="images"')
     assert "drainage" in diagnosis["verdict"]       # the hidden effect, said on the page's first screen
+    montecarlo = read_json(page_path.parent.parent / "montecarlo.json", "")
+    assert montecarlo["poorly_identified"]          # the fat's constants, as in the first paper: said loudly
+    assert ('<p class="alert"><strong>Not identifiable: ' + ", ".join(montecarlo["poorly_identified"])) in text
 
 
 def test_figures_on_the_image_have_axes_in_mm_and_colour_bars_with_units(reported):
