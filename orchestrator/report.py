@@ -177,26 +177,28 @@ def build_report(setup, identification: dict, montecarlo: dict | None, pressures
 
 
 def _answers(identification: dict, montecarlo: dict | None, pressures: dict | None, diagnosis: dict | None) -> dict:
-    """The page's first table and sentence: pressures at the landmarks, parameters with intervals, verdict."""
-    rows = []
+    """The top of the page: pressures at the landmarks, parameters with their intervals, the verdict."""
+    tables = []
     if pressures:
-        for k, name in enumerate(pressures["landmarks"]):
-            mean, std = pressures["mean_kPa"][k], pressures["std_kPa"][k]
-            rows.append([f"pressure at {name}", mean, std, mean * MMHG_PER_KPA, std * MMHG_PER_KPA, "kPa | mmHg"])
+        tables.append(_table("answers_pressures", "Pressure transmitted by the garment at the landmarks",
+                             ["landmark", "mean (kPa)", "std (kPa)", "mean (mmHg)", "std (mmHg)"],
+                             [[name, mean, std, mean * MMHG_PER_KPA, std * MMHG_PER_KPA] for name, mean, std in
+                              zip(pressures["landmarks"], pressures["mean_kPa"], pressures["std_kPa"])],
+                             "Hydrostatic pressure -tr(sigma)/3: mean and standard deviation over parameter draws "
+                             "within their intervals (Table 3); the garment tension's uncertainty is in Table 4."))
     names, theta = identification["parameters"], identification["best"]["theta"]
     unit_of = identification.get("unit_of") or ["kPa"] * len(names)
+    rows = []
     for k, name in enumerate(names):
         if montecarlo:
-            poorly = name in montecarlo["poorly_identified"]
-            rows.append([name, theta[k], None, montecarlo["lower"][k], montecarlo["upper"][k],
-                         f"{unit_of[k]}; " + ("NOT identifiable" if poorly else "identifiable")])
+            verdict = "NOT identifiable" if name in montecarlo["poorly_identified"] else "identifiable"
+            if name in montecarlo.get("on_bound", []):
+                verdict += ", on a bound"
+            rows.append([name, theta[k], montecarlo["lower"][k], montecarlo["upper"][k], unit_of[k], verdict])
         else:
-            rows.append([name, theta[k], None, None, None, f"{unit_of[k]}; no interval yet (calfit montecarlo)"])
-    table = _table("answers", "What the run found",
-                   ["quantity", "value", "std", "value (mmHg) or interval low", "std (mmHg) or interval high",
-                    "unit; verdict"], rows,
-                   "Pressures: mean and standard deviation over parameter draws within the intervals (kPa, then "
-                   "mmHg); parameters: identified value and its interval.")
+            rows.append([name, theta[k], None, None, unit_of[k], "no interval yet: calfit montecarlo"])
+    tables.append(_table("answers_parameters", "Identified parameters",
+                         ["parameter", "identified", "interval low", "interval high", "unit", "verdict"], rows))
     if diagnosis:
         verdict = f"Diagnosis: {diagnosis['verdict']}."
     elif "misfit_over_floor" in identification:
@@ -204,7 +206,7 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
                    "where the model fails and what it lacks.")
     else:
         verdict = "Run calfit diagnose to see where the model fails and what it lacks."
-    return {"table": table, "verdict": verdict}
+    return {"tables": tables, "verdict": verdict}
 
 
 def _images_section(setup, staging: Path) -> dict:
