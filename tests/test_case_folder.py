@@ -11,6 +11,7 @@ import os
 
 import numpy as np
 import pytest
+from dicom_files import new_dataset, put_grey_image
 
 from orchestrator.imaging.case import DisplacementPoints, read_case, write_case_folder
 from orchestrator.imaging.errors import CaseError
@@ -82,25 +83,8 @@ def _replace_images(folder, suffix_writer):
 
 
 def _write_dicom(stem, pixels, spacing=(0.5, 0.4)):
-    import pydicom
-    from pydicom.dataset import FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
-
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MRImageStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    dataset = pydicom.Dataset()
-    dataset.file_meta = meta
-    dataset.SOPClassUID = MRImageStorage
-    dataset.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
-    dataset.Rows, dataset.Columns = pixels.shape
-    dataset.SamplesPerPixel = 1
-    dataset.PhotometricInterpretation = "MONOCHROME2"
-    dataset.BitsAllocated, dataset.BitsStored, dataset.HighBit, dataset.PixelRepresentation = 16, 16, 15, 0
-    dataset.PixelSpacing = [str(spacing[0]), str(spacing[1])]
-    dataset.RescaleSlope, dataset.RescaleIntercept = "2", "-10"
-    dataset.PixelData = np.asarray(pixels, np.uint16).tobytes()
+    dataset = new_dataset()
+    put_grey_image(dataset, pixels, spacing, rescale=("2", "-10"))
     dataset.save_as(f"{stem}.dcm", enforce_file_format=True)
 
 

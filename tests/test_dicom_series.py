@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 import pytest
+from dicom_files import new_dataset, put_grey_image
 
 from orchestrator.imaging.case import PIXEL_SIZE_RTOL, read_case
 from orchestrator.imaging.errors import CaseError
@@ -49,18 +50,8 @@ def _ds(value: float) -> str:
 
 def _write_slice(path, stored, *, position_mm, rotation, spacing, rescale, instance, patient_id, series_uid,
                  overrides=None):
-    import pydicom
-    from pydicom.dataset import FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
-
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MRImageStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    dataset = pydicom.Dataset()
-    dataset.file_meta = meta
-    dataset.SOPClassUID = MRImageStorage
-    dataset.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    dataset = new_dataset()
+    put_grey_image(dataset, stored, [_ds(v) for v in spacing], rescale=(_ds(rescale[0]), _ds(rescale[1])))
     dataset.Modality = "MR"
     dataset.PatientID = patient_id
     dataset.SeriesInstanceUID = series_uid
@@ -69,13 +60,6 @@ def _write_slice(path, stored, *, position_mm, rotation, spacing, rescale, insta
     origin = rotation @ np.array([-40.0, -30.0, position_mm])   # in-plane offset, then along the normal
     dataset.ImagePositionPatient = [_ds(v) for v in origin]
     dataset.ImageOrientationPatient = [_ds(v) for v in np.concatenate([rotation[:, 0], rotation[:, 1]])]
-    dataset.Rows, dataset.Columns = stored.shape
-    dataset.SamplesPerPixel = 1
-    dataset.PhotometricInterpretation = "MONOCHROME2"
-    dataset.BitsAllocated, dataset.BitsStored, dataset.HighBit, dataset.PixelRepresentation = 16, 16, 15, 0
-    dataset.PixelSpacing = [_ds(spacing[0]), _ds(spacing[1])]
-    dataset.RescaleSlope, dataset.RescaleIntercept = _ds(rescale[0]), _ds(rescale[1])
-    dataset.PixelData = np.asarray(stored, np.uint16).tobytes()
     for keyword, value in (overrides or {}).items():
         if value is None:
             delattr(dataset, keyword)
@@ -86,16 +70,9 @@ def _write_slice(path, stored, *, position_mm, rotation, spacing, rescale, insta
 
 def _write_dicomdir(path):
     """A DICOM file with no image, as the DICOMDIR a scanner writes beside the slices."""
-    import pydicom
-    from pydicom.dataset import FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, MediaStorageDirectoryStorage, generate_uid
+    from pydicom.uid import MediaStorageDirectoryStorage
 
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MediaStorageDirectoryStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    dataset = pydicom.Dataset()
-    dataset.file_meta = meta
+    dataset = new_dataset(MediaStorageDirectoryStorage)
     dataset.FileSetID = "CALF"
     dataset.save_as(path, enforce_file_format=True)
 
