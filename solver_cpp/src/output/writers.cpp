@@ -224,7 +224,9 @@ void write_summary(const std::string& path, const RunSummary& s) {
         << ", \"output\": " << json_number(s.output_s) << ", \"sensitivity\": " << json_number(s.sensitivity_s) << "}"
         << ",\n  \"n_nodes\": " << s.n_nodes << ",\n  \"n_elements\": " << s.n_elements << ",\n  \"n_dof\": " << s.n_dof
         << ",\n  \"n_free_dof\": " << s.n_free_dof << ",\n  \"threads\": " << s.threads
-        << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"sensitivities\": [";
+        << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"linear_solves\": {\"factorized\": "
+        << s.timings.factorizations << ", \"reused\": " << s.timings.reused_factorizations << "}"
+        << ",\n  \"sensitivities\": [";
     for (std::size_t k = 0; k < s.sensitivities.size(); ++k) {
       const SensitivitySummary& p = s.sensitivities[k];
       out << (k ? "," : "") << "\n    {\"index\": " << p.index << ", \"name\": " << json_string(p.name)

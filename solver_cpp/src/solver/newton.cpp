@@ -277,7 +277,9 @@ void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) 
     dofs.push_back(c.dofs);
     system_contact_dofs_.push_back(c.dofs);
   }
-  system_ = std::make_unique<SparseSystem>(dofs, free_, saddle_point_);
+  auto rebuilt = std::make_unique<SparseSystem>(dofs, free_, saddle_point_);
+  if (system_) rebuilt->inherit_solver_choices(*system_);
+  system_ = std::move(rebuilt);
 }
 
 void StaticAnalysis::build_contacts() {
@@ -546,7 +548,9 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     bool solved;
     {
       const ScopedTimer timer(timings_.factorization_s);
+      const int reused_before = system_->reused_factorizations();
       solved = system_->solve(rhs, du);
+      ++(system_->reused_factorizations() > reused_before ? timings_.reused_factorizations : timings_.factorizations);
     }
     if (system_->became_indefinite())
       log("step " + std::to_string(step + 1) + ": the tangent is not positive definite; UMFPACK LU solves it "

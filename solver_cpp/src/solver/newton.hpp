@@ -30,6 +30,7 @@ struct IncrementRecord {
 // Wall time spent in the parts of the solution, for the summary and benchmarks.
 struct Timings {
   double assembly_s = 0, factorization_s = 0;
+  int factorizations = 0, reused_factorizations = 0;  // Newton solves that factorized, or reused an earlier factor
 };
 
 struct StepResult {
