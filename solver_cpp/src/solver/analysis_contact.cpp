@@ -1,0 +1,156 @@
+// StaticAnalysis: garment contact (penalty, Coulomb friction): the contact pairs, their residual and tangent,
+// and the system rebuilt when the contact couplings change.
+#include "solver/analysis_support.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+namespace calfit {
+
+using namespace analysis_support;
+
+void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
+  std::vector<std::vector<int>> dofs = element_dofs_;
+  system_contact_dofs_.clear();
+  for (const ContactElement& c : contact) {
+    dofs.push_back(c.dofs);
+    system_contact_dofs_.push_back(c.dofs);
+  }
+  auto rebuilt = std::make_unique<SparseSystem>(dofs, free_, saddle_point_);
+  if (system_) rebuilt->inherit_solver_choices(*system_);
+  system_ = std::move(rebuilt);
+}
+
+void StaticAnalysis::build_contacts() {
+  for (std::size_t k = 0; k < model_.contact_pairs.size(); ++k) {
+    const ContactPairDef& pair = model_.contact_pairs[k];
+    ContactState state;
+    state.pair = static_cast<int>(k);
+    state.law = model_.interactions[pair.interaction].law;
+    // Consistent nodal weights (integral of N_a ds x thickness) on both sides, so that a
+    // uniform pressure transferred between matching T6 faces reads uniform.
+    auto surface_weights = [&](int surface) {
+      std::map<int, double> weights;
+      for (const Face& f : model_.surfaces[surface]) {
+        const ElementDef& e = model_.elements[f.element];
+        const std::vector<int> local = face_nodes(e.shape, f.face);
+        EdgeNodes X(static_cast<Eigen::Index>(local.size()), 2);
+        for (std::size_t j = 0; j < local.size(); ++j)
+          X.row(static_cast<Eigen::Index>(j)) = model_.coordinates[e.nodes[local[j]]].transpose();
+        Eigen::VectorXd w;
+        EdgeNodes normals;
+        face_weights(X, w, normals);
+        const double thickness = model_.sections[e.section].thickness;
+        for (std::size_t j = 0; j < local.size(); ++j) weights[e.nodes[local[j]]] += thickness * w[static_cast<Eigen::Index>(j)];
+      }
+      return weights;
+    };
+    for (const auto& [node, weight] : surface_weights(pair.slave)) {
+      state.slave_nodes.push_back(node);
+      state.slave_weight.push_back(weight);
+    }
+    state.master_weight.assign(model_.coordinates.size(), 0.0);
+    for (const auto& [node, weight] : surface_weights(pair.master)) state.master_weight[node] = weight;
+    for (const Face& f : model_.surfaces[pair.master]) {
+      const ElementDef& e = model_.elements[f.element];
+      const std::vector<int> local = face_nodes(e.shape, f.face);
+      for (std::size_t j = 0; j + 1 < local.size(); ++j) state.segments.push_back({e.nodes[local[j]], e.nodes[local[j + 1]]});
+    }
+    std::map<int, int> starting_at, ending_at;
+    for (std::size_t s = 0; s < state.segments.size(); ++s) {
+      starting_at[state.segments[s][0]] = static_cast<int>(s);
+      ending_at[state.segments[s][1]] = static_cast<int>(s);
+    }
+    for (const auto& seg : state.segments) {
+      const auto before = ending_at.find(seg[0]), after = starting_at.find(seg[1]);
+      state.previous.push_back(before == ending_at.end() ? -1 : before->second);
+      state.next.push_back(after == starting_at.end() ? -1 : after->second);
+    }
+    state.history.assign(state.slave_nodes.size(), ContactHistory{});
+    state.trial = state.history;
+    state.points.assign(state.slave_nodes.size(), ContactPoint{});
+    contacts_.push_back(std::move(state));
+  }
+}
+
+void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, std::vector<ContactElement>& elements) {
+  auto position = [&](int node) {
+    return Eigen::Vector2d(model_.coordinates[node].x() + u[2 * node], model_.coordinates[node].y() + u[2 * node + 1]);
+  };
+  const LoadState& loads = model_.steps[current_step_].loads;
+  for (ContactState& c : contacts_) {
+    const bool active = loads.contact_active[c.pair] != 0;
+    for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
+      c.trial[i] = ContactHistory{};
+      c.points[i] = ContactPoint{};
+      if (!active) continue;
+      const int slave = c.slave_nodes[i];
+      const Eigen::Vector2d xs = position(slave);
+      // Closest master segment by straight distance; then, among it and its neighbours,
+      // the one whose smoothed projection falls inside it.
+      int nearest = -1;
+      double best_distance = 0.0;
+      for (std::size_t k = 0; k < c.segments.size(); ++k) {
+        const Eigen::Vector2d a = position(c.segments[k][0]), b = position(c.segments[k][1]);
+        const Eigen::Vector2d d = b - a;
+        const double s = std::clamp((xs - a).dot(d) / d.squaredNorm(), 0.0, 1.0);
+        const double distance = (xs - a - s * d).norm();
+        if (nearest < 0 || distance < best_distance) {
+          nearest = static_cast<int>(k);
+          best_distance = distance;
+        }
+      }
+      if (nearest < 0) continue;
+      const ContactHistory& h = c.history[i];
+      auto element_nodes = [&](int k) {
+        const auto& seg = c.segments[k];
+        std::vector<int> nodes = {slave, seg[0], seg[1], c.previous[k] >= 0 ? c.segments[c.previous[k]][0] : seg[0],
+                                  c.next[k] >= 0 ? c.segments[c.next[k]][1] : seg[1]};
+        if (c.law.friction > 0.0 && h.touching) {
+          nodes.push_back(c.segments[h.segment][0]);
+          nodes.push_back(c.segments[h.segment][1]);
+        }
+        return nodes;
+      };
+      auto positions = [&](const std::vector<int>& nodes) {
+        Eigen::VectorXd x(2 * nodes.size());
+        for (std::size_t k = 0; k < nodes.size(); ++k) x.segment<2>(2 * static_cast<Eigen::Index>(k)) = position(nodes[k]);
+        return x;
+      };
+      int best = nearest;
+      for (int k : {nearest, c.previous[nearest], c.next[nearest]}) {
+        if (k < 0) continue;
+        Eigen::VectorXd scratch;
+        const ContactPoint probe = contact_element(positions(element_nodes(k)), c.law, h, k, c.slave_weight[i], scratch, nullptr);
+        if (probe.xi >= 0.0 && probe.xi <= 1.0) {
+          best = k;
+          break;
+        }
+      }
+      const std::vector<int> nodes = element_nodes(best);
+      Eigen::VectorXd r;
+      Eigen::MatrixXd K;
+      const ContactPoint point = contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r, tangent ? &K : nullptr);
+      c.points[i] = point;
+      if (!point.touching) continue;
+      c.trial[i] = ContactHistory{true, point.segment, point.xi, point.shear};
+      ContactElement element;
+      for (std::size_t k = 0; k < nodes.size(); ++k) {
+        element.dofs.push_back(2 * nodes[k]);
+        element.dofs.push_back(2 * nodes[k] + 1);
+      }
+      for (std::size_t k = 0; k < element.dofs.size(); ++k) residual_[element.dofs[k]] += r[static_cast<Eigen::Index>(k)];
+      if (tangent) {
+        element.K = std::move(K);
+        elements.push_back(std::move(element));
+      }
+    }
+  }
+}
+
+}  // namespace calfit
