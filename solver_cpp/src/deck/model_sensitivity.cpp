@@ -1,0 +1,39 @@
+// Deck keywords -> Model: *SENSITIVITY, the parameters whose du/dtheta the last step reports (solver_cpp/README.md,
+// Sensitivities); model/parameters.cpp resolves each data line.
+#include "deck/model_builder.hpp"
+#include "model/parameters.hpp"
+
+#include <set>
+#include <string>
+#include <utility>
+
+namespace calfit::deck_building {
+
+// Model or step data alike: the parameters are resolved against the whole model (and
+// the last step) in finish().
+void ModelBuilder::sensitivity(const KeywordBlock& b) {
+  b.allow_only({"PRESSURE"});
+  needs_data(b);
+  const std::string pressure = upper(b.value("PRESSURE").value_or("NO"));
+  if (pressure != "YES" && pressure != "NO") throw DeckError(b.where, "PRESSURE must be YES or NO");
+  if (!model_.sensitivity.requested) model_.sensitivity.where = b.where;
+  model_.sensitivity.requested = true;
+  model_.sensitivity.pressure = model_.sensitivity.pressure || pressure == "YES";
+  sensitivity_lines_.insert(sensitivity_lines_.end(), b.data.begin(), b.data.end());
+}
+
+void ModelBuilder::resolve_sensitivities() {
+  if (!model_.sensitivity.requested) return;
+  if (!model_.contact_pairs.empty())
+    throw DeckError(model_.sensitivity.where,
+                    "*SENSITIVITY is not available with *CONTACT PAIR: contact makes the solution depend on the "
+                    "loading path (active set, friction history); remove one of them");
+  std::set<std::string> names;
+  for (const DataLine& line : sensitivity_lines_) {
+    SensitivityParameter p = resolve_sensitivity_parameter(model_, line);
+    if (!names.insert(p.name).second) throw DeckError(line.where, "parameter " + p.name + " is listed twice");
+    model_.sensitivity.parameters.push_back(std::move(p));
+  }
+}
+
+}  // namespace calfit::deck_building
