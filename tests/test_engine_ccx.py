@@ -53,7 +53,8 @@ def _engine_deck(name: str) -> str:
 
 
 def test_reference_set_is_complete():
-    expected = {"annulus_neohooke_cpe6", "annulus_neohooke_cpe3", "annulus_avril_cpe6", "leg_slice_cpe6", "leg_slice_cpe3"}
+    expected = {"annulus_neohooke_cpe6", "annulus_neohooke_cpe3", "annulus_avril_cpe6", "leg_slice_cpe6", "leg_slice_cpe3",
+                "leg_follower_cpe6", "leg_garment_friction_cpe6"}
     assert expected <= set(STORED)
 
 

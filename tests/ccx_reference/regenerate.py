@@ -10,7 +10,8 @@ deck, or, for the Avril law, the same mesh and load with `*HYPERELASTIC, AVRIL` 
 where CalculiX runs ARRUDA-BOYCE with mu = 2 C10, lambda_m = 1e4, D = 1/Kv (same energy
 up to terms of order 1/lambda_m^2). The leg-like slice deck comes from
 orchestrator.meshing.leg_slice_deck (two tissues, clamped bones, follower pressure on the
-skin; Table 2 values of Avril et al.).
+skin; Table 2 values of Avril et al.); the same slice under a pressure varying around the
+leg and the leg under the explicit garment band with friction come from tests/leg_decks.py.
 """
 
 from __future__ import annotations
@@ -67,6 +68,25 @@ def _leg(name, n_elements, order):
     return CcxCase(name, f"leg-like slice, {n_elements} elements order {order}", text, text, {"kind": "leg"})
 
 
+def _leg_follower(name, n_elements, increments):
+    from leg_decks import nonuniform_follower_text
+    from orchestrator.meshing import leg_slice_mesh
+
+    text = nonuniform_follower_text(leg_slice_mesh(n_elements, order=2), increments)
+    return CcxCase(name, f"leg-like slice, {n_elements} elements order 2, pressure 1 + 0.5 cos t + 0.2 sin 2t, "
+                   f"{increments} increments", text, text, {"kind": "leg"})
+
+
+def _leg_garment(name, n_elements, friction_mu):
+    from leg_decks import garment_text
+    from orchestrator.meshing import garment_band, leg_slice_mesh
+
+    leg = leg_slice_mesh(n_elements, order=2)
+    text = garment_text(leg, garment_band(leg), friction_mu)
+    return CcxCase(name, f"leg-like slice, {n_elements} elements order 2, explicit garment band put on with penalty "
+                   f"contact, friction mu = {friction_mu}", text, text, {"kind": "leg"})
+
+
 def cases() -> dict[str, CcxCase]:
     """Every reference case by name (decks are regenerated deterministically)."""
     out = [
@@ -85,6 +105,8 @@ def cases() -> dict[str, CcxCase]:
     try:
         out.append(_leg("leg_slice_cpe6", 600, 2))
         out.append(_leg("leg_slice_cpe3", 1200, 1))
+        out.append(_leg_follower("leg_follower_cpe6", 600, 6))
+        out.append(_leg_garment("leg_garment_friction_cpe6", 400, 0.3))
     except ImportError:
         pass
     return {c.name: c for c in out}

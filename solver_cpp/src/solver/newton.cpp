@@ -222,29 +222,11 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       Eigen::VectorXd full;
       if (!correction(Eigen::VectorXd::Zero(n_dofs_), first_of_step && largest_step == 0.0, it, rec, full)) return false;
 
-      // Backtracking line search on |R|: full step first, halved while it fails to
-      // reduce the residual (or inverts an element).
-      Eigen::VectorXd trial = u + full;
-      Evaluation next = evaluate(trial, lambda, true);
-      if (!next.ok || next.norm > ev.norm) {
-        bool found = false;
-        for (double eta = 0.5; eta > 0.01; eta *= 0.5) {
-          Eigen::VectorXd shorter = u + eta * full;
-          const Evaluation e2 = evaluate(shorter, lambda, false);
-          if (e2.ok && e2.norm < ev.norm) {
-            trial = shorter;
-            found = true;
-            break;
-          }
-        }
-        if (found) {
-          next = evaluate(trial, lambda, true);
-        } else if (!next.ok) {
-          rec.note = "every line-search step turns an element inside out";
-          return false;
-        } else {
-          next = evaluate(trial, lambda, true);  // accept the full step; Newton may rise before it falls
-        }
+      Eigen::VectorXd trial = u;
+      Evaluation next = line_search(trial, full, lambda, ev);
+      if (!next.ok) {
+        rec.note = "every line-search step turns an element inside out";
+        return false;
       }
       last_correction = (trial - u).cwiseAbs().maxCoeff();
       rises = next.norm > ev.norm ? rises + 1 : 0;

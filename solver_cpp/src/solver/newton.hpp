@@ -148,6 +148,11 @@ private:
   void rebuild_system(const std::vector<ContactElement>& contact);
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
+  // Moves u along the Newton correction du by the step the line search chooses and returns the evaluation
+  // (with tangent) there; `start` is the evaluation at u, whose residual residual_ holds. Not ok when every
+  // step inverts an element.
+  Evaluation line_search(Eigen::VectorXd& u, const Eigen::VectorXd& du, double lambda, const Evaluation& start);
+  double slope_along(const Eigen::VectorXd& direction) const;  // direction . R over the free dofs
   void apply_prescribed(Eigen::VectorXd& u, double lambda) const;
   void prepare_rigid_motions(const LoadState& before, const LoadState& now);
   // Growth and axial stretch of element e at load fraction lambda of the current step.

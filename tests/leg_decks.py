@@ -1,0 +1,53 @@
+"""The leg decks that calfit-fe and CalculiX both run, beyond the plain leg slice: the slice under a garment pressure
+that varies around the leg (a follower load whose tangent is unsymmetric) and the leg under the explicit garment
+band with friction (penalty contact in both codes). Written as one self-contained text each (the mesh inline), so
+that tests/ccx_reference/ can store what CalculiX ran and benchmarks/engine.py times the same decks."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck
+from orchestrator.meshing import DEFAULT_MATERIALS, leg_slice_deck
+
+FACE_CORNERS = {"P1": (0, 1), "P2": (1, 2), "P3": (2, 0)}
+
+
+def nonuniform_follower_text(mesh, increments: int) -> str:
+    """The leg slice `mesh` with a garment pressure that varies around the leg, p(theta) = p0 (1 + 0.5 cos theta +
+    0.2 sin 2 theta) about the skin's centre (a garment's tension harmonics), ramped in `increments` increments at
+    most (*STATIC 1/n, 1, 1e-5, 1/n)."""
+    with tempfile.TemporaryDirectory() as folder:
+        deck = Path(folder) / "leg.inp"
+        leg_slice_deck(deck, mesh=mesh, include_mesh=False, static=(1.0 / increments, 1.0, 1e-5, 1.0 / increments))
+        text = deck.read_text()
+    centre = mesh.nodes[mesh.skin_loop].mean(axis=0)
+    lines, in_dload = [], False
+    for line in text.splitlines():
+        if line.upper().startswith("*"):
+            in_dload = line.upper().startswith("*DLOAD")
+        elif in_dload and line.strip():
+            element, face, value = (field.strip() for field in line.split(","))
+            a, b = FACE_CORNERS[face.upper()]
+            corners = mesh.elements[int(element) - 1]
+            x, y = 0.5 * (mesh.nodes[corners[a]] + mesh.nodes[corners[b]]) - centre
+            theta = np.arctan2(y, x)
+            line = f"{element}, {face}, {float(value) * (1 + 0.5 * np.cos(theta) + 0.2 * np.sin(2 * theta)):.8g}"
+        lines.append(line)
+    return "\n".join(lines) + "\n"
+
+
+def garment_text(leg, band, friction_mu: float) -> str:
+    """The leg `leg` under the explicit garment band `band` (orchestrator.meshing.garment_band) put on as
+    templates/leg_garment.inp.j2 does, with Coulomb friction friction_mu and the deck's default penalty; the mesh
+    inline, and the displacements of every node, leg and band, printed at the end (*NODE PRINT) for CalculiX,
+    whose NALL, the leg mesh's node set, leaves the band out."""
+    text = leg_garment_deck(DEFAULT_MATERIALS, band, leg, friction_mu=friction_mu)
+    mesh_lines = band.include_text(leg)
+    include = next(line for line in text.splitlines() if line.upper().startswith("*INCLUDE") and MESH_INCLUDE_NAME in line)
+    text = text.replace(include, mesh_lines.rstrip("\n") + "\n*NSET, NSET=EVERY_NODE\nNALL, GARMENT_NODES", 1)
+    head, last_step = text.rsplit("*STEP", 1)
+    return head + "*STEP" + last_step.replace("*END STEP", "*NODE PRINT, NSET=EVERY_NODE\nU\n*END STEP")
