@@ -11,7 +11,7 @@ where CalculiX runs ARRUDA-BOYCE with mu = 2 C10, lambda_m = 1e4, D = 1/Kv (same
 up to terms of order 1/lambda_m^2). The leg-like slice deck comes from
 orchestrator.meshing.leg_slice_deck (two tissues, clamped bones, follower pressure on the
 skin; Table 2 values of Avril et al.); the same slice under a pressure varying around the
-leg and the leg under the explicit garment band with friction come from tests/leg_decks.py.
+leg comes from tests/leg_decks.py.
 """
 
 from __future__ import annotations
@@ -77,16 +77,6 @@ def _leg_follower(name, n_elements, increments):
                    f"{increments} increments", text, text, {"kind": "leg"})
 
 
-def _leg_garment(name, n_elements, friction_mu):
-    from leg_decks import garment_text
-    from orchestrator.meshing import garment_band, leg_slice_mesh
-
-    leg = leg_slice_mesh(n_elements, order=2)
-    text = garment_text(leg, garment_band(leg), friction_mu)
-    return CcxCase(name, f"leg-like slice, {n_elements} elements order 2, explicit garment band put on with penalty "
-                   f"contact, friction mu = {friction_mu}", text, text, {"kind": "leg"})
-
-
 def cases() -> dict[str, CcxCase]:
     """Every reference case by name (decks are regenerated deterministically)."""
     out = [
@@ -106,7 +96,6 @@ def cases() -> dict[str, CcxCase]:
         out.append(_leg("leg_slice_cpe6", 600, 2))
         out.append(_leg("leg_slice_cpe3", 1200, 1))
         out.append(_leg_follower("leg_follower_cpe6", 600, 6))
-        out.append(_leg_garment("leg_garment_friction_cpe6", 400, 0.3))
     except ImportError:
         pass
     return {c.name: c for c in out}
