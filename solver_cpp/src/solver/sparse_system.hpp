@@ -10,9 +10,11 @@
 // third of the cost of an LU of K. UMFPACK LU takes over when S is not positive
 // definite or the iterations are slow (a loss of definiteness near an instability
 // too, detected once and then remembered, with the libraries' own messages silenced). The
-// saddle-point systems of the hybrid elements are symmetric indefinite: on the first
-// solve both CHOLMOD's LDL^T (no pivoting: valid for the quasi-definite D1 > 0 case,
-// and checked by its residual) and UMFPACK are timed, and the faster valid one is kept.
+// saddle-point systems of the hybrid elements are symmetric indefinite: CHOLMOD's LDL^T
+// (no pivoting: valid for the quasi-definite D1 > 0 case, and checked by its residual)
+// solves them up to a factorization cost where UMFPACK's LU is faster, LU past it or when
+// LDL^T fails. Every choice is made on counts (flops, GMRES steps), never on timings, so
+// that a run gives the same digits on a busy machine as on an idle one.
 #pragma once
 
 #include <Eigen/Sparse>
@@ -57,7 +59,7 @@ public:
   // Solves that iterated on an earlier factorization instead of factorizing the current matrix.
   int reused_factorizations() const { return reused_factorizations_; }
   // Takes over what an earlier system of the same model learned (contact changes the pattern, so the system is
-  // rebuilt): whether the symmetric part failed, and the timings that say whether reusing a factor pays.
+  // rebuilt): whether the symmetric part failed, and the GMRES counts that say whether reusing a factor pays.
   void inherit_solver_choices(const SparseSystem& earlier);
   bool symmetric() const;
   // Whether every entry of the matrix is finite (an overflowed element must not reach a factorization).
@@ -80,21 +82,23 @@ private:
   enum class Choice { Undecided, Ldlt, Lu };
   enum class Factor { None, Cholesky, Ldlt, Lu, SymmetricPart };  // the factorization the last solve used
   bool saddle_point_ = false;
-  bool split_skew_ = true;
+  bool split_skew_ = true;  // off once the symmetric part failed (not definite, or iterations too slow)
   int reused_factorizations_ = 0;
-  int reuse_attempts_ = 0, fresh_solves_ = 0;
-  double reuse_seconds_ = 0.0, fresh_seconds_ = 0.0;  // wall time of the reuse attempts and of the factorizing solves  // off once the symmetric part failed (not definite, or iterations too slow)
+  int reuse_attempts_ = 0, reuse_iterations_ = 0;  // attempts to iterate on an earlier factor, and their GMRES steps
   bool indefinite_ = false, reported_indefinite_ = false;
   Choice choice_ = Choice::Undecided;
   Factor factor_ = Factor::None;
   std::string solver_name_ = "none";
 
   bool solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x);
+  double ldlt_flops();  // flops of the LDL^T factorization (analysing the pattern the first time)
   bool solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x);
   bool solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x);
   bool solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric);
   bool reuse_pays() const;
-  bool iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& x, int max_iterations) const;
+  // GMRES on the Cholesky factor held (see the .cpp); `iterations` (if given) receives the steps it took.
+  bool iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& x, int max_iterations,
+                         int* iterations = nullptr) const;
   bool factorize_cholesky(const Eigen::SparseMatrix<double>& matrix);
   bool accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const;
   Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B) const;
