@@ -225,7 +225,8 @@ void write_summary(const std::string& path, const RunSummary& s) {
         << ",\n  \"n_nodes\": " << s.n_nodes << ",\n  \"n_elements\": " << s.n_elements << ",\n  \"n_dof\": " << s.n_dof
         << ",\n  \"n_free_dof\": " << s.n_free_dof << ",\n  \"threads\": " << s.threads
         << ",\n  \"linear_solver\": " << json_string(s.linear_solver) << ",\n  \"linear_solves\": {\"factorized\": "
-        << s.timings.factorizations << ", \"reused\": " << s.timings.reused_factorizations << "}"
+        << s.timings.factorizations << ", \"reused\": " << s.timings.reused_factorizations
+        << ", \"gmres_steps\": " << s.timings.krylov_steps << "}"
         << ",\n  \"sensitivities\": [";
     for (std::size_t k = 0; k < s.sensitivities.size(); ++k) {
       const SensitivitySummary& p = s.sensitivities[k];

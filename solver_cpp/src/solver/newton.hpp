@@ -31,6 +31,7 @@ struct IncrementRecord {
 struct Timings {
   double assembly_s = 0, factorization_s = 0;
   int factorizations = 0, reused_factorizations = 0;  // Newton solves that factorized, or reused an earlier factor
+  int krylov_steps = 0;  // GMRES steps of the Newton solves (on an earlier factor or a symmetric part's)
 };
 
 struct StepResult {

@@ -119,17 +119,14 @@ bool SparseSystem::factorize_cholesky(const Eigen::SparseMatrix<double>& matrix)
 // Solves K x = b by GMRES right-preconditioned with the Cholesky factor F held (Saad, Iterative Methods for Sparse
 // Linear Systems, 2nd ed., Algorithm 9.5): F is the factor of K's symmetric part S when K = S + W is unsymmetric
 // (follower loads), or that of an earlier Newton iterate's tangent. The Krylov space of K F^-1, whose eigenvalues
-// cluster about 1 when K - F is small, reaches a relative residual of kIterationTolerance in a few
-// back-substitutions (7 on the calf under a non-uniform follower pressure); with right preconditioning the residual
-// GMRES minimizes is the true one. 1e-10 of the right-hand side (a Newton residual) leaves the next Newton residual
-// as it would be with an exact solve, and so its quadratic convergence; it stays above the round-off of K x
-// (1e-12 of |b| was not reachable when b was a small late correction). False when that takes more than
-// `max_iterations`.
+// cluster about 1 when K - F is small, reaches a relative residual `tolerance` in a few back-substitutions (7 to
+// kExactSolve on the calf under a non-uniform follower pressure); with right preconditioning the residual GMRES
+// minimizes is the true one. kExactSolve = 1e-10 of |b| stays above the round-off of K x (1e-12 was not reachable
+// when b was a small late correction). False when that takes more than `max_iterations`.
 bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& x, int max_iterations,
-                                     int* iterations) const {
-  constexpr double kIterationTolerance = 1e-10;
+                                     int* iterations, double tolerance) const {
   const int n = size();
-  const double target = kIterationTolerance * std::max(b.norm(), 1e-300);
+  const double target = tolerance * std::max(b.norm(), 1e-300);
   const int m = max_iterations;
   Eigen::MatrixXd basis(n, m + 1);
   Eigen::MatrixXd hessenberg = Eigen::MatrixXd::Zero(m + 1, m);
@@ -176,7 +173,7 @@ bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& 
   return x.allFinite() && (b - matrix_ * x).norm() <= target;
 }
 
-bool SparseSystem::solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+bool SparseSystem::solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance) {
   constexpr int kMaxSplitIterations = 30;
   if (symmetric_part_.nonZeros() != matrix_.nonZeros()) symmetric_part_ = matrix_;
   const double* v = matrix_.valuePtr();
@@ -185,7 +182,10 @@ bool SparseSystem::solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (!factorize_cholesky(symmetric_part_)) return false;
   factor_ = Factor::SymmetricPart;
   solver_name_ = "cholmod-split";
-  return iterate_on_factor(b, x, kMaxSplitIterations);
+  int iterations = 0;
+  const bool solved = iterate_on_factor(b, x, kMaxSplitIterations, &iterations, tolerance);
+  krylov_steps_ += solved ? iterations : kMaxSplitIterations;
+  return solved;
 }
 
 bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
@@ -201,7 +201,7 @@ bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   return lu_->info() == Eigen::Success && x.allFinite();
 }
 
-bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance) {
   if (size() == 0) {
     x.resize(0);
     return true;
@@ -213,15 +213,16 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     // matrix costs a few back-substitutions instead of a factorization
     constexpr int kMaxReuseIterations = 16;
     int iterations = 0;
-    const bool reused = iterate_on_factor(b, x, kMaxReuseIterations, &iterations);
+    const bool reused = iterate_on_factor(b, x, kMaxReuseIterations, &iterations, tolerance);
     ++reuse_attempts_;
     reuse_iterations_ += reused ? iterations : kMaxReuseIterations;
+    krylov_steps_ += reused ? iterations : kMaxReuseIterations;
     if (reused) {
       ++reused_factorizations_;
       return true;
     }
   }
-  return solve_fresh(b, x, is_symmetric);
+  return solve_fresh(b, x, is_symmetric, tolerance);
 }
 
 void SparseSystem::inherit_solver_choices(const SparseSystem& earlier) {
@@ -244,7 +245,7 @@ bool SparseSystem::reuse_pays() const {
   return static_cast<double>(reuse_iterations_) / reuse_attempts_ * per_iteration < common.fl;
 }
 
-bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric) {
+bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric, double tolerance) {
   if (!saddle_point_ && is_symmetric && !indefinite_) {
     if (factorize_cholesky(matrix_)) {
       x = cholesky_->solve(b);
@@ -255,7 +256,7 @@ bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, boo
     indefinite_ = true;
   }
   if (!saddle_point_ && !is_symmetric && !indefinite_ && split_skew_) {
-    if (solve_split(b, x)) return true;
+    if (solve_split(b, x, tolerance)) return true;
     split_skew_ = false;
   }
   if (saddle_point_ && is_symmetric && choice_ != Choice::Lu) {

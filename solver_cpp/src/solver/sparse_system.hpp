@@ -39,10 +39,12 @@ public:
   template <typename Block>
   void add(int element, const Block& K, const int* local = nullptr, int n_local = -1);
 
-  // Solves A x = b to a relative residual of 1e-10 or better: with the factorization of an earlier matrix when
-  // GMRES on it converges in a few steps, otherwise by factorizing the current matrix (its symmetric part and
-  // GMRES when it is unsymmetric: see the file's text). Returns false when singular.
-  bool solve(const Eigen::VectorXd& b, Eigen::VectorXd& x);
+  // Solves A x = b to a relative residual |b - A x| <= tolerance |b| (a direct solve's when it factorizes A):
+  // with the factorization of an earlier matrix when GMRES on it converges in a few steps, otherwise by
+  // factorizing the current matrix (its symmetric part and GMRES when it is unsymmetric: see the file's text).
+  // Returns false when singular.
+  bool solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance = kExactSolve);
+  static constexpr double kExactSolve = 1e-10;  // as good as a direct solve for Newton (see iterate_on_factor)
   // Solves A X = B for every column of B, to a relative residual |B - A X| / |B| <=
   // tolerance per column, with the factorization F of the last solve(), possibly of an
   // earlier matrix (Newton's previous iterate), against the current matrix: GMRES on a
@@ -58,6 +60,7 @@ public:
   const std::string& solver_name() const { return solver_name_; }
   // Solves that iterated on an earlier factorization instead of factorizing the current matrix.
   int reused_factorizations() const { return reused_factorizations_; }
+  int krylov_steps() const { return krylov_steps_; }  // GMRES steps of every solve() so far
   // Takes over what an earlier system of the same model learned (contact changes the pattern, so the system is
   // rebuilt): whether the symmetric part failed, and the GMRES counts that say whether reusing a factor pays.
   void inherit_solver_choices(const SparseSystem& earlier);
@@ -84,6 +87,7 @@ private:
   bool saddle_point_ = false;
   bool split_skew_ = true;  // off once the symmetric part failed (not definite, or iterations too slow)
   int reused_factorizations_ = 0;
+  int krylov_steps_ = 0;
   int reuse_attempts_ = 0, reuse_iterations_ = 0;  // attempts to iterate on an earlier factor, and their GMRES steps
   bool indefinite_ = false, reported_indefinite_ = false;
   Choice choice_ = Choice::Undecided;
@@ -93,12 +97,12 @@ private:
   bool solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x);
   double ldlt_flops();  // flops of the LDL^T factorization (analysing the pattern the first time)
   bool solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x);
-  bool solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x);
-  bool solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric);
+  bool solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance);
+  bool solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric, double tolerance = kExactSolve);
   bool reuse_pays() const;
   // GMRES on the Cholesky factor held (see the .cpp); `iterations` (if given) receives the steps it took.
   bool iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& x, int max_iterations,
-                         int* iterations = nullptr) const;
+                         int* iterations = nullptr, double tolerance = kExactSolve) const;
   bool factorize_cholesky(const Eigen::SparseMatrix<double>& matrix);
   bool accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const;
   Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B) const;
