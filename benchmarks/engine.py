@@ -394,7 +394,8 @@ def _report(label: str, times: list[float], last: dict, n_dof: int) -> None:
           f"(min {min(times):.3f}, max {max(times):.3f}); {last.get('increments')} increments, "
           f"{last.get('newton')} Newton iterations, solver {last.get('linear_solver')}, "
           f"{last.get('solves', {}).get('factorized', '?')} factorizations, "
-          f"{last.get('solves', {}).get('reused', '?')} solves on an earlier factor")
+          f"{last.get('solves', {}).get('reused', '?')} solves on an earlier factor, "
+          f"{last.get('solves', {}).get('gmres_steps', '?')} GMRES steps")
 
 
 FOLLOWER_INCREMENTS = 6
