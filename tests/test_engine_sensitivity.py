@@ -26,6 +26,9 @@ SolverSettings); quadratic convergence puts the last residual far lower, and the
 checks that every reference run ended below 1e-10, so that this part stays below
 about 1e-6 too.
 
+The same through frictionless penalty contact: the leg under the explicit garment band, the
+tissues' constants and the band's C10. With *FRICTION, *SENSITIVITY exits 2.
+
 Also: the pressure sensitivities (PRESSURE=YES) against the same differences of the
 element pressures; the reader EngineResults.sensitivities on a synthetic output folder;
 malformed *SENSITIVITY lines and FOURIER profiles exit 2 with FILE:LINE.
@@ -410,12 +413,65 @@ def test_malformed_sensitivity(tmp_path, case):
     _expect_error(tmp_path, text, line, fragment)
 
 
-def test_sensitivity_refused_with_contact(tmp_path):
+def test_sensitivity_refused_with_friction(tmp_path):
     text = BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
-                        "1000.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n"
-                        "*BOUNDARY")
+                        "1000.0\n*FRICTION\n0.3, 100.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n"
+                        "*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n*BOUNDARY")
     text += "*SENSITIVITY\nTENSION, SKIN\n"
-    _expect_error(tmp_path, text, len(text.splitlines()) - 1, "not available with *CONTACT PAIR")
+    _expect_error(tmp_path, text, len(text.splitlines()) - 1, "not available with *FRICTION")
+
+
+GARMENT_PARAMETERS = ["MATERIAL:FAT:C10", "MATERIAL:MUSCLE:C10", "MATERIAL:MUSCLE:D1", "MATERIAL:GARMENT:C10"]
+
+
+def test_sensitivities_through_frictionless_contact(tmp_path):
+    """The leg under the explicit garment band (templates/leg_garment.inp.j2: inflated, let go onto the skin with
+    frictionless penalty contact, settled): du/dtheta of the tissues' constants and of the band's C10 (its tension)
+    against central differences of the engine's own runs, which each redo the whole put-on. The tangent at the
+    converged state, contact elements included, gives the derivative of the state as long as no slave node changes
+    its contact status, which a relative step of 1e-3 leaves as it is."""
+    from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck
+    from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
+
+    leg = leg_slice_mesh(400, order=2)
+    band = garment_band(leg)
+    materials = {elset: (law, dict(zip(("C10", "D1"), constants))) for elset, (law, constants) in DEFAULT_MATERIALS.items()}
+    materials["GARMENT"] = ("NEO HOOKE", {"C10": band.C10, "D1": band.D1})
+
+    def run(folder: Path, laws, sensitivity=()):
+        folder.mkdir(parents=True)
+        (folder / MESH_INCLUDE_NAME).write_text(band.include_text(leg))
+        tissues = {elset: (law, tuple(c.values())) for elset, (law, c) in laws.items() if elset != "GARMENT"}
+        text = leg_garment_deck(tissues, band, leg)
+        garment = "*MATERIAL, NAME=GARMENT\n*HYPERELASTIC, NEO HOOKE\n"
+        head, rest = text.split(garment)
+        text = head + garment + "{:.10g}, {:.10g}".format(*laws["GARMENT"][1].values()) + rest[rest.index("\n"):]
+        if sensitivity:
+            text += "*SENSITIVITY, PRESSURE=YES\n" + "\n".join(", ".join(name.split(":")) for name in sensitivity) + "\n"
+        (folder / "leg.inp").write_text(text)
+        result = run_engine(None, folder, "leg", deck_path=folder / "leg.inp")
+        assert result.returncode == 0, result.stderr
+        return result
+
+    base = run(tmp_path / "base", materials, GARMENT_PARAMETERS)
+    results = EngineResults(base.outdir)
+    du, dp = results.sensitivities(), results.pressure_sensitivities()
+    report = []
+    for k, name in enumerate(GARMENT_PARAMETERS):
+        _, elset, constant = name.split(":")
+        value = materials[elset][1][constant]
+        u, pressure = [], []
+        for sign in (1.0, -1.0):
+            laws = {e: (law, dict(c)) for e, (law, c) in materials.items()}
+            laws[elset][1][constant] = _written(value * (1.0 + sign * RELATIVE_STEP))
+            side = run(tmp_path / f"{k}{'+' if sign > 0 else '-'}", laws)
+            u.append(side.u())
+            pressure.append(EngineResults(side.outdir).cell_field("pressure"))
+        width = _written(value * (1 + RELATIVE_STEP)) - _written(value * (1 - RELATIVE_STEP))
+        du_fd, dp_fd = (u[0] - u[1]) / width, (pressure[0] - pressure[1]) / width
+        report.append((name, np.abs(du_fd).max(), np.abs(du[name] - du_fd).max() / np.abs(du_fd).max(),
+                       np.abs(dp[name] - dp_fd).max() / np.abs(dp_fd).max()))
+    _check_report("leg under the explicit garment band, frictionless contact", report)
 
 
 @pytest.mark.parametrize(

@@ -24,10 +24,15 @@ void ModelBuilder::sensitivity(const KeywordBlock& b) {
 
 void ModelBuilder::resolve_sensitivities() {
   if (!model_.sensitivity.requested) return;
-  if (!model_.contact_pairs.empty())
-    throw DeckError(model_.sensitivity.where,
-                    "*SENSITIVITY is not available with *CONTACT PAIR: contact makes the solution depend on the "
-                    "loading path (active set, friction history); remove one of them");
+  // Frictionless penalty contact is elastic: the converged state is a function of theta as long as no slave
+  // node changes its contact status, and its tangent, contact elements included, gives du/dtheta. Friction makes
+  // the state depend on the loading path (the stick history), which the last tangent does not know.
+  for (const ContactPairDef& pair : model_.contact_pairs)
+    if (model_.interactions[pair.interaction].law.friction > 0.0)
+      throw DeckError(model_.sensitivity.where,
+                      "*SENSITIVITY is not available with *FRICTION on a *CONTACT PAIR (the friction history makes "
+                      "the solution depend on the loading path): difference runs of the deck instead, or remove "
+                      "*FRICTION");
   std::set<std::string> names;
   for (const DataLine& line : sensitivity_lines_) {
     SensitivityParameter p = resolve_sensitivity_parameter(model_, line);
