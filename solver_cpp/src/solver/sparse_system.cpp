@@ -14,25 +14,37 @@ SparseSystem::SparseSystem(const std::vector<std::vector<int>>& element_dofs, co
   for (std::size_t d = 0; d < free.size(); ++d)
     if (free[d]) equation_[d] = n++;
 
-  std::vector<std::vector<int>> rows(n);
-  for (const std::vector<int>& dofs : element_dofs)
-    for (int dc : dofs) {
-      const int c = equation_[dc];
-      if (c < 0) continue;
-      for (int dr : dofs)
-        if (equation_[dr] >= 0) rows[c].push_back(equation_[dr]);
-    }
+  // The pattern, column by column, in one flat array (counted first, then filled; sorted and made unique per
+  // column): the 22.5k-DOF calf has 0.8 million element entries, and a vector per column cost 20 ms of a 0.25 s run.
+  std::vector<int> column_start(static_cast<std::size_t>(n) + 1, 0), free_equations;
+  for (const std::vector<int>& dofs : element_dofs) {
+    int m = 0;
+    for (int d : dofs) m += equation_[d] >= 0;
+    for (int d : dofs)
+      if (equation_[d] >= 0) column_start[static_cast<std::size_t>(equation_[d]) + 1] += m;
+  }
+  for (int c = 0; c < n; ++c) column_start[c + 1] += column_start[c];
+  std::vector<int> entries(static_cast<std::size_t>(column_start[n])), next(column_start.begin(), column_start.end() - 1);
+  for (const std::vector<int>& dofs : element_dofs) {
+    free_equations.clear();
+    for (int d : dofs)
+      if (equation_[d] >= 0) free_equations.push_back(equation_[d]);
+    for (int c : free_equations)
+      for (int r : free_equations) entries[next[c]++] = r;
+  }
   std::size_t nnz = 0;
-  for (std::vector<int>& r : rows) {
-    std::sort(r.begin(), r.end());
-    r.erase(std::unique(r.begin(), r.end()), r.end());
-    nnz += r.size();
+  std::vector<int> column_end(static_cast<std::size_t>(n));
+  for (int c = 0; c < n; ++c) {
+    int* begin = entries.data() + column_start[c];
+    std::sort(begin, entries.data() + column_start[c + 1]);
+    column_end[c] = static_cast<int>(std::unique(begin, entries.data() + column_start[c + 1]) - entries.data());
+    nnz += static_cast<std::size_t>(column_end[c] - column_start[c]);
   }
   matrix_.resize(n, n);
   matrix_.reserve(static_cast<Eigen::Index>(nnz));
   for (int c = 0; c < n; ++c) {
     matrix_.startVec(c);
-    for (int r : rows[c]) matrix_.insertBack(r, c) = 0.0;
+    for (int p = column_start[c]; p < column_end[c]; ++p) matrix_.insertBack(entries[p], c) = 0.0;
   }
   matrix_.finalize();
 
@@ -55,9 +67,12 @@ SparseSystem::SparseSystem(const std::vector<std::vector<int>>& element_dofs, co
         if (r >= 0 && c >= 0) pos[i + m * j] = entry(r, c);
       }
   }
+  // The pattern is symmetric: column r holds row c where column c holds row r, and walking the columns in order
+  // meets the entries (c, r) of column r in increasing c, so a cursor per column finds every transpose in O(nnz).
   transpose_position_.resize(nnz);
+  std::vector<int> cursor(outer, outer + n);
   for (int c = 0; c < n; ++c)
-    for (int p = outer[c]; p < outer[c + 1]; ++p) transpose_position_[p] = entry(c, inner[p]);
+    for (int p = outer[c]; p < outer[c + 1]; ++p) transpose_position_[p] = cursor[inner[p]]++;
 }
 
 void SparseSystem::set_zero() { std::fill(matrix_.valuePtr(), matrix_.valuePtr() + matrix_.nonZeros(), 0.0); }
