@@ -26,7 +26,7 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .decks import KPA_PER_MPA, disk_deck, leg_laplace_deck, text_sha256
+from .decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
 from .heterogeneity import group_elsets_text, groups_for
 from .meshing import Mesh
 
@@ -174,10 +174,21 @@ def _effect_space(names: Sequence[str], element_sets: Sequence[str], node_sets: 
                           tuple(p.scale for p in parameters), tuple(p.unit for p in parameters))
 
 
+GARMENTS = ("laplace", "explicit")
+
+
 @dataclass
 class LegModel:
     """The leg slice of Avril et al.: two tissues with the AVRIL law, clamped bones, Laplace garment;
     optionally with effects of the catalog (`orchestrator.effects`).
+
+    garment: "laplace" (Avril et al. eq. 1, the default) or "explicit": the second paper's band
+    (`orchestrator.meshing.garment_band`, carrying tension_N_per_mm at its design stretch) put on by
+    templates/leg_garment.inp.j2 with penalty contact and Coulomb friction `friction_mu`. The band's nodes follow
+    the leg's in the deck, and the objectives read the leg's rows only. The engine's sensitivities pass through
+    frictionless contact; with friction they do not (the stick history), so an explicit garment with friction
+    > 0 asks for none, and Levenberg-Marquardt differences runs instead (one run per parameter and iteration).
+    Catalog effects are written into the Laplace deck only: with the explicit garment none is available yet.
 
     theta = (C10_fat, C10_muscle, Kv_fat, Kv_muscle) in kPa, then the parameters of `effects` in catalog
     order; `fixed_effects` are switched on at given values and not fitted (how a case with a hidden effect
@@ -192,9 +203,20 @@ class LegModel:
     effects: tuple[str, ...] = ()
     fixed_effects: dict = field(default_factory=dict)
     engine_sensitivities: bool = False
+    garment: str = "laplace"
+    friction_mu: float = 0.0
 
     def __post_init__(self):
         from .effects import muscle_sets
+        from .meshing import garment_band
+
+        if self.garment not in GARMENTS:
+            raise ValueError(f"garment must be one of {GARMENTS}, got {self.garment!r}")
+        if self.friction_mu < 0.0 or (self.friction_mu > 0.0 and self.garment != "explicit"):
+            raise ValueError(f"a friction coefficient ({self.friction_mu}) needs garment = 'explicit' and must be >= 0")
+        if self.garment == "explicit" and (self.effects or self.fixed_effects or self.tension_profile):
+            raise ValueError("catalog effects and tension profiles are written into the Laplace-law deck only; with "
+                             "garment = 'explicit' leave them out")
 
         sets = self.mesh.element_sets()
         self.muscle_sets = muscle_sets(list(sets))
@@ -210,8 +232,12 @@ class LegModel:
         base = ParameterSpace(LEG_PARAMETERS, tuple(b[0] for b in LEG_BOUNDS_KPA), tuple(b[1] for b in LEG_BOUNDS_KPA))
         self.space = base.join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets)))
         _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets))  # checks they fit the mesh
-        self.mesh_text = self.mesh.include_text() + group_elsets_text(self.groups)
+        self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
+        mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
+        self.mesh_text = mesh_text + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
+        # the engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)
+        self.engine_sensitivities = self.engine_sensitivities and self.friction_mu == 0.0
 
     def start(self, base_kPa: Sequence[float] = TABLE2_CENTRAL_KPA) -> list[float]:
         """A start point: the base constants, every effect parameter at zero (effect off)."""
@@ -263,6 +289,14 @@ class LegModel:
                               tuple(lines))
         stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
         materials = {elset: ("AVRIL", tuple(c) if stiffening else tuple(c[:2])) for elset, c in state.constants.items()}
+        if self.band is not None:
+            if tension != self.tension_N_per_mm:
+                raise ValueError("the explicit garment's tension is the band's (LegModel.tension_N_per_mm): make a "
+                                 "model with the other tension")
+            text = leg_garment_deck(materials, self.band, self.mesh, friction_mu=self.friction_mu,
+                                    description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
+                                                f"mu = {self.friction_mu:g}")
+            return text + ("*SENSITIVITY\n" + "".join(f"{line}\n" for line in lines) if lines else "")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
                                 description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")
 

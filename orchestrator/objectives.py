@@ -33,6 +33,12 @@ from .forward import MeshInterpolator, field_on_pixels
 from .imaging.mismatch import ContourMismatch, MismatchResult
 
 
+def leg_rows(nodal: np.ndarray, n_nodes: int) -> np.ndarray:
+    """The rows of the mesh an objective was built on: its nodes come first in every deck (an explicit garment
+    band's follow them), so a nodal array of the engine is cut to them."""
+    return np.asarray(nodal, float)[:n_nodes]
+
+
 def _array_sha(*arrays) -> str:
     return text_sha256("".join(text_sha256(np.ascontiguousarray(a).tobytes().hex()) for a in arrays))[:16]
 
@@ -51,7 +57,7 @@ class ContourMismatchObjective:
         self.fingerprint = f"M:{_array_sha(labels_unloaded, labels_loaded)}"
 
     def displacement(self, nodal_u: np.ndarray) -> np.ndarray:
-        return field_on_pixels(self.weights, nodal_u, self.shape)
+        return field_on_pixels(self.weights, leg_rows(nodal_u, self.weights.shape[1]), self.shape)
 
     def evaluate(self, nodal_u: np.ndarray) -> MismatchResult:
         return self.mismatch(self.displacement(nodal_u))
@@ -111,7 +117,7 @@ class DisplacementResidualObjective:
         return whitened - self._nuisance @ (self._nuisance.T @ whitened)
 
     def residuals(self, nodal_u: np.ndarray) -> np.ndarray:
-        simulated = self.observation @ np.asarray(nodal_u, float).ravel()
+        simulated = self.observation @ leg_rows(nodal_u, self.observation.shape[1] // 2).ravel()
         return self._project(self._whiten @ (simulated - self.measured))
 
     def cost_of(self, residuals: np.ndarray) -> float:
@@ -137,8 +143,10 @@ class DisplacementResidualObjective:
         out = {"cost": self.cost_of(r), "residuals": r.tolist()}
         sensitivities = EngineResults(Path(outdir)).sensitivities()
         if sensitivities:
-            out["sensitivity"] = {name: self._project(self._whiten @ (self.observation @ np.asarray(du, float).ravel())).tolist()
-                                  for name, du in sensitivities.items()}
+            n_nodes = self.observation.shape[1] // 2
+            out["sensitivity"] = {
+                name: self._project(self._whiten @ (self.observation @ leg_rows(du, n_nodes).ravel())).tolist()
+                for name, du in sensitivities.items()}
         return out
 
 
@@ -159,7 +167,7 @@ class LandmarkPressure:
     def outputs(self, nodal_u: np.ndarray, outdir: Path) -> dict:
         from .results import EngineResults
 
-        pressure = EngineResults(Path(outdir)).point_field("pressure") * KPA_PER_MPA
+        pressure = leg_rows(EngineResults(Path(outdir)).point_field("pressure"), self.weights.shape[1]) * KPA_PER_MPA
         values = self.weights @ pressure
         return {"cost": float(np.max(values)), "pressure_kPa": dict(zip(self.names, map(float, values)))}
 
