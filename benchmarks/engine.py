@@ -195,9 +195,13 @@ def versus_ccx(args, root: Path, name: str, write_deck, fe_dir: Path, fe_med: fl
         r = run_ccx(write_deck(d), limit)
         if r["exit"] != 0:
             killed = r["wall_s"] >= limit - 1 or r["exit"] in (-9, 137)
+            log = d / "run.log"
+            errors = [line.strip() for line in log.read_text(errors="replace").splitlines()
+                      if "*ERROR" in line] if log.is_file() else []
             print(f"  ccx run {k}: " + (f"not finished within {limit:.0f} s: ratio ccx / calfit-fe > "
-                                        f"{limit / fe_med:.0f}x (see {d / 'leg.sta'})" if killed else
-                                        f"exit {r['exit']} (see {d})"))
+                                        f"{limit / fe_med:.0f}x" if killed else
+                                        f"exit {r['exit']} after {r['wall_s']:.0f} s"
+                                        + (f" ({errors[0]})" if errors else "")))
             return
         ccx_times.append(r["wall_s"])
     ccx_med = statistics.median(ccx_times)
