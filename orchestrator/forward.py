@@ -205,6 +205,7 @@ class LegModel:
     engine_sensitivities: bool = False
     garment: str = "laplace"
     friction_mu: float = 0.0
+    hybrid: bool = False   # the leg's elements as u/p (CPE6H, CPE3H): nearly or fully incompressible tissues
 
     def __post_init__(self):
         from .effects import muscle_sets
@@ -234,6 +235,9 @@ class LegModel:
         _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets))  # checks they fit the mesh
         self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
         mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
+        if self.hybrid:   # the leg's element block only: the band stays a compressible displacement element
+            leg_block = f"*ELEMENT, TYPE={self.mesh.element_type}, ELSET=EALL"
+            mesh_text = mesh_text.replace(leg_block, f"*ELEMENT, TYPE={self.mesh.element_type}H, ELSET=EALL", 1)
         self.mesh_text = mesh_text + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
         # the engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)

@@ -34,6 +34,7 @@ from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_me
 from .objectives import DisplacementResidualObjective
 from .runlock import holds_run_folder
 from .runner import LOG_NAME, EvaluationLog, Evaluator
+from .imaging.case import read_model_choice
 from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
 
 OBJECTIVES = ("contour", "displacement")
@@ -66,6 +67,11 @@ def _setup(case_dir, run_dir: Path, n_elements: int | None, order: int | None, o
     """The run folder's setup, prepared now if it has none; meshed with n_elements of order (default: the
     objective's, `DEFAULT_MESH`). A run folder keeps the mesh it was made with: asking for another is an error."""
     default_elements, default_order = DEFAULT_MESH[objective]
+    choice = read_model_choice(case_dir)
+    if choice.order is not None and order is not None and order != choice.order:
+        raise ValueError(f"{Path(case_dir) / 'case.toml'} asks for {choice.element} elements (order {choice.order}); "
+                         f"--order {order} disagrees: give one of them")
+    order = order or choice.order
     if (run_dir / SETUP_JSON).is_file():
         setup = load_run(run_dir)
         if order is not None and order != setup.mesh.order:
@@ -241,6 +247,10 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     if identification["objective"] != "displacement":
         raise ValueError("the diagnosis compares the model with measured displacements (DIC from the images, or "
                          "points.csv): identify with --objective displacement (the default) first")
+    if setup.model.garment != "laplace":
+        raise ValueError(f"the diagnosis ranks the catalog's effects on the Laplace-law model; {setup.case.files['toml']} "
+                         f"fits the explicit garment ([model] garment = \"{setup.model.garment}\"), whose diagnosis is "
+                         "not available yet: identify a copy of the case without that line to diagnose it")
     model = setup.model_with(identification.get("effects", ()), sensitivities=engine_sensitivities)
     objective = setup.displacement_objective(identified_data(identification))
 

@@ -39,6 +39,7 @@ from .forward import MeshInterpolator, field_on_pixels
 from .imaging.segment import BONE
 from .imaging.warp import warp_image
 from .measure import FILES as MEASURE_FILES
+from .objectives import leg_rows
 from .pipeline import identified_data
 from .results import MMHG_PER_KPA
 from .runlock import holds_run_folder
@@ -239,7 +240,8 @@ def _identification_section(setup, identification: dict, staging: Path) -> dict:
     case, px = setup.case, setup.case.pixel_size_mm
     names = identification["parameters"]
     model = setup.model_with(identification.get("effects", ()))
-    nodal = setup.solve(identification["best"]["theta"], staging / "identified", model).displacement()
+    nodal = leg_rows(setup.solve(identification["best"]["theta"], staging / "identified", model).displacement(),
+                     len(setup.mesh.nodes))
     result, field = contour_distances(setup, nodal)
     warped = warp_image(setup.loaded_aligned, field, px)
     d_max = float(np.nanmax(result.distance_mm)) if np.isfinite(result.distance_mm).any() else 1.0
@@ -304,7 +306,8 @@ def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -
     case, px = setup.case, setup.case.pixel_size_mm
     results = setup.solve(montecarlo["central"], staging / "central")
     weights = MeshInterpolator(setup.mesh).pixel_weights(case.shape, px)
-    pressure_kPa = (weights @ results.point_field("pressure")).reshape(case.shape) * 1e3   # engine stresses: MPa
+    pressure = leg_rows(results.point_field("pressure"), len(setup.mesh.nodes))
+    pressure_kPa = (weights @ pressure).reshape(case.shape) * 1e3   # engine stresses: MPa
     soft = (setup.labels_unloaded > 0) & (setup.labels_unloaded != BONE)
     pressure_kPa[~soft] = np.nan
     values = {name: (pressures["mean_kPa"][k], pressures["std_kPa"][k]) for k, name in enumerate(pressures["landmarks"])}
@@ -346,7 +349,7 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
     mismatch_values, distances = [], []
     for k, fit in enumerate(fits):
         model = setup.model_with(fit["effects"])
-        nodal = setup.solve(fit["theta"], staging / f"diagnosis-{k}", model).displacement()
+        nodal = leg_rows(setup.solve(fit["theta"], staging / f"diagnosis-{k}", model).displacement(), len(setup.mesh.nodes))
         result, _ = contour_distances(setup, nodal)
         mismatch_values.append(result.value_mm2)
         distances.append(result.distance_mm)

@@ -149,8 +149,7 @@ class RunSetup:
         for du/dtheta (Levenberg-Marquardt and the diagnosis then need no finite-difference runs)."""
         from .effects import parse_effects
 
-        return LegModel(self.mesh, self.case.tension_N_per_mm, effects=parse_effects(list(effects)),
-                        engine_sensitivities=sensitivities)
+        return case_model(self.mesh, self.case, effects=parse_effects(list(effects)), engine_sensitivities=sensitivities)
 
     def frame(self) -> LegFrame:
         """Leg centre, anatomical orientation and skin distance of I0: how residual regions are named."""
@@ -265,6 +264,13 @@ def assign_compartments(mesh: Mesh, compartment_labels: np.ndarray, pixel_size_m
     return replace(mesh, element_regions=regions)
 
 
+def case_model(mesh: Mesh, case: Case, **options) -> LegModel:
+    """The leg model the case's [model] table asks for (garment, friction, u/p elements) on mesh."""
+    choice = case.model
+    return LegModel(mesh, case.tension_N_per_mm, garment=choice.garment, friction_mu=choice.friction,
+                    hybrid=choice.hybrid, **options)
+
+
 def load_run(run_dir: str | Path) -> RunSetup:
     run_dir = Path(run_dir)
     info = read_json(run_dir / SETUP_JSON, "calfit identify CASE_DIR --out RUN_DIR")
@@ -276,7 +282,7 @@ def load_run(run_dir: str | Path) -> RunSetup:
     motion = RigidMotion(info["rigid_motion"]["angle_deg"], tuple(info["rigid_motion"]["translation_mm"]),
                          tuple(info["rigid_motion"]["centre_mm"]))
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
-                    LegModel(mesh, case.tension_N_per_mm), info.get("compartments", {"source": "none"}),
+                    case_model(mesh, case), info.get("compartments", {"source": "none"}),
                     info.get("missing_fraction", {}))
 
 
@@ -299,7 +305,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
                       n_elements: int = 8000, order: int = 2, points_spacing_mm: float | None = 6.0,
                       points_sigma_mm: float = 0.02, noise_seeds: tuple[int, int] = (0, 1), rigid: RigidMotion | None = None,
                       effects: dict[str, dict[str, float]] | None = None, labels: str = "segmented",
-                      edit_deck=None, phantom=None, overwrite: bool = False) -> tuple[Path, Path]:
+                      edit_deck=None, phantom=None, garment: str = "laplace", friction_mu: float = 0.0,
+                      overwrite: bool = False) -> tuple[Path, Path]:
     """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text).
 
     effects: catalog effects switched on in the truth, {effect: {parameter: value}} (a case with a hidden
@@ -307,7 +314,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     "compartments" so that the fit can separate them. labels: what the case's labels.png holds
     (`orchestrator.phantom.write_case`). edit_deck(deck_text, mesh) -> deck_text: physics outside the catalog
     written into the truth's deck directly (how a case with an unknown effect is made). phantom: the
-    `orchestrator.phantom.CalfPhantom` to render (default: the standard calf and scanner)."""
+    `orchestrator.phantom.CalfPhantom` to render (default: the standard calf and scanner). garment, friction_mu:
+    the truth's garment, Laplace's law or the explicit band with that friction (`forward.LegModel`)."""
     from .phantom import CalfPhantom, write_case
     from .results import EngineResults
     from .runner import run_engine
@@ -315,7 +323,7 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     effects = {name: dict(values) for name, values in (effects or {}).items()}
     phantom = phantom or CalfPhantom()
     mesh = truth_mesh(phantom, compartments="compartments" in effects, n_elements=n_elements, order=order)
-    model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects)
+    model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects, garment=garment, friction_mu=friction_mu)
     with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
@@ -325,11 +333,12 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
         if not outcome.converged:
             raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa "
                                f"with effects {effects}; choose stiffer parameters or a smaller tension")
-        nodal = EngineResults(outcome.outdir).displacement()
+        nodal = EngineResults(outcome.outdir).displacement()[: len(mesh.nodes)]   # the band's rows follow
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
     truth = {"parameters_kPa": dict(zip(LEG_PARAMETERS, map(float, theta_kPa))), "tension_N_per_mm": tension_N_per_mm,
              "law": "AVRIL (Avril et al. eq. 2)", "effects": effects, "deck_edited": edit_deck is not None,
+             "garment": garment, "friction_mu": friction_mu,
              "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type},
              "max_displacement_mm": float(np.abs(field).max())}
     case, truth_dir = write_case(folder, phantom, field, rigid=rigid, truth_folder=truth_folder,

@@ -7,7 +7,7 @@ labels 0 background, 1 fat (with skin), 2 muscle, 3 bone, >= 4 muscle compartmen
 """
 
 from .align import align_on_bones, bone_centroids, resample_rigid
-from .case import Case, DisplacementPoints, read_case, write_case_folder
+from .case import Case, DisplacementPoints, ModelChoice, read_case, read_model_choice, write_case_folder
 from .dic import DICResult, correlate, grid_centres, roi_centres
 from .errors import CaseError, ImagingError
 from .frame import RigidMotion, displacement_on_grid, pixel_centres_mm

@@ -41,7 +41,29 @@ _TOML_SCHEMA = {
     "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
     "landmarks": None,  # any name
     "images": set(IMAGES_KEYS),  # which slice of a DICOM series
+    "model": {"element", "garment", "friction"},
 }
+ELEMENTS = {"CPE3": 1, "CPE6": 2, "CPE6H": 2}   # element -> order of the mesh
+GARMENTS = ("laplace", "explicit")
+
+
+@dataclass(frozen=True)
+class ModelChoice:
+    """The [model] table of case.toml: the element (None: the run's default, CPE6 for displacement data, CPE3 for
+    contours), the garment (Laplace's law, or the second paper's explicit band with penalty contact) and the
+    band's Coulomb friction coefficient."""
+
+    element: str | None = None
+    garment: str = "laplace"
+    friction: float = 0.0
+
+    @property
+    def order(self) -> int | None:
+        return ELEMENTS[self.element] if self.element else None
+
+    @property
+    def hybrid(self) -> bool:
+        return self.element == "CPE6H"
 
 
 @dataclass(frozen=True)
@@ -67,6 +89,7 @@ class Case:
     loaded: np.ndarray
     tension_N_per_mm: float
     tension_rel_uncertainty: float
+    model: ModelChoice = ModelChoice()
     labels: np.ndarray | None = None
     points: DisplacementPoints | None = None
     landmarks: dict[str, tuple[float, float]] = field(default_factory=dict)
@@ -129,7 +152,7 @@ def read_case(folder: str | os.PathLike) -> Case:
                 unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
                 tension_N_per_mm=tension,
                 tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else rel,
-                labels=labels, points=points, landmarks=landmarks, files=files,
+                model=_model_choice(toml_path, settings.get("model", {})), labels=labels, points=points, landmarks=landmarks, files=files,
                 missing={role: image.missing for role, image in (("unloaded", unloaded), ("loaded", loaded))
                          if image.missing is not None})
 
@@ -155,6 +178,32 @@ def _read_toml(path: Path) -> dict:
         if unknown:
             raise CaseError(path, f"[{table}] has an unknown key '{unknown[0]}'", f"use only {', '.join(sorted(allowed))}")
     return settings
+
+
+def read_model_choice(folder: str | os.PathLike) -> ModelChoice:
+    """The [model] table of a case folder's case.toml alone (no image read)."""
+    toml_path = Path(folder) / "case.toml"
+    return _model_choice(toml_path, _read_toml(toml_path).get("model", {}))
+
+
+def _model_choice(path: Path, table: dict) -> ModelChoice:
+    element = table.get("element")
+    if element is not None and element not in ELEMENTS:
+        raise CaseError(path, f"[model] element = {element!r} is not an element calfit fits",
+                        f"write one of {', '.join(repr(e) for e in ELEMENTS)}")
+    garment = table.get("garment", "laplace")
+    if garment not in GARMENTS:
+        raise CaseError(path, f"[model] garment = {garment!r} is not a garment model",
+                        "write garment = \"laplace\" (Laplace's law, the first paper) or \"explicit\" (the band of "
+                        "the second paper)")
+    friction = table.get("friction", 0.0)
+    if isinstance(friction, bool) or not isinstance(friction, (int, float)) or not 0.0 <= friction <= 2.0:
+        raise CaseError(path, f"[model] friction = {friction!r} is not a friction coefficient",
+                        "write a number between 0 (frictionless) and 2")
+    if friction > 0.0 and garment != "explicit":
+        raise CaseError(path, "[model] friction needs the explicit garment (Laplace's law has no tangential traction)",
+                        "add garment = \"explicit\" or remove friction")
+    return ModelChoice(element, garment, float(friction))
 
 
 def _find_file(folder: Path, stem: str, required: bool) -> Path | None:

@@ -1,0 +1,101 @@
+"""The [model] table of case.toml (docs/case-folder.md): the element and the garment the identification fits.
+
+- Errors name case.toml and the fix: an element or garment calfit does not fit, a friction that is not a number
+  in [0, 2], friction without the explicit garment, an unknown key.
+- garment = "explicit": a phantom made with the second paper's band (frictionless penalty contact) at parameters
+  that are not the fit's start, with scanner motion and 0.02 mm of noise on its points, on its own finer mesh, is
+  identified back from the case folder by `run_identify` (Levenberg-Marquardt with the engine's sensitivities
+  through the contact): misfit at the noise floor, the muscle's constants within 5 %. Its diagnosis is refused
+  with a sentence that says why.
+- element = "CPE6H": the leg is meshed with u/p elements (the band stays a displacement element), and --order
+  may not contradict it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestrator.imaging.case import ModelChoice, read_model_choice
+from orchestrator.imaging.errors import CaseError
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.pipeline import run_diagnose, run_identify
+from orchestrator.study import make_phantom_case
+
+TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # C10 fat, C10 muscle, Kv fat, Kv muscle; the start is Table 2's (4.5, 11.2, 106, 69.5)
+SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
+
+
+def _case_toml(folder: Path, model: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "case.toml").write_text('[case]\nname = "m"\npixel_size_mm = [0.5, 0.5]\n[garment]\n'
+                                      f'tension_N_per_mm = 0.16\n{model}')
+    return folder
+
+
+@pytest.mark.parametrize("model, fragment, fix", [
+    ('[model]\nelement = "C3D10"\n', "element = 'C3D10'", "'CPE6H'"),
+    ('[model]\ngarment = "membrane"\n', "garment = 'membrane'", '"explicit"'),
+    ('[model]\ngarment = "explicit"\nfriction = -0.1\n', "friction = -0.1", "between 0"),
+    ('[model]\ngarment = "explicit"\nfriction = "high"\n', "friction = 'high'", "between 0"),
+    ('[model]\nfriction = 0.3\n', "needs the explicit garment", 'garment = "explicit"'),
+    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "element, friction, garment"),
+])
+def test_model_table_errors_name_the_file_and_the_fix(tmp_path, model, fragment, fix):
+    folder = _case_toml(tmp_path / "case", model)
+    with pytest.raises(CaseError) as error:
+        read_model_choice(folder)
+    message = str(error.value)
+    assert "case.toml" in message and fragment in message and fix in message
+
+
+def test_model_table_defaults_and_values(tmp_path):
+    assert read_model_choice(_case_toml(tmp_path / "a", "")) == ModelChoice()
+    choice = read_model_choice(_case_toml(tmp_path / "b", '[model]\nelement = "CPE6H"\ngarment = "explicit"\n'
+                                                          'friction = 0.3\n'))
+    assert (choice.element, choice.garment, choice.friction, choice.order, choice.hybrid) == ("CPE6H", "explicit",
+                                                                                              0.3, 2, True)
+
+
+@pytest.fixture(scope="module")
+def explicit_case(tmp_path_factory):
+    """A phantom made with the explicit band; its case.toml asks the fit for the explicit garment on CPE6."""
+    folder = tmp_path_factory.mktemp("explicit")
+    case, _ = make_phantom_case(folder / "case", folder / "truth", theta_kPa=TRUTH_KPA, n_elements=2000,
+                                rigid=SCANNER_MOTION, garment="explicit")
+    with open(case / "case.toml", "a") as toml:
+        toml.write('\n[model]\nelement = "CPE6"\ngarment = "explicit"\n')
+    return case
+
+
+def test_explicit_garment_case_is_identified_back(explicit_case, tmp_path):
+    result = run_identify(explicit_case, tmp_path / "run", data="points", progress=False)
+    best = result["best"]
+    error = (np.array(best["theta"]) - TRUTH_KPA) / TRUTH_KPA
+    print(f"fit {np.round(best['theta'], 2)} kPa, errors {np.round(100 * error, 1)} %, misfit "
+          f"{result['misfit_over_floor']:.2f} x floor, {best['iterations']} iterations, {best['engine_runs']} runs")
+    assert best["converged"] and best["engine_runs"] <= best["iterations"] + 2   # the Jacobian from the engine
+    assert result["misfit_over_floor"] < 1.5
+    assert np.all(np.abs(error[[1, 3]]) < 0.05)   # C10 and Kv of muscle
+
+    with pytest.raises(ValueError, match="fits the explicit garment"):
+        run_diagnose(tmp_path / "run", progress=False)
+
+
+def test_hybrid_elements_are_meshed_and_order_may_not_contradict_them(explicit_case, tmp_path):
+    from orchestrator.pipeline import _setup
+
+    hybrid = tmp_path / "hybrid"
+    hybrid.mkdir()
+    for item in explicit_case.iterdir():
+        (hybrid / item.name).symlink_to(item)
+    (hybrid / "case.toml").unlink()
+    (hybrid / "case.toml").write_text((explicit_case / "case.toml").read_text().replace('"CPE6"', '"CPE6H"'))
+    with pytest.raises(ValueError, match="--order 1 disagrees"):
+        _setup(hybrid, tmp_path / "run-order", None, 1)
+    setup = _setup(hybrid, tmp_path / "run", 600, None)
+    assert setup.mesh.order == 2 and setup.model.hybrid
+    assert "*ELEMENT, TYPE=CPE6H, ELSET=EALL" in setup.model.mesh_text
+    assert "TYPE=CPE6, ELSET=GARMENT" in setup.model.mesh_text   # the band stays a displacement element
