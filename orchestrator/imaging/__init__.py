@@ -15,7 +15,8 @@ from .mismatch import ContourMismatch, MismatchResult, contour_pixels
 from .segment import dice, segment_t1
 from .warp import warp_image, warp_labels
 
-__all__ = ["Case", "CaseError", "ContourMismatch", "DICResult", "DisplacementPoints", "ImagingError", "MismatchResult", "ModelChoice",
-           "RigidMotion", "align_on_bones", "bone_centroids", "contour_pixels", "correlate", "dice", "displacement_on_grid",
-           "grid_centres", "pixel_centres_mm", "read_case", "read_model_choice", "resample_rigid", "roi_centres", "segment_t1", "warp_image",
-           "warp_labels", "write_case_folder"]
+__all__ = ["Case", "CaseError", "ContourMismatch", "DICResult", "DisplacementPoints", "ImagingError",
+           "MismatchResult", "ModelChoice", "RigidMotion", "align_on_bones", "bone_centroids", "contour_pixels",
+           "correlate", "dice", "displacement_on_grid", "grid_centres", "pixel_centres_mm", "read_case",
+           "read_model_choice", "resample_rigid", "roi_centres", "segment_t1", "warp_image", "warp_labels",
+           "write_case_folder"]
