@@ -118,6 +118,11 @@ class RunSetup:
                          "blocks), the pixel the DIC windows and the segmentation are made for")
         lines += [f"{name}: no value (NaN) in {100 * share:.1f} % of the slice, all outside the leg, read as background"
                   for name, share in self.missing_fraction.items()]
+        if self.model.garment == "explicit":
+            lines.append(f"garment: the explicit band of {self.case.tension_N_per_mm:g} N/mm, penalty contact"
+                         + (f" with friction {self.model.friction_mu:g}: the engine gives no sensitivities through "
+                            "friction, so Levenberg-Marquardt differences runs (one per parameter and iteration)"
+                            if self.model.friction_mu > 0 else ", frictionless"))
         info = self.compartments
         count = len(info.get("areas_mm2", {}))
         if info["source"] == "image":
