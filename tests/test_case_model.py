@@ -78,6 +78,7 @@ def test_explicit_garment_case_is_identified_back(explicit_case, tmp_path):
           f"{result['misfit_over_floor']:.2f} x floor, {best['iterations']} iterations, {best['engine_runs']} runs")
     assert best["converged"] and best["engine_runs"] <= best["iterations"] + 2   # the Jacobian from the engine
     assert result["misfit_over_floor"] < 1.5
+    assert "garment: the explicit band of 0.16 N/mm, penalty contact, frictionless" in result["setup_lines"]
     assert np.all(np.abs(error[[1, 3]]) < 0.05)   # C10 and Kv of muscle
 
     with pytest.raises(ValueError, match="fits the explicit garment"):
