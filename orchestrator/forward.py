@@ -216,8 +216,9 @@ class LegModel:
         if self.friction_mu < 0.0 or (self.friction_mu > 0.0 and self.garment != "explicit"):
             raise ValueError(f"a friction coefficient ({self.friction_mu}) needs garment = 'explicit' and must be >= 0")
         if self.garment == "explicit" and (self.effects or self.fixed_effects or self.tension_profile):
-            raise ValueError("catalog effects and tension profiles are written into the Laplace-law deck only; with "
-                             "garment = 'explicit' leave them out")
+            raise ValueError("catalog effects (--effects) and tension profiles are written into the Laplace-law deck "
+                             "only, and this model fits the explicit garment ([model] garment = \"explicit\" in "
+                             "case.toml): leave the effects out, or fit Laplace's law")
 
         sets = self.mesh.element_sets()
         self.muscle_sets = muscle_sets(list(sets))
