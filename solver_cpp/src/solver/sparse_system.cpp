@@ -234,9 +234,11 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double to
     krylov_steps_ += reused ? iterations : kMaxReuseIterations;
     if (reused) {
       ++reused_factorizations_;
+      stale_factor_ = true;
       return true;
     }
   }
+  stale_factor_ = false;
   return solve_fresh(b, x, is_symmetric, tolerance);
 }
 
@@ -317,7 +319,11 @@ bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, d
   const Eigen::RowVectorXd norms = B.colwise().norm().cwiseMax(1e-300);
   auto relative_residual = [&] { return ((B - matrix_ * X).colwise().norm().array() / norms.array()).maxCoeff(); };
   for (int attempt = 0; attempt < 2; ++attempt) {
-    if (factor_ == Factor::None || attempt == 1) {
+    // a factor that Newton's last solves reused is several iterations old: GMRES on it would take many steps for
+    // each of many columns (the diagnosis asks for dozens), where one factorization of the current matrix leaves
+    // one or two (the identification and diagnosis of the leg with a hidden drainage took twice as long without)
+    if (factor_ == Factor::None || attempt == 1 || (stale_factor_ && B.cols() > 1)) {
+      stale_factor_ = false;
       Eigen::VectorXd first;
       if (!solve_fresh(B.col(0), first, symmetric())) return false;  // factorizes the current matrix
     }

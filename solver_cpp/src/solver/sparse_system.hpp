@@ -88,6 +88,7 @@ private:
   bool split_skew_ = true;  // off once the symmetric part failed (not definite, or iterations too slow)
   int reused_factorizations_ = 0;
   int krylov_steps_ = 0;
+  bool stale_factor_ = false;  // the last solve() iterated on the factor of an earlier matrix
   int reuse_attempts_ = 0, reuse_iterations_ = 0;  // attempts to iterate on an earlier factor, and their GMRES steps
   bool indefinite_ = false, reported_indefinite_ = false;
   Choice choice_ = Choice::Undecided;
