@@ -29,12 +29,12 @@ from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo,
 from .geometry_uncertainty import INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, geometry_covariance
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .geometry_uncertainty import write as write_geometry
+from .imaging.case import read_model_choice
 from .meshing.labels import SKIN_CUTOFF_MM
 from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
 from .objectives import DisplacementResidualObjective
 from .runlock import holds_run_folder
 from .runner import LOG_NAME, EvaluationLog, Evaluator
-from .imaging.case import read_model_choice
 from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
 
 OBJECTIVES = ("contour", "displacement")
