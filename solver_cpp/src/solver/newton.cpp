@@ -48,6 +48,7 @@ double forcing_term(const std::vector<double>& residual_norms) {
   if (residual_norms.empty()) return SparseSystem::kExactSolve;  // a predictor: solved as exactly as it can be
   return std::clamp(0.1 * residual_norms.back(), SparseSystem::kExactSolve, 1e-2);
 }
+
 double next_increment_factor(int iterations, int previous, bool displacement_driven) {
   if (!displacement_driven) return iterations <= kLoadEasyIterations ? 1.5 : 1.0;
   if (iterations > kEasyIterations)
