@@ -7,6 +7,7 @@
   identified back from the case folder by `run_identify` (Levenberg-Marquardt with the engine's sensitivities
   through the contact): misfit at the noise floor, the muscle's constants within 5 %. Its diagnosis is refused
   with a sentence that says why.
+  From the images alone (DIC, slow), the same.
 - element = "CPE6H": the leg is meshed with u/p elements (the band stays a displacement element), and --order
   may not contradict it.
 """
@@ -83,6 +84,23 @@ def test_explicit_garment_case_is_identified_back(explicit_case, tmp_path):
 
     with pytest.raises(ValueError, match="fits the explicit garment"):
         run_diagnose(tmp_path / "run", progress=False)
+
+
+@pytest.mark.slow
+def test_explicit_garment_case_is_identified_back_from_the_images_alone(explicit_case, tmp_path):
+    """The same case with its two images and case.toml only: DIC, the skin's uncertainty (estimated with Laplace's
+    law), the fit again with it in the weights."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for item in explicit_case.iterdir():
+        if item.name.startswith(("unloaded", "loaded", "case.toml")):
+            (images / item.name).symlink_to(item)
+    result = run_identify(images, tmp_path / "run", workers=2, progress=False)
+    error = (np.array(result["best"]["theta"]) - TRUTH_KPA) / TRUTH_KPA
+    print(f"from the images: errors {np.round(100 * error, 1)} %, misfit {result['misfit_over_floor']:.2f} x floor")
+    assert result["data"]["source"] == "dic"
+    assert result["misfit_over_floor"] < 1.5
+    assert np.all(np.abs(error[[1, 3]]) < 0.05)
 
 
 def test_hybrid_elements_are_meshed_and_order_may_not_contradict_them(explicit_case, tmp_path):
