@@ -229,16 +229,16 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double to
     constexpr int kMaxReuseIterations = 16;
     int iterations = 0;
     const bool reused = iterate_on_factor(b, x, kMaxReuseIterations, &iterations, tolerance);
+    const int steps = reused ? iterations : kMaxReuseIterations;   // a failure counted at its limit
     ++reuse_attempts_;
-    reuse_iterations_ += reused ? iterations : kMaxReuseIterations;
-    krylov_steps_ += reused ? iterations : kMaxReuseIterations;
+    reuse_iterations_ += steps;
+    krylov_steps_ += steps;
     if (reused) {
       ++reused_factorizations_;
       stale_factor_ = true;
       return true;
     }
   }
-  stale_factor_ = false;
   return solve_fresh(b, x, is_symmetric, tolerance);
 }
 
@@ -263,6 +263,7 @@ bool SparseSystem::reuse_pays() const {
 }
 
 bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric, double tolerance) {
+  stale_factor_ = false;   // whatever it factorizes is the current matrix
   if (!saddle_point_ && is_symmetric && !indefinite_) {
     if (factorize_cholesky(matrix_)) {
       x = cholesky_->solve(b);
@@ -323,7 +324,6 @@ bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, d
     // each of many columns (the diagnosis asks for dozens), where one factorization of the current matrix leaves
     // one or two (the identification and diagnosis of the leg with a hidden drainage took twice as long without)
     if (factor_ == Factor::None || attempt == 1 || (stale_factor_ && B.cols() > 1)) {
-      stale_factor_ = false;
       Eigen::VectorXd first;
       if (!solve_fresh(B.col(0), first, symmetric())) return false;  // factorizes the current matrix
     }
