@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from .decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
 from .heterogeneity import group_elsets_text, groups_for
+from .imaging.case import GARMENTS
 from .meshing import Mesh
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")
@@ -172,9 +173,6 @@ def _effect_space(names: Sequence[str], element_sets: Sequence[str], node_sets: 
     return ParameterSpace(tuple(p.name for p in parameters), tuple(p.lower for p in parameters),
                           tuple(p.upper for p in parameters), "", (True,) * len(parameters),
                           tuple(p.scale for p in parameters), tuple(p.unit for p in parameters))
-
-
-GARMENTS = ("laplace", "explicit")
 
 
 @dataclass

@@ -43,7 +43,7 @@ from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .measure import FILES as MEASURE_FILES
 from .measure import Measurements, dic_measurements, points_measurements, read_window_table
 from .figures import compartments_figure
-from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure
+from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure, leg_rows
 from .regions import LegFrame
 
 SETUP_ARRAYS = "setup.npz"
@@ -338,7 +338,7 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
         if not outcome.converged:
             raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa "
                                f"with effects {effects}; choose stiffer parameters or a smaller tension")
-        nodal = EngineResults(outcome.outdir).displacement()[: len(mesh.nodes)]   # the band's rows follow
+        nodal = leg_rows(EngineResults(outcome.outdir).displacement(), len(mesh.nodes))
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
     truth = {"parameters_kPa": dict(zip(LEG_PARAMETERS, map(float, theta_kPa))), "tension_N_per_mm": tension_N_per_mm,

@@ -12,8 +12,7 @@ import numpy as np
 
 from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck
 from orchestrator.meshing import DEFAULT_MATERIALS, leg_slice_deck
-
-FACE_CORNERS = {"P1": (0, 1), "P2": (1, 2), "P3": (2, 0)}
+from orchestrator.meshing.mesh import FACE_CORNERS
 
 
 def nonuniform_follower_text(mesh, increments: int) -> str:
@@ -31,7 +30,7 @@ def nonuniform_follower_text(mesh, increments: int) -> str:
             in_dload = line.upper().startswith("*DLOAD")
         elif in_dload and line.strip():
             element, face, value = (field.strip() for field in line.split(","))
-            a, b = FACE_CORNERS[face.upper()]
+            a, b = FACE_CORNERS[int(face.upper().removeprefix("P")) - 1]
             corners = mesh.elements[int(element) - 1]
             x, y = 0.5 * (mesh.nodes[corners[a]] + mesh.nodes[corners[b]]) - centre
             theta = np.arctan2(y, x)

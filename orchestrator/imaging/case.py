@@ -152,7 +152,8 @@ def read_case(folder: str | os.PathLike) -> Case:
                 unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
                 tension_N_per_mm=tension,
                 tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else rel,
-                model=_model_choice(toml_path, settings.get("model", {})), labels=labels, points=points, landmarks=landmarks, files=files,
+                model=_model_choice(toml_path, settings.get("model", {})), labels=labels, points=points,
+                landmarks=landmarks, files=files,
                 missing={role: image.missing for role, image in (("unloaded", unloaded), ("loaded", loaded))
                          if image.missing is not None})
 
