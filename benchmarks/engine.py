@@ -405,9 +405,9 @@ def _report(label: str, times: list[float], last: dict, n_dof: int) -> None:
 FOLLOWER_INCREMENTS = 6
 
 
-def nonuniform_follower_deck(folder: Path, mesh) -> Path:
-    """tests/leg_decks.py's slice under a pressure varying around the leg, in FOLLOWER_INCREMENTS increments."""
-    (folder / "leg.inp").write_text(nonuniform_follower_text(mesh, FOLLOWER_INCREMENTS))
+def write_leg_deck(folder: Path, text: str) -> Path:
+    """A deck text written as folder/leg.inp, once per run (the text is made once per deck)."""
+    (folder / "leg.inp").write_text(text)
     return folder / "leg.inp"
 
 
@@ -415,12 +415,13 @@ def follower(args, root: Path) -> None:
     mesh = leg_slice_mesh(5500, order=2)
     print(f"\nleg-like slice under a non-uniform follower pressure ({mesh.n_dof} DOF, at most 1/{FOLLOWER_INCREMENTS} "
           "of the load per increment; unsymmetric tangent)")
-    result = _median_runs(args, root, "follower", lambda folder: nonuniform_follower_deck(folder, mesh))
+    text = nonuniform_follower_text(mesh, FOLLOWER_INCREMENTS)   # tests/leg_decks.py
+    result = _median_runs(args, root, "follower", lambda folder: write_leg_deck(folder, text))
     if not result:
         return
     times, last = result
     _report("calfit-fe", times, last, mesh.n_dof)
-    versus_ccx(args, root, "follower-ccx", lambda folder: nonuniform_follower_deck(folder, mesh), root / "follower0",
+    versus_ccx(args, root, "follower-ccx", lambda folder: write_leg_deck(folder, text), root / "follower0",
                statistics.median(times))
 
 
@@ -450,12 +451,6 @@ TARGET_GARMENT_S = 2.0
 GARMENT_CCX_TIMEOUT_S = 600.0
 
 
-def garment_deck(folder: Path, leg, band, friction_mu: float) -> Path:
-    """tests/leg_decks.py's leg under the explicit garment band with friction coefficient friction_mu."""
-    (folder / "leg.inp").write_text(garment_text(leg, band, friction_mu))
-    return folder / "leg.inp"
-
-
 def explicit_garment(args, root: Path) -> None:
     leg = leg_slice_mesh(args.garment_elements, order=2)
     band = garment_band(leg)
@@ -464,8 +459,8 @@ def explicit_garment(args, root: Path) -> None:
           f"elements, {n_dof} DOF; inflate, let go, contact + release, settle): penalty contact, frictionless and "
           f"with friction mu = {GARMENT_FRICTION}")
     for mu in (0.0, GARMENT_FRICTION):
-        name = f"garment-mu{mu:g}"
-        result = _median_runs(args, root, name, lambda folder: garment_deck(folder, leg, band, mu))
+        name, text = f"garment-mu{mu:g}", garment_text(leg, band, mu)   # tests/leg_decks.py
+        result = _median_runs(args, root, name, lambda folder: write_leg_deck(folder, text))
         if not result:
             continue
         times, last = result
@@ -476,7 +471,7 @@ def explicit_garment(args, root: Path) -> None:
         print(f"    Newton iterations per step (inflate, let go, release + contact, settle): {per_step}; release, "
               f"contact and settling {put_on}    target <= {TARGET_GARMENT_ITERATIONS}, "
               f"< {TARGET_GARMENT_S:.0f} s")
-        versus_ccx(args, root, f"{name}-ccx", lambda folder: garment_deck(folder, leg, band, mu),
+        versus_ccx(args, root, f"{name}-ccx", lambda folder: write_leg_deck(folder, text),
                    root / f"{name}0", statistics.median(times), timeout=GARMENT_CCX_TIMEOUT_S,
                    parts={"leg": len(leg.nodes), "band": len(band.nodes)})
 
@@ -626,8 +621,7 @@ def compression(args, root: Path) -> None:
             for k in range(args.runs):
                 d = folder / f"fe{k}"
                 d.mkdir(parents=True)
-                (d / "leg.inp").write_text(text)
-                r = run_engine(d / "leg.inp", args.threads, args.timeout)
+                r = run_engine(write_leg_deck(d, text), args.threads, args.timeout)
                 times.append(r["wall_s"] if r["exit"] == 0 else float("nan"))
                 summary = d / "out" / "summary.json"
                 if summary.is_file():   # converged increments; a cut-back shows as its iterations and "x"
@@ -640,11 +634,9 @@ def compression(args, root: Path) -> None:
                 for k in range(args.ccx_runs):
                     d = folder / f"ccx{k}"
                     d.mkdir()
-                    (d / "leg.inp").write_text(text)
-                    ccx_times.append(run_ccx(d / "leg.inp", args.timeout)["wall_s"])
+                    ccx_times.append(run_ccx(write_leg_deck(d, text), args.timeout)["wall_s"])
                 ccx_s = statistics.median(ccx_times)
                 ccx_ratio = ccx_s / fe
-                
                 ours = np.load(sorted((folder / "fe0" / "out").glob("step-*.u.npy"))[-1])[:, 3:5]
                 disp = parse_ccx_dat(folder / "ccx0" / "leg.dat")
                 theirs = np.array([disp[i + 1][:2] for i in range(len(mesh.nodes))])
