@@ -82,6 +82,21 @@ def _positive(name: str, values: Sequence[float]) -> None:
             raise DeckError(f"{name} must be positive, got {value!r}")
 
 
+def _material_rows(materials: Mapping[str, tuple[str, Sequence[float]]]) -> list[dict]:
+    """The template rows of the tissues' materials, checked where a law's sign is known: the leading constant
+    (C10) positive, AVRIL's Kv positive and its C20 >= 0 (solver_cpp/README.md); other constants as the engine
+    checks them (a Mooney-Rivlin C20 may be negative, D1 = 0 is incompressible)."""
+    rows = []
+    for elset, (law, constants) in materials.items():
+        _positive(f"C10 of {elset}", constants[:1])
+        if law == "AVRIL":
+            _positive(f"Kv of {elset}", constants[1:2])
+            if any(float(c) < 0.0 for c in constants[2:]):
+                raise DeckError(f"the higher-order constants of {elset} must be >= 0, got {list(constants[2:])}")
+        rows.append({"name": elset, "elset": elset, "law": law, "constants": numbers(constants)})
+    return rows
+
+
 @dataclass(frozen=True)
 class StepEffects:
     """The effect catalog's step keywords of a leg deck (solver_cpp/README.md, project keywords); the
@@ -107,20 +122,15 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
                      static: Sequence[float] = ONE_INCREMENT, max_increments: int = 50, description: str = "") -> str:
     """The leg slice under the Laplace-law garment (Avril et al. eqs. 1-2).
 
-    materials: element set -> (law, constants in MPa), e.g. {"FAT": ("AVRIL", (C10, Kv))}; a third AVRIL
-    constant is C20 (>= 0, the `stiffening` effect).
+    materials: element set -> (*HYPERELASTIC option, constants in MPa), e.g. {"FAT": ("AVRIL", (C10, Kv))}
+    (`materials.deck_material`); a third AVRIL constant is C20 (>= 0, the `stiffening` effect).
     tension_profile: (angle in degrees, factor) pairs of a tabulated tension; None = constant T.
     effects: the step keywords of the effect catalog (`orchestrator.effects`).
     """
     _positive("the garment tension", [tension_N_per_mm])
     if tension_profile and effects.fourier_profile:
         raise DeckError("give the garment tension profile either as a table or as Fourier coefficients, not both")
-    rows = []
-    for elset, (law, constants) in materials.items():
-        _positive(f"the constants of {elset}", constants[:2])
-        if any(float(c) < 0.0 for c in constants[2:]):
-            raise DeckError(f"the higher-order constants of {elset} must be >= 0, got {list(constants[2:])}")
-        rows.append({"name": elset, "elset": elset, "law": law, "constants": numbers(constants)})
+    rows = _material_rows(materials)
     if effects.axial_stretch is not None:
         _positive("the axial stretch", [effects.axial_stretch])
     for elset, dv in effects.volume_changes:
@@ -183,10 +193,7 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
     _positive("the penalty slope and stick slope", [penalty, stick_slope])
     if friction_mu < 0.0:
         raise DeckError(f"the friction coefficient must be >= 0, got {friction_mu!r}")
-    rows = []
-    for elset, (law, constants) in materials.items():
-        _positive(f"the constants of {elset}", constants)
-        rows.append({"name": elset, "elset": elset, "law": law, "constants": numbers(constants)})
+    rows = _material_rows(materials)
     return render("leg_garment.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
                   band_constants=numbers((band.C10, band.D1)), penalty=f"{penalty:.10g}",
                   friction_mu=float(friction_mu), stick_slope=f"{stick_slope:.10g}",

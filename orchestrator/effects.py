@@ -80,7 +80,8 @@ class LegDeckState:
     the engine's *SENSITIVITY lines and the factor of each, d(engine value)/d(parameter), whose weighted sum
     is du/d(parameter)."""
 
-    constants: dict[str, list[float]]        # element set -> [C10, Kv, C20] in MPa
+    constants: dict[str, dict[str, float]]   # element set -> its law's constants in MPa ("C10", "Kv", "C20", ...)
+    laws: dict = field(default_factory=dict)  # element set -> materials.TissueLaw
     volume_changes: dict[str, float] = field(default_factory=dict)
     axial_stretch: float | None = None
     rigid_motions: dict[str, tuple[float, float, float]] = field(default_factory=dict)
@@ -131,8 +132,8 @@ def _compartment_parameters(element_sets, node_sets):
 def _apply_compartments(state: LegDeckState, values: dict[str, float]) -> None:
     for name, change in values.items():
         elset = name[len("dC10_"):]
-        base = state.constants[elset][0]
-        state.constants[elset][0] = base * (1.0 + change)
+        base = state.constants[elset]["C10"]
+        state.constants[elset]["C10"] = base * (1.0 + change)
         _add_sensitivity(state, name, f"MATERIAL, {elset}, C10", base)
         state.c10_factor[f"MATERIAL, {elset}, C10"] = 1.0 + change
 
@@ -158,7 +159,7 @@ def _apply_bone_motion(state: LegDeckState, values: dict[str, float]) -> None:
 def _apply_stiffening(state: LegDeckState, values: dict[str, float]) -> None:
     for elset, constants in state.constants.items():
         name = "C20_fat" if elset == "FAT" else "C20_muscle"
-        constants[2] = values[name] / KPA_PER_MPA
+        constants["C20"] = values[name] / KPA_PER_MPA
         _add_sensitivity(state, name, f"MATERIAL, {elset}, C20", 1.0 / KPA_PER_MPA)
 
 
@@ -241,7 +242,7 @@ def split_into_groups(state: LegDeckState) -> None:
     for group in state.groups:
         members.setdefault(group.tissue_set, []).append(group)
     factor = {g.name: float(np.exp(state.c10_log_factor.get(g.name, 0.0))) for g in state.groups}
-    constants = {g.name: [state.constants[g.tissue_set][0] * factor[g.name], *state.constants[g.tissue_set][1:]]
+    constants = {g.name: {**state.constants[g.tissue_set], "C10": state.constants[g.tissue_set]["C10"] * factor[g.name]}
                  for g in state.groups}
     material_line = re.compile(r"MATERIAL, (\S+), (\S+)$")
     for parameter, lines in state.sensitivity.items():
@@ -256,8 +257,9 @@ def split_into_groups(state: LegDeckState) -> None:
         state.sensitivity[parameter] = rewritten
     for parameter, entries in state.group_sensitivity.items():
         # du/dp = sum_g dC10_g/dp du/dC10_g, dC10_g/dp = C10_g dlnC10_g/dp
-        state.sensitivity[parameter] = [(f"MATERIAL, {group}, C10", constants[group][0] * weight)
+        state.sensitivity[parameter] = [(f"MATERIAL, {group}, C10", constants[group]["C10"] * weight)
                                         for group, weight in entries if weight != 0.0]
+    state.laws = {g.name: state.laws[g.tissue_set] for g in state.groups}
     state.constants = constants
 
 

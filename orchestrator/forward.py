@@ -12,8 +12,9 @@ residual at DIC points (Bouten and Drapier eq. 2). Points outside the mesh (back
 bone holes) take the displacement of the nearest point of the nearest element (the bones'
 boundary is clamped, so bone pixels get u = 0).
 
-Parameters of the leg model (Avril et al. Table 1 order): C10 of fat, C10 of muscle, Kv of
-fat, Kv of muscle, in kPa (decks are in MPa).
+Parameters of the leg model: the constants of each tissue's law (`orchestrator.materials`), by constant then
+by tissue, in kPa (decks are in MPa); with the first paper's law in fat and muscle, Avril et al.'s Table 1
+order: C10 of fat, C10 of muscle, Kv of fat, Kv of muscle.
 """
 
 from __future__ import annotations
@@ -29,13 +30,13 @@ from scipy.spatial import cKDTree
 from .decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
 from .heterogeneity import group_elsets_text, groups_for
 from .imaging.case import GARMENTS
+from .materials import (AVRIL, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS, MaterialError, TissueLaw,
+                        deck_material, default_bounds, default_start, engine_constant, tissue_name, tissue_set)
 from .meshing import Mesh
 
-LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")
+LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
 # Avril et al. Table 2, central values (kPa): the phantom's default truth and the fits' usual start.
 TABLE2_CENTRAL_KPA = (4.5, 11.2, 106.0, 69.5)
-# Range of Monte-Carlo draws (kPa): around the spread of Avril et al. Table 1, widened.
-LEG_BOUNDS_KPA = ((1.0, 20.0), (3.0, 30.0), (30.0, 250.0), (20.0, 200.0))
 CANDIDATE_ELEMENTS = 8   # nearest element centroids searched for the triangle holding a point
 INSIDE_TOLERANCE = 1e-9
 
@@ -188,7 +189,11 @@ class LegModel:
     > 0 asks for none, and Levenberg-Marquardt differences runs instead (one run per parameter and iteration).
     Catalog effects are written into the Laplace deck only: with the explicit garment none is available yet.
 
-    theta = (C10_fat, C10_muscle, Kv_fat, Kv_muscle) in kPa, then the parameters of `effects` in catalog
+    tissues: the law of each tissue (`materials.TissueLaw` by tissue name: fat, muscle, compartment<label>; the
+    first paper's AVRIL law where none is given); a compartment without its own law shares the muscle's.
+
+    theta = the free constants of the tissues' laws in kPa (`materials.CONSTANT_ORDER`, then tissue order:
+    (C10_fat, C10_muscle, Kv_fat, Kv_muscle) for the first paper's law), then the parameters of `effects` in catalog
     order; `fixed_effects` are switched on at given values and not fitted (how a case with a hidden effect
     is made); with `engine_sensitivities` the deck asks calfit-fe for du/dtheta of every parameter of theta
     (`*SENSITIVITY`), which the objectives turn into the Jacobian of their residuals. All muscle element sets
@@ -204,9 +209,9 @@ class LegModel:
     garment: str = "laplace"
     friction_mu: float = 0.0
     hybrid: bool = False   # the leg's elements as u/p (CPE6H, CPE3H): nearly or fully incompressible tissues
+    tissues: dict | None = None
 
     def __post_init__(self):
-        from .effects import muscle_sets
         from .meshing import garment_band
 
         if self.garment not in GARMENTS:
@@ -219,18 +224,14 @@ class LegModel:
                              "case.toml): leave the effects out, or fit Laplace's law")
 
         sets = self.mesh.element_sets()
-        self.muscle_sets = muscle_sets(list(sets))
-        if "FAT" not in sets or not self.muscle_sets:
-            missing = ", ".join(n for n, ok in (("FAT", "FAT" in sets), ("MUSCLE", bool(self.muscle_sets))) if not ok)
-            raise ValueError(f"the leg mesh has no {missing} elements; check the segmentation labels")
+        self._set_laws(list(sets))
         self.effects = tuple(self.effects)
         overlap = set(self.effects) & set(self.fixed_effects)
         if overlap:
             raise ValueError(f"effects {sorted(overlap)} are both fitted and fixed")
         self.groups = groups_for(self.mesh, self.effects + tuple(self.fixed_effects))
         element_sets = list(sets) + [group.name for group in self.groups]
-        base = ParameterSpace(LEG_PARAMETERS, tuple(b[0] for b in LEG_BOUNDS_KPA), tuple(b[1] for b in LEG_BOUNDS_KPA))
-        self.space = base.join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets)))
+        self.space = self._law_space().join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets)))
         _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets))  # checks they fit the mesh
         self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
         mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
@@ -242,9 +243,74 @@ class LegModel:
         # the engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)
         self.engine_sensitivities = self.engine_sensitivities and self.friction_mu == 0.0
 
-    def start(self, base_kPa: Sequence[float] = TABLE2_CENTRAL_KPA) -> list[float]:
-        """A start point: the base constants, every effect parameter at zero (effect off)."""
-        return [float(v) for v in base_kPa] + [0.0] * (self.space.size - len(LEG_PARAMETERS))
+    def _set_laws(self, element_sets: list[str]) -> None:
+        """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""
+        from .effects import muscle_sets
+
+        given = dict(self.tissues or {})
+        laws = {"fat": given.pop("fat", AVRIL), "muscle": given.pop("muscle", AVRIL)}
+        for tissue in sorted(given):
+            if tissue_set(tissue) not in element_sets:
+                raise MaterialError(f"the leg mesh has no {tissue_set(tissue)} elements for the law of {tissue}: label "
+                                    f"that compartment {tissue[len('compartment'):]} in labels.png")
+            laws[tissue] = given[tissue]
+        self.tissue_laws: dict[str, TissueLaw] = laws
+        own = {tissue_set(t) for t in laws if t not in ("fat", "muscle")}
+        self.muscle_sets = [name for name in muscle_sets(element_sets) if name not in own]
+        if "FAT" not in element_sets or not self.muscle_sets:
+            missing = ", ".join(n for n, ok in (("FAT", "FAT" in element_sets), ("MUSCLE", bool(self.muscle_sets)))
+                                if not ok)
+            raise ValueError(f"the leg mesh has no {missing} elements; check the segmentation labels")
+        # element set -> tissue, in the mesh's order (the deck's materials keep the first paper's order)
+        self.set_tissue = {name: ("fat" if name == "FAT" else tissue_name(name) if name in own else "muscle")
+                           for name in ["FAT"] + muscle_sets(element_sets)}
+        for tissue, law in laws.items():
+            if law.incompressible and not self.hybrid:
+                raise MaterialError(f"{tissue} is incompressible (D1 = 0), which displacement elements lock on: "
+                                    "fit with u/p elements (element = \"CPE6H\" in case.toml's [model])")
+            if law.has_c20() and "stiffening" in set(self.effects) | set(self.fixed_effects):
+                raise MaterialError(f"the {law.law} law of {tissue} has C20 already: the stiffening effect would add it "
+                                    "twice (leave it out, or fix or free C20 in the law)")
+        if own and "compartments" in set(self.effects) | set(self.fixed_effects):
+            raise MaterialError("the compartments effect scales the muscle's C10 in each compartment, and "
+                                f"{sorted(own)} have laws of their own: use one or the other")
+
+    def _law_space(self) -> ParameterSpace:
+        """The free constants of the tissues' laws: by constant (materials.CONSTANT_ORDER), then by tissue."""
+        names, lower, upper, linear, scale = [], [], [], [], []
+        for constant in CONSTANT_ORDER:
+            for tissue, law in self.tissue_laws.items():
+                if constant in law.free:
+                    low, high = default_bounds(tissue, law, constant)
+                    names.append(f"{constant}_{tissue}")
+                    lower.append(low)
+                    upper.append(high)
+                    linear.append(constant in LINEAR_CONSTANTS)
+                    scale.append(HIGHER_ORDER_SCALE_KPA if constant in LINEAR_CONSTANTS else 1.0)
+        return ParameterSpace(tuple(names), tuple(lower), tuple(upper), "kPa", tuple(linear), tuple(scale))
+
+    @property
+    def law_parameters(self) -> tuple[str, ...]:
+        """The names of theta's first values: the free constants of the laws."""
+        return self.space.names[:self.law_size]
+
+    @property
+    def law_size(self) -> int:
+        return sum(len(law.free) for law in self.tissue_laws.values())
+
+    @property
+    def base_start(self) -> list[float]:
+        """The laws' start (kPa): case.toml's, else Avril et al. Table 2 (`materials.default_start`)."""
+        return [default_start(name.split("_", 1)[1], self.tissue_laws[name.split("_", 1)[1]], name.split("_", 1)[0])
+                for name in self.law_parameters]
+
+    def start(self, base_kPa: Sequence[float] | None = None) -> list[float]:
+        """A start point: the laws' constants (`base_start` when not given), every effect parameter at zero (off)."""
+        base = self.base_start if base_kPa is None else [float(v) for v in base_kPa]
+        if len(base) != self.law_size:
+            raise ValueError(f"a start of the laws needs {self.law_size} values ({', '.join(self.law_parameters)}), "
+                             f"got {len(base)}")
+        return base + [0.0] * (self.space.size - self.law_size)
 
     def deck_state(self, theta: Sequence[float]):
         """The materials and step keywords of theta, with the *SENSITIVITY lines of every parameter."""
@@ -253,13 +319,21 @@ class LegModel:
         theta = [float(v) for v in theta]
         if len(theta) != self.space.size:
             raise ValueError(f"theta has {len(theta)} values; this model has {self.space.size}: {self.space.names}")
-        c10_fat, c10_muscle, kv_fat, kv_muscle = (v / KPA_PER_MPA for v in theta[:4])
-        state = LegDeckState({"FAT": [c10_fat, kv_fat, 0.0], **{m: [c10_muscle, kv_muscle, 0.0] for m in self.muscle_sets}},
+        law_values = dict(zip(self.law_parameters, theta))
+        per_tissue = {tissue: {constant: (law_values[f"{constant}_{tissue}"] if constant in law.free
+                                          else float(law.fixed[constant])) / KPA_PER_MPA
+                               for constant in law.constants}
+                      for tissue, law in self.tissue_laws.items()}
+        state = LegDeckState({elset: dict(per_tissue[tissue]) for elset, tissue in self.set_tissue.items()},
+                             laws={elset: self.tissue_laws[tissue] for elset, tissue in self.set_tissue.items()},
                              groups=self.groups)
-        for j, (name, elsets) in enumerate((("C10_fat", ["FAT"]), ("C10_muscle", self.muscle_sets),
-                                            ("Kv_fat", ["FAT"]), ("Kv_muscle", self.muscle_sets))):
-            constant = "C10" if j < 2 else "KV"
-            state.sensitivity[name] = [(f"MATERIAL, {elset}, {constant}", 1.0 / KPA_PER_MPA) for elset in elsets]
+        for name in self.law_parameters:
+            constant, tissue = name.split("_", 1)
+            state.sensitivity[name] = []
+            for elset in (e for e, t in self.set_tissue.items() if t == tissue):
+                engine_name, factor = engine_constant(self.tissue_laws[tissue], constant, per_tissue[tissue])
+                state.sensitivity[name].append((f"MATERIAL, {elset}, {engine_name}", factor))
+        values = dict(zip(self.space.names[self.law_size:], theta[self.law_size:]))
         values = dict(zip(self.space.names[4:], theta[4:]))
         element_sets = list(state.constants) + [group.name for group in self.groups]
         for name in self.effects:
@@ -268,8 +342,8 @@ class LegModel:
         for name, fixed in self.fixed_effects.items():
             effect(name).apply(state, dict(fixed))
         # the compartments effect scales C10 of a compartment by (1 + c): du/dC10_muscle gets that factor
-        state.sensitivity["C10_muscle"] = [(line, f * state.c10_factor.get(line, 1.0))
-                                           for line, f in state.sensitivity["C10_muscle"]]
+        for name in self.law_parameters:
+            state.sensitivity[name] = [(line, f * state.c10_factor.get(line, 1.0)) for line, f in state.sensitivity[name]]
         if self.groups:
             split_into_groups(state)
         return state
@@ -291,7 +365,7 @@ class LegModel:
                               tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
                               tuple(lines))
         stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
-        materials = {elset: ("AVRIL", tuple(c) if stiffening else tuple(c[:2])) for elset, c in state.constants.items()}
+        materials = {elset: deck_material(state.laws[elset], c, stiffening) for elset, c in state.constants.items()}
         if self.band is not None:
             if tension != self.tension_N_per_mm:
                 raise ValueError("the explicit garment's tension is the band's (LegModel.tension_N_per_mm): make a "

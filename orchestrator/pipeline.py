@@ -23,7 +23,6 @@ from dataclasses import asdict
 from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, residual_maps, settle_ties, weigh_local,
                        summarize_fit)
 from .figures import diagnosis_figure
-from .forward import TABLE2_CENTRAL_KPA
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_uncertainty, table1_starts)
 from .geometry_uncertainty import INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, geometry_covariance
@@ -123,7 +122,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
             run_measure(case_dir, run_dir, window_px=window_px)
         measured = setup.measurements(source)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
-    base = list(start) if start is not None else list(TABLE2_CENTRAL_KPA)
+    base = list(start) if start is not None else setup.model.base_start
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
 
     def fit_from(points, scorer, stage):

@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from .forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
+from .forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
@@ -270,10 +270,11 @@ def assign_compartments(mesh: Mesh, compartment_labels: np.ndarray, pixel_size_m
 
 
 def case_model(mesh: Mesh, case: Case, **options) -> LegModel:
-    """The leg model the case's [model] table asks for (garment, friction, u/p elements) on mesh."""
+    """The leg model the case's [model] table asks for (garment, friction, u/p elements, the tissues' laws) on
+    mesh."""
     choice = case.model
     return LegModel(mesh, case.tension_N_per_mm, garment=choice.garment, friction_mu=choice.friction,
-                    hybrid=choice.hybrid, **options)
+                    hybrid=choice.hybrid, tissues=dict(choice.tissues), **options)
 
 
 def load_run(run_dir: str | Path) -> RunSetup:
@@ -311,6 +312,7 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
                       points_sigma_mm: float = 0.02, noise_seeds: tuple[int, int] = (0, 1), rigid: RigidMotion | None = None,
                       effects: dict[str, dict[str, float]] | None = None, labels: str = "segmented",
                       edit_deck=None, phantom=None, garment: str = "laplace", friction_mu: float = 0.0,
+                      tissues: dict | None = None, hybrid: bool = False,
                       overwrite: bool = False) -> tuple[Path, Path]:
     """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text).
 
@@ -320,7 +322,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     (`orchestrator.phantom.write_case`). edit_deck(deck_text, mesh) -> deck_text: physics outside the catalog
     written into the truth's deck directly (how a case with an unknown effect is made). phantom: the
     `orchestrator.phantom.CalfPhantom` to render (default: the standard calf and scanner). garment, friction_mu:
-    the truth's garment, Laplace's law or the explicit band with that friction (`forward.LegModel`)."""
+    the truth's garment, Laplace's law or the explicit band with that friction; tissues, hybrid: the tissues' laws
+    (theta_kPa then holds their free constants) and u/p elements (`forward.LegModel`)."""
     from .phantom import CalfPhantom, write_case
     from .results import EngineResults
     from .runner import run_engine
@@ -328,7 +331,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     effects = {name: dict(values) for name, values in (effects or {}).items()}
     phantom = phantom or CalfPhantom()
     mesh = truth_mesh(phantom, compartments="compartments" in effects, n_elements=n_elements, order=order)
-    model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects, garment=garment, friction_mu=friction_mu)
+    model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects, garment=garment, friction_mu=friction_mu,
+                     tissues=tissues, hybrid=hybrid)
     with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
@@ -341,10 +345,13 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
         nodal = leg_rows(EngineResults(outcome.outdir).displacement(), len(mesh.nodes))
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
-    truth = {"parameters_kPa": dict(zip(LEG_PARAMETERS, map(float, theta_kPa))), "tension_N_per_mm": tension_N_per_mm,
-             "law": "AVRIL (Avril et al. eq. 2)", "effects": effects, "deck_edited": edit_deck is not None,
+    laws = {tissue: {"law": law.law, "terms": law.terms, "incompressible": law.incompressible, "fixed": dict(law.fixed)}
+            for tissue, law in model.tissue_laws.items()}
+    truth = {"parameters_kPa": dict(zip(model.law_parameters, map(float, theta_kPa))),
+             "tension_N_per_mm": tension_N_per_mm, "laws": laws,
+             "effects": effects, "deck_edited": edit_deck is not None,
              "garment": garment, "friction_mu": friction_mu,
-             "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type},
+             "engine_mesh": {"elements": len(mesh.elements), "type": mesh.element_type + ("H" if hybrid else "")},
              "max_displacement_mm": float(np.abs(field).max())}
     case, truth_dir = write_case(folder, phantom, field, rigid=rigid, truth_folder=truth_folder,
                                  tension_N_per_mm=tension_N_per_mm, points_spacing_mm=points_spacing_mm,

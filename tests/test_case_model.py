@@ -42,7 +42,7 @@ def _case_toml(folder: Path, model: str) -> Path:
     ('[model]\ngarment = "explicit"\nfriction = -0.1\n', "friction = -0.1", "between 0"),
     ('[model]\ngarment = "explicit"\nfriction = "high"\n', "friction = 'high'", "between 0"),
     ('[model]\nfriction = 0.3\n', "needs the explicit garment", 'garment = "explicit"'),
-    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "element, friction, garment"),
+    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "element, garment, friction"),
 ])
 def test_model_table_errors_name_the_file_and_the_fix(tmp_path, model, fragment, fix):
     folder = _case_toml(tmp_path / "case", model)

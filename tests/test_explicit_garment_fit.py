@@ -16,8 +16,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.forward import LEG_BOUNDS_KPA, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, write_mesh_include
+from orchestrator.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, write_mesh_include
 from orchestrator.identify import levenberg_marquardt
+from orchestrator.materials import AVRIL_BOUNDS_KPA
 from orchestrator.meshing import leg_slice_mesh
 from orchestrator.objectives import DisplacementResidualObjective
 from orchestrator.results import EngineResults
@@ -31,7 +32,8 @@ N_POINTS = 150
 def _truth(seed: int) -> np.ndarray:
     """Parameters drawn log-uniformly in the middle half of the physiological box (kPa)."""
     rng = np.random.default_rng(seed)
-    low, high = np.log(np.array(LEG_BOUNDS_KPA)).T
+    box = [AVRIL_BOUNDS_KPA[tissue][constant] for constant, tissue in (name.split("_") for name in LEG_PARAMETERS)]
+    low, high = np.log(np.array(box)).T
     middle = 0.5 * (low + high)
     return np.exp(middle + 0.5 * (high - low) * rng.uniform(-0.5, 0.5, 4))
 

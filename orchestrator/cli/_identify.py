@@ -1,7 +1,7 @@
 """Identify the tissue parameters of a case (Avril et al. sec. 2.2.5; Bouten and Drapier sec. 2.6).
 
     calfit identify CASE_DIR --out RUN_DIR [--method lm|nm] [--objective auto|displacement|contour]
-                    [--data auto|dic|points] [--window 16|32|64] [--starts one|table1] [--start C10f C10m Kvf Kvm]
+                    [--data auto|dic|points] [--window 16|32|64] [--starts one|table1] [--start KPA ...]
                     [--elements N] [--order 1|2] [--effects NAME[,NAME]] [--skin-uncertainty MM]
                     [--workers N] [--scheduler ADDRESS] [--json] [--quiet]
 
@@ -45,8 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--window", type=int, choices=WINDOW_CHOICES, default=DEFAULT_WINDOW_PX,
                         help=f"DIC window side in pixels when the displacements are measured here (default {DEFAULT_WINDOW_PX})")
     parser.add_argument("--starts", choices=("one", "table1"), default="one", help="one start, or the starts of Table 1")
-    parser.add_argument("--start", type=float, nargs=4, metavar=("C10F", "C10M", "KVF", "KVM"),
-                        help="initial values in kPa (default: Avril et al. Table 2 central values)")
+    parser.add_argument("--start", type=float, nargs="+", metavar="KPA",
+                        help="initial values of the laws' free constants in kPa, in the order of the fit's parameter "
+                             "names (C10_fat C10_muscle Kv_fat Kv_muscle for the first paper's law; default: case.toml's "
+                             "start, else Avril et al. Table 2 central values)")
     parser.add_argument("--elements", type=int, help="elements of the identification mesh (default 1000; 400 with "
                                                      "--objective contour)")
     parser.add_argument("--order", type=int, choices=(1, 2),

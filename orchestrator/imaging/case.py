@@ -30,6 +30,7 @@ import numpy as np
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
 from .dicom_series import IMAGES_KEYS, PIXEL_SIZE_RTOL, read_image_pair
 from .errors import CaseError
+from ..materials import LAWS, MaterialError, TissueLaw, tissue_set
 
 FAT, MUSCLE, BONE = 1, 2, 3
 FIRST_COMPARTMENT = 4
@@ -41,8 +42,10 @@ _TOML_SCHEMA = {
     "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
     "landmarks": None,  # any name
     "images": set(IMAGES_KEYS),  # which slice of a DICOM series
-    "model": {"element", "garment", "friction"},
+    "model": None,   # element, garment, friction and a table per tissue: checked by _model_choice
 }
+MODEL_KEYS = ("element", "garment", "friction")
+TISSUE_KEYS = ("law", "terms", "incompressible", "fixed", "bounds", "start")
 ELEMENTS = {"CPE3": 1, "CPE6": 2, "CPE6H": 2}   # element -> order of the mesh
 GARMENTS = ("laplace", "explicit")
 
@@ -50,12 +53,14 @@ GARMENTS = ("laplace", "explicit")
 @dataclass(frozen=True)
 class ModelChoice:
     """The [model] table of case.toml: the element (None: the run's default, CPE6 for displacement data, CPE3 for
-    contours), the garment (Laplace's law, or the second paper's explicit band with penalty contact) and the
-    band's Coulomb friction coefficient."""
+    contours), the garment (Laplace's law, or the second paper's explicit band with penalty contact), the
+    band's Coulomb friction coefficient and the law of each tissue with a [model.<tissue>] table
+    (`materials.TissueLaw` by tissue name; the others keep the first paper's law)."""
 
     element: str | None = None
     garment: str = "laplace"
     friction: float = 0.0
+    tissues: dict = field(default_factory=dict)
 
     @property
     def order(self) -> int | None:
@@ -204,7 +209,62 @@ def _model_choice(path: Path, table: dict) -> ModelChoice:
     if friction > 0.0 and garment != "explicit":
         raise CaseError(path, "[model] friction needs the explicit garment (Laplace's law has no tangential traction)",
                         "add garment = \"explicit\" or remove friction")
-    return ModelChoice(element, garment, float(friction))
+    tissues = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            tissues[key] = _tissue_law(path, key, value, element)
+        elif key not in MODEL_KEYS:
+            raise CaseError(path, f"[model] has an unknown key '{key}'",
+                            f"use only {', '.join(MODEL_KEYS)} and a [model.<tissue>] table per tissue")
+    return ModelChoice(element, garment, float(friction), tissues)
+
+
+def _tissue_law(path: Path, tissue: str, table: dict, element: str | None) -> TissueLaw:
+    """[model.<tissue>] as a TissueLaw (docs/case-folder.md, "The model")."""
+    where = f"[model.{tissue}]"
+    try:
+        tissue_set(tissue)
+    except MaterialError:
+        raise CaseError(path, f"{where} is not a tissue", "name the table [model.fat], [model.muscle] or "
+                        "[model.compartment<label>] for a compartment labelled >= 4 in labels.png") from None
+    unknown = sorted(set(table) - set(TISSUE_KEYS))
+    if unknown:
+        raise CaseError(path, f"{where} has an unknown key '{unknown[0]}'", f"use only {', '.join(TISSUE_KEYS)}")
+    law = table.get("law", "avril")
+    if law not in LAWS:
+        raise CaseError(path, f"{where} law = {law!r} is not a law calfit fits", f"write one of {', '.join(LAWS)}")
+    terms, incompressible = table.get("terms"), table.get("incompressible", False)
+    if terms is not None and (isinstance(terms, bool) or not isinstance(terms, int)):
+        raise CaseError(path, f"{where} terms = {terms!r} is not a whole number", "write terms = 2 or terms = 3")
+    if not isinstance(incompressible, bool):
+        raise CaseError(path, f"{where} incompressible = {incompressible!r} is not true or false",
+                        "write incompressible = true (D1 = 0) or leave it out")
+    if incompressible and element != "CPE6H":
+        raise CaseError(path, f"{where} is incompressible, which displacement elements lock on",
+                        "add element = \"CPE6H\" (u/p elements) to [model]")
+    values = {}
+    for key in ("fixed", "bounds", "start"):
+        entries = table.get(key, {})
+        if not isinstance(entries, dict):
+            raise CaseError(path, f"{where} {key} is not a table of constants",
+                            f"write {key} = {{ C10 = {'[0.5, 20]' if key == 'bounds' else '1.2'} }} (kPa)")
+        for name, value in entries.items():
+            pair = key == "bounds"
+            good = (isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value)) if pair \
+                else _is_number(value)
+            if not good:
+                raise CaseError(path, f"{where} {key}.{name} = {value!r} is not {'[lower, upper]' if pair else 'a number'}",
+                                f"write {name} = {'[lower, upper]' if pair else '<value>'} in kPa")
+        values[key] = {name: (tuple(map(float, v)) if key == "bounds" else float(v)) for name, v in entries.items()}
+    try:
+        return TissueLaw(law, terms, incompressible, **values)
+    except MaterialError as error:
+        raise CaseError(path, f"{where}: {error}", "name only the law's constants (C10, C01, C20, C30, Kv), in kPa") \
+            from None
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _find_file(folder: Path, stem: str, required: bool) -> Path | None:

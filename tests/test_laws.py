@@ -1,0 +1,132 @@
+"""Laws per tissue (issue 13, item 1; orchestrator/materials.py, docs/case-folder.md "The model"): case.toml's
+[model.<tissue>] tables, the parameters they make, the deck materials they write, and the engine sensitivities
+mapped onto them (Kv of a D1 law through D1 = 1/Kv).
+
+- Errors name case.toml, the table and the fix.
+- Parameter names `<constant>_<tissue>`, by constant then tissue; the first paper's model keeps its four.
+- Deck materials: MOONEY-RIVLIN, POLYNOMIAL N=2 (three terms), NEO HOOKE with D1 = 0, REDUCED POLYNOMIAL when
+  the stiffening effect adds C20 to neo_hooke; refused: stiffening on a law that has C20, incompressible on
+  displacement elements.
+- du/dtheta of C10, C01 and Kv (kPa) of a Mooney-Rivlin fat and of a neo-Hookean muscle from the engine's
+  sensitivities and `LegModel.sensitivity_map` equal central differences of engine runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orchestrator.forward import LEG_PARAMETERS, LegModel, write_mesh_include
+from orchestrator.imaging.case import read_model_choice
+from orchestrator.imaging.errors import CaseError
+from orchestrator.materials import MaterialError, TissueLaw
+from orchestrator.phantom import CalfPhantom
+from orchestrator.results import EngineResults
+from orchestrator.runner import run_engine
+from orchestrator.study import truth_mesh
+
+
+def _case_toml(folder: Path, model: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "case.toml").write_text('[case]\nname = "m"\npixel_size_mm = [0.5, 0.5]\n[garment]\n'
+                                      f'tension_N_per_mm = 0.16\n{model}')
+    return folder
+
+
+@pytest.mark.parametrize("model, fragment, fix", [
+    ('[model.bone]\nlaw = "neo_hooke"\n', "[model.bone] is not a tissue", "[model.compartment<label>]"),
+    ('[model.fat]\nlaw = "ogden"\n', "law = 'ogden'", "mooney_rivlin"),
+    ('[model.fat]\nlaw = "avril"\nterms = 3\n', "no terms option", "C10, C01"),
+    ('[model.muscle]\nlaw = "mooney_rivlin"\nincompressible = true\n', "incompressible", 'element = "CPE6H"'),
+    ('[model.fat]\nlaw = "neo_hooke"\nfixed = { C01 = 1.0 }\n', "names C01, which neo_hooke has not", "Kv"),
+    ('[model.fat]\nlaw = "mooney_rivlin"\nbounds = { C10 = [2.0] }\n', "bounds.C10", "[lower, upper]"),
+    ('[model.fat]\nlaw = "mooney_rivlin"\nstiffness = 2\n', "unknown key 'stiffness'", "law, terms"),
+    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "[model.<tissue>]"),
+])
+def test_tissue_tables_errors_name_the_file_the_table_and_the_fix(tmp_path, model, fragment, fix):
+    with pytest.raises(CaseError) as error:
+        read_model_choice(_case_toml(tmp_path / "case", model))
+    message = str(error.value)
+    assert "case.toml" in message and fragment in message and fix in message
+
+
+def test_tissue_tables_are_read(tmp_path):
+    choice = read_model_choice(_case_toml(tmp_path / "case", '[model]\nelement = "CPE6H"\n[model.fat]\n'
+                                          'law = "mooney_rivlin"\nterms = 3\nincompressible = true\n'
+                                          'fixed = { C20 = -0.04 }\nbounds = { C10 = [0.5, 5] }\nstart = { C01 = 0.8 }\n'
+                                          '[model.muscle]\nlaw = "neo_hooke"\n'))
+    assert choice.tissues == {"fat": TissueLaw("mooney_rivlin", 3, True, {"C20": -0.04}, {"C10": (0.5, 5.0)},
+                                               {"C01": 0.8}),
+                              "muscle": TissueLaw("neo_hooke")}
+
+
+@pytest.fixture(scope="module")
+def leg_mesh():
+    return truth_mesh(CalfPhantom(), n_elements=600, order=2, supersampling=1)
+
+
+def _material_block(deck: str, name: str) -> tuple[str, list[float]]:
+    lines = deck.splitlines()
+    at = lines.index(f"*MATERIAL, NAME={name}")
+    return lines[at + 1], [float(v) for v in lines[at + 2].split(",")]
+
+
+def test_laws_make_their_parameters_and_deck_materials(leg_mesh):
+    default = LegModel(leg_mesh, 0.16)
+    assert default.space.names == LEG_PARAMETERS and default.base_start == [4.5, 11.2, 106.0, 69.5]
+    assert _material_block(default.deck([4.5, 11.2, 106.0, 69.5]), "FAT") == ("*HYPERELASTIC, AVRIL", [0.0045, 0.106])
+
+    tissues = {"fat": TissueLaw("mooney_rivlin", 3, fixed={"C20": -0.04}),
+               "muscle": TissueLaw("neo_hooke", incompressible=True)}
+    model = LegModel(leg_mesh, 0.16, tissues=tissues, hybrid=True)
+    assert model.space.names == ("C10_fat", "C10_muscle", "C01_fat", "Kv_fat")
+    assert model.space.linear == (False,) * 4
+    deck = model.deck([1.4, 0.9, 1.0, 50.0])
+    assert _material_block(deck, "FAT") == ("*HYPERELASTIC, POLYNOMIAL, N=2",
+                                            pytest.approx([1.4e-3, 1.0e-3, -4e-5, 0.0, 0.0, 1 / 0.05, 0.0]))
+    assert _material_block(deck, "MUSCLE") == ("*HYPERELASTIC, NEO HOOKE", [0.9e-3, 0.0])
+
+    stiffened = LegModel(leg_mesh, 0.16, tissues={"fat": TissueLaw("neo_hooke")}, effects=("stiffening",))
+    assert stiffened.space.names == ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle", "C20_fat", "C20_muscle")
+    header, constants = _material_block(stiffened.deck([2.0, 11.0, 100.0, 70.0, 300.0, 0.0]), "FAT")
+    assert header == "*HYPERELASTIC, REDUCED POLYNOMIAL, N=2" and constants == pytest.approx([2e-3, 0.3, 1 / 0.1, 0.0])
+
+    free_c20 = LegModel(leg_mesh, 0.16, tissues={"muscle": TissueLaw("reduced_polynomial", 3)})
+    assert free_c20.space.names[:6] == ("C10_fat", "C10_muscle", "C20_muscle", "C30_muscle", "Kv_fat", "Kv_muscle")
+    assert free_c20.space.linear[2:4] == (True, True) and free_c20.base_start[2:4] == [0.0, 0.0]
+
+    with pytest.raises(MaterialError, match="C20 already"):
+        LegModel(leg_mesh, 0.16, tissues={"fat": tissues["fat"]}, effects=("stiffening",))
+    with pytest.raises(MaterialError, match="CPE6H"):
+        LegModel(leg_mesh, 0.16, tissues={"muscle": tissues["muscle"]})
+    with pytest.raises(MaterialError, match="no COMPARTMENT7 elements"):
+        LegModel(leg_mesh, 0.16, tissues={"compartment7": TissueLaw("neo_hooke")})
+
+
+def _engine_displacement(model: LegModel, theta, folder: Path) -> EngineResults:
+    folder.mkdir(parents=True, exist_ok=True)
+    write_mesh_include(model, folder)
+    (folder / "deck.inp").write_text(model.deck(theta))
+    outcome = run_engine(folder / "deck.inp", folder / "out", threads=1, timeout_s=120)
+    assert outcome.converged
+    return EngineResults(outcome.outdir)
+
+
+def test_sensitivities_of_the_laws_constants_match_differences_of_runs(leg_mesh, tmp_path):
+    tissues = {"fat": TissueLaw("mooney_rivlin"), "muscle": TissueLaw("neo_hooke")}
+    model = LegModel(leg_mesh, 0.16, tissues=tissues, engine_sensitivities=True)
+    theta = np.array([2.0, 9.0, 1.2, 90.0, 60.0])   # C10 fat, C10 muscle, C01 fat, Kv fat, Kv muscle (kPa)
+    assert model.space.names == ("C10_fat", "C10_muscle", "C01_fat", "Kv_fat", "Kv_muscle")
+    engine = _engine_displacement(model, theta, tmp_path / "at").sensitivities()
+    plain = LegModel(leg_mesh, 0.16, tissues=tissues)
+    for j, (name, terms) in enumerate(model.sensitivity_map(theta).items()):
+        analytic = sum(factor * engine[line] for line, factor in terms)
+        step = 1e-3 * theta[j]
+        shifted = [_engine_displacement(plain, theta + sign * step * np.eye(len(theta))[j],
+                                        tmp_path / f"{name}{sign:+d}").displacement() for sign in (1, -1)]
+        difference = (shifted[0] - shifted[1]) / (2 * step)
+        error = np.abs(analytic[:len(difference)] - difference).max() / np.abs(difference).max()
+        print(f"{name}: max |du/dtheta| {np.abs(difference).max():.3e} mm/kPa, relative error {error:.1e}")
+        assert error < 1e-4, name
