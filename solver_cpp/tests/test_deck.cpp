@@ -1,6 +1,6 @@
 // Deck reader unit tests: keyword/parameter parsing, continuation lines, *INCLUDE with
-// the included file's own line numbers, GENERATE sets, OP=NEW, and errors that name
-// the file and line.
+// the included file's own line numbers, GENERATE sets, OP=NEW, *HYPERELASTIC, POLYNOMIAL
+// (two data lines for N = 3), and errors that name the file and line.
 #include "check.hpp"
 #include "model/model.hpp"
 
@@ -106,6 +106,41 @@ int main() {
   std::cout << conflict_message << '\n';
   CHECK(conflict_message.find("conflict.inp:12:") != std::string::npos);
   CHECK(conflict_message.find("(line 9)") != std::string::npos);
+
+  // *HYPERELASTIC, POLYNOMIAL: CalculiX's order and, for N = 3, its two data lines (8 constants, then 4).
+  auto polynomial = [&](const std::string& name, const std::string& law_lines) {
+    return write(name, "*INCLUDE, INPUT=mesh.inp\n*MATERIAL, NAME=m\n" + law_lines +
+                           "*SOLID SECTION, ELSET=E, MATERIAL=M\n*STEP, NLGEOM\n*STATIC\n*END STEP\n");
+  };
+  const Model p3 = build_model(polynomial("poly3.inp", "*HYPERELASTIC, POLYNOMIAL, N=3\n"
+                                                       "0.8, 0.3, -0.04, 0.05, 0.02, 0.01, -0.03, 0.015\n"
+                                                       "0.006, 0.1, 0.5, 2.0\n"));
+  const LawConstants& c3 = p3.materials[0].constants;
+  CHECK(c3.law == "POLYNOMIAL" && c3.values.size() == 12);
+  CHECK(c3.values[c3.index("C20")] == -0.04 && c3.values[c3.index("C03")] == 0.006 && c3.values[c3.index("D3")] == 2.0);
+  // D1 = 0 is the incompressible law, as for MOONEY-RIVLIN: the displacement elements refuse it.
+  CHECK(error_of(polynomial("poly2.inp", "*HYPERELASTIC, POLYNOMIAL, N=2\n1, 0.1, -0.04, 0, 0, 0, 0\n"))
+            .find("is incompressible (D = 0)") != std::string::npos);
+  const std::string wrong_count = error_of(polynomial("poly_count.inp", "*HYPERELASTIC, POLYNOMIAL, N=2\n1, 0.1, 0.1\n"));
+  std::cout << wrong_count << '\n';
+  CHECK(wrong_count.find("poly_count.inp:4:") != std::string::npos);
+  CHECK(wrong_count.find("C10, C01, C20, C11, C02, D1, D2): expected 7 values, found 3") != std::string::npos);
+  const std::string one_line = error_of(polynomial("poly_one_line.inp", "*HYPERELASTIC, POLYNOMIAL, N=3\n"
+                                                                        "1, 0, 0, 0, 0, 0, 0, 0, 0, 0.1, 0, 0\n"));
+  std::cout << one_line << '\n';
+  CHECK(one_line.find("poly_one_line.inp:4:") != std::string::npos && one_line.find("2 data lines") != std::string::npos);
+  const std::string short_first = error_of(polynomial("poly_short.inp", "*HYPERELASTIC, POLYNOMIAL, N=3\n"
+                                                                        "1, 0, 0, 0, 0, 0, 0\n0, 0, 0.1, 0, 0\n"));
+  std::cout << short_first << '\n';
+  CHECK(short_first.find("poly_short.inp:4:") != std::string::npos &&
+        short_first.find("expected 8 values, found 7") != std::string::npos);
+  const std::string soft = error_of(polynomial("poly_soft.inp", "*HYPERELASTIC, POLYNOMIAL, N=1\n0.1, -0.2, 0.1\n"));
+  CHECK(soft.find("poly_soft.inp:4: C10 + C01") != std::string::npos);
+  const std::string negative_d = error_of(polynomial("poly_d.inp", "*HYPERELASTIC, POLYNOMIAL, N=3\n"
+                                                                   "1, 0, 0, 0, 0, 0, 0, 0\n0, 0.1, -1, 0\n"));
+  CHECK(negative_d.find("poly_d.inp:5: D2 must be >= 0") != std::string::npos);
+  CHECK(error_of(polynomial("poly_n.inp", "*HYPERELASTIC, POLYNOMIAL, N=4\n1, 0, 0.1\n")).find("N = 1, 2 or 3") !=
+        std::string::npos);
 
   const std::string unknown = write("unknown.inp", "*NODE\n1, 0, 0\n*FOO, BAR=1\n");
   CHECK(error_of(unknown).find("unknown.inp:3: unknown keyword *FOO") != std::string::npos);

@@ -1,10 +1,12 @@
 // Material unit tests: stress against central finite differences of the energy,
 // tangent against central finite differences of the stress, and a stress-free
-// reference state, for every law calfit-fe reads, at plane-strain and general C.
+// reference state, for every law calfit-fe reads, at plane-strain and general C; and the
+// polynomial law against the Mooney-Rivlin and reduced polynomial laws it contains.
 #include "check.hpp"
 #include "material/laws.hpp"
 
 #include <memory>
+#include <string>
 #include <vector>
 
 using namespace calfit;
@@ -35,6 +37,9 @@ std::vector<Law> laws() {
       {"Avril with C20",
        split(make_shared<ReducedPolynomialIsochoric>(std::vector<double>{1.0, 0.35}), make_shared<LogVolumetric>(10.0))},
       {"St Venant-Kirchhoff", make_shared<StVenantKirchhoff>(10.0, 0.3)},
+      // Every term of the polynomial law, a softening C20 < 0 and negative mixed terms among them.
+      {"polynomial N=3", make_law({"POLYNOMIAL", law_constant_names("POLYNOMIAL", 3),
+                                   {0.8, 0.3, -0.04, 0.05, 0.02, 0.01, -0.03, 0.015, 0.006, 0.1, 0.5, 2.0}})},
   };
 }
 
@@ -106,6 +111,32 @@ int main() {
     CHECK_NEAR(D(0, 0), K + 4.0 * mu / 3.0, 1e-10);
     CHECK_NEAR(D(0, 1), K - 2.0 * mu / 3.0, 1e-10);
     CHECK_NEAR(D(3, 3), mu, 1e-10);
+  }
+  // POLYNOMIAL: C10, C01, C20, C11, C02, ... in CalculiX's order; N = 1 is MOONEY-RIVLIN and, with
+  // C01 = C11 = C02 = 0, N = 2 is REDUCED POLYNOMIAL, N = 2: the same stress and tangent to round-off.
+  {
+    CHECK(law_constant_names("POLYNOMIAL", 2) ==
+          std::vector<std::string>({"C10", "C01", "C20", "C11", "C02", "D1", "D2"}));
+    CHECK(law_constant_names("POLYNOMIAL", 3).size() == 12 && law_constant_names("POLYNOMIAL", 3)[8] == "C03");
+    auto same = [](const Material& a, const Material& b, const Mat3& F) {
+      const Mat3 C = F.transpose() * F;
+      Mat3 Sa, Sb;
+      Mat6 Da, Db;
+      a.stress(C, Sa, &Da);
+      b.stress(C, Sb, &Db);
+      CHECK((Sa - Sb).cwiseAbs().maxCoeff() <= 1e-13 * Sa.cwiseAbs().maxCoeff());
+      CHECK((Da - Db).cwiseAbs().maxCoeff() <= 1e-13 * Da.cwiseAbs().maxCoeff());
+      CHECK_NEAR(a.energy(C), b.energy(C), 1e-14);
+    };
+    const auto polynomial1 = make_law({"POLYNOMIAL", law_constant_names("POLYNOMIAL", 1), {0.8, 0.3, 0.05}});
+    const auto mooney = make_law({"MOONEY-RIVLIN", law_constant_names("MOONEY-RIVLIN"), {0.8, 0.3, 0.05}});
+    const auto polynomial2 =
+        make_law({"POLYNOMIAL", law_constant_names("POLYNOMIAL", 2), {1.0, 0.0, 0.4, 0.0, 0.0, 0.1, 0.5}});
+    const auto reduced = make_law({"REDUCED POLYNOMIAL", law_constant_names("REDUCED POLYNOMIAL", 2), {1.0, 0.4, 0.1, 0.5}});
+    same(*polynomial1, *mooney, plane);
+    same(*polynomial1, *mooney, general);
+    same(*polynomial2, *reduced, plane);
+    same(*polynomial2, *reduced, general);
   }
   return calfit::testing::tally().finish();
 }

@@ -115,9 +115,12 @@ struct SectorCase {
       d << "*MATERIAL, NAME=" << name << "\n";
       d << (law == "ELASTIC" ? "*ELASTIC\n" : "*HYPERELASTIC, " + law + "\n");
       const std::string base = law.substr(0, law.find(','));
-      const int order = base == "REDUCED POLYNOMIAL" ? std::stoi(law.substr(law.find("N=") + 2)) : 1;
+      const bool ordered = base == "REDUCED POLYNOMIAL" || base == "POLYNOMIAL";
+      const int order = ordered ? std::stoi(law.substr(law.find("N=") + 2)) : 1;
       const std::vector<std::string> names = law_constant_names(base, order);
-      for (std::size_t k = 0; k < names.size(); ++k) d << (k ? ", " : "") << number(values.at(names[k]));
+      // 8 constants a data line, the rest on the next (CalculiX's layout: POLYNOMIAL, N=3).
+      for (std::size_t k = 0; k < names.size(); ++k)
+        d << (k == 0 ? "" : k % 8 == 0 ? "\n" : ", ") << number(values.at(names[k]));
       d << "\n*SOLID SECTION, ELSET=" << name << ", MATERIAL=" << name << "\n";
     };
     material("MUSCLE", muscle_law, muscle);
@@ -345,6 +348,18 @@ int main() {
   check_residual_derivatives(b, "polynomial-arruda-cpe6");
   b.element_type = "CPE6H";
   check_residual_derivatives(b, "polynomial-arruda-cpe6h");
+
+  // POLYNOMIAL with every term (N = 3: two data lines) and with the three-term Mooney-Rivlin of N = 2
+  // (C20 < 0, C11 = C02 = 0: the mixed terms at 0).
+  SectorCase d;
+  d.muscle_law = "POLYNOMIAL, N=3";
+  d.muscle = {{"C10", 0.4},   {"C01", 0.1},   {"C20", -0.02}, {"C11", 0.03}, {"C02", 0.01}, {"C30", 0.005},
+              {"C21", -0.01}, {"C12", 0.004}, {"C03", 0.002}, {"D1", 0.2},   {"D2", 0.5},   {"D3", 1.0}};
+  d.fat_law = "POLYNOMIAL, N=2";
+  d.fat = {{"C10", 0.3}, {"C01", 0.05}, {"C20", -0.01}, {"C11", 0.0}, {"C02", 0.0}, {"D1", 0.3}, {"D2", 1.0}};
+  check_residual_derivatives(d, "polynomial-cpe6");
+  d.element_type = "CPE6H";
+  check_residual_derivatives(d, "polynomial-cpe6h");
 
   SectorCase c;
   c.muscle_law = "NEO HOOKE";

@@ -88,10 +88,11 @@ private:
   // ---- model_materials.cpp: *MATERIAL, *HYPERELASTIC, *ELASTIC, *SOLID SECTION ---------------------------------
   void material(const KeywordBlock& b);
   void check_material_complete() const;
-  const DataLine& single_data_line(const KeywordBlock& b);
+  static constexpr std::size_t kConstantsPerLine = 8;  // CalculiX's material data lines
+  std::vector<DataLine> law_data_lines(const KeywordBlock& b, std::size_t count);
   void set_law(LawConstants constants);
-  static LawConstants read_constants(const DataLine& line, const std::string& law, int order, const std::string& what,
-                                     std::size_t optional = 0);
+  LawConstants read_constants(const KeywordBlock& b, const std::string& law, int order, const std::string& what,
+                              std::size_t optional = 0);
   void hyperelastic(const KeywordBlock& b);
   void elastic(const KeywordBlock& b);
   void solid_section(const KeywordBlock& b);

@@ -42,6 +42,52 @@ std::string MooneyRivlinIsochoric::description() const {
   return out.str();
 }
 
+namespace {
+
+// x^n for n >= 0 by repeated products: exact for the small integer exponents of the polynomial law,
+// and 0^0 = 1 (std::pow would take a logarithm, and no term here needs a negative power).
+double power(double x, int n) {
+  double r = 1.0;
+  for (int k = 0; k < n; ++k) r *= x;
+  return r;
+}
+
+}  // namespace
+
+// Term by term, with x = I1bar - 3, y = I2bar - 3:
+//   d/dx c x^i y^j = c i x^(i-1) y^j,  d/dy = c j x^i y^(j-1), and so on; a derivative that lowers an
+// exponent below 0 vanishes (the term does not depend on that invariant).
+IsochoricDerivatives PolynomialIsochoric::evaluate(double I1bar, double I2bar) const {
+  IsochoricDerivatives w;
+  const double x = I1bar - 3.0, y = I2bar - 3.0;
+  for (const Term& t : terms_) {
+    const double i = t.i, j = t.j;
+    w.W += t.c * power(x, t.i) * power(y, t.j);
+    if (t.i >= 1) w.W1 += t.c * i * power(x, t.i - 1) * power(y, t.j);
+    if (t.j >= 1) w.W2 += t.c * j * power(x, t.i) * power(y, t.j - 1);
+    if (t.i >= 2) w.W11 += t.c * i * (i - 1.0) * power(x, t.i - 2) * power(y, t.j);
+    if (t.i >= 1 && t.j >= 1) w.W12 += t.c * i * j * power(x, t.i - 1) * power(y, t.j - 1);
+    if (t.j >= 2) w.W22 += t.c * j * (j - 1.0) * power(x, t.i) * power(y, t.j - 2);
+  }
+  return w;
+}
+
+std::string PolynomialIsochoric::description() const {
+  std::ostringstream out;
+  out << "polynomial (";
+  for (std::size_t k = 0; k < terms_.size(); ++k)
+    out << (k ? ", " : "") << "C" << terms_[k].i << terms_[k].j << "=" << terms_[k].c;
+  out << ")";
+  return out.str();
+}
+
+std::vector<std::pair<int, int>> polynomial_exponents(int order) {
+  std::vector<std::pair<int, int>> exponents;
+  for (int degree = 1; degree <= order; ++degree)
+    for (int i = degree; i >= 0; --i) exponents.emplace_back(i, degree - i);
+  return exponents;
+}
+
 ArrudaBoyceIsochoric::ArrudaBoyceIsochoric(double mu, double lambda_m)
     : mu_(mu), lambda_m_(lambda_m), a_{0.5, 1.0 / 20.0, 11.0 / 1050.0, 19.0 / 7000.0, 519.0 / 673750.0} {}
 
@@ -126,6 +172,12 @@ std::vector<std::string> law_constant_names(const std::string& law, int order) {
   if (law == "ARRUDA-BOYCE") return {"MU", "LAMBDA_M", "D"};
   if (law == "AVRIL") return {"C10", "KV", "C20"};  // C20: 0 when the data line gives two values
   if (law == "ELASTIC") return {"E", "NU"};
+  if (law == "POLYNOMIAL") {  // C10, C01, C20, C11, C02, ... then D1..DN (CalculiX's order)
+    std::vector<std::string> names;
+    for (const auto& [i, j] : polynomial_exponents(order)) names.push_back("C" + std::to_string(i) + std::to_string(j));
+    for (int i = 1; i <= order; ++i) names.push_back("D" + std::to_string(i));
+    return names;
+  }
   if (law == "REDUCED POLYNOMIAL") {
     std::vector<std::string> names;
     for (int i = 1; i <= order; ++i) names.push_back("C" + std::to_string(i) + "0");
@@ -150,6 +202,20 @@ std::shared_ptr<const Material> make_law(const LawConstants& c) {
     return make_shared<SplitHyperelastic>(
         make_shared<ReducedPolynomialIsochoric>(std::vector<double>(v.begin(), v.begin() + static_cast<long>(n))),
         make_shared<PolynomialVolumetric>(std::vector<double>(v.begin() + static_cast<long>(n), v.end())));
+  }
+  if (c.law == "POLYNOMIAL") {
+    // The order is the number of D's; the Cij come first, in polynomial_exponents order.
+    const auto n = std::count_if(c.names.begin(), c.names.end(), [](const std::string& s) { return s[0] == 'D'; });
+    const std::vector<std::pair<int, int>> exponents = polynomial_exponents(static_cast<int>(n));
+    const auto split = static_cast<long>(exponents.size());
+    if (split + n != static_cast<long>(v.size()))
+      throw std::invalid_argument("constants of POLYNOMIAL do not match its order");
+    std::vector<PolynomialIsochoric::Term> terms;
+    for (std::size_t k = 0; k < exponents.size(); ++k)
+      terms.push_back({exponents[k].first, exponents[k].second, v[k]});
+    return make_shared<SplitHyperelastic>(
+        make_shared<PolynomialIsochoric>(std::move(terms)),
+        make_shared<PolynomialVolumetric>(std::vector<double>(v.begin() + split, v.end())));
   }
   if (c.law == "ARRUDA-BOYCE")  // CalculiX: U = [(J^2 - 1)/2 - ln J] / D
     return make_shared<SplitHyperelastic>(make_shared<ArrudaBoyceIsochoric>(v[0], v[1]),

@@ -6,6 +6,7 @@
 
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 namespace calfit {
@@ -31,6 +32,28 @@ public:
 private:
   double c10_, c01_;
 };
+
+// Polynomial W_iso = sum_{i+j=1..N} Cij (I1bar - 3)^i (I2bar - 3)^j (CalculiX manual, *HYPERELASTIC,
+// the polynomial strain energy potential; N <= 3 there). N = 1 is Mooney-Rivlin, C01 = C11 = C02 = ... = 0
+// the reduced polynomial. Any Cij may be negative, as in CalculiX (a softening C20, e.g.): the deck
+// reader only asks C10 + C01 > 0, the initial shear modulus / 2.
+class PolynomialIsochoric final : public IsochoricEnergy {
+public:
+  struct Term {
+    int i, j;  // exponents of (I1bar - 3) and (I2bar - 3)
+    double c;  // Cij
+  };
+  explicit PolynomialIsochoric(std::vector<Term> terms) : terms_(std::move(terms)) {}
+  IsochoricDerivatives evaluate(double I1bar, double I2bar) const override;
+  std::string description() const override;
+
+private:
+  std::vector<Term> terms_;
+};
+
+// The exponents (i, j) of the polynomial law's Cij for i + j = 1..order, in CalculiX's data-line order:
+// by degree, then i from high to low (C10, C01, C20, C11, C02, C30, C21, C12, C03).
+std::vector<std::pair<int, int>> polynomial_exponents(int order);
 
 // Arruda-Boyce W_iso = mu sum_i a_i / lambda_m^(2i-2) (I1bar^i - 3^i), i = 1..5, with
 // a = 1/2, 1/20, 11/1050, 19/7000, 519/673750 (CalculiX manual, *HYPERELASTIC).
@@ -74,7 +97,7 @@ private:
 };
 
 // A constitutive law as the deck gives it: the law's name (AVRIL, NEO HOOKE, MOONEY-RIVLIN,
-// REDUCED POLYNOMIAL, ARRUDA-BOYCE, ELASTIC) and its data-line constants, named as
+// POLYNOMIAL, REDUCED POLYNOMIAL, ARRUDA-BOYCE, ELASTIC) and its data-line constants, named as
 // solver_cpp/README.md names them (C10, D1, KV, ...), in data-line order. Kept with the
 // material so that a sensitivity parameter can rebuild the law with one constant changed.
 struct LawConstants {
@@ -84,7 +107,7 @@ struct LawConstants {
   int index(const std::string& name) const;  // -1 when the law has no constant of that name
 };
 
-// The constant names of a law in data-line order; REDUCED POLYNOMIAL takes its order N.
+// The constant names of a law in data-line order; POLYNOMIAL and REDUCED POLYNOMIAL take their order N.
 std::vector<std::string> law_constant_names(const std::string& law, int order = 1);
 
 // The law built from its constants. No range checks: the deck reader checks the values

@@ -50,10 +50,10 @@ SensitivityParameter material_constant(const Model& model, const DataLine& line)
   for (std::size_t i = 0; i < law.names.size(); ++i)
     if (law.names[i][0] == constant[0]) same_kind = std::max(same_kind, std::abs(law.values[i]));
   p.scale = same_kind > 0.0 ? same_kind : 1.0;
-  // The isochoric coefficients and the moduli scale the stress linearly, in displacement
-  // and hybrid elements alike; the compliances D, KV (hybrid: G'(p) is not linear in it),
-  // LAMBDA_M and NU do not.
-  static const std::set<std::string> linear = {"C10", "C01", "C20", "C30", "MU", "E"};
+  // The isochoric coefficients (every Cij of the polynomial laws) and the moduli scale the
+  // stress linearly, in displacement and hybrid elements alike; the compliances D, KV
+  // (hybrid: G'(p) is not linear in it), LAMBDA_M and NU do not.
+  static const std::set<std::string> linear = {"C10", "C01", "C20", "C11", "C02", "C30", "C21", "C12", "C03", "MU", "E"};
   p.affine = linear.count(constant) > 0;
   p.get = [material, index](const ParameterState& s) { return s.materials[material].constants.values[index]; };
   p.set = [material, index](ParameterState& s, double value) {
