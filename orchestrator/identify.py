@@ -318,6 +318,7 @@ class NoiseMonteCarloResult:
     engine_runs: int
     wall_time_s: float
     method: str = "noise"
+    undetermined: list[str] = field(default_factory=list)   # in a direction the data do not fix: interval = box
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -338,6 +339,31 @@ def _engine_or_fd_jacobian(evaluator: Evaluator, record: dict, space, x: np.ndar
     return np.column_stack([(np.asarray(rec["outputs"]["residuals"]) - r) / FD_STEP for rec in records])
 
 
+def _free_directions(J: np.ndarray, noise_scale: float, x_hat: np.ndarray, x_low: np.ndarray, x_high: np.ndarray,
+                     identifiable_half_width: float) -> tuple[np.ndarray, np.ndarray]:
+    """The directions of x that the data fix, and the parameters that they do not.
+
+    A right singular vector v_i of J is free when the 95 % noise spread along it, 2 noise_scale / s_i, is longer
+    than the segment of x_hat + t v_i inside the box: there the misfit is flat to within the noise across the
+    whole box (C10 and C01 of an incompressible tissue in plane strain, which act only through their sum), and a
+    Gauss-Newton step along it amplifies the noise by 1 / s_i and sends the draws to the box's corners. A parameter
+    is undetermined when a free direction moves it over more than twice the identifiable half width (in x: a
+    relative change for the constants) within the box. Returns ((p, k) orthonormal fixed directions, (p,) bool
+    undetermined)."""
+    _, singular, vt = np.linalg.svd(J, full_matrices=False)
+    fixed, undetermined = [], np.zeros(len(x_hat), bool)
+    for s_i, v in zip(singular, vt):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ends = np.sort(np.stack([(x_low - x_hat) / v, (x_high - x_hat) / v]), axis=0)
+        moving = np.abs(v) > 1e-12
+        length = float(np.min(ends[1][moving]) - np.max(ends[0][moving])) if moving.any() else 0.0
+        if 2.0 * noise_scale / max(s_i, 1e-300) < length:
+            fixed.append(v)
+        else:
+            undetermined |= np.abs(v) * length > 2.0 * identifiable_half_width
+    return np.array(fixed).reshape(-1, len(x_hat)).T, undetermined
+
+
 def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int = NOISE_DRAWS,
                       confidence: float = 0.95, nuisance_dof: int = 0, seed: int = 0,
                       identifiable_half_width: float = IDENTIFIABLE_HALF_WIDTH) -> NoiseMonteCarloResult:
@@ -352,7 +378,8 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     fit is above its floor (the remaining misfit counted as noise, the usual inflation), 1 otherwise. The
     intervals are the central `confidence` quantiles of the refitted draws; a parameter is identifiable when
     its interval's half width is at most `identifiable_half_width` of its value, and reported as on a bound when
-    a fifth of its draws end on the box's edge."""
+    a fifth of its draws end on the box's edge. Directions of x that the data do not fix (`_free_directions`) are
+    left out of the refits; a parameter they move is `undetermined`: not identifiable, its interval the whole box."""
     began = time.perf_counter()
     launched0 = evaluator.launched
     space = parameter_space(evaluator)
@@ -366,7 +393,18 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     n, p = J.shape
     inflation = max(1.0, float(r_hat @ r_hat) / max(n - p - nuisance_dof, 1))
     noise = np.sqrt(inflation) * np.random.default_rng(seed).standard_normal((draws, n))
-    steps, *_ = np.linalg.lstsq(J, noise.T, rcond=None)            # (p, draws): argmin |J dx - e_k|
+    box_low = np.array(space.lower) if space is not None else np.full(p, -np.inf)
+    box_high = np.array(space.upper) if space is not None else np.full(p, np.inf)
+    x_low, x_high = ((_to_x(space, box_low), _to_x(space, box_high)) if space is not None
+                     else (np.full(p, -np.inf), np.full(p, np.inf)))
+    basis, undetermined = _free_directions(J, np.sqrt(inflation), x_hat, x_low, x_high, identifiable_half_width)
+
+    def refit_step(jacobian: np.ndarray, residuals: np.ndarray) -> np.ndarray:
+        """argmin |J dx - residual| over dx in the determined directions, one column per residual column."""
+        coefficients, *_ = np.linalg.lstsq(jacobian @ basis, residuals, rcond=None)
+        return basis @ coefficients
+
+    steps = refit_step(J, noise.T)                                    # (p, draws)
     x_first = x_hat[None, :] + steps.T
     thetas = [_from_x(space, x).tolist() for x in x_first]
     records = evaluator.evaluate(thetas, tag="noise-mc", label="noise Monte-Carlo")
@@ -378,27 +416,26 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
         x_k = _to_x(space, thetas[k])
         residual = np.asarray(rec["outputs"]["residuals"], float) - r_hat - noise[k]
         J_k = _engine_or_fd_jacobian(evaluator, rec, space, x_k)
-        correction, *_ = np.linalg.lstsq(J_k, -residual, rcond=None)
-        samples.append(_from_x(space, x_k + correction))
+        samples.append(_from_x(space, x_k + refit_step(J_k, -residual)))
     if len(samples) < max(10, draws // 2):
         raise RuntimeError(f"the noise Monte-Carlo lost {failed} of {draws} draws to engine failures")
     samples = np.array(samples)
     tail = 50.0 * (1.0 - confidence)
     lower, upper = np.percentile(samples, [tail, 100.0 - tail], axis=0)
+    lower, upper = np.where(undetermined, box_low, lower), np.where(undetermined, box_high, upper)
     central = np.median(samples, axis=0)
     half = (upper - lower) / (2.0 * np.maximum(np.abs(best), 1e-300))
     linear = np.array(space.linear) if space is not None else np.zeros(p, bool)
     # an additive effect parameter has no relative width: identifiable when its interval excludes zero
-    identifiable = np.where(linear, (lower > 0) | (upper < 0), half <= identifiable_half_width)
+    identifiable = np.where(linear, (lower > 0) | (upper < 0), half <= identifiable_half_width) & ~undetermined
     names = list(space.names) if space is not None else [f"theta{j}" for j in range(p)]
-    box_low = np.array(space.lower) if space is not None else np.full(p, -np.inf)
-    box_high = np.array(space.upper) if space is not None else np.full(p, np.inf)
     edge = np.mean(np.isclose(samples, box_low) | np.isclose(samples, box_high), axis=0) >= 0.2
     return NoiseMonteCarloResult(names, best.tolist(), draws, failed, inflation, confidence, lower.tolist(),
                                  upper.tolist(), central.tolist(), half.tolist(), identifiable.tolist(),
                                  [nm for nm, ok in zip(names, identifiable) if not ok],
                                  [nm for nm, e in zip(names, edge) if e], samples.tolist(),
-                                 evaluator.launched - launched0, time.perf_counter() - began)
+                                 evaluator.launched - launched0, time.perf_counter() - began,
+                                 undetermined=[nm for nm, u in zip(names, undetermined) if u])
 
 
 @dataclass

@@ -177,3 +177,15 @@ def engine_constant(law: TissueLaw, constant: str, constants_MPa: Mapping[str, f
         return "KV", 1.0 / KPA_PER_MPA
     kv = constants_MPa["Kv"]
     return "D1", -1.0 / (kv * kv * KPA_PER_MPA)
+
+
+def law_notes(tissue: str, law: TissueLaw) -> list[str]:
+    """What the displacements of a slice cannot tell of a tissue's law, said before the fit (the setup lines). In
+    plane strain (lambda_3 = 1) an incompressible tissue has I2 = lambda1^2 lambda2^2 + lambda1^2 + lambda2^2 =
+    1 + lambda1^2 + lambda2^2 = I1, so C10 and C01 act only through their sum (and nearly so when D1 is small)."""
+    if law.law != "mooney_rivlin" or not {"C10", "C01"} <= set(law.free):
+        return []
+    how = "only" if law.incompressible else "almost only"
+    return [f"{tissue}: in plane strain an {'' if law.incompressible else 'almost '}incompressible tissue has "
+            f"I1bar = I2bar, so C10_{tissue} and C01_{tissue} act {how} through their sum: their intervals will "
+            f"say so; fix one of them ([model.{tissue}] fixed) to identify the other"]

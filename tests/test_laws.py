@@ -130,3 +130,29 @@ def test_sensitivities_of_the_laws_constants_match_differences_of_runs(leg_mesh,
         error = np.abs(analytic[:len(difference)] - difference).max() / np.abs(difference).max()
         print(f"{name}: max |du/dtheta| {np.abs(difference).max():.3e} mm/kPa, relative error {error:.1e}")
         assert error < 1e-4, name
+
+
+def test_directions_the_data_do_not_fix_leave_their_parameters_undetermined():
+    """C10 and C01 of an incompressible tissue in plane strain act through their sum only: in x = ln theta the
+    Jacobian's columns are C10 g and C01 g. The noise Monte-Carlo must leave that direction out (not send every
+    draw to the box's corners) and call both undetermined, while a third, independent parameter stays fixed and
+    gets the plain least-squares refit."""
+    from orchestrator.identify import _free_directions
+
+    rng = np.random.default_rng(3)
+    g, h = rng.standard_normal(200), rng.standard_normal(200)
+    c10, c01, kv = 1.4, 1.0, 60.0
+    J = np.column_stack([c10 * g, c01 * g, h])
+    x_hat = np.log([c10, c01, kv])
+    x_low, x_high = np.log([0.1, 0.05, 20.0]), np.log([30.0, 30.0, 200.0])
+    basis, undetermined = _free_directions(J, 1.0, x_hat, x_low, x_high, 0.10)
+    assert undetermined.tolist() == [True, True, False] and basis.shape == (3, 2)
+    noise = rng.standard_normal(200)
+    step = basis @ np.linalg.lstsq(J @ basis, noise, rcond=None)[0]
+    assert abs(step[0] * c10 + step[1] * c01) > 0 and abs(step[0] * c01 - step[1] * c10) < 1e-12   # along the sum only
+
+    well_posed = np.column_stack([g, h, rng.standard_normal(200)])
+    basis, undetermined = _free_directions(well_posed, 1.0, x_hat, x_low, x_high, 0.10)
+    assert not undetermined.any()
+    np.testing.assert_allclose(basis @ np.linalg.lstsq(well_posed @ basis, noise, rcond=None)[0],
+                               np.linalg.lstsq(well_posed, noise, rcond=None)[0], atol=1e-12)
