@@ -32,6 +32,12 @@ calf comes out 0.06 mm (0.17 pixel) off, its skin 0.03 mm. Both shifts, of stand
 (default `INTERFACE_UNCERTAINTY_PX` pixels), enter C_geo through the change they make in the predictions,
 g = (y(+h) - y(-h)) / 2h from two meshes moved by +-h (`meshing.labels.interface_shift`), solved at the same
 parameters. The floor then counts every part, and the identification reports the measurement's share.
+
+Several garment levels ([[garment.levels]]). Each level's windows get their own C_geo, made at that level's
+tension and stored as geometry_uncertainty-level-<k>.npz (`level_file`). One skin error acts on every level at
+once, so the levels' geometry errors are correlated; the joint fit (`levels.JointDisplacementObjective`) whitens
+each level by its own covariance and so treats them as independent, which makes its intervals somewhat narrower
+than the geometry alone would allow.
 """
 
 from __future__ import annotations
@@ -47,6 +53,11 @@ INTERFACE_UNCERTAINTY_PX = 0.15
 SHIFT_STEP_MM = 0.1          # the +-h of the interface shifts' central differences
 RESPONSE_FLOOR = 1e-3        # modes whose low-pass response is below this carry no uncertainty
 FILE = "geometry_uncertainty.npz"
+
+
+def level_file(level: int = 1) -> str:
+    """The stored C_geo of garment level `level`: FILE for the first, geometry_uncertainty-level-<level>.npz."""
+    return FILE if level == 1 else FILE.replace(".npz", f"-level-{level}.npz")
 
 
 def skin_perimeter_mm(mesh) -> float:
@@ -89,7 +100,7 @@ def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> di
     return {line: found[line.replace(", ", ":")] for line in profile_lines(count)}
 
 
-def _observed(setup, measurements, theta, effects, offsets) -> np.ndarray:
+def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
     """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
     from .forward import LegModel, write_mesh_include
     from .meshing import mesh_from_labels
@@ -98,7 +109,7 @@ def _observed(setup, measurements, theta, effects, offsets) -> np.ndarray:
 
     mesh = mesh_from_labels(setup.labels_unloaded, setup.case.pixel_size_mm, n_elements=len(setup.mesh.elements),
                             order=setup.mesh.order, image=setup.case.unloaded, interface_offsets=offsets)
-    model = LegModel(mesh, setup.case.tension_N_per_mm, effects=tuple(effects))
+    model = LegModel(mesh, tension_N_per_mm, effects=tuple(effects))
     with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
@@ -110,12 +121,15 @@ def _observed(setup, measurements, theta, effects, offsets) -> np.ndarray:
 
 
 def geometry_covariance(setup, theta: Sequence[float], measurements, *, effects: Sequence[str] = (),
-                        skin_sigma_mm: float, interface_sigma_mm: float, cutoff_mm: float) -> tuple[np.ndarray, dict]:
-    """C_geo of the module text (mm^2, interleaved like the measurements) and what made it."""
+                        skin_sigma_mm: float, interface_sigma_mm: float, cutoff_mm: float,
+                        tension_N_per_mm: float | None = None) -> tuple[np.ndarray, dict]:
+    """C_geo of the module text (mm^2, interleaved like the measurements) and what made it, under the case's
+    [garment] tension or `tension_N_per_mm` (another garment level's)."""
     from .forward import LegModel
     from .meshing.labels import interface_shift
 
-    model = LegModel(setup.mesh, setup.case.tension_N_per_mm, effects=tuple(effects))
+    tension = setup.case.tension_N_per_mm if tension_N_per_mm is None else float(tension_N_per_mm)
+    model = LegModel(setup.mesh, tension, effects=tuple(effects))
     perimeter = skin_perimeter_mm(model.mesh)
     variances = mode_variances(perimeter, skin_sigma_mm, cutoff_mm)
     sensitivities = skin_pressure_sensitivities(model, theta, len(variances))
@@ -125,26 +139,30 @@ def geometry_covariance(setup, theta: Sequence[float], measurements, *, effects:
     weights = list(np.repeat(variances, 2))
     for interface in ("skin", "fascia"):
         plus, minus = (_observed(setup, measurements, theta, effects, interface_shift(
-            setup.labels_unloaded, setup.case.pixel_size_mm, interface, sign * SHIFT_STEP_MM)) for sign in (1.0, -1.0))
+            setup.labels_unloaded, setup.case.pixel_size_mm, interface, sign * SHIFT_STEP_MM), tension)
+            for sign in (1.0, -1.0))
         columns.append((plus - minus) / (2 * SHIFT_STEP_MM))
         weights.append(interface_sigma_mm ** 2)
     columns = np.column_stack(columns)
     covariance = (columns * np.array(weights)) @ columns.T
     info = {"skin_sigma_mm": skin_sigma_mm, "interface_sigma_mm": interface_sigma_mm, "cutoff_mm": cutoff_mm,
             "modes": len(variances), "perimeter_mm": perimeter, "theta": [float(v) for v in theta]}
+    if tension_N_per_mm is not None:
+        info["tension_N_per_mm"] = tension
     return covariance, info
 
 
-def write(run_dir: Path, covariance: np.ndarray, info: dict) -> None:
-    temporary = Path(run_dir) / f".{FILE}.tmp.npz"
+def write(run_dir: Path, covariance: np.ndarray, info: dict, level: int = 1) -> None:
+    name = level_file(level)
+    temporary = Path(run_dir) / f".{name}.tmp.npz"
     np.savez_compressed(temporary, covariance=covariance, **{k: np.asarray(v) for k, v in info.items()})
-    temporary.replace(Path(run_dir) / FILE)
+    temporary.replace(Path(run_dir) / name)
 
 
-def read_covariance(run_dir: Path, size: int) -> tuple[np.ndarray, dict] | None:
-    """The stored C_geo (mm^2) and what made it; None without the file or when it belongs to other
-    measurements (another count)."""
-    path = Path(run_dir) / FILE
+def read_covariance(run_dir: Path, size: int, level: int = 1) -> tuple[np.ndarray, dict] | None:
+    """The stored C_geo (mm^2) of garment level `level` and what made it; None without the file or when it
+    belongs to other measurements (another count)."""
+    path = Path(run_dir) / level_file(level)
     if not path.is_file():
         return None
     with np.load(path) as stored:

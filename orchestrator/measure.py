@@ -24,6 +24,8 @@ every window).
 
 In a run folder: measurements.csv (every window tried, kept or why not, with its covariance), measurements.npz
 (what rebuilds the Measurements), measurements.json (summary) and measurements.png (the vectors on the image).
+A case with more garment levels ([[garment.levels]]) has the same four files for each more loaded image,
+measurements-level-2.csv and so on (`level_files`): the same windows of I0, correlated with that image.
 """
 
 from __future__ import annotations
@@ -57,6 +59,14 @@ KINDS = ("grid", "skin", "fascia", "vessel")
 KEPT = "kept"
 FILES = {"table": "measurements.csv", "arrays": "measurements.npz", "summary": "measurements.json",
          "figure": "measurements.png"}
+
+
+def level_files(level: int = 1) -> dict[str, str]:
+    """The measurement files of garment level `level`: FILES for the first (loaded.*), then
+    measurements-level-<level>.* beside them."""
+    if level == 1:
+        return dict(FILES)
+    return {role: name.replace("measurements.", f"measurements-level-{level}.") for role, name in FILES.items()}
 
 
 @dataclass
@@ -315,34 +325,38 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
 
 # --- run folder ---------------------------------------------------------------------------------
 
-def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: np.ndarray, pixel_size_mm) -> None:
-    """The table, the arrays, the summary and the picture, each written to a temporary name then renamed."""
+def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: np.ndarray, pixel_size_mm,
+                       level: int = 1) -> None:
+    """The table, the arrays, the summary and the picture (of garment level `level`, `level_files`), each written
+    to a temporary name then renamed."""
     from .figures import dic_vectors_figure
     from .study import write_json
 
     run_dir = Path(run_dir)
-    temporary = run_dir / f".{FILES['arrays']}.tmp.npz"
+    files = level_files(level)
+    temporary = run_dir / f".{files['arrays']}.tmp.npz"
     np.savez_compressed(temporary, centres_rc=table.centres_rc, kind=np.array(table.kind), position_mm=table.position_mm,
                         displacement_mm=table.displacement_mm, covariance_mm2=table.covariance_mm2,
                         confidence=table.confidence, intensity_variance=table.intensity_variance,
                         tissue=np.array(table.tissue), status=np.array(table.status),
                         prior_offset_mm=table.prior_offset_mm)
-    temporary.replace(run_dir / FILES["arrays"])
+    temporary.replace(run_dir / files["arrays"])
     rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,offset_x_mm,offset_y_mm,kind,tissue,status"]
     for k in range(len(table.status)):
         c = table.covariance_mm2[k]
         values = [*table.position_mm[k], *table.displacement_mm[k], c[0, 0], c[1, 1], c[0, 1], table.confidence[k],
                   *table.prior_offset_mm[k]]
         rows.append(",".join(f"{v:.6g}" for v in values) + f",{table.kind[k]},{table.tissue[k]},{table.status[k]}")
-    temporary = run_dir / f".{FILES['table']}.tmp"
+    temporary = run_dir / f".{files['table']}.tmp"
     temporary.write_text("\n".join(rows) + "\n", encoding="utf-8")
-    temporary.replace(run_dir / FILES["table"])
-    dic_vectors_figure(run_dir / FILES["figure"], image, pixel_size_mm, table, summary)
-    write_json(run_dir / FILES["summary"], summary)
+    temporary.replace(run_dir / files["table"])
+    dic_vectors_figure(run_dir / files["figure"], image, pixel_size_mm, table, summary)
+    write_json(run_dir / files["summary"], summary)
 
 
-def read_window_table(run_dir: Path) -> WindowTable | None:
-    path = Path(run_dir) / FILES["arrays"]
+def read_window_table(run_dir: Path, level: int = 1) -> WindowTable | None:
+    """The windows of garment level `level` that `calfit measure` stored, None when it has not run."""
+    path = Path(run_dir) / level_files(level)["arrays"]
     if not path.is_file():
         return None
     with np.load(path) as arrays:

@@ -9,7 +9,11 @@ montecarlo (montecarlo.json): intervals around the best fit (Table 2), over the 
 by Avril et al.'s acceptance; pressures (pressures.json): landmark pressures over draws in the
 intervals and with the tension +-10 % (Tables 3 and 4); diagnose (diagnosis.json). Every engine
 evaluation goes through one `runner.Evaluator` per stage on the run's log (evaluations.jsonl), so
-any stage interrupted and started again resumes without repeating an evaluation."""
+any stage interrupted and started again resumes without repeating an evaluation.
+
+A case with more garment levels ([[garment.levels]]) is measured at every level (the same windows of I0),
+identified and drawn by the Monte-Carlo on all of them at once (`levels`: one evaluation solves every level),
+its pressures given at every level; its diagnosis is refused (the catalog's scores are made for one image)."""
 
 from __future__ import annotations
 
@@ -31,7 +35,7 @@ from .geometry_uncertainty import write as write_geometry
 from .imaging.case import read_model_choice
 from .meshing.labels import SKIN_CUTOFF_MM
 from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
-from .objectives import DisplacementResidualObjective
+from .levels import AtTension
 from .runlock import holds_run_folder
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
@@ -96,6 +100,16 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
                                     roi_spacing_mm=roi_spacing_mm)
     summary["window_mm"] = window_px * min(case.pixel_size_mm)
     summary["setup_lines"] = setup.setup_lines()
+    for level, motion in zip(case.levels, setup.level_motions):
+        # the same windows of I0, correlated with this level's image and its own motion of the bones
+        _, level_table, level_summary = measure_dic(case.unloaded, level.image, setup.labels_unloaded,
+                                                    case.pixel_size_mm, motion, landmarks=case.landmarks,
+                                                    window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm)
+        level_summary.update(window_mm=summary["window_mm"], level=level.number, image=level.path.name,
+                             tension_N_per_mm=level.tension_N_per_mm)
+        write_measurements(run_dir, level_table, level_summary, case.unloaded, case.pixel_size_mm, level.number)
+        summary.setdefault("levels", []).append({key: level_summary[key] for key in (
+            "level", "image", "tension_N_per_mm", "windows", "kept", "median_sigma_mm")})
     write_measurements(run_dir, table, summary, case.unloaded, case.pixel_size_mm)
     return summary
 
@@ -115,50 +129,56 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     run_dir = Path(run_dir)
     objective = choose_objective(objective, method)
     setup = _setup(case_dir, run_dir, n_elements, order, objective)
+    if objective == "contour" and setup.case.levels:
+        raise ValueError(f"the contour mismatch compares I0 with one loaded image, and {setup.case.files['toml']} has "
+                         f"{len(setup.case.tensions)} garment levels to fit jointly: use --objective displacement")
     source = setup.data_source(data)
-    measured = None
+    measured = None   # the measurements of every garment level, the first level's first
     if objective == "displacement":
-        if source == "dic" and read_window_table(run_dir) is None:
+        levels = range(1, len(setup.case.tensions) + 1)
+        if source == "dic" and any(read_window_table(run_dir, level) is None for level in levels):
             run_measure(case_dir, run_dir, window_px=window_px)
-        measured = setup.measurements(source)
+        measured = setup.level_measurements(source)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else setup.model.base_start
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
 
     def fit_from(points, scorer, stage):
-        with Evaluator(setup.model, scorer, run_dir, workers=workers, scheduler=scheduler,
+        with Evaluator(setup.at_every_level(setup.model), scorer, run_dir, workers=workers, scheduler=scheduler,
                        timeout_s=timeout_s, progress=progress, label=stage) as evaluator:
             found = ([levenberg_marquardt(evaluator, s) for s in points] if method == "lm"
                      else multistart(evaluator, points))
         return found, min(found, key=lambda fit: fit.cost)
 
-    fits, best = fit_from(start_points, DisplacementResidualObjective(setup.mesh, measured) if measured is not None
+    fits, best = fit_from(start_points, setup.objective_of(measured) if measured is not None
                           else setup.mismatch_objective(), "identify")
     geometry = None
     if measured is not None and source == "dic" and skin_uncertainty:
         # the uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit
-        # again with it in the weights (geometry_uncertainty)
-        stored = read_geometry_covariance(run_dir, 2 * len(measured))
-        if stored is None or not np.allclose(stored[1]["theta"], best.theta, rtol=1e-9):
-            pixel = min(setup.case.pixel_size_mm)
-            covariance, info = geometry_covariance(
-                setup, best.theta, measured, effects=setup.model.effects,
-                skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
-                interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM)
-            write_geometry(run_dir, covariance, info)
-        measured = setup.measurements(source)
+        # again with it in the weights (geometry_uncertainty); every garment level's windows under its own tension
+        pixel = min(setup.case.pixel_size_mm)
+        for level, (tension, level_measured) in enumerate(zip(setup.case.tensions, measured), start=1):
+            stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
+            if stored is None or not np.allclose(stored[1]["theta"], best.theta, rtol=1e-9):
+                covariance, info = geometry_covariance(
+                    setup, best.theta, level_measured, effects=setup.model.effects,
+                    skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
+                    interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM,
+                    tension_N_per_mm=None if level == 1 else tension)
+                write_geometry(run_dir, covariance, info, level)
+        measured = setup.level_measurements(source)
         first = best
-        fits, best = fit_from([first.theta], DisplacementResidualObjective(setup.mesh, measured),
+        fits, best = fit_from([first.theta], setup.objective_of(measured),
                               "identify again, with the skin's uncertainty")
         fits = [first] + fits
-        geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured))[1],
-                        measurement_share_of_variance=measured.measurement_share)
-    scorer = (DisplacementResidualObjective(setup.mesh, measured) if measured is not None
-              else setup.mismatch_objective())
+        geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured[0]))[1],
+                        measurement_share_of_variance=_measurement_share(measured))
+    scorer = setup.objective_of(measured) if measured is not None else setup.mismatch_objective()
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
               "data": {"source": source if measured is not None else "contours",
-                       "description": measured.description if measured is not None else "contours of I0 and I1",
-                       "count": len(measured) if measured is not None else 0},
+                       "description": ("; ".join(m.description for m in measured) if measured is not None
+                                       else "contours of I0 and I1"),
+                       "count": sum(len(m) for m in measured) if measured is not None else 0},
               "effects": list(setup.model.effects), "parameters": list(setup.model.space.names),
               "units": setup.model.space.units, "unit_of": list(setup.model.space.unit_of),
               "best": best.as_dict(), "fits": [fit.as_dict() for fit in fits], "compartments": setup.compartments,
@@ -169,8 +189,35 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     if measured is not None:
         result["noise_floor"] = scorer.noise_floor(setup.model.space.size)
         result["misfit_over_floor"] = best.cost / result["noise_floor"]
+    if measured is not None and setup.case.levels:
+        result["levels"] = _level_fits(setup, scorer, measured, best.theta)
     write_json(run_dir / "identification.json", result)
     return result
+
+
+def _measurement_share(measured) -> float:
+    """The share of the measurement noise (not the model's geometry) in the variance of every level's data."""
+    total = sum(np.trace(m.covariance_mm2) for m in measured)
+    noise = sum(np.trace(m.covariance_mm2 if m.measurement_covariance_mm2 is None else m.measurement_covariance_mm2)
+                for m in measured)
+    return float(noise / total)
+
+
+def _level_fits(setup: RunSetup, scorer, measured, theta) -> list[dict]:
+    """Each garment level of a joint fit: its image, tension, measurements and own misfit over its own floor (the
+    evaluation at theta is read back from the run's log)."""
+    with Evaluator(setup.at_every_level(setup.model), scorer, setup.run_dir, progress=False) as evaluator:
+        record = evaluator(theta)
+    images = [setup.case.files["loaded"].name] + [level.path.name for level in setup.case.levels]
+    misfits = record["outputs"].get("level_misfits") or [None] * len(images)
+    rows = []
+    for part, image, tension, level_measured, misfit in zip(scorer.parts, images, setup.case.tensions, measured,
+                                                           misfits):
+        # each level's floor counts its share of the fitted parameters: p n_k / n
+        floor = part.noise_floor(setup.model.space.size * part.n_residuals / scorer.n_residuals)
+        rows.append({"image": image, "tension_N_per_mm": tension, "count": len(level_measured),
+                     "misfit": misfit, "misfit_over_floor": None if misfit is None else misfit / floor})
+    return rows
 
 
 def identified_data(identification: dict) -> str:
@@ -201,8 +248,8 @@ def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, t
     setup.model = setup.model_with(identification.get("effects", ()), sensitivities=(method == "noise"))
     objective = _objective(setup, objective_name, identified_data(identification))
     best = identification["best"]
-    with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                   progress=progress, label="montecarlo") as evaluator:
+    with Evaluator(setup.at_every_level(setup.model), objective, run_dir, workers=workers, scheduler=scheduler,
+                   timeout_s=timeout_s, progress=progress, label="montecarlo") as evaluator:
         if method == "noise":
             result = noise_monte_carlo(evaluator, best["theta"], draws=draws or NOISE_DRAWS, seed=seed,
                                        nuisance_dof=objective.nuisance_dof).as_dict()
@@ -229,6 +276,18 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
                                      montecarlo["central"], setup.case.tension_N_per_mm, draws=draws,
                                      tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
     result = stats.as_dict()
+    levels = []
+    for level in setup.case.levels:
+        # the same draws in the intervals, the same landmarks, under this level's garment
+        with Evaluator(AtTension(setup.model, level.tension_N_per_mm), objective, run_dir, workers=workers,
+                       scheduler=scheduler, timeout_s=timeout_s, progress=progress,
+                       label=f"pressures, garment level {level.number}", cost_is_misfit=False) as evaluator:
+            level_stats = pressure_uncertainty(evaluator, objective.names, montecarlo["lower"], montecarlo["upper"],
+                                               montecarlo["central"], level.tension_N_per_mm, draws=draws,
+                                               tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
+        levels.append({"level": level.number, "image": level.path.name, **level_stats.as_dict()})
+    if levels:
+        result["levels"] = levels
     write_json(run_dir / "pressures.json", result)
     return result
 
@@ -250,6 +309,11 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         raise ValueError(f"the diagnosis ranks the catalog's effects on the Laplace-law model; {setup.case.files['toml']} "
                          f"fits the explicit garment ([model] garment = \"{setup.model.garment}\"), whose diagnosis is "
                          "not available yet: identify a copy of the case without that line to diagnose it")
+    if setup.case.levels:
+        raise ValueError(f"the diagnosis scores the catalog's effects against one loaded image, and "
+                         f"{setup.case.files['toml']} has {len(setup.case.levels)} more garment level(s) "
+                         "([[garment.levels]]) fitted jointly, whose diagnosis is not available yet: identify a copy "
+                         "of the case without those tables to diagnose its first level")
     model = setup.model_with(identification.get("effects", ()), sensitivities=engine_sensitivities)
     objective = setup.displacement_objective(identified_data(identification))
 
@@ -303,11 +367,14 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
 
 
 def pressure_summary(result: dict) -> list[str]:
-    """Human lines of Table 3 and Table 4."""
+    """Human lines of Table 3 and Table 4, then those of every more garment level."""
     lines = [f"{'landmark':<18} {'mean kPa':>9} {'std':>6} {'CV %':>6} | {'T':>6} {'T+10%':>7} {'T-10%':>7}"]
     for k, name in enumerate(result["landmarks"]):
         lines.append(f"{name:<18} {result['mean_kPa'][k]:9.2f} {result['std_kPa'][k]:6.2f} {result['cv_percent'][k]:6.1f} | "
                      f"{result['central_kPa'][k]:6.2f} {result['plus_kPa'][k]:7.2f} {result['minus_kPa'][k]:7.2f}")
+    for level in result.get("levels", []):
+        lines.append(f"garment level {level['level']}: {level['image']} at {level['tension_N_per_mm']:g} N/mm")
+        lines += pressure_summary(level)
     return lines
 
 

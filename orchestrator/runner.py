@@ -134,9 +134,18 @@ def run_engine(
 # a job folder under RUN_DIR/jobs (removed afterwards) with one thread (--threads 1): the
 # parallelism is across evaluations, in a local process pool (`workers`) or on a Dask
 # distributed cluster (`scheduler` address).
+#
+# Several garment levels (`levels.LevelsModel`: loaded images of one slice under garments of
+# different tensions, fitted jointly) make one evaluation of several decks, one per level: the
+# model's `decks(theta)` gives them, the task carries the tuple, each runs in its own sub-folder
+# of the job (level-1, level-2, ...), the record fails when any level fails (its message names
+# the level), its Newton iterations are the sum, and the objective's `level_outputs` scores every
+# level's (nodal displacement, output folder) together. The key is then that of the decks joined
+# with LEVEL_SEPARATOR; a model of one deck keeps its deck, its key and its job folder as they were.
 
 
 LOG_NAME = "evaluations.jsonl"
+LEVEL_SEPARATOR = "\n** next garment level **\n"   # between the decks of one evaluation in its cache key
 PROGRESS_MIN_BATCH = 8        # a batch this large shows the stage's line at once, with its total
 PROGRESS_SHOW_AFTER_S = 2.0   # smaller batches (LM steps, one Jacobian) show it only once the stage has run this long
 PROGRESS_REDRAW_S = 0.2       # a terminal's line is redrawn at most 5 times a second
@@ -216,13 +225,14 @@ class EvaluationLog:
 
 @dataclass(frozen=True)
 class EngineTask:
-    """One evaluation to run anywhere: the deck, the mesh it includes, where to work."""
+    """One evaluation to run anywhere: the deck (or the tuple of decks, one per garment level), the mesh it
+    includes, where to work."""
 
     key: str
     theta: tuple[float, ...]
     options: dict
     tag: str
-    deck_text: str
+    deck_text: str | tuple[str, ...]
     mesh_text: str
     mesh_sha: str
     scratch: str
@@ -259,34 +269,59 @@ def execute_task(task: EngineTask, objective) -> dict:
     job = scratch / task.key
     record = {"key": task.key, "theta": list(task.theta), "options": task.options, "tag": task.tag,
               "status": OK, "cost": None, "outputs": {}, "message": "", "newton_iterations": None}
+    levels = isinstance(task.deck_text, tuple)
+    decks = task.deck_text if levels else (task.deck_text,)
+    # one garment level: the job folder itself, as before levels existed; several: level-1, level-2, ...
+    folders = [job / f"level-{k}" for k in range(1, len(decks) + 1)] if levels else [job]
+    level = 0
     try:
-        job.mkdir(parents=True, exist_ok=True)
         mesh = _mesh_file(scratch, task)
-        link = job / "mesh.inp"
-        if not link.exists():
-            os.symlink(Path(mesh).resolve(), link)  # a relative target would resolve from the job folder
-        deck = job / "deck.inp"
-        deck.write_text(task.deck_text)
-        outcome = run_engine(deck, job / "out", threads=task.threads, timeout_s=task.timeout_s)
-        results = EngineResults(outcome.outdir)
-        record["newton_iterations"] = results.total_newton_iterations
-        if not outcome.converged:
-            record["status"] = NOT_CONVERGED
-            record["message"] = (f"no convergence (exit 3): reached load fraction "
-                                 f"{results.summary['steps'][-1].get('time_reached', 'unknown')}")
+        finished = []
+        iterations = 0
+        for level, (folder, text) in enumerate(zip(folders, decks), start=1):
+            outcome = _run_deck(folder, mesh, text, task)
+            results = EngineResults(outcome.outdir)
+            iterations += results.total_newton_iterations
+            record["newton_iterations"] = iterations
+            if not outcome.converged:
+                record["status"] = NOT_CONVERGED
+                record["message"] = (_level_prefix(level, len(decks), levels) + "no convergence (exit 3): reached "
+                                     f"load fraction {results.summary['steps'][-1].get('time_reached', 'unknown')}")
+                break
+            finished.append((results.displacement(), outcome.outdir))
         else:
-            record["outputs"] = objective.outputs(results.displacement(), outcome.outdir)
+            if levels:
+                record["outputs"] = objective.level_outputs(finished)
+            else:
+                record["outputs"] = objective.outputs(*finished[0])
             record["cost"] = float(record["outputs"].pop("cost"))
     except DeckRejected as error:
-        record.update(status=BAD_DECK, message=str(error))
+        record.update(status=BAD_DECK, message=_level_prefix(level, len(decks), levels) + str(error))
     except EngineFailed as error:
-        record.update(status=TIMEOUT if "timeout" in str(error) else ENGINE_FAILED, message=str(error))
+        record.update(status=TIMEOUT if "timeout" in str(error) else ENGINE_FAILED,
+                      message=_level_prefix(level, len(decks), levels) + str(error))
     finally:
         if not task.keep_job:
             shutil.rmtree(job, ignore_errors=True)
     record["time_s"] = time.perf_counter() - start
     record["finished_at"] = time.time()
     return record
+
+
+def _run_deck(folder: Path, mesh: Path, text: str, task: EngineTask) -> EngineOutcome:
+    """One deck of a task in its folder, beside a link to the shared mesh include."""
+    folder.mkdir(parents=True, exist_ok=True)
+    link = folder / "mesh.inp"
+    if not link.exists():
+        os.symlink(Path(mesh).resolve(), link)  # a relative target would resolve from the job folder
+    deck = folder / "deck.inp"
+    deck.write_text(text)
+    return run_engine(deck, folder / "out", threads=task.threads, timeout_s=task.timeout_s)
+
+
+def _level_prefix(level: int, count: int, levels: bool) -> str:
+    """How a failure names the garment level it happened at (nothing for a model of one deck)."""
+    return f"garment level {level} of {count}: " if levels else ""
 
 
 _WORKER_OBJECTIVE = None
@@ -469,7 +504,9 @@ class Evaluator:
     """Evaluate a model's parameter vectors with an objective, cached by deck key and logged in run_dir.
 
     model: has `deck(theta, **options) -> str`, `mesh_text`, `mesh_sha`; objective: has
-    `outputs(nodal_u, outdir) -> dict` (with "cost") and `fingerprint`. workers: local processes
+    `outputs(nodal_u, outdir) -> dict` (with "cost") and `fingerprint`. A model of several garment levels has
+    `decks(theta, **options) -> tuple[str, ...]` instead, and its objective `level_outputs([(nodal_u, outdir),
+    ...])` (`orchestrator.levels`). workers: local processes
     (1 = in this process); scheduler: a Dask distributed address (then workers is ignored).
     `launched` counts the engine runs of this session (not those replayed from the log).
     progress: show the stage's progress line on stderr (`Progress`), named `label`; cost_is_misfit: the
@@ -478,6 +515,10 @@ class Evaluator:
     def __init__(self, model, objective, run_dir: str | Path, *, workers: int = 1, scheduler: str | None = None,
                  timeout_s: float = 120.0, threads: int = 1, progress: bool = True, keep_jobs: bool = False,
                  label: str = "evaluations", cost_is_misfit: bool = True):
+        if hasattr(model, "decks") and not hasattr(objective, "level_outputs"):
+            raise ValueError("the model fits several garment levels jointly, and the objective "
+                             f"{getattr(objective, 'name', type(objective).__name__)} scores one image: use "
+                             "levels.JointDisplacementObjective")
         self.model, self.objective = model, objective
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -525,13 +566,17 @@ class Evaluator:
         options = dict(options or {})
         theta = tuple(float(v) for v in theta)
         try:
-            text = self.model.deck(theta, **options)
+            if hasattr(self.model, "decks"):   # several garment levels: one deck each, one evaluation
+                text = tuple(self.model.decks(theta, **options))
+            else:
+                text = self.model.deck(theta, **options)
         except DeckError as error:
             key = deck_key(json.dumps([theta, options]), self.model.mesh_sha, self.objective.fingerprint)
             return {"key": key, "theta": list(theta), "options": options, "tag": tag, "status": BAD_DECK, "cost": None,
                     "outputs": {}, "message": str(error), "newton_iterations": None, "time_s": 0.0,
                     "finished_at": time.time()}
-        key = deck_key(text, self.model.mesh_sha, self.objective.fingerprint)
+        joined = LEVEL_SEPARATOR.join(text) if isinstance(text, tuple) else text
+        key = deck_key(joined, self.model.mesh_sha, self.objective.fingerprint)
         return EngineTask(key, theta, options, tag, text, self.model.mesh_text, self.model.mesh_sha,
                           str(self.run_dir / "jobs"), self.timeout_s, self.threads, self.keep_jobs)
 

@@ -10,7 +10,10 @@ until the `compartments` effect separates them), mesh the labels of I0 with thei
 interfaces moved onto the edges of I0 (`meshing.mesh_from_labels`), and store the labels, the motion and the
 mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then renamed). `load_run` gives them back
 with the model and the objectives, so that `calfit identify`, `montecarlo`, `pressures` and `report` all see
-the same mesh.
+the same mesh. A case with more garment levels ([[garment.levels]]: loaded images of the slice under other tensions)
+has each level's image aligned on the bones and checked as the first level's is, stored beside it
+(setup.npz level_<k>_aligned, setup.json "levels"), measured with the same windows, and fitted jointly
+(`levels`: `fit_model`, `displacement_objective`).
 
 `make_phantom_case` writes a phantom case whose loaded image is made by the engine: the
 phantom's exact geometry (its labels sampled 4 times finer than the image) is meshed finely
@@ -36,11 +39,11 @@ from .imaging.case import Case, read_case
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
 from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
-from .imaging.resolution import working_resolution
+from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, segment_t1
 from .meshing import Mesh, mesh_from_labels
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
-from .measure import FILES as MEASURE_FILES
+from .measure import level_files as measure_level_files
 from .measure import Measurements, dic_measurements, points_measurements, read_window_table
 from .figures import compartments_figure
 from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure, leg_rows
@@ -102,6 +105,8 @@ class RunSetup:
     model: LegModel
     compartments: dict = field(default_factory=lambda: {"source": "none"})   # setup.json "compartments"
     missing_fraction: dict = field(default_factory=dict)    # setup.json "missing_fraction": image name -> share
+    level_motions: tuple = ()     # the bones' rigid motion of each more garment level's image (case.levels order)
+    levels_aligned: tuple = ()    # each more garment level's image aligned on the bones of I0
 
     def setup_lines(self) -> list[str]:
         """What the user should know of how the images were read: the slice taken from a DICOM series, averaged
@@ -123,6 +128,10 @@ class RunSetup:
                          + (f" with friction {self.model.friction_mu:g}: the engine gives no sensitivities through "
                             "friction, so Levenberg-Marquardt differences runs (one per parameter and iteration)"
                             if self.model.friction_mu > 0 else ", frictionless"))
+        if self.case.levels:
+            lines.append("garment levels fitted jointly: " + ", ".join(
+                f"{path.name} at {tension:g} N/mm" for path, tension in
+                zip([self.case.files["loaded"]] + [level.path for level in self.case.levels], self.case.tensions)))
         info = self.compartments
         count = len(info.get("areas_mm2", {}))
         if info["source"] == "image":
@@ -156,6 +165,18 @@ class RunSetup:
 
         return case_model(self.mesh, self.case, effects=parse_effects(list(effects)), engine_sensitivities=sensitivities)
 
+    def fit_model(self, effects: Sequence[str] = (), sensitivities: bool = False):
+        """The model the displacements are fitted with: `model_with`, under every garment level of the case at once
+        when it has more than one (`at_every_level`)."""
+        return self.at_every_level(self.model_with(effects, sensitivities))
+
+    def at_every_level(self, model: LegModel):
+        """The model under every garment level of the case at once (`levels.LevelsModel`), or the model itself
+        when the case has one level."""
+        from .levels import LevelsModel
+
+        return LevelsModel(model, self.case.tensions) if self.case.levels else model
+
     def frame(self) -> LegFrame:
         """Leg centre, anatomical orientation and skin distance of I0: how residual regions are named."""
         return LegFrame.from_labels(self.labels_unloaded, self.case.pixel_size_mm)
@@ -174,29 +195,51 @@ class RunSetup:
                                  "(--data dic, the default without points.csv)")
         return data
 
-    def measurements(self, data: str = "auto") -> Measurements:
-        """The measured displacements the fit compares the model with: points.csv, or the DIC windows that
+    def measurements(self, data: str = "auto", level: int = 1) -> Measurements:
+        """The measured displacements of garment level `level` (1: loaded.*, 2, 3, ...: the [[garment.levels]]) the
+        fit compares the model with: points.csv (or the level's points file), or the DIC windows that
         `calfit measure` stored in the run folder, with the model's geometry uncertainty when the identification
         has estimated it (`geometry_uncertainty`)."""
         if self.data_source(data) == "points":
-            return points_measurements(self.case.points)
-        table = read_window_table(self.run_dir)
-        summary_path = self.run_dir / MEASURE_FILES["summary"]
+            if level == 1:
+                return points_measurements(self.case.points)
+            extra = self.case.levels[level - 2]
+            if extra.points is None:
+                raise RunFolderError(f"{self.case.files['toml']}: the garment level of {extra.path.name} has no points "
+                                     f"while the fit uses points.csv: add points = \"<file>\" to its [[garment.levels]] "
+                                     "table, or measure every level from the images (--data dic)")
+            return points_measurements(extra.points)
+        files = measure_level_files(level)
+        table = read_window_table(self.run_dir, level)
+        summary_path = self.run_dir / files["summary"]
         if table is None or not summary_path.is_file():
-            raise RunFolderError(f"{self.run_dir} holds no DIC measurements: run `calfit measure CASE_DIR --out "
-                                 f"{self.run_dir}` first")
+            raise RunFolderError(f"{self.run_dir} holds no DIC measurements{'' if level == 1 else f' of garment level {level}'}:"
+                                 f" run `calfit measure CASE_DIR --out {self.run_dir}` first")
         summary = read_json(summary_path, "calfit measure")
         measured = dic_measurements(self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm,
                                     summary["noise_sigma"][0])
-        geometry = read_geometry_covariance(self.run_dir, 2 * len(measured))
+        geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level)
         if geometry is None:
             return measured
         covariance, info = geometry
         return measured.with_model_covariance(covariance, f"skin uncertain by {info['skin_sigma_mm']:.3f} mm RMS "
                                                           f"at wavelengths over {info['cutoff_mm']:g} mm")
 
-    def displacement_objective(self, data: str = "auto") -> DisplacementResidualObjective:
-        return DisplacementResidualObjective(self.mesh, self.measurements(data))
+    def level_measurements(self, data: str = "auto") -> list[Measurements]:
+        """The measurements of every garment level, the first level's first."""
+        return [self.measurements(data, level) for level in range(1, len(self.case.tensions) + 1)]
+
+    def objective_of(self, measured: Sequence[Measurements]):
+        """The displacement residual of these measurements, one per garment level: a
+        `DisplacementResidualObjective` for one, their `levels.JointDisplacementObjective` for several."""
+        from .levels import JointDisplacementObjective
+
+        parts = [DisplacementResidualObjective(self.mesh, m) for m in measured]
+        return parts[0] if len(parts) == 1 else JointDisplacementObjective(parts)
+
+    def displacement_objective(self, data: str = "auto"):
+        """The displacement residual of the run's measurements, of every garment level (`objective_of`)."""
+        return self.objective_of(self.level_measurements(data))
 
     def pressure_objective(self) -> LandmarkPressure:
         if not self.case.landmarks:
@@ -208,7 +251,7 @@ class RunSetup:
 def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 400, order: int = 1,
                 align: bool = True, compartments: bool = True) -> RunSetup:
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
-    case = working_resolution(read_case(case_dir))
+    case = working_case(case_dir)
     unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
     segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm)
     labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
@@ -223,6 +266,10 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
     labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
     area_change = check_compression(segmented_unloaded > 0, labels_loaded > 0, unloaded_name, loaded_name)
+    prepared_levels = [_prepare_level(case, level, labels_unloaded, segmented_unloaded, align) for level in case.levels]
+    for level, (_, _, _, share) in zip(case.levels, prepared_levels):
+        if share is not None:
+            missing_fraction[level.path.name] = share
 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -240,15 +287,50 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                                       for k, v in compartment_areas_mm2(compartment_labels, case.pixel_size_mm).items()}
     temporary = run_dir / f".{SETUP_ARRAYS}.tmp.npz"
     np.savez_compressed(temporary, labels_unloaded=labels_unloaded, labels_loaded=labels_loaded,
-                        loaded_aligned=loaded_aligned, **_mesh_arrays(mesh))
+                        loaded_aligned=loaded_aligned, **_mesh_arrays(mesh),
+                        **{f"level_{level.number}_aligned": aligned
+                           for level, (aligned, _, _, _) in zip(case.levels, prepared_levels)})
     temporary.replace(run_dir / SETUP_ARRAYS)
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
                                       "order": order, "compartments": compartment_info,
                                       "missing_fraction": missing_fraction,
+                                      **({"levels": [info for _, _, info, _ in prepared_levels]} if case.levels else {}),
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
                                                                        "centre_mm": list(motion.centre_mm)}})
     return load_run(run_dir)
+
+
+def working_case(case_dir: str | Path) -> Case:
+    """The case read and put at its working resolution (`imaging.resolution`), its garment levels' images too."""
+    case = working_resolution(read_case(case_dir))
+    factor = case.block_factor
+    if factor == 1 or not case.levels:
+        return case
+    return replace(case, levels=tuple(
+        replace(level, image=coarsen_image(level.image, factor),
+                missing=None if level.missing is None else coarsen_image(level.missing.astype(float), factor) > 0)
+        for level in case.levels))
+
+
+def _prepare_level(case: Case, level, labels_unloaded: np.ndarray, segmented_unloaded: np.ndarray, align: bool):
+    """A more garment level's image checked and aligned on the bones as the first level's: (aligned image, motion,
+    its setup.json entry, its share of pixels without a value or None)."""
+    name = level.path.name
+    labels = segment_t1(level.image, case.pixel_size_mm)
+    check_leg_in_view(labels, case.pixel_size_mm, name)
+    share = (float(level.missing.mean())
+             if check_missing_pixels(level.missing, labels > 0, case.pixel_size_mm, name) else None)
+    motion = (align_on_bones(case.unloaded, level.image, case.pixel_size_mm, labels_unloaded=labels_unloaded)
+              if align else RigidMotion())
+    aligned = resample_rigid(level.image, motion, case.pixel_size_mm) if align else level.image
+    area_change = check_compression(segmented_unloaded > 0, segment_t1(aligned, case.pixel_size_mm) > 0,
+                                    case.files["unloaded"].name, name)
+    info = {"level": level.number, "image": name, "tension_N_per_mm": level.tension_N_per_mm,
+            "leg_area_change": area_change,
+            "rigid_motion": {"angle_deg": motion.angle_deg, "translation_mm": list(motion.translation_mm),
+                             "centre_mm": list(motion.centre_mm)}}
+    return aligned, motion, info, share
 
 
 def assign_compartments(mesh: Mesh, compartment_labels: np.ndarray, pixel_size_mm) -> Mesh:
@@ -280,16 +362,24 @@ def case_model(mesh: Mesh, case: Case, **options) -> LegModel:
 def load_run(run_dir: str | Path) -> RunSetup:
     run_dir = Path(run_dir)
     info = read_json(run_dir / SETUP_JSON, "calfit identify CASE_DIR --out RUN_DIR")
-    case = working_resolution(read_case(info["case_dir"]))
+    case = working_case(info["case_dir"])
+    stored_levels = info.get("levels", [])
+    if [entry["image"] for entry in stored_levels] != [level.path.name for level in case.levels]:
+        raise RunFolderError(f"{run_dir} was prepared for the garment levels {[e['image'] for e in stored_levels]} "
+                             f"and {case.files['toml']} now names {[level.path.name for level in case.levels]}: give "
+                             "--out another folder for this case")
     with np.load(run_dir / SETUP_ARRAYS) as arrays:
         mesh = _mesh_from_arrays(arrays)
         labels_unloaded, labels_loaded = arrays["labels_unloaded"], arrays["labels_loaded"]
         loaded_aligned = arrays["loaded_aligned"]
+        levels_aligned = tuple(arrays[f"level_{entry['level']}_aligned"] for entry in stored_levels)
+    level_motions = tuple(RigidMotion(entry["rigid_motion"]["angle_deg"], tuple(entry["rigid_motion"]["translation_mm"]),
+                                      tuple(entry["rigid_motion"]["centre_mm"])) for entry in stored_levels)
     motion = RigidMotion(info["rigid_motion"]["angle_deg"], tuple(info["rigid_motion"]["translation_mm"]),
                          tuple(info["rigid_motion"]["centre_mm"]))
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
                     case_model(mesh, case), info.get("compartments", {"source": "none"}),
-                    info.get("missing_fraction", {}))
+                    info.get("missing_fraction", {}), level_motions, levels_aligned)
 
 
 def truth_mesh(phantom, *, compartments: bool = False, n_elements: int = 2000, order: int = 2,
@@ -313,8 +403,12 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
                       effects: dict[str, dict[str, float]] | None = None, labels: str = "segmented",
                       edit_deck=None, phantom=None, garment: str = "laplace", friction_mu: float = 0.0,
                       tissues: dict | None = None, hybrid: bool = False,
-                      overwrite: bool = False) -> tuple[Path, Path]:
+                      levels: Sequence[float] = (), overwrite: bool = False) -> tuple[Path, Path]:
     """Write a phantom case whose loaded image is made by the engine at theta_kPa (see module text).
+
+    levels: the tensions (N/mm) of more garment levels: each is solved with the same truth and mesh, rendered
+    with the same scanner motion and its own noise, and written as loaded-level-<k>.png with its
+    [[garment.levels]] table (and its points, points-level-<k>.csv, when the case has points).
 
     effects: catalog effects switched on in the truth, {effect: {parameter: value}} (a case with a hidden
     effect); with `compartments` the truth is meshed with the muscle compartments, and `labels` should then be
@@ -329,6 +423,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     from .runner import run_engine
 
     effects = {name: dict(values) for name, values in (effects or {}).items()}
+    if levels and garment != "laplace":
+        raise ValueError("garment levels are made with Laplace's law: the explicit band is meshed at one tension")
     phantom = phantom or CalfPhantom()
     mesh = truth_mesh(phantom, compartments="compartments" in effects, n_elements=n_elements, order=order)
     model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects, garment=garment, friction_mu=friction_mu,
@@ -345,6 +441,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
         nodal = leg_rows(EngineResults(outcome.outdir).displacement(), len(mesh.nodes))
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
+    level_fields = [field_on_pixels(weights, _phantom_level_nodal(model, theta_kPa, tension, edit_deck), phantom.image_shape)
+                    for tension in levels]
     laws = {tissue: {"law": law.law, "terms": law.terms, "incompressible": law.incompressible, "fixed": dict(law.fixed)}
             for tissue, law in model.tissue_laws.items()}
     truth = {"parameters_kPa": dict(zip(model.law_parameters, map(float, theta_kPa))),
@@ -356,6 +454,27 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     case, truth_dir = write_case(folder, phantom, field, rigid=rigid, truth_folder=truth_folder,
                                  tension_N_per_mm=tension_N_per_mm, points_spacing_mm=points_spacing_mm,
                                  points_sigma_mm=points_sigma_mm, noise_seeds=noise_seeds, labels=labels,
-                                 description=json.dumps(truth), overwrite=overwrite)
+                                 description=json.dumps(truth), levels=list(zip(levels, level_fields)),
+                                 overwrite=overwrite)
+    if levels:
+        truth["levels"] = [{"tension_N_per_mm": float(tension), "max_displacement_mm": float(np.abs(f).max())}
+                           for tension, f in zip(levels, level_fields)]
     write_json(Path(truth_dir) / PARAMETERS_FILE, truth)
     return Path(case), Path(truth_dir)
+
+
+def _phantom_level_nodal(model: LegModel, theta_kPa, tension: float, edit_deck) -> np.ndarray:
+    """The truth's nodal displacement under another garment tension (a phantom's more garment level)."""
+    from .results import EngineResults
+    from .runner import run_engine
+
+    with tempfile.TemporaryDirectory(prefix="calfit-phantom-level-") as scratch:
+        write_mesh_include(model, Path(scratch))
+        deck = Path(scratch) / "deck.inp"
+        text = model.deck(theta_kPa, tension_N_per_mm=tension)
+        deck.write_text(edit_deck(text, model.mesh) if edit_deck else text)
+        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
+        if not outcome.converged:
+            raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa under "
+                               f"{tension} N/mm; choose stiffer parameters or a smaller tension")
+        return leg_rows(EngineResults(outcome.outdir).displacement(), len(model.mesh.nodes))

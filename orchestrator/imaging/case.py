@@ -6,7 +6,9 @@ labels >= 4 are muscle compartments) and optional measured displacements
 ``points.csv`` (x_mm,y_mm,ux_mm,uy_mm[,sigma_mm], image frame of I0, tissue
 relative to bones). Images may be PNG/TIFF, ``.npy``, DICOM or NIfTI; the unloaded and loaded
 images may also be folders ``unloaded/`` and ``loaded/`` holding a DICOM series each, the slice chosen by the
-optional [images] table of case.toml (`dicom_series`).
+optional [images] table of case.toml (`dicom_series`). More loaded images of the same slice under other garment
+tensions (the second paper's socks of 20 and 40 mmHg) are named by [[garment.levels]] tables, each with its image,
+its tension and optionally its points (`GarmentLevel`); they are fitted jointly with the first (`levels`).
 
 Reading checks everything before returning and raises one `CaseError` (one
 sentence: file, what is wrong, the fix) at the first problem; it never writes.
@@ -39,7 +41,7 @@ DEFAULT_TENSION_REL_UNCERTAINTY = 0.10
 
 _TOML_SCHEMA = {
     "case": {"name", "pixel_size_mm"},
-    "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
+    "garment": {"tension_N_per_mm", "tension_rel_uncertainty", "levels"},
     "landmarks": None,  # any name
     "images": set(IMAGES_KEYS),  # which slice of a DICOM series
     "model": None,   # element, garment, friction and a table per tissue: checked by _model_choice
@@ -48,6 +50,7 @@ MODEL_KEYS = ("element", "garment", "friction")
 TISSUE_KEYS = ("law", "terms", "incompressible", "fixed", "bounds", "start")
 ELEMENTS = {"CPE3": 1, "CPE6": 2, "CPE6H": 2}   # element -> order of the mesh
 GARMENTS = ("laplace", "explicit")
+LEVEL_KEYS = ("image", "tension_N_per_mm", "points")   # of each [[garment.levels]] table
 
 
 @dataclass(frozen=True)
@@ -84,6 +87,22 @@ class DisplacementPoints:
 
 
 @dataclass(frozen=True)
+class GarmentLevel:
+    """One more loaded image of the slice, under another garment tension: a [[garment.levels]] table of case.toml.
+    number: the garment level it is (2, 3, ...: level 1 is loaded.* under the [garment] tension); path: its image
+    file (in the case folder; when writing a case, the file name to write); points: its points file read, if any;
+    missing: its pixels without a value (NaN), None when every pixel has one."""
+
+    number: int
+    image: np.ndarray
+    tension_N_per_mm: float
+    path: Path
+    points: DisplacementPoints | None = None
+    points_path: Path | None = None
+    missing: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class Case:
     """A validated case folder. Images are float64 (H, W); pixel_size_mm is (row, column)."""
 
@@ -101,6 +120,12 @@ class Case:
     files: dict[str, Path] = field(default_factory=dict)
     missing: dict[str, np.ndarray] = field(default_factory=dict)   # "unloaded"/"loaded": pixels with no value
     block_factor: int = 1     # pixels of the files per pixel side of these arrays (`resolution.working_resolution`)
+    levels: tuple[GarmentLevel, ...] = ()   # more loaded images under other tensions ([[garment.levels]])
+
+    @property
+    def tensions(self) -> tuple[float, ...]:
+        """The garment tension of every level (N/mm), the first level's ([garment]) first."""
+        return (self.tension_N_per_mm,) + tuple(level.tension_N_per_mm for level in self.levels)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -127,7 +152,10 @@ def read_case(folder: str | os.PathLike) -> Case:
     if loaded.pixels.shape != unloaded.pixels.shape:
         raise CaseError(loaded.path, f"is {_dims(loaded.pixels)} pixels but {unloaded.path.name} is {_dims(unloaded.pixels)}",
                         "export both slices with the same matrix size and field of view")
-    pixel_size = _pixel_size(toml_path, settings.get("case", {}), (unloaded, loaded))
+    level_tables = _level_tables(toml_path, settings.get("garment", {}))
+    level_slices = [_level_slice(toml_path, folder, number, entry, (unloaded, loaded))
+                    for number, entry in enumerate(level_tables, start=2)]
+    pixel_size = _pixel_size(toml_path, settings.get("case", {}), (unloaded, loaded, *level_slices))
     shape = unloaded.pixels.shape
     extent = (shape[1] * pixel_size[1], shape[0] * pixel_size[0])
 
@@ -144,6 +172,13 @@ def read_case(folder: str | os.PathLike) -> Case:
     name = settings.get("case", {}).get("name", folder.name)
     if not isinstance(name, str) or not name.strip():
         raise CaseError(toml_path, "[case] name is not a non-empty string", 'write name = "volunteer-01" under [case]')
+    model = _model_choice(toml_path, settings.get("model", {}))
+    levels = tuple(_garment_level(toml_path, folder, number, entry, image, extent)
+                   for number, (entry, image) in enumerate(zip(level_tables, level_slices), start=2))
+    if levels and model.garment != "laplace":
+        raise CaseError(toml_path, f"[model] garment = \"{model.garment}\" cannot fit [[garment.levels]]: its band is "
+                        "meshed at one tension, so each sock would need its own band mesh",
+                        "remove that line (Laplace's law fits every level) or the [[garment.levels]] tables")
 
     files = {"toml": toml_path, "unloaded": unloaded.path, "loaded": loaded.path}
     if labels_path:
@@ -157,10 +192,73 @@ def read_case(folder: str | os.PathLike) -> Case:
                 unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
                 tension_N_per_mm=tension,
                 tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else rel,
-                model=_model_choice(toml_path, settings.get("model", {})), labels=labels, points=points,
-                landmarks=landmarks, files=files,
+                model=model, labels=labels, points=points, landmarks=landmarks, files=files,
                 missing={role: image.missing for role, image in (("unloaded", unloaded), ("loaded", loaded))
-                         if image.missing is not None})
+                         if image.missing is not None}, levels=levels)
+
+
+def _level_tables(path: Path, garment: dict) -> list[dict]:
+    """The [[garment.levels]] tables, their keys checked."""
+    tables = garment.get("levels", [])
+    if not isinstance(tables, list) or not all(isinstance(entry, dict) for entry in tables):
+        raise CaseError(path, "[garment] levels is not an array of tables",
+                        "write each more loaded image as a [[garment.levels]] table with image and tension_N_per_mm")
+    for index, entry in enumerate(tables, start=1):
+        unknown = sorted(set(entry) - set(LEVEL_KEYS))
+        if unknown:
+            raise CaseError(path, f"[[garment.levels]] number {index} has an unknown key '{unknown[0]}'",
+                            f"use only {', '.join(LEVEL_KEYS)}")
+    return tables
+
+
+def _level_file(path: Path, folder: Path, index: int, entry: dict, key: str, what: str) -> Path:
+    """The file a [[garment.levels]] key names, in the case folder."""
+    name = entry.get(key)
+    if not isinstance(name, str) or not name.strip():
+        raise CaseError(path, f"[[garment.levels]] number {index} has no {key} (the file name of its {what})",
+                        f"add {key} = \"{'loaded-40mmHg.png' if key == 'image' else 'points-40mmHg.csv'}\", a file in "
+                        "the case folder")
+    target = folder / name
+    if target.resolve().parent != folder.resolve():
+        raise CaseError(path, f"[[garment.levels]] number {index} {key} = {name!r} is not a file of the case folder",
+                        "put the file in the case folder beside case.toml and give its name alone")
+    if not target.is_file():
+        raise CaseError(target, f"is missing ({key} of [[garment.levels]] number {index} in case.toml)",
+                        f"put that level's {what} in the case folder under this name, or correct {key} in case.toml")
+    return target
+
+
+def _level_slice(path: Path, folder: Path, number: int, entry: dict, pair: tuple[SliceFile, SliceFile]) -> SliceFile:
+    """The loaded image of the garment level `number` (2, 3, ...), checked against the first level's pair."""
+    index = number - 1
+    target = _level_file(path, folder, index, entry, "image", "loaded slice")
+    unloaded, loaded = pair
+    for other, role in ((unloaded, "the unloaded image"), (loaded, "the first level's loaded image")):
+        if target.resolve() == other.path.resolve():
+            raise CaseError(path, f"[[garment.levels]] number {index} image names {other.path.name}, {role}",
+                            "give each garment level its own loaded slice")
+    image = read_slice(target)
+    if image.pixels.shape != unloaded.pixels.shape:
+        raise CaseError(target, f"is {_dims(image.pixels)} pixels but {unloaded.path.name} is {_dims(unloaded.pixels)}",
+                        "export every slice of the case with the same matrix size and field of view")
+    return image
+
+
+def _garment_level(path: Path, folder: Path, number: int, entry: dict, image: SliceFile,
+                   extent: tuple[float, float]) -> GarmentLevel:
+    index = number - 1
+    tension = entry.get("tension_N_per_mm")
+    if tension is None:
+        raise CaseError(path, f"[[garment.levels]] number {index} ({image.path.name}) has no tension_N_per_mm",
+                        "add tension_N_per_mm = <that garment's force per unit width, N/mm> to it")
+    if isinstance(tension, bool) or not isinstance(tension, (int, float)) or not (math.isfinite(tension) and tension > 0):
+        raise CaseError(path, f"[[garment.levels]] number {index} ({image.path.name}) tension_N_per_mm = {tension!r} is "
+                        "not a positive number", "give that garment's tension in N/mm, e.g. tension_N_per_mm = 0.27")
+    points_path = (_level_file(path, folder, index, entry, "points", "points (points.csv format)")
+                   if "points" in entry else None)
+    points = _read_points(points_path, extent) if points_path is not None else None
+    return GarmentLevel(number, image.pixels.astype(float), float(tension), image.path, points, points_path,
+                        image.missing)
 
 
 def _dims(pixels: np.ndarray) -> str:
@@ -404,27 +502,40 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
                       pixel_size_mm: tuple[float, float], tension_N_per_mm: float,
                       tension_rel_uncertainty: float = DEFAULT_TENSION_REL_UNCERTAINTY,
                       labels: np.ndarray | None = None, points: DisplacementPoints | None = None,
-                      landmarks: dict[str, tuple[float, float]] | None = None, overwrite: bool = False) -> Path:
+                      landmarks: dict[str, tuple[float, float]] | None = None, levels: tuple[GarmentLevel, ...] = (),
+                      overwrite: bool = False) -> Path:
     """Write a complete case folder atomically (temporary sibling, then rename). Returns the folder.
 
     Float images are scaled by one common factor to 16-bit PNG; uint8/uint16 images are written as they are.
+    levels: more loaded images under other tensions, each written as its `path` (a .png file name) with its
+    [[garment.levels]] table, and its points as `points_path` (a file name) when it has points.
     """
     folder = Path(folder)
     if folder.exists() and not overwrite:
         raise FileExistsError(f"{folder} already exists; choose another folder or pass overwrite=True")
     if unloaded.shape != loaded.shape or (labels is not None and labels.shape != unloaded.shape):
         raise ValueError("unloaded, loaded and labels must have the same shape")
-    if unloaded.dtype in (np.uint8, np.uint16) and loaded.dtype == unloaded.dtype:
-        pngs = [unloaded, loaded]
-    else:
-        pngs, _ = to_uint16([np.asarray(unloaded, float), np.asarray(loaded, float)])
+    level_images = [np.asarray(level.image) for level in levels]
+    if any(image.shape != unloaded.shape for image in level_images):
+        raise ValueError("every garment level's image must have the shape of the unloaded image")
+    if any(Path(level.path).suffix.lower() != ".png" or Path(level.path).name != str(level.path) for level in levels):
+        raise ValueError("a garment level is written as a .png file name of the case folder")
+    images = [unloaded, loaded, *level_images]
+    if unloaded.dtype in (np.uint8, np.uint16) and all(image.dtype == unloaded.dtype for image in images):
+        pngs = images
+    else:   # one common scale, so that every level's grey levels compare with I0's
+        pngs, _ = to_uint16([np.asarray(image, float) for image in images])
     folder.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
-        (staging / "case.toml").write_text(_case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {}),
-                                           encoding="utf-8")
+        (staging / "case.toml").write_text(_case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {},
+                                                      levels), encoding="utf-8")
         write_png16(staging / "unloaded.png", pngs[0])
         write_png16(staging / "loaded.png", pngs[1])
+        for level, png in zip(levels, pngs[2:]):
+            write_png16(staging / Path(level.path).name, png)
+            if level.points is not None:
+                _write_points(staging / Path(level.points_path).name, level.points)
         if labels is not None:
             write_png16(staging / "labels.png", np.asarray(labels).astype(np.uint8))
         if points is not None:
@@ -447,10 +558,15 @@ def replace_folder(staging: Path, folder: Path) -> None:
         os.rename(staging, folder)
 
 
-def _case_toml(name, pixel_size_mm, tension, rel, landmarks) -> str:
+def _case_toml(name, pixel_size_mm, tension, rel, landmarks, levels=()) -> str:
     lines = ["[case]", f"name = {_toml_string(name)}",
              f"pixel_size_mm = [{float(pixel_size_mm[0])!r}, {float(pixel_size_mm[1])!r}]  # row, column", "",
              "[garment]", f"tension_N_per_mm = {float(tension)!r}", f"tension_rel_uncertainty = {float(rel)!r}"]
+    for level in levels:
+        lines += ["", "[[garment.levels]]  # one more loaded image of the slice, under another garment tension",
+                  f"image = {_toml_string(Path(level.path).name)}", f"tension_N_per_mm = {float(level.tension_N_per_mm)!r}"]
+        if level.points is not None:
+            lines.append(f"points = {_toml_string(Path(level.points_path).name)}")
     if landmarks:
         lines += ["", "[landmarks]  # mm, image frame of the unloaded image (x right, y down)"]
         lines += [f"{key} = [{float(x)!r}, {float(y)!r}]" for key, (x, y) in landmarks.items()]

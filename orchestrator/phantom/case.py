@@ -12,6 +12,11 @@ truth.json (phantom parameters, rigid motion, noise seeds, description of the
 displacement), displacement_mm.npy ((2, H, W) on the pixels of the unloaded
 image, mm), and the exact label maps of both images. Both folders are staged
 in temporary siblings and renamed into place only when complete.
+
+More garment levels (`levels`: (tension, displacement) pairs) are rendered as the loaded image is, with the
+same scanner motion and a noise seed of their own, and written as loaded-level-<k>.png (k = 2, 3, ...) with
+their [[garment.levels]] tables; their true fields and loaded labels go to the truth folder as
+displacement_level_<k>_mm.npy and labels_loaded_level_<k>.png.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..imaging._formats import write_png16
-from ..imaging.case import DisplacementPoints, replace_folder, write_case_folder
+from ..imaging.case import DisplacementPoints, GarmentLevel, replace_folder, write_case_folder
 from ..imaging.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
 from ..imaging.segment import segment_t1
 from .render import CalfPhantom, as_displacement_fn, bone_clamped_compression, loaded_labels, make_loaded_image, render_unloaded
@@ -35,13 +40,15 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
                truth_folder=None, name: str = "phantom-calf", tension_N_per_mm: float = 0.16,
                tension_rel_uncertainty: float = 0.10, labels: str | None = "segmented", points_spacing_mm: float | None = None,
                points_sigma_mm: float = 0.05, noise_seeds: tuple[int, int] = (0, 1), description: str = "",
-               overwrite: bool = False) -> tuple[Path, Path]:
+               levels=(), overwrite: bool = False) -> tuple[Path, Path]:
     """Render the phantom unloaded and loaded (displacement in mm, callable or (2, H, W); default a bone-clamped
     radial compression) and write the case folder and the truth folder. Returns (case folder, truth folder).
 
     labels: "segmented" (segment_t1 of the unloaded image), "truth" (exact phantom labels), "compartments" (exact
     labels with the muscle compartments as labels 4, 5, ..., a user's hand segmentation) or None (no labels.png).
     points_spacing_mm: if given, write points.csv on a grid of that spacing inside the leg.
+    levels: (tension N/mm, displacement) of more garment levels (module text); level k's image noise has the seed
+    `level_noise_seed(noise_seeds, k)`.
     """
     folder = Path(folder)
     truth_folder = Path(truth_folder) if truth_folder is not None else folder.with_name(folder.name + ".truth")
@@ -64,6 +71,16 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
     field = displacement_on_grid(displacement_fn, phantom.image_shape, phantom.pixel_size_mm)
     points = (_grid_points(phantom, true_labels, displacement_fn, points_spacing_mm, points_sigma_mm, noise_seeds[1])
               if points_spacing_mm else None)
+    extra = []   # (number, tension, displacement function, seed, GarmentLevel to write)
+    for number, (tension, level_displacement) in enumerate(levels, start=2):
+        level_fn = as_displacement_fn(level_displacement, phantom.pixel_size_mm)
+        seed = level_noise_seed(noise_seeds, number)
+        level_points = (_grid_points(phantom, true_labels, level_fn, points_spacing_mm, points_sigma_mm, seed)
+                        if points_spacing_mm else None)
+        extra.append((number, float(tension), level_fn, seed, GarmentLevel(
+            number, make_loaded_image(phantom, level_fn, rigid, noise_seed=seed), float(tension),
+            Path(f"loaded-level-{number}.png"), level_points,
+            Path(f"points-level-{number}.csv") if level_points is not None else None)))
 
     truth_folder.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
@@ -75,18 +92,33 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
                  "rigid_motion": dataclasses.asdict(rigid) if rigid is not None else None,
                  "landmarks": phantom.geometry.landmarks(), "displacement_file": "displacement_mm.npy",
                  "labels_in_case": labels}
+        if extra:
+            truth["levels"] = [{"level": number, "tension_N_per_mm": tension, "image": level.path.name,
+                                "noise_seed": seed, "displacement_file": f"displacement_level_{number}_mm.npy"}
+                               for number, tension, _, seed, level in extra]
         (staging / "truth.json").write_text(json.dumps(truth, indent=2) + "\n", encoding="utf-8")
         np.save(staging / "displacement_mm.npy", field)
         write_png16(staging / "labels_unloaded.png", true_labels.astype(np.uint8))
         write_png16(staging / "labels_loaded.png", loaded_labels(phantom, displacement_fn, rigid).astype(np.uint8))
+        for number, _, level_fn, _, _ in extra:
+            np.save(staging / f"displacement_level_{number}_mm.npy",
+                    displacement_on_grid(level_fn, phantom.image_shape, phantom.pixel_size_mm))
+            write_png16(staging / f"labels_loaded_level_{number}.png",
+                        loaded_labels(phantom, level_fn, rigid).astype(np.uint8))
         write_case_folder(folder, name=name, unloaded=unloaded, loaded=loaded, pixel_size_mm=phantom.pixel_size_mm,
                           tension_N_per_mm=tension_N_per_mm, tension_rel_uncertainty=tension_rel_uncertainty,
-                          labels=case_labels, points=points, landmarks=phantom.geometry.landmarks(), overwrite=overwrite)
+                          labels=case_labels, points=points, landmarks=phantom.geometry.landmarks(),
+                          levels=tuple(level for *_, level in extra), overwrite=overwrite)
         replace_folder(staging, truth_folder)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return folder, truth_folder
+
+
+def level_noise_seed(noise_seeds: tuple[int, int], number: int) -> int:
+    """The image noise seed of garment level `number` (2, 3, ...): its own, apart from the first level's."""
+    return int(noise_seeds[1]) + 100 * (number - 1)
 
 
 def _grid_points(phantom, labels, displacement_fn, spacing_mm, sigma_mm, seed) -> DisplacementPoints:

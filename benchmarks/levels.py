@@ -1,0 +1,140 @@
+"""Two garment levels against one (issue 13, item 2): what a second loaded image of the same slice, under a
+garment of twice the tension (the second paper's socks of 20 and 40 mmHg), adds to the identification.
+
+    .venv/bin/python benchmarks/levels.py [--seed 1] [--second-tension 0.32] [--draws 200] [--workers 2]
+
+A phantom calf is made by the engine at a truth drawn log-uniformly in physiological ranges (each parameter at
+least 15 % off Avril et al.'s Table 2 central values, where the fits start), on the phantom's own geometry
+(8,000 CPE6: not the fit's 1,000 CPE6 meshed from the segmentation of I0), with image noise and a rigid scanner
+motion, under 0.16 N/mm and under the second tension (its own image noise, the same motion). The case with the
+two loaded images ([[garment.levels]]) and the same case without the second are identified from the images
+alone (DIC, Levenberg-Marquardt from Table 2, the skin's uncertainty) and drawn by the noise Monte-Carlo.
+Printed: the garment pressures p = T / r of the two levels (r the skin's mean radius), then per parameter the
+truth, and for one and for two levels the identified value, its error, the 95 % interval's relative half width,
+and the ratio of the two half widths; then the iterations, engine runs and times of each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from orchestrator.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
+from orchestrator.geometry_uncertainty import skin_perimeter_mm
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.pipeline import run_identify, run_montecarlo
+from orchestrator.results import MMHG_PER_KPA
+from orchestrator.study import load_run, make_phantom_case
+
+PHYSIOLOGICAL_KPA = ((2.0, 9.0), (6.0, 20.0), (50.0, 200.0), (35.0, 140.0))   # C10 fat, muscle; Kv fat, muscle
+SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
+FIRST_TENSION = 0.16   # N/mm
+
+
+def random_truth(seed: int) -> np.ndarray:
+    """Log-uniform in the physiological ranges, each parameter at least 15 % off the fits' start."""
+    rng = np.random.default_rng(seed)
+    start = np.array(TABLE2_CENTRAL_KPA)
+    while True:
+        truth = np.exp([rng.uniform(np.log(low), np.log(high)) for low, high in PHYSIOLOGICAL_KPA])
+        if np.all(np.abs(truth / start - 1.0) > 0.15):
+            return truth
+
+
+def first_level_only(case: Path, target: Path) -> Path:
+    """A copy of a case folder without its [[garment.levels]] tables and their images: the same first level."""
+    shutil.copytree(case, target)
+    text = (target / "case.toml").read_text(encoding="utf-8")
+    for image in re.findall(r'^image = "([^"]+)"', text, flags=re.M):
+        (target / image).unlink()
+    # a [[garment.levels]] table runs to the next table header or the end of the file
+    text = re.sub(r"\n\[\[garment\.levels\]\][^\n]*\n(?:(?!\[)[^\n]*\n)*", "\n", text)
+    (target / "case.toml").write_text(text, encoding="utf-8")
+    return target
+
+
+def identify(case: Path, run: Path, draws: int, workers: int) -> dict:
+    began = time.perf_counter()
+    identification = run_identify(case, run, workers=workers, progress=False)
+    identified = time.perf_counter()
+    montecarlo = run_montecarlo(run, draws=draws, workers=workers, progress=False)
+    return {"identification": identification, "montecarlo": montecarlo, "identify_s": identified - began,
+            "montecarlo_s": time.perf_counter() - identified}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seed", type=int, default=1, help="the truth's draw and the images' noise (default 1)")
+    parser.add_argument("--second-tension", type=float, default=0.32, help="N/mm of the second level (default 0.32)")
+    parser.add_argument("--draws", type=int, default=200, help="noise Monte-Carlo draws (default 200)")
+    parser.add_argument("--workers", type=int, default=2, help="engine processes (default 2)")
+    parser.add_argument("--keep", type=Path, default=None, help="keep the case and run folders in this folder")
+    args = parser.parse_args()
+    truth = random_truth(args.seed)
+    tensions = (FIRST_TENSION, args.second_tension)
+    with tempfile.TemporaryDirectory(prefix="calfit-levels-") as scratch:
+        folder = args.keep or Path(scratch)
+        folder.mkdir(parents=True, exist_ok=True)
+        print(f"truth (kPa): {', '.join(f'{n} = {v:.3f}' for n, v in zip(LEG_PARAMETERS, truth))}", flush=True)
+        began = time.perf_counter()
+        two, _ = make_phantom_case(folder / "two-levels", theta_kPa=truth, tension_N_per_mm=FIRST_TENSION,
+                                   levels=tensions[1:], labels=None, points_spacing_mm=None, rigid=SCANNER_MOTION,
+                                   noise_seeds=(10 + args.seed, 20 + args.seed), overwrite=True)
+        if (folder / "one-level").exists():
+            shutil.rmtree(folder / "one-level")
+        one = first_level_only(two, folder / "one-level")
+        print(f"phantom made in {time.perf_counter() - began:.0f} s: {two}", flush=True)
+        results = {}
+        for label, case in (("one level", one), ("two levels", two)):
+            run = folder / f"run-{case.name}"
+            if run.exists():
+                shutil.rmtree(run)
+            print(f"identifying with {label} ...", flush=True)
+            results[label] = identify(case, run, args.draws, args.workers)
+        setup = load_run(folder / "run-two-levels")
+        radius = skin_perimeter_mm(setup.mesh) / (2 * np.pi)
+
+    print()
+    print(f"garment levels on a skin of mean radius {radius:.1f} mm (p = T / r): " + ", ".join(
+        f"{t:g} N/mm -> {1e3 * t / radius:.2f} kPa = {1e3 * t / radius * MMHG_PER_KPA:.1f} mmHg" for t in tensions))
+    header = (f"{'parameter':<11} {'truth':>8} | {'1 level':>8} {'error':>7} {'95% +-':>7} | "
+              f"{'2 levels':>8} {'error':>7} {'95% +-':>7} | {'width 2/1':>9}")
+    print(header)
+    print("-" * len(header))
+    one_mc, two_mc = results["one level"]["montecarlo"], results["two levels"]["montecarlo"]
+    one_theta = np.array(results["one level"]["identification"]["best"]["theta"])
+    two_theta = np.array(results["two levels"]["identification"]["best"]["theta"])
+    for k, name in enumerate(LEG_PARAMETERS):
+        w1, w2 = one_mc["relative_half_width"][k], two_mc["relative_half_width"][k]
+        print(f"{name:<11} {truth[k]:8.3f} | {one_theta[k]:8.3f} {100 * (one_theta[k] / truth[k] - 1):+6.1f}% "
+              f"{100 * w1:6.1f}% | {two_theta[k]:8.3f} {100 * (two_theta[k] / truth[k] - 1):+6.1f}% {100 * w2:6.1f}% | "
+              f"{w2 / w1:9.2f}")
+    inside = {label: [lo <= t <= hi for lo, t, hi in zip(r["montecarlo"]["lower"], truth, r["montecarlo"]["upper"])]
+              for label, r in results.items()}
+    print(f"truth inside its 95 % interval: " + "; ".join(
+        f"{label} {sum(flags)}/{len(flags)}" for label, flags in inside.items()))
+    print()
+    for label, r in results.items():
+        identification, montecarlo = r["identification"], r["montecarlo"]
+        fits = identification["fits"]
+        levels = len(identification.get("levels", [])) or 1
+        evaluations = sum(fit["engine_runs"] for fit in fits)
+        print(f"{label}: {identification['data']['count']} DIC windows; LM {' + '.join(str(f['iterations']) for f in fits)} "
+              f"iterations (fit, refit with the skin's uncertainty), {evaluations} evaluations = "
+              f"{evaluations * levels} engine solves; misfit {identification['misfit_over_floor']:.2f} x floor; "
+              f"identify {r['identify_s']:.0f} s; Monte-Carlo {montecarlo['draws'] - montecarlo['failed']} draws, "
+              f"{montecarlo['engine_runs']} evaluations = {montecarlo['engine_runs'] * levels} engine solves, "
+              f"{r['montecarlo_s']:.0f} s")
+        for row in identification.get("levels", []):
+            print(f"    {row['image']} at {row['tension_N_per_mm']:g} N/mm: {row['count']} windows, misfit "
+                  f"{row['misfit_over_floor']:.2f} x its floor")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,170 @@
+"""Several garment levels of one slice, fitted jointly (the second paper's socks of 20 and 40 mmHg).
+
+One loaded image says how the leg answers one garment pressure, and in-plane displacements under one pressure
+tell the bulk moduli Kv apart from the shear constants only weakly (the first paper identified Kv poorly). A
+second image of the same slice under another tension loads the nonlinear tissues differently, so fitting both at
+once narrows the intervals (`benchmarks/levels.py`). Bouten and Drapier imaged the same calf with 20 and 40 mmHg
+socks.
+
+- `LevelsModel(base, tensions)`: the leg model under each tension (Laplace's law, `forward.LegModel.deck` with
+  `tension_N_per_mm`); one evaluation is one deck per level (`decks`), which `runner.execute_task` runs in the
+  sub-folders level-1, level-2, ... of the job. The parameters, the start, the mesh and the map from the
+  model's parameters to the engine's sensitivities are the base model's: every level is the same tissue.
+- `JointDisplacementObjective(parts)`: each level's `objectives.DisplacementResidualObjective` (its own
+  measurements, covariance and residual rigid motion of the bones: each image was aligned on its own)
+  concatenated. The misfit stays Bouten and Drapier's eq. 2 over all the levels' points, F = s^2 r.r / n, s^2
+  the mean variance of one component over all of them, and its floor s^2 (n - p - k) / n with k the nuisance
+  parameters of every level.
+- `AtTension(base, tension)`: the base model whose decks default to another tension (a level's pressures).
+
+The explicit garment (`[model] garment = "explicit"`) is not fitted with levels: its band is meshed at its
+design tension, so each sock would need its own band mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .forward import LegModel
+
+
+class LevelsModel:
+    """The base leg model under each garment tension of `tensions` (the first is the case's [garment] tension,
+    the others those of its [[garment.levels]]), one deck per level for one theta."""
+
+    def __init__(self, base: LegModel, tensions: Sequence[float]):
+        if base.garment != "laplace":
+            raise ValueError("several garment levels ([[garment.levels]] in case.toml) are fitted with Laplace's law "
+                             f"only, and this model fits the {base.garment} garment ([model] garment = "
+                             f"\"{base.garment}\" in case.toml), whose band is meshed at one tension: each sock would "
+                             "need its own band mesh; remove that line or the levels")
+        self.tensions = tuple(float(t) for t in tensions)
+        if len(self.tensions) < 2:
+            raise ValueError(f"a joint fit needs at least two garment levels, got {len(self.tensions)}: fit the "
+                             "model of one level directly")
+        if not all(np.isfinite(t) and t > 0 for t in self.tensions):
+            raise ValueError(f"garment tensions must be positive, got {list(self.tensions)} N/mm")
+        self.base = base
+        self.space = base.space
+        self.mesh = base.mesh
+        self.mesh_text = base.mesh_text
+        self.mesh_sha = base.mesh_sha
+
+    @property
+    def effects(self) -> tuple[str, ...]:
+        return self.base.effects
+
+    @property
+    def garment(self) -> str:
+        return self.base.garment
+
+    @property
+    def engine_sensitivities(self) -> bool:
+        return self.base.engine_sensitivities
+
+    def start(self, *args, **kwargs) -> list[float]:
+        return self.base.start(*args, **kwargs)
+
+    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]]]:
+        """The base model's: the tension is not a parameter, so every level has the same engine sensitivities."""
+        return self.base.sensitivity_map(theta)
+
+    def decks(self, theta: Sequence[float], **options) -> tuple[str, ...]:
+        """The deck of theta under each tension, in the order of `tensions`."""
+        if "tension_N_per_mm" in options:
+            raise ValueError("a model of several garment levels has its tensions (LevelsModel.tensions); solve "
+                             "one level with another tension through its base model (AtTension)")
+        return tuple(self.base.deck(theta, tension_N_per_mm=tension, **options) for tension in self.tensions)
+
+
+@dataclass
+class AtTension:
+    """The base model with its decks under another garment tension by default (a level's landmark pressures and
+    their Table 4 sensitivity to the tension, `identify.pressure_uncertainty`)."""
+
+    base: LegModel
+    tension_N_per_mm: float
+
+    def __post_init__(self):
+        self.space = self.base.space
+        self.mesh = self.base.mesh
+        self.mesh_text = self.base.mesh_text
+        self.mesh_sha = self.base.mesh_sha
+
+    def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None, **options) -> str:
+        tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
+        return self.base.deck(theta, tension_N_per_mm=tension, **options)
+
+
+class JointDisplacementObjective:
+    """The displacement residuals of every garment level, concatenated (module text). It offers what
+    `identify`, `pipeline` and `diagnose` use of a `DisplacementResidualObjective`, with `level_outputs` in place
+    of `outputs`: the runner hands it every level's (nodal displacement, output folder) of one evaluation."""
+
+    name = "displacement_residual_levels"
+    needs_vtu = False
+
+    def __init__(self, parts: Sequence):
+        self.parts = tuple(parts)
+        if len(self.parts) < 2:
+            raise ValueError(f"a joint objective needs at least two garment levels, got {len(self.parts)}")
+        bounds = np.cumsum([0] + [part.n_residuals for part in self.parts])
+        self.slices = [slice(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+        self.positions_mm = np.vstack([part.positions_mm for part in self.parts])
+        self.nuisance_dof = sum(part.nuisance_dof for part in self.parts)
+        # eq. 2 over all the levels' points: the mean variance of one component over every level
+        self.reference_variance_mm2 = float(sum(part.reference_variance_mm2 * part.n_residuals for part in self.parts)
+                                            / bounds[-1])
+        self.source = self.parts[0].source
+        self.fingerprint = "levels[" + "|".join(part.fingerprint for part in self.parts) + "]"
+
+    @property
+    def n_residuals(self) -> int:
+        return self.slices[-1].stop
+
+    def split(self, residuals: np.ndarray) -> list[np.ndarray]:
+        """A joint residual vector cut into its levels' parts."""
+        residuals = np.asarray(residuals, float)
+        return [residuals[part] for part in self.slices]
+
+    def residuals(self, nodal_per_level: Sequence[np.ndarray]) -> np.ndarray:
+        if len(nodal_per_level) != len(self.parts):
+            raise ValueError(f"{len(nodal_per_level)} nodal fields for {len(self.parts)} garment levels")
+        return np.concatenate([part.residuals(u) for part, u in zip(self.parts, nodal_per_level)])
+
+    def cost_of(self, residuals: np.ndarray) -> float:
+        """F (mm^2) of a joint residual vector."""
+        residuals = np.asarray(residuals, float)
+        return float(self.reference_variance_mm2 * (residuals @ residuals) / len(residuals))
+
+    def noise_floor(self, n_parameters: int) -> float:
+        """Expected F of a correct model with n_parameters fitted to every level's measurements."""
+        n = self.n_residuals
+        return float(self.reference_variance_mm2 * (n - n_parameters - self.nuisance_dof) / n)
+
+    def residual_mm(self, residuals: np.ndarray) -> np.ndarray:
+        """(N, 2) u_model - u_measured in mm, the levels one after the other (as `positions_mm`)."""
+        return np.vstack([part.residual_mm(r) for part, r in zip(self.parts, self.split(residuals))])
+
+    def level_misfits(self, residuals: np.ndarray) -> list[float]:
+        """Each level's own F (its points, its s^2)."""
+        return [part.cost_of(r) for part, r in zip(self.parts, self.split(residuals))]
+
+    def level_outputs(self, levels: Sequence[tuple[np.ndarray, Path]]) -> dict:
+        """Cost, residuals, each level's misfit and, when the decks asked for them, dr/d(engine parameter) of
+        every level concatenated per engine parameter name."""
+        if len(levels) != len(self.parts):
+            raise ValueError(f"{len(levels)} engine results for {len(self.parts)} garment levels")
+        outputs = [part.outputs(nodal, Path(outdir)) for part, (nodal, outdir) in zip(self.parts, levels)]
+        residuals = np.concatenate([np.asarray(out["residuals"], float) for out in outputs])
+        joined = {"cost": self.cost_of(residuals), "residuals": residuals.tolist(),
+                  "level_misfits": [float(out["cost"]) for out in outputs]}
+        sensitivities = [out.get("sensitivity") or {} for out in outputs]
+        if all(sensitivities):
+            names = [name for name in sensitivities[0] if all(name in s for s in sensitivities[1:])]
+            joined["sensitivity"] = {name: [v for s in sensitivities for v in s[name]] for name in names}
+        return joined

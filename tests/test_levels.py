@@ -1,0 +1,226 @@
+"""Several garment levels of one slice fitted jointly (issue 13, item 2; `orchestrator.levels`).
+
+Fast: one evaluation of a `LevelsModel` solves every level (a job sub-folder each) and its
+`JointDisplacementObjective` gives each level's residuals stacked, as each level evaluated alone gives them, with
+the engine's sensitivities stacked the same way and F over all the points; a failed level fails the evaluation
+and is named; a model of one level keeps its deck, its cache key and its job folder as they were; case.toml's
+[[garment.levels]] tables are read back as written and every mistake is one CaseError naming the file and the fix.
+
+Slow: a phantom made by the engine under 0.16 and 0.32 N/mm (truth drawn off the fit's start, its own 8,000
+CPE6 mesh, image noise, scanner motion) identified from its three images alone (DIC at both levels): every
+parameter within 10 % of its truth, and every truth inside its 95 % noise Monte-Carlo interval.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchestrator.decks import deck_key
+from orchestrator.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel
+from orchestrator.identify import residual_jacobian
+from orchestrator.imaging.case import DisplacementPoints, GarmentLevel, read_case, write_case_folder
+from orchestrator.imaging.errors import CaseError
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.levels import AtTension, JointDisplacementObjective, LevelsModel
+from orchestrator.meshing import leg_slice_mesh
+from orchestrator.objectives import DisplacementResidualObjective
+from orchestrator.runner import BAD_DECK, OK, Evaluator
+
+TENSIONS = (0.16, 0.32)   # N/mm: about 20 and 40 mmHg on a calf
+THETA = (3.1, 14.0, 90.0, 120.0)   # kPa, off Table 2
+
+
+@pytest.fixture(scope="module")
+def leg():
+    """A small leg, its model with the engine's sensitivities, and made-up measurements at each level: points of
+    their own and noise of their own (sigma 0.02 and 0.05 mm)."""
+    mesh = leg_slice_mesh(300, order=2)
+    model = LegModel(mesh, TENSIONS[0], engine_sensitivities=True)
+    rng = np.random.default_rng(3)
+    centroids = mesh.nodes[mesh.elements[:, :3]].mean(axis=1)
+    parts = []
+    for count, sigma in ((30, 0.02), (20, 0.05)):
+        points = centroids[rng.choice(len(centroids), count, replace=False)]
+        parts.append(DisplacementResidualObjective.at_points(mesh, points, rng.normal(0.0, 0.1, (count, 2)),
+                                                             np.full(count, sigma)))
+    return model, parts
+
+
+def test_joint_objective_stacks_each_levels_residuals_and_sensitivities(leg, tmp_path):
+    model, parts = leg
+    joint = JointDisplacementObjective(parts)
+    levels = LevelsModel(model, TENSIONS)
+    with Evaluator(levels, joint, tmp_path / "joint", progress=False) as evaluator:
+        record = evaluator(THETA)
+    alone = []
+    for k, (tension, part) in enumerate(zip(TENSIONS, parts)):
+        with Evaluator(AtTension(model, tension), part, tmp_path / f"level{k}", progress=False) as evaluator:
+            alone.append(evaluator(THETA))
+    assert record["status"] == OK and all(r["status"] == OK for r in alone)
+    residuals = np.array(record["outputs"]["residuals"])
+    np.testing.assert_array_equal(residuals, np.concatenate([r["outputs"]["residuals"] for r in alone]))
+    assert record["newton_iterations"] == sum(r["newton_iterations"] for r in alone)
+    assert record["outputs"]["level_misfits"] == pytest.approx([r["cost"] for r in alone], rel=1e-12)
+    # F of eq. 2 over every level's points: the mean variance of one component over all of them
+    n = [part.n_residuals for part in parts]
+    variance = (parts[0].reference_variance_mm2 * n[0] + parts[1].reference_variance_mm2 * n[1]) / sum(n)
+    assert record["cost"] == pytest.approx(variance * residuals @ residuals / sum(n), rel=1e-12)
+    assert joint.noise_floor(4) == pytest.approx(variance * (sum(n) - 4) / sum(n), rel=1e-12)
+    np.testing.assert_allclose(joint.residual_mm(residuals),
+                               np.vstack([p.residual_mm(r["outputs"]["residuals"]) for p, r in zip(parts, alone)]))
+    # the engine's sensitivities concatenated per parameter, so Levenberg-Marquardt's Jacobian is the levels' stacked
+    stacked = residual_jacobian(levels, record, THETA)
+    separate = [residual_jacobian(model, r, THETA) for r in alone]
+    assert stacked.shape == (sum(n), 4) and np.abs(stacked).max() > 0
+    np.testing.assert_allclose(stacked, np.vstack(separate), rtol=1e-12, atol=0)
+
+
+def test_one_level_keeps_its_deck_key_and_job_folder(leg, tmp_path):
+    model, parts = leg
+    single = Evaluator(model, parts[0], tmp_path / "one", progress=False, keep_jobs=True)
+    task = single.task(THETA)
+    assert task.deck_text == model.deck(THETA)
+    assert task.key == deck_key(model.deck(THETA), model.mesh_sha, parts[0].fingerprint)
+    record = single(THETA)
+    single.close()
+    assert set(record) == {"key", "theta", "options", "tag", "status", "cost", "outputs", "message",
+                           "newton_iterations", "time_s", "finished_at"}
+    job = tmp_path / "one" / "jobs" / task.key
+    assert (job / "deck.inp").read_text() == model.deck(THETA) and not (job / "level-1").exists()
+
+    levels = LevelsModel(model, TENSIONS)
+    with Evaluator(levels, JointDisplacementObjective(parts), tmp_path / "two", progress=False,
+                   keep_jobs=True) as joint:
+        task = joint.task(THETA)
+        joint(THETA)
+    assert task.key != record["key"]
+    for k, tension in enumerate(TENSIONS, start=1):
+        assert (tmp_path / "two" / "jobs" / task.key / f"level-{k}" / "deck.inp").read_text() == model.deck(
+            THETA, tension_N_per_mm=tension)
+
+
+class _SecondLevelRejected(LevelsModel):
+    """A levels model whose second deck the engine rejects (a keyword it does not know)."""
+
+    def decks(self, theta, **options):
+        first, second = super().decks(theta, **options)
+        return first, second.replace("*STEP", "*NOT A KEYWORD\n*STEP", 1)
+
+
+def test_a_failed_level_fails_the_evaluation_and_is_named(leg, tmp_path):
+    model, parts = leg
+    with Evaluator(_SecondLevelRejected(model, TENSIONS), JointDisplacementObjective(parts), tmp_path,
+                   progress=False) as evaluator:
+        record = evaluator(THETA)
+    assert record["status"] == BAD_DECK and record["cost"] is None
+    assert record["message"].startswith("garment level 2 of 2: ") and "NOT A KEYWORD" in record["message"]
+
+
+def test_levels_refuse_the_explicit_garment_and_a_single_level_objective(leg):
+    model, parts = leg
+    with pytest.raises(ValueError, match="each sock would need its own band mesh"):
+        LevelsModel(LegModel(model.mesh, TENSIONS[0], garment="explicit"), TENSIONS)
+    with pytest.raises(ValueError, match="JointDisplacementObjective"):
+        Evaluator(LevelsModel(model, TENSIONS), parts[0], "unused", progress=False)
+    with pytest.raises(ValueError, match="positive"):
+        LevelsModel(model, (0.16, 0.0))
+
+
+# --- case.toml -------------------------------------------------------------------------------------
+
+SHAPE, PIXEL = (48, 64), (0.5, 0.4)
+
+
+def _grey(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(100, 60000, SHAPE).astype(np.uint16)
+
+
+@pytest.fixture
+def levels_case(tmp_path):
+    points = DisplacementPoints(np.array([[10.0, 8.0], [20.5, 12.25]]), np.array([[0.1, -0.2], [0.0, 0.3]]),
+                                np.array([0.05, 0.07]))
+    level = GarmentLevel(2, _grey(2), 0.27, "loaded-40mmHg.png", points, "points-40mmHg.csv")
+    return write_case_folder(tmp_path / "case", name="two-socks", unloaded=_grey(0), loaded=_grey(1), pixel_size_mm=PIXEL,
+                             tension_N_per_mm=0.16, levels=(level,))
+
+
+def test_levels_read_back_what_was_written(levels_case):
+    case = read_case(levels_case)
+    assert case.tensions == (0.16, 0.27) and len(case.levels) == 1
+    level = case.levels[0]
+    assert level.number == 2 and level.path == levels_case / "loaded-40mmHg.png"
+    np.testing.assert_array_equal(level.image, _grey(2))
+    np.testing.assert_allclose(level.points.displacement_mm, [[0.1, -0.2], [0.0, 0.3]])
+
+
+def _edit(case, old: str, new: str) -> None:
+    toml = case / "case.toml"
+    text = toml.read_text()
+    assert old in text
+    toml.write_text(text.replace(old, new))
+
+
+@pytest.mark.parametrize("old, new, file, problem", [
+    ('image = "loaded-40mmHg.png"', 'image = "loaded-30mmHg.png"', "loaded-30mmHg.png", "is missing"),
+    ("tension_N_per_mm = 0.27", "tension_N_per_mm = -0.27", "case.toml", "is not a positive number"),
+    ("tension_N_per_mm = 0.27", "tension_N_per_mm = 0.27\nsock = 2", "case.toml", "unknown key 'sock'"),
+    ('image = "loaded-40mmHg.png"', 'image = "loaded.png"', "case.toml", "the first level's loaded image"),
+    ('[garment]', '[model]\ngarment = "explicit"\n\n[garment]', "case.toml", "its own band mesh"),
+])
+def test_a_wrong_level_is_one_sentence_naming_the_file(levels_case, old, new, file, problem):
+    _edit(levels_case, old, new)
+    with pytest.raises(CaseError) as error:
+        read_case(levels_case)
+    assert error.value.file.name == file and problem in str(error.value)
+    assert str(error.value).count(";") == 1 and str(error.value).endswith(".")
+
+
+def test_a_level_of_another_matrix_size_is_refused(levels_case):
+    from orchestrator.imaging._formats import write_png16
+
+    write_png16(levels_case / "loaded-40mmHg.png", _grey(2)[:, :40])
+    with pytest.raises(CaseError, match="is 48x40 pixels but unloaded.png is 48x64") as error:
+        read_case(levels_case)
+    assert error.value.file.name == "loaded-40mmHg.png"
+
+
+# --- slow: a two-level phantom identified from its images --------------------------------------------
+
+PHYSIOLOGICAL_KPA = ((2.0, 9.0), (6.0, 20.0), (50.0, 200.0), (35.0, 140.0))
+SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
+
+
+def _random_truth(seed: int) -> np.ndarray:
+    """Log-uniform in the physiological ranges, each parameter at least 15 % off the fit's start."""
+    rng = np.random.default_rng(seed)
+    while True:
+        truth = np.exp([rng.uniform(np.log(low), np.log(high)) for low, high in PHYSIOLOGICAL_KPA])
+        if np.all(np.abs(truth / np.array(TABLE2_CENTRAL_KPA) - 1.0) > 0.15):
+            return truth
+
+
+@pytest.mark.slow
+def test_two_levels_are_identified_from_the_images_alone(tmp_path):
+    from orchestrator.pipeline import run_identify, run_montecarlo
+    from orchestrator.study import make_phantom_case
+
+    truth = _random_truth(5)
+    case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
+                                labels=None, points_spacing_mm=None, rigid=SCANNER_MOTION, noise_seeds=(15, 25))
+    assert sorted(p.name for p in case.iterdir()) == ["case.toml", "loaded-level-2.png", "loaded.png", "unloaded.png"]
+    identification = run_identify(case, tmp_path / "run", workers=2, progress=False)
+    montecarlo = run_montecarlo(tmp_path / "run", workers=2, progress=False)
+    theta = np.array(identification["best"]["theta"])
+    error = theta / truth - 1.0
+    print("truth", np.round(truth, 2), "identified", np.round(theta, 2), "error %", np.round(100 * error, 1),
+          "half width %", np.round(100 * np.array(montecarlo["relative_half_width"]), 1),
+          "misfit / floor", round(identification["misfit_over_floor"], 2))
+    assert identification["data"]["source"] == "dic"
+    assert [row["tension_N_per_mm"] for row in identification["levels"]] == list(TENSIONS)
+    assert all(row["count"] > 150 for row in identification["levels"])
+    assert 0.7 < identification["misfit_over_floor"] < 1.3
+    assert np.all(np.abs(error) <= 0.10)
+    assert montecarlo["method"] == "noise" and montecarlo["failed"] == 0
+    for name, low, value, high in zip(LEG_PARAMETERS, montecarlo["lower"], truth, montecarlo["upper"]):
+        assert low <= value <= high, f"{name}: truth {value:.3f} outside [{low:.3f}, {high:.3f}]"
