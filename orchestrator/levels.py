@@ -18,7 +18,9 @@ socks.
 - `AtTension(base, tension)`: the base model whose decks default to another tension (a level's pressures).
 
 The explicit garment (`[model] garment = "explicit"`) is not fitted with levels: its band is meshed at its
-design tension, so each sock would need its own band mesh.
+design tension, so each sock would need its own band mesh. Each level's whitening holds that level's share of the
+model's geometry uncertainty only (`geometry_uncertainty`): the skin error common to the levels is counted as
+independent between them, which makes the joint intervals too narrow.
 """
 
 from __future__ import annotations
@@ -153,6 +155,11 @@ class JointDisplacementObjective:
     def level_misfits(self, residuals: np.ndarray) -> list[float]:
         """Each level's own F (its points, its s^2)."""
         return [part.cost_of(r) for part, r in zip(self.parts, self.split(residuals))]
+
+    def outputs(self, nodal_per_level: Sequence[np.ndarray], outdirs: Sequence[Path]) -> dict:
+        """`level_outputs` with the levels' nodal fields and output folders in two sequences (a one-level
+        objective's `outputs(nodal_u, outdir)`, each argument holding one entry per level)."""
+        return self.level_outputs(list(zip(nodal_per_level, outdirs)))
 
     def level_outputs(self, levels: Sequence[tuple[np.ndarray, Path]]) -> dict:
         """Cost, residuals, each level's misfit and, when the decks asked for them, dr/d(engine parameter) of

@@ -8,7 +8,8 @@ and is named; a model of one level keeps its deck, its cache key and its job fol
 
 Slow: a phantom made by the engine under 0.16 and 0.32 N/mm (truth drawn off the fit's start, its own 8,000
 CPE6 mesh, image noise, scanner motion) identified from its three images alone (DIC at both levels): every
-parameter within 10 % of its truth, and every truth inside its 95 % noise Monte-Carlo interval.
+parameter within 10 % of its truth, every truth inside its 95 % noise Monte-Carlo interval, and the landmark
+pressures of the second level about twice the first's.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from orchestrator.imaging.frame import RigidMotion
 from orchestrator.levels import AtTension, JointDisplacementObjective, LevelsModel
 from orchestrator.meshing import leg_slice_mesh
 from orchestrator.objectives import DisplacementResidualObjective
+from orchestrator.results import EngineResults
 from orchestrator.runner import BAD_DECK, OK, Evaluator
 
 TENSIONS = (0.16, 0.32)   # N/mm: about 20 and 40 mmHg on a calf
@@ -51,8 +53,13 @@ def test_joint_objective_stacks_each_levels_residuals_and_sensitivities(leg, tmp
     model, parts = leg
     joint = JointDisplacementObjective(parts)
     levels = LevelsModel(model, TENSIONS)
-    with Evaluator(levels, joint, tmp_path / "joint", progress=False) as evaluator:
+    with Evaluator(levels, joint, tmp_path / "joint", progress=False, keep_jobs=True) as evaluator:
         record = evaluator(THETA)
+        job = tmp_path / "joint" / "jobs" / evaluator.task(THETA).key
+    outdirs = [job / f"level-{k}" / "out" for k in (1, 2)]
+    nodal = [EngineResults(outdir).displacement() for outdir in outdirs]
+    np.testing.assert_array_equal(joint.residuals(nodal), record["outputs"]["residuals"])
+    assert joint.outputs(nodal, outdirs)["sensitivity"] == record["outputs"]["sensitivity"]
     alone = []
     for k, (tension, part) in enumerate(zip(TENSIONS, parts)):
         with Evaluator(AtTension(model, tension), part, tmp_path / f"level{k}", progress=False) as evaluator:
@@ -202,7 +209,7 @@ def _random_truth(seed: int) -> np.ndarray:
 
 @pytest.mark.slow
 def test_two_levels_are_identified_from_the_images_alone(tmp_path):
-    from orchestrator.pipeline import run_identify, run_montecarlo
+    from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
     from orchestrator.study import make_phantom_case
 
     truth = _random_truth(5)
@@ -224,3 +231,8 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path):
     assert montecarlo["method"] == "noise" and montecarlo["failed"] == 0
     for name, low, value, high in zip(LEG_PARAMETERS, montecarlo["lower"], truth, montecarlo["upper"]):
         assert low <= value <= high, f"{name}: truth {value:.3f} outside [{low:.3f}, {high:.3f}]"
+    pressures = run_pressures(tmp_path / "run", workers=2, progress=False)
+    (second,) = pressures["levels"]
+    ratio = np.array(second["central_kPa"]) / np.array(pressures["central_kPa"])
+    print("pressure ratio of the levels at the landmarks", np.round(ratio, 2))
+    assert second["tension_N_per_mm"] == TENSIONS[1] and np.all((1.6 < ratio) & (ratio < 2.4))
