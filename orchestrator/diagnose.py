@@ -22,6 +22,14 @@ pieces of evidence. |g_perp| / |g| tells how much of the effect the fitted param
 (0: all of it). Effects are ranked by S; one is significant when its p-value is below alpha / m
 (Bonferroni over the m effects tried) and the misfit itself is above the noise floor (chi^2 test).
 
+The garment's effects (friction, bridging) are not in the Laplace-law deck: they replace p = T / r by the explicit
+band (`garment_model`: penalty contact, Bouten and Drapier sec. 2.5). Bridging is a switch s from Laplace's law
+(s = 0) to the frictionless band (s = 1), G = r_band - r (one run of the band at theta); friction is the switch and
+the friction coefficient, G = [r_band - r, dr/dmu] with dr/dmu a forward difference of the band's runs at mu = 0
+and FRICTION_PROBE_MU (no engine sensitivity through friction). Friction's columns nest bridging's, so their
+p-values (2 and 1 degrees of freedom) decide between them. The refit of either identifies the band model (with mu
+free for friction) from the fitted point.
+
 Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
 the noise floor, that effect explains the residual; otherwise the diagnosis says that no catalog effect
 explains it and points at where the residual is, in words (`regions.LegFrame`): the tissue, the
@@ -47,7 +55,7 @@ seen not to.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -68,6 +76,7 @@ EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: th
 MAX_DESIGN_EFFECT = 100.0
 ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
+FRICTION_PROBE_MU = 0.05     # forward-difference step of the friction coefficient from a frictionless band
 MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
 PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 
@@ -235,18 +244,48 @@ def residual_maps(positions_mm: np.ndarray, residual_mm: np.ndarray, frame: LegF
 # --- the diagnosis ------------------------------------------------------------------------------
 
 def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
-    """Catalog effects that the diagnosis can try on this model, and why the others are not tried."""
+    """Catalog effects that the diagnosis can try on this model, and why the others are not tried. The garment's
+    effects (friction, bridging) are tried on a Laplace-law model without effects: they replace p = T / r by the
+    explicit band (`garment_model`), which carries no other effect yet."""
     sets, nodes = list(model.mesh.element_sets()), list(model.mesh.node_sets)
     candidates, skipped = [], {}
     for name, item in CATALOG.items():
         if name in model.effects or name in model.fixed_effects:
             continue
-        reason = item.unavailable(sets, nodes)
+        reason = (item.unavailable(sets, nodes) if item.laplace_model else
+                  "it needs the explicit garment band, which carries no catalog effect yet: diagnose the model "
+                  "without effects" if model.effects or model.fixed_effects or model.tension_profile else None)
         if reason:
             skipped[name] = reason
         else:
             candidates.append(name)
     return candidates, skipped
+
+
+def garment_model(model: LegModel, effects: Sequence[str] = ()) -> LegModel:
+    """The model of the garment's effects: the Laplace-law model's mesh, laws, elements and tension with the
+    explicit band (Bouten and Drapier sec. 2.5) instead of p = T / r, frictionless, its friction coefficient fitted
+    (the parameter mu after the laws' constants) when `effects` holds friction."""
+    return replace(model, garment="explicit", friction_mu=0.0, effects=("friction",) if "friction" in effects else (),
+                   fixed_effects={}, tension_profile=None)
+
+
+def garment_columns(evaluator_factory, model: LegModel, theta: Sequence[float], r: np.ndarray,
+                    names: Sequence[str]) -> tuple[dict[str, np.ndarray], int]:
+    """G of the garment's effects at theta (module text): bridging is a switch s from Laplace's law (s = 0) to the
+    band (s = 1), linearized as r + s (r_band - r); friction adds to it dr/dmu at mu = 0 by a forward difference of
+    step FRICTION_PROBE_MU (friction has no engine sensitivity): its two columns nest bridging's one, so that their
+    p-values decide between them. Returns the columns and the engine runs they took."""
+    with evaluator_factory(garment_model(model)) as evaluator:
+        band = _residuals(evaluator(list(theta)))
+        runs = evaluator.launched
+    columns = {"bridging": (band - r)[:, None]}
+    if "friction" in names:
+        with evaluator_factory(garment_model(model, ("friction",))) as evaluator:
+            sliding = _residuals(evaluator(list(theta) + [FRICTION_PROBE_MU]))
+            runs += evaluator.launched
+        columns["friction"] = np.column_stack([band - r, (sliding - band) / FRICTION_PROBE_MU])
+    return {name: columns[name] for name in names}, runs
 
 
 def _residuals(record: dict) -> np.ndarray:
@@ -282,11 +321,12 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     how regions are named."""
     began = time.perf_counter()
     candidates, skipped = candidate_effects(model)
+    garment_effects = [name for name in candidates if not effect(name).laplace_model]
+    candidates = [name for name in candidates if effect(name).laplace_model]
     # the local probe's many columns are one back-substitution each with the engine's sensitivities, an engine run
     # each by finite differences: without the former, the diagnosis does not locate
     probing = (LOCAL_PROBE.name,) if engine_sensitivities else ()
-    probe = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile,
-                     model.effects + tuple(candidates) + probing, dict(model.fixed_effects), engine_sensitivities)
+    probe = replace(model, effects=model.effects + tuple(candidates) + probing, engine_sensitivities=engine_sensitivities)
     probe_sets = list(model.mesh.element_sets()) + [group.name for group in probe.groups]
     p = model.space.size
     theta_probe = list(map(float, theta)) + [0.0] * (probe.space.size - p)
@@ -316,6 +356,16 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         ranking.append(EffectScore(name, parameters, score["statistic"], q, float(stats.chi2.sf(score["statistic"], q)),
                                    score["predicted_reduction"], misfit - score["predicted_reduction"],
                                    score["orthogonal_fraction"], score["step"]))
+    if garment_effects:
+        columns, garment_runs = garment_columns(evaluator_factory, model, theta, r, garment_effects)
+        runs += garment_runs
+        for name, G in columns.items():
+            score = score_effect(r, J, G, chi2_to_misfit, deff)
+            q = G.shape[1]
+            ranking.append(EffectScore(name, ["bridging"] + (["mu"] if q == 2 else []), score["statistic"], q,
+                                       float(stats.chi2.sf(score["statistic"], q)), score["predicted_reduction"],
+                                       misfit - score["predicted_reduction"], score["orthogonal_fraction"],
+                                       score["step"]))
     ranking.sort(key=lambda s: (s.p_value, -s.statistic))
     lack_of_fit = lack_of_fit_p < alpha
     for score in ranking:
@@ -461,15 +511,19 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
     when the missing effect dragged the baseline fit to a bound or far from the tissue's values.
     Returns the fit and its residual u_model - u_measured (mm) at the points."""
-    extended = LegModel(model.mesh, model.tension_N_per_mm, model.tension_profile, model.effects + tuple(effects),
-                        dict(model.fixed_effects), model.engine_sensitivities)
-    extra = [0.0] * (extended.space.size - model.space.size)
+    garment = [name for name in effects if not effect(name).laplace_model]
+    extended = garment_model(model, garment) if garment else replace(model, effects=model.effects + tuple(effects))
+    # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
+    # one-sided difference, and Levenberg-Marquardt may not leave the bound
+    extra = [FRICTION_PROBE_MU if name == "mu" else 0.0 for name in extended.space.names[model.space.size:]]
     starts = [list(map(float, theta)) + extra, model.start() + extra]
     with evaluator_factory(extended) as evaluator:
         fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations, ftol=REFIT_FTOL) for start in starts]
         fit = min(fits, key=lambda f: f.cost)
         record = evaluator(fit.theta)
-    return summarize_fit(extended, fit, record, objective), objective.residual_mm(_residuals(record))
+    # named by the effects asked for: the garment's band model lists none (bridging) or friction alone
+    summary = replace(summarize_fit(extended, fit, record, objective), effects=list(model.effects) + list(effects))
+    return summary, objective.residual_mm(_residuals(record))
 
 
 def summarize_fit(model: LegModel, fit: FitResult, record: dict, objective) -> Refit:

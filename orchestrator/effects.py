@@ -25,10 +25,10 @@ groups, the local stiffness change the diagnosis proposes where the catalog expl
 phantom with a stiff patch is made) and `local` (dlnC10_<group> of every group: the diagnosis' probe of where
 a stiffness change would reduce the residual).
 
-`friction` and `bridging` need the explicit garment band (`templates/leg_garment.inp.j2`, contact with
-path-dependent friction, minutes per solve on a fitting mesh); they are in the catalog for their
-explanation and for the garment studies, and the diagnosis of a Laplace-law model does not rank them
-(`Effect.laplace_model` is False).
+`friction` and `bridging` are not in the Laplace-law deck (`Effect.laplace_model` is False): they need the
+explicit garment band (`templates/leg_garment.inp.j2`, penalty contact, friction). The diagnosis of a Laplace-law
+model without effects ranks them with the band's runs (`diagnose.garment_model`); a model with the explicit
+garment may fit `friction` (its coefficient mu) and no other effect yet.
 """
 
 from __future__ import annotations
@@ -103,16 +103,20 @@ class Effect:
     laplace_model: bool = True   # realizable in the Laplace-law leg deck (ranked by the diagnosis)
     requirement: Callable[[Sequence[str], Sequence[str]], str | None] = lambda element_sets, node_sets: None
 
-    def parameters(self, element_sets: Sequence[str], node_sets: Sequence[str]) -> tuple[EffectParameter, ...]:
-        """The effect's parameters on a mesh with these sets; EffectError when the mesh cannot carry it."""
-        reason = self.unavailable(element_sets, node_sets)
+    def parameters(self, element_sets: Sequence[str], node_sets: Sequence[str],
+                   garment: str = "laplace") -> tuple[EffectParameter, ...]:
+        """The effect's parameters on a mesh with these sets under this garment model; EffectError when the model
+        cannot carry it."""
+        reason = self.unavailable(element_sets, node_sets, garment)
         if reason:
-            raise EffectError(f"effect {self.name!r} is not available on this mesh: {reason}")
+            raise EffectError(f"effect {self.name!r} is not available on this model: {reason}")
         return self.parameter_list(element_sets, node_sets)
 
-    def unavailable(self, element_sets: Sequence[str], node_sets: Sequence[str]) -> str | None:
-        if not self.laplace_model:
+    def unavailable(self, element_sets: Sequence[str], node_sets: Sequence[str], garment: str = "laplace") -> str | None:
+        if garment == "laplace" and not self.laplace_model:
             return "it needs the explicit garment band (templates/leg_garment.inp.j2), not the Laplace-law model"
+        if garment == "explicit" and self.laplace_model:
+            return "it is written into the Laplace-law deck only, not the explicit garment's"
         return self.requirement(element_sets, node_sets)
 
 

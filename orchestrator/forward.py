@@ -167,10 +167,11 @@ def field_on_pixels(weights: sparse.csr_matrix, nodal: np.ndarray, shape: tuple[
 
 # --- models ----------------------------------------------------------------------------------------
 
-def _effect_space(names: Sequence[str], element_sets: Sequence[str], node_sets: Sequence[str]) -> ParameterSpace:
+def _effect_space(names: Sequence[str], element_sets: Sequence[str], node_sets: Sequence[str],
+                  garment: str = "laplace") -> ParameterSpace:
     from .effects import effect
 
-    parameters = [p for name in names for p in effect(name).parameters(element_sets, node_sets)]
+    parameters = [p for name in names for p in effect(name).parameters(element_sets, node_sets, garment)]
     return ParameterSpace(tuple(p.name for p in parameters), tuple(p.lower for p in parameters),
                           tuple(p.upper for p in parameters), "", (True,) * len(parameters),
                           tuple(p.scale for p in parameters), tuple(p.unit for p in parameters))
@@ -218,10 +219,13 @@ class LegModel:
             raise ValueError(f"garment must be one of {GARMENTS}, got {self.garment!r}")
         if self.friction_mu < 0.0 or (self.friction_mu > 0.0 and self.garment != "explicit"):
             raise ValueError(f"a friction coefficient ({self.friction_mu}) needs garment = 'explicit' and must be >= 0")
-        if self.garment == "explicit" and (self.effects or self.fixed_effects or self.tension_profile):
+        if self.garment == "explicit" and (set(self.effects) - {"friction"} or self.fixed_effects or self.tension_profile):
             raise ValueError("catalog effects (--effects) and tension profiles are written into the Laplace-law deck "
                              "only, and this model fits the explicit garment ([model] garment = \"explicit\" in "
-                             "case.toml): leave the effects out, or fit Laplace's law")
+                             "case.toml): leave the effects out (friction alone may be fitted), or fit Laplace's law")
+        if "friction" in self.effects and self.friction_mu > 0.0:
+            raise ValueError("the friction coefficient is both fixed (friction_mu, [model] friction) and fitted "
+                             "(the friction effect): give one")
 
         sets = self.mesh.element_sets()
         self._set_laws(list(sets))
@@ -231,8 +235,9 @@ class LegModel:
             raise ValueError(f"effects {sorted(overlap)} are both fitted and fixed")
         self.groups = groups_for(self.mesh, self.effects + tuple(self.fixed_effects))
         element_sets = list(sets) + [group.name for group in self.groups]
-        self.space = self._law_space().join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets)))
-        _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets))  # checks they fit the mesh
+        self.space = self._law_space().join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets),
+                                                          self.garment))
+        _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets), self.garment)  # they fit?
         self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
         mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
         if self.hybrid:   # the leg's element block only: the band stays a compressible displacement element
@@ -241,7 +246,8 @@ class LegModel:
         self.mesh_text = mesh_text + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
         # the engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)
-        self.engine_sensitivities = self.engine_sensitivities and self.friction_mu == 0.0
+        self.engine_sensitivities = (self.engine_sensitivities and self.friction_mu == 0.0
+                                     and "friction" not in self.effects)
 
     def _set_laws(self, element_sets: list[str]) -> None:
         """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""
@@ -338,7 +344,9 @@ class LegModel:
         element_sets = list(state.constants) + [group.name for group in self.groups]
         for name in self.effects:
             item = effect(name)
-            item.apply(state, {p.name: values[p.name] for p in item.parameters(element_sets, list(self.mesh.node_sets))})
+            if item.apply is not None:   # the garment's effects (friction) are the explicit deck's, not the state's
+                item.apply(state, {p.name: values[p.name]
+                                   for p in item.parameters(element_sets, list(self.mesh.node_sets), self.garment)})
         for name, fixed in self.fixed_effects.items():
             effect(name).apply(state, dict(fixed))
         # the compartments effect scales C10 of a compartment by (1 + c): du/dC10_muscle gets that factor
@@ -370,9 +378,10 @@ class LegModel:
             if tension != self.tension_N_per_mm:
                 raise ValueError("the explicit garment's tension is the band's (LegModel.tension_N_per_mm): make a "
                                  "model with the other tension")
-            text = leg_garment_deck(materials, self.band, self.mesh, friction_mu=self.friction_mu,
+            mu = float(theta[self.space.names.index("mu")]) if "friction" in self.effects else self.friction_mu
+            text = leg_garment_deck(materials, self.band, self.mesh, friction_mu=mu,
                                     description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
-                                                f"mu = {self.friction_mu:g}")
+                                                f"mu = {mu:g}")
             return text + ("*SENSITIVITY\n" + "".join(f"{line}\n" for line in lines) if lines else "")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
                                 description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")

@@ -111,7 +111,8 @@ def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) ->
 
     mesh = mesh_from_labels(setup.labels_unloaded, setup.case.pixel_size_mm, n_elements=len(setup.mesh.elements),
                             order=setup.mesh.order, image=setup.case.unloaded, interface_offsets=offsets)
-    model = LegModel(mesh, tension_N_per_mm, effects=tuple(effects))
+    model = LegModel(mesh, tension_N_per_mm, effects=tuple(effects), tissues=setup.model.tissues,
+                     hybrid=setup.model.hybrid)
     with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
@@ -131,7 +132,7 @@ def geometry_covariance(setup, theta: Sequence[float], measurements, *, effects:
     from .meshing.labels import interface_shift
 
     tension = setup.case.tension_N_per_mm if tension_N_per_mm is None else float(tension_N_per_mm)
-    model = LegModel(setup.mesh, tension, effects=tuple(effects))
+    model = LegModel(setup.mesh, tension, effects=tuple(effects), tissues=setup.model.tissues, hybrid=setup.model.hybrid)
     perimeter = skin_perimeter_mm(model.mesh)
     variances = mode_variances(perimeter, skin_sigma_mm, cutoff_mm)
     sensitivities = skin_pressure_sensitivities(model, theta, len(variances))

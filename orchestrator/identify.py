@@ -339,29 +339,22 @@ def _engine_or_fd_jacobian(evaluator: Evaluator, record: dict, space, x: np.ndar
     return np.column_stack([(np.asarray(rec["outputs"]["residuals"]) - r) / FD_STEP for rec in records])
 
 
-def _free_directions(J: np.ndarray, noise_scale: float, x_hat: np.ndarray, x_low: np.ndarray, x_high: np.ndarray,
+def _free_directions(J: np.ndarray, noise_scale: float, width_x: np.ndarray,
                      identifiable_half_width: float) -> tuple[np.ndarray, np.ndarray]:
     """The directions of x that the data fix, and the parameters that they do not.
 
     A right singular vector v_i of J is free when the 95 % noise spread along it, 2 noise_scale / s_i, is longer
-    than the segment of x_hat + t v_i inside the box: there the misfit is flat to within the noise across the
-    whole box (C10 and C01 of an incompressible tissue in plane strain, which act only through their sum), and a
-    Gauss-Newton step along it amplifies the noise by 1 / s_i and sends the draws to the box's corners. A parameter
-    is undetermined when a free direction moves it over more than twice the identifiable half width (in x: a
-    relative change for the constants) within the box. Returns ((p, k) orthonormal fixed directions, (p,) bool
-    undetermined)."""
+    than the box across in that direction (sum_j |v_ij| width_j, wherever the fit lies in it): the misfit is flat
+    to within the noise across the whole box (C10 and C01 of an incompressible tissue in plane strain, which act
+    only through their sum), and a Gauss-Newton step along it amplifies the noise by 1 / s_i and sends the draws
+    to the box's corners. A parameter is undetermined when a free direction spreads it over more than twice the
+    identifiable half width (in x: a relative change for the constants). Returns ((p, k) orthonormal fixed
+    directions, (p,) bool undetermined)."""
     _, singular, vt = np.linalg.svd(J, full_matrices=False)
-    fixed, undetermined = [], np.zeros(len(x_hat), bool)
-    for s_i, v in zip(singular, vt):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ends = np.sort(np.stack([(x_low - x_hat) / v, (x_high - x_hat) / v]), axis=0)
-        moving = np.abs(v) > 1e-12
-        length = float(np.min(ends[1][moving]) - np.max(ends[0][moving])) if moving.any() else 0.0
-        if 2.0 * noise_scale / max(s_i, 1e-300) < length:
-            fixed.append(v)
-        else:
-            undetermined |= np.abs(v) * length > 2.0 * identifiable_half_width
-    return np.array(fixed).reshape(-1, len(x_hat)).T, undetermined
+    spread = 2.0 * noise_scale / np.maximum(singular, 1e-300)
+    free = spread > np.abs(vt) @ width_x
+    undetermined = np.any(free[:, None] & (np.abs(vt) * spread[:, None] > 2.0 * identifiable_half_width), axis=0)
+    return vt[~free].T, undetermined
 
 
 def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int = NOISE_DRAWS,
@@ -395,9 +388,8 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     noise = np.sqrt(inflation) * np.random.default_rng(seed).standard_normal((draws, n))
     box_low = np.array(space.lower) if space is not None else np.full(p, -np.inf)
     box_high = np.array(space.upper) if space is not None else np.full(p, np.inf)
-    x_low, x_high = ((_to_x(space, box_low), _to_x(space, box_high)) if space is not None
-                     else (np.full(p, -np.inf), np.full(p, np.inf)))
-    basis, undetermined = _free_directions(J, np.sqrt(inflation), x_hat, x_low, x_high, identifiable_half_width)
+    width_x = _to_x(space, box_high) - _to_x(space, box_low) if space is not None else np.full(p, np.inf)
+    basis, undetermined = _free_directions(J, np.sqrt(inflation), width_x, identifiable_half_width)
 
     def refit_step(jacobian: np.ndarray, residuals: np.ndarray) -> np.ndarray:
         """argmin |J dx - residual| over dx in the determined directions, one column per residual column."""

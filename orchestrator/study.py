@@ -36,6 +36,7 @@ from scipy import ndimage
 from .forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
+from .materials import law_notes
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
 from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
@@ -128,6 +129,7 @@ class RunSetup:
                          + (f" with friction {self.model.friction_mu:g}: the engine gives no sensitivities through "
                             "friction, so Levenberg-Marquardt differences runs (one per parameter and iteration)"
                             if self.model.friction_mu > 0 else ", frictionless"))
+        lines += [note for tissue, law in self.model.tissue_laws.items() for note in law_notes(tissue, law)]
         if self.case.levels:
             lines.append("garment levels fitted jointly: " + ", ".join(
                 f"{path.name} at {tension:g} N/mm" for path, tension in

@@ -78,6 +78,11 @@ class CalfShape:
     small_saphenous_angle_deg: float = 95.0
     saphenous_radius_mm: float = 1.6
     deep_vein_radius_mm: float = 1.6
+    # a groove in the skin (between the heads of the gastrocnemius, or a crease): skin and fascia pulled towards the
+    # centre by the factor 1 - dent_depth exp(-(dtheta / dent_width)^2); 0 = the convex calf. A garment bridges it
+    dent_depth: float = 0.0
+    dent_angle_deg: float = 90.0
+    dent_width_deg: float = 20.0
     anterior_septum_deg: float = -70.0    # rays from the fibula bounding the lateral compartment
     posterior_septum_deg: float = 35.0
     deep_compartment_mm: tuple[float, float] = (24.0, 13.0)  # half-axes along / across the membrane
@@ -148,7 +153,7 @@ class CalfGeometry:
         s = self.shape
         c = s.centre_mm
         ellipse = ellipse_radius(s.half_width_mm, s.half_depth_mm)
-        self.skin = StarCurve(c, lambda t: ellipse(t) * (1.0 + s.posterior_bulge * np.sin(t)))
+        self.skin = StarCurve(c, lambda t: ellipse(t) * (1.0 + s.posterior_bulge * np.sin(t)) * self.dent(t))
         self.skin_inner = self.skin.shrunk(s.skin_mm)
         self.fascia = StarCurve(c, lambda t: self.skin.radius(t) - self.fat_thickness(t))
         self.muscle_outer = self.fascia.shrunk(s.fascia_mm)
@@ -162,6 +167,12 @@ class CalfGeometry:
         self._check_nesting()
 
     # -- construction -----------------------------------------------------
+
+    def dent(self, theta) -> np.ndarray:
+        """The groove's factor on the skin radius (1 away from it)."""
+        s = self.shape
+        offset = np.angle(np.exp(1j * (np.asarray(theta, float) - np.deg2rad(s.dent_angle_deg))))
+        return 1.0 - s.dent_depth * np.exp(-((offset / np.deg2rad(s.dent_width_deg)) ** 2))
 
     def fat_thickness(self, theta) -> np.ndarray:
         """Fat + skin thickness (mm) along the radius: thick at the back, thin over the anteromedial tibia."""

@@ -1,0 +1,82 @@
+"""The garment's effects in the diagnosis (issue 13, must-show 3; orchestrator/diagnose.py, "The garment's effects").
+
+- A Laplace-law model without effects gets friction and bridging as candidates (the band's runs give their columns);
+  with a catalog effect fitted they are skipped with the reason. The band model fits friction's coefficient mu as
+  its only effect, writes *FRICTION only for mu > 0, differences runs (no engine sensitivity through friction), and
+  refuses mu both fixed and fitted.
+- Slow: a phantom made with the band and friction (mu = 0.3), then one made with the frictionless band on a calf
+  with a groove that the band bridges, each identified with Laplace's law (the default model) and diagnosed: the
+  hidden effect is ranked first, and its refit brings the misfit to within 1.2 times the noise floor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchestrator.diagnose import candidate_effects, garment_model
+from orchestrator.forward import LegModel
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.phantom import CalfPhantom
+from orchestrator.phantom.geometry import CalfGeometry, CalfShape
+from orchestrator.pipeline import run_diagnose, run_identify
+from orchestrator.study import make_phantom_case, truth_mesh
+
+TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # not the fit's start (Table 2: 4.5, 11.2, 106, 69.5)
+SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
+
+
+@pytest.fixture(scope="module")
+def leg_mesh():
+    return truth_mesh(CalfPhantom(), n_elements=600, order=2, supersampling=1)
+
+
+def test_garment_effects_are_candidates_of_the_laplace_model_without_effects(leg_mesh):
+    candidates, skipped = candidate_effects(LegModel(leg_mesh, 0.16))
+    assert {"friction", "bridging"} <= set(candidates)
+    candidates, skipped = candidate_effects(LegModel(leg_mesh, 0.16, effects=("drainage",)))
+    assert "friction" not in candidates and "carries no catalog effect" in skipped["friction"]
+
+
+def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
+    laplace = LegModel(leg_mesh, 0.16, engine_sensitivities=True)
+    band = garment_model(laplace, ("friction",))
+    assert band.garment == "explicit" and band.space.names[-1] == "mu" and not band.engine_sensitivities
+    with_friction = band.deck(list(TRUTH_KPA) + [0.2])
+    assert "*FRICTION\n0.2, 0.1\n" in with_friction and "mu = 0.2" in with_friction
+    assert "*FRICTION" not in band.deck(list(TRUTH_KPA) + [0.0])
+    assert garment_model(laplace).engine_sensitivities and "*SENSITIVITY" in garment_model(laplace).deck(TRUTH_KPA)
+    with pytest.raises(ValueError, match="both fixed"):
+        LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=("friction",))
+    with pytest.raises(ValueError, match="friction alone may be fitted"):
+        LegModel(leg_mesh, 0.16, garment="explicit", effects=("friction", "drainage"))
+
+
+def _diagnosed(tmp_path, phantom=None, friction_mu: float = 0.0):
+    case, _ = make_phantom_case(tmp_path / "case", tmp_path / "truth", theta_kPa=TRUTH_KPA, n_elements=2000,
+                                rigid=SCANNER_MOTION, garment="explicit", friction_mu=friction_mu, phantom=phantom)
+    identified = run_identify(case, tmp_path / "run", data="points", workers=2, progress=False)
+    return identified, run_diagnose(tmp_path / "run", workers=2, progress=False)
+
+
+def _summary(identified, diagnosis) -> str:
+    floor = diagnosis["noise_floor"]
+    ranking = ", ".join(f"{s['effect']} (p {s['p_value']:.1e})" for s in diagnosis["ranking"][:4])
+    refits = "; ".join(f"{'+'.join(f['effects'])}: {f['misfit_over_floor']:.3f} x floor, theta "
+                       f"{np.round(f['theta'], 3).tolist()}" for f in diagnosis["refits"])
+    return (f"Laplace fit {np.round(identified['best']['theta'], 2).tolist()} at {diagnosis['misfit'] / floor:.2f} x "
+            f"floor; ranking {ranking}; refits {refits}; verdict: {diagnosis['verdict']}")
+
+
+@pytest.mark.slow
+def test_bridging_over_a_groove_is_found_and_its_refit_reaches_the_floor(tmp_path):
+    """A calf with a posterior groove (15 % of the radius deep, a concave stretch of 16 mm) under the frictionless
+    band: Laplace's law pulls the groove outwards (p = T / r < 0) where the band bridges it."""
+    grooved = CalfPhantom(geometry=CalfGeometry(CalfShape(dent_depth=0.15)))
+    identified, diagnosis = _diagnosed(tmp_path, phantom=grooved)
+    print(_summary(identified, diagnosis))
+    assert diagnosis["misfit"] > 2.0 * diagnosis["noise_floor"]           # Laplace's law misses it
+    assert diagnosis["ranking"][0]["effect"] == "bridging" and diagnosis["ranking"][0]["significant"]
+    bridged = next(f for f in diagnosis["refits"] if f["effects"] == ["bridging"])
+    assert bridged["misfit_over_floor"] <= 1.2 and diagnosis["explained"]
+    assert np.all(np.abs(np.array(bridged["theta"])[[1, 3]] / np.array(TRUTH_KPA)[[1, 3]] - 1) < 0.05)
