@@ -1,7 +1,9 @@
 """The [model] table of case.toml (docs/case-folder.md): the element and the garment the identification fits.
 
 - Errors name case.toml and the fix: an element or garment calfit does not fit, a friction that is not a number
-  in [0, 2], friction without the explicit garment, an unknown key.
+  in [0, 2], friction without the explicit garment, an unknown key; a [model.<tissue>] table that is not a tissue,
+  a law calfit does not fit, an option the law has not, incompressible on displacement elements, malformed
+  fixed / bounds. The tissue tables are read into `materials.TissueLaw`.
 - garment = "explicit": a phantom made with the second paper's band (frictionless penalty contact) at parameters
   that are not the fit's start, with scanner motion and 0.02 mm of noise on its points, on its own finer mesh, is
   identified back from the case folder by `run_identify` (Levenberg-Marquardt with the engine's sensitivities
@@ -22,6 +24,7 @@ import pytest
 from orchestrator.imaging.case import ModelChoice, read_model_choice
 from orchestrator.imaging.errors import CaseError
 from orchestrator.imaging.frame import RigidMotion
+from orchestrator.materials import TissueLaw
 from orchestrator.pipeline import run_diagnose, run_identify
 from orchestrator.study import make_phantom_case
 
@@ -42,7 +45,7 @@ def _case_toml(folder: Path, model: str) -> Path:
     ('[model]\ngarment = "explicit"\nfriction = -0.1\n', "friction = -0.1", "between 0"),
     ('[model]\ngarment = "explicit"\nfriction = "high"\n', "friction = 'high'", "between 0"),
     ('[model]\nfriction = 0.3\n', "needs the explicit garment", 'garment = "explicit"'),
-    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "element, garment, friction"),
+    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "element, garment, friction and a [model.<tissue>]"),
 ])
 def test_model_table_errors_name_the_file_and_the_fix(tmp_path, model, fragment, fix):
     folder = _case_toml(tmp_path / "case", model)
@@ -58,6 +61,32 @@ def test_model_table_defaults_and_values(tmp_path):
                                                           'friction = 0.3\n'))
     assert (choice.element, choice.garment, choice.friction, choice.order, choice.hybrid) == ("CPE6H", "explicit",
                                                                                               0.3, 2, True)
+
+
+@pytest.mark.parametrize("model, fragment, fix", [
+    ('[model.bone]\nlaw = "neo_hooke"\n', "[model.bone] is not a tissue", "[model.compartment<label>]"),
+    ('[model.fat]\nlaw = "ogden"\n', "law = 'ogden'", "mooney_rivlin"),
+    ('[model.fat]\nlaw = "avril"\nterms = 3\n', "no terms option", "C10, C01"),
+    ('[model.muscle]\nlaw = "mooney_rivlin"\nincompressible = true\n', "incompressible", 'element = "CPE6H"'),
+    ('[model.fat]\nlaw = "neo_hooke"\nfixed = { C01 = 1.0 }\n', "names C01, which neo_hooke has not", "Kv"),
+    ('[model.fat]\nlaw = "mooney_rivlin"\nbounds = { C10 = [2.0] }\n', "bounds.C10", "[lower, upper]"),
+    ('[model.fat]\nlaw = "mooney_rivlin"\nstiffness = 2\n', "unknown key 'stiffness'", "law, terms"),
+])
+def test_tissue_tables_errors_name_the_file_the_table_and_the_fix(tmp_path, model, fragment, fix):
+    with pytest.raises(CaseError) as error:
+        read_model_choice(_case_toml(tmp_path / "case", model))
+    message = str(error.value)
+    assert "case.toml" in message and fragment in message and fix in message
+
+
+def test_tissue_tables_are_read(tmp_path):
+    choice = read_model_choice(_case_toml(tmp_path / "case", '[model]\nelement = "CPE6H"\n[model.fat]\n'
+                                          'law = "mooney_rivlin"\nterms = 3\nincompressible = true\n'
+                                          'fixed = { C20 = -0.04 }\nbounds = { C10 = [0.5, 5] }\nstart = { C01 = 0.8 }\n'
+                                          '[model.muscle]\nlaw = "neo_hooke"\n'))
+    assert choice.tissues == {"fat": TissueLaw("mooney_rivlin", 3, True, {"C20": -0.04}, {"C10": (0.5, 5.0)},
+                                               {"C01": 0.8}),
+                              "muscle": TissueLaw("neo_hooke")}
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@
 [model.<tissue>] tables, the parameters they make, the deck materials they write, and the engine sensitivities
 mapped onto them (Kv of a D1 law through D1 = 1/Kv).
 
-- Errors name case.toml, the table and the fix.
+- Errors of the [model.<tissue>] tables: tests/test_case_model.py.
 - Parameter names `<constant>_<tissue>`, by constant then tissue; the first paper's model keeps its four.
 - Deck materials: MOONEY-RIVLIN, POLYNOMIAL N=2 (three terms), NEO HOOKE with D1 = 0, REDUCED POLYNOMIAL when
   the stiffening effect adds C20 to neo_hooke; refused: stiffening on a law that has C20, incompressible on
@@ -19,47 +19,11 @@ import numpy as np
 import pytest
 
 from orchestrator.forward import LEG_PARAMETERS, LegModel, write_mesh_include
-from orchestrator.imaging.case import read_model_choice
-from orchestrator.imaging.errors import CaseError
 from orchestrator.materials import MaterialError, TissueLaw
 from orchestrator.phantom import CalfPhantom
 from orchestrator.results import EngineResults
 from orchestrator.runner import run_engine
 from orchestrator.study import truth_mesh
-
-
-def _case_toml(folder: Path, model: str) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    (folder / "case.toml").write_text('[case]\nname = "m"\npixel_size_mm = [0.5, 0.5]\n[garment]\n'
-                                      f'tension_N_per_mm = 0.16\n{model}')
-    return folder
-
-
-@pytest.mark.parametrize("model, fragment, fix", [
-    ('[model.bone]\nlaw = "neo_hooke"\n', "[model.bone] is not a tissue", "[model.compartment<label>]"),
-    ('[model.fat]\nlaw = "ogden"\n', "law = 'ogden'", "mooney_rivlin"),
-    ('[model.fat]\nlaw = "avril"\nterms = 3\n', "no terms option", "C10, C01"),
-    ('[model.muscle]\nlaw = "mooney_rivlin"\nincompressible = true\n', "incompressible", 'element = "CPE6H"'),
-    ('[model.fat]\nlaw = "neo_hooke"\nfixed = { C01 = 1.0 }\n', "names C01, which neo_hooke has not", "Kv"),
-    ('[model.fat]\nlaw = "mooney_rivlin"\nbounds = { C10 = [2.0] }\n', "bounds.C10", "[lower, upper]"),
-    ('[model.fat]\nlaw = "mooney_rivlin"\nstiffness = 2\n', "unknown key 'stiffness'", "law, terms"),
-    ('[model]\nlaw = "mooney_rivlin"\n', "unknown key 'law'", "[model.<tissue>]"),
-])
-def test_tissue_tables_errors_name_the_file_the_table_and_the_fix(tmp_path, model, fragment, fix):
-    with pytest.raises(CaseError) as error:
-        read_model_choice(_case_toml(tmp_path / "case", model))
-    message = str(error.value)
-    assert "case.toml" in message and fragment in message and fix in message
-
-
-def test_tissue_tables_are_read(tmp_path):
-    choice = read_model_choice(_case_toml(tmp_path / "case", '[model]\nelement = "CPE6H"\n[model.fat]\n'
-                                          'law = "mooney_rivlin"\nterms = 3\nincompressible = true\n'
-                                          'fixed = { C20 = -0.04 }\nbounds = { C10 = [0.5, 5] }\nstart = { C01 = 0.8 }\n'
-                                          '[model.muscle]\nlaw = "neo_hooke"\n'))
-    assert choice.tissues == {"fat": TissueLaw("mooney_rivlin", 3, True, {"C20": -0.04}, {"C10": (0.5, 5.0)},
-                                               {"C01": 0.8}),
-                              "muscle": TissueLaw("neo_hooke")}
 
 
 @pytest.fixture(scope="module")
