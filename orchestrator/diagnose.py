@@ -252,7 +252,7 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
     for name, item in CATALOG.items():
         if name in model.effects or name in model.fixed_effects:
             continue
-        reason = (item.unavailable(sets, nodes) if item.laplace_model else
+        reason = (item.unavailable(sets, nodes) or model.law_conflict(name) if item.laplace_model else
                   "it needs the explicit garment band, which carries no catalog effect yet: diagnose the model "
                   "without effects" if model.effects or model.fixed_effects or model.tension_profile else None)
         if reason:

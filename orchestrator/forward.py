@@ -274,12 +274,23 @@ class LegModel:
             if law.incompressible and not self.hybrid:
                 raise MaterialError(f"{tissue} is incompressible (D1 = 0), which displacement elements lock on: "
                                     "fit with u/p elements (element = \"CPE6H\" in case.toml's [model])")
-            if law.has_c20() and "stiffening" in set(self.effects) | set(self.fixed_effects):
-                raise MaterialError(f"the {law.law} law of {tissue} has C20 already: the stiffening effect would add it "
-                                    "twice (leave it out, or fix or free C20 in the law)")
-        if own and "compartments" in set(self.effects) | set(self.fixed_effects):
-            raise MaterialError("the compartments effect scales the muscle's C10 in each compartment, and "
-                                f"{sorted(own)} have laws of their own: use one or the other")
+        for name in set(self.effects) | set(self.fixed_effects):
+            conflict = self.law_conflict(name)
+            if conflict:
+                raise MaterialError(conflict)
+
+    def law_conflict(self, effect_name: str) -> str | None:
+        """Why a catalog effect cannot join the tissues' laws (None when it can)."""
+        if effect_name == "stiffening":
+            having = [f"{law.law} law of {tissue}" for tissue, law in self.tissue_laws.items() if law.has_c20()]
+            if having:
+                return (f"the {', '.join(having)} has C20 already: the stiffening effect would add it twice (leave it "
+                        "out, or fix or free C20 in the law)")
+        own = sorted(tissue for tissue in self.tissue_laws if tissue not in ("fat", "muscle"))
+        if effect_name == "compartments" and own:
+            return (f"the compartments effect scales the muscle's C10 in each compartment, and {', '.join(own)} have "
+                    "laws of their own: use one or the other")
+        return None
 
     def _law_space(self) -> ParameterSpace:
         """The free constants of the tissues' laws: by constant (materials.CONSTANT_ORDER), then by tissue."""

@@ -169,9 +169,17 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
             records = evaluator.evaluate(probes, tag="lm-jacobian", label=f"LM Jacobian {iteration}")
             evaluations += p
             columns = [residuals(rec) for rec in records]
-            if any(c is None for c in columns):
-                raise RuntimeError("the engine failed in a finite-difference probe: "
-                                   + "; ".join(rec["message"] for rec in records if rec["status"] != OK))
+            failed = [j for j, c in enumerate(columns) if c is None]
+            if failed:   # a probe the engine cannot solve (contact with friction): the difference on the other side
+                signs[failed] *= -1.0
+                retried = evaluator.evaluate([_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in failed],
+                                             tag="lm-jacobian", label=f"LM Jacobian {iteration}, other side")
+                evaluations += len(failed)
+                for j, rec in zip(failed, retried):
+                    columns[j] = residuals(rec)
+                if any(c is None for c in columns):
+                    raise RuntimeError("the engine failed in a finite-difference probe on both sides: "
+                                       + "; ".join(rec["message"] for rec in retried if rec["status"] != OK))
             J = np.column_stack([(c - r) / (signs[j] * FD_STEP) for j, c in enumerate(columns)])
         gradient, normal = J.T @ r, J.T @ J
         improved = False

@@ -336,12 +336,19 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
     names += [n for n in requested if n not in ("auto", "none") and n not in names]
     after, after_maps = [], []
+    refit_failures = {}
     for name in names:
-        fit, residual = refit(evaluator_for, model, theta, [name], objective)
+        try:
+            fit, residual = refit(evaluator_for, model, theta, [name], objective)
+        except RuntimeError as error:   # the engine cannot solve the refitted model somewhere: said, not fatal
+            refit_failures[name] = str(error)
+            continue
         after.append(fit)
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
+    if diagnosis.ranking and diagnosis.ranking[0].effect in refit_failures:
+        diagnosis.verdict += f"; its refit failed ({refit_failures[diagnosis.ranking[0].effect]})"
     unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
     if unexplained and diagnosis.maps.worst_region:
         maps = diagnosis.maps
@@ -357,6 +364,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]
+    result["refit_failures"] = refit_failures
     result["maps_after"] = [asdict(m) for m in after_maps]
     result["local"] = local
     write_json(run_dir / "diagnosis.json", result)
