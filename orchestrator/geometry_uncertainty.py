@@ -123,11 +123,12 @@ def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) ->
         return measurements.observation(mesh) @ EngineResults(outcome.outdir).displacement().ravel()
 
 
-def geometry_covariance(setup, theta: Sequence[float], measurements, *, effects: Sequence[str] = (),
-                        skin_sigma_mm: float, interface_sigma_mm: float, cutoff_mm: float,
-                        tension_N_per_mm: float | None = None) -> tuple[np.ndarray, dict]:
-    """C_geo of the module text (mm^2, interleaved like the measurements) and what made it, under the case's
-    [garment] tension or `tension_N_per_mm` (another garment level's)."""
+def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Sequence[str] = (),
+                     skin_sigma_mm: float, interface_sigma_mm: float, cutoff_mm: float,
+                     tension_N_per_mm: float | None = None) -> tuple[np.ndarray, list[float], dict]:
+    """The columns g of C_geo (module text: what is measured of each skin mode and interface shift, (2N, m) mm per
+    unit), their variances w (the same at every garment level: they hold the segmentation, not the load) and what
+    made them, under the case's [garment] tension or `tension_N_per_mm` (another garment level's)."""
     from .forward import LegModel
     from .meshing.labels import interface_shift
 
@@ -146,20 +147,36 @@ def geometry_covariance(setup, theta: Sequence[float], measurements, *, effects:
             for sign in (1.0, -1.0))
         columns.append((plus - minus) / (2 * SHIFT_STEP_MM))
         weights.append(interface_sigma_mm ** 2)
-    columns = np.column_stack(columns)
-    covariance = (columns * np.array(weights)) @ columns.T
     info = {"skin_sigma_mm": skin_sigma_mm, "interface_sigma_mm": interface_sigma_mm, "cutoff_mm": cutoff_mm,
             "modes": len(variances), "perimeter_mm": perimeter, "theta": [float(v) for v in theta]}
     if tension_N_per_mm is not None:
         info["tension_N_per_mm"] = tension
-    return covariance, info
+    return np.column_stack(columns), weights, info
 
 
-def write(run_dir: Path, covariance: np.ndarray, info: dict, level: int = 1) -> None:
+def covariance_of(columns: np.ndarray, weights) -> np.ndarray:
+    """G diag(w) G^T (mm^2); between two garment levels, G_k diag(w) G_l^T of their columns."""
+    return (columns * np.array(weights)) @ columns.T
+
+
+def geometry_covariance(setup, theta: Sequence[float], measurements, **options) -> tuple[np.ndarray, dict]:
+    """C_geo of the module text (mm^2, interleaved like the measurements) and what made it (`geometry_columns`)."""
+    columns, weights, info = geometry_columns(setup, theta, measurements, **options)
+    return covariance_of(columns, weights), info
+
+
+def write(run_dir: Path, covariance: np.ndarray, info: dict, level: int = 1, columns: np.ndarray | None = None,
+          weights=None) -> None:
+    """C_geo of garment level `level` and what made it; with `columns` and `weights` (a case of several levels) also
+    its columns G_k and their variances, from which the joint fit forms the blocks between levels."""
     name = level_file(level)
     temporary = Path(run_dir) / f".{name}.tmp.npz"
-    np.savez_compressed(temporary, covariance=covariance, **{k: np.asarray(v) for k, v in info.items()})
+    extra = {} if columns is None else {"columns": np.asarray(columns, float), "weights": np.asarray(weights, float)}
+    np.savez_compressed(temporary, covariance=covariance, **extra, **{k: np.asarray(v) for k, v in info.items()})
     temporary.replace(Path(run_dir) / name)
+
+
+ARRAYS = ("covariance", "columns", "weights")
 
 
 def read_covariance(run_dir: Path, size: int, level: int = 1) -> tuple[np.ndarray, dict] | None:
@@ -170,7 +187,40 @@ def read_covariance(run_dir: Path, size: int, level: int = 1) -> tuple[np.ndarra
         return None
     with np.load(path) as stored:
         covariance = stored["covariance"]
-        info = {key: stored[key].tolist() for key in stored.files if key != "covariance"}
+        info = {key: stored[key].tolist() for key in stored.files if key not in ARRAYS}
     if covariance.shape != (size, size):
         return None
     return covariance, info
+
+
+def read_columns(run_dir: Path, size: int, level: int = 1) -> tuple[np.ndarray, np.ndarray] | None:
+    """The stored columns G_k (size, m) and variances w of garment level `level`'s C_geo; None without the file, when
+    it belongs to other measurements, or when it was written without them (a run of one level, or a run of several
+    made before the levels' common skin error was kept: `levels.JointDisplacementObjective`)."""
+    path = Path(run_dir) / level_file(level)
+    if not path.is_file():
+        return None
+    with np.load(path) as stored:
+        if "columns" not in stored.files:
+            return None
+        columns, weights = stored["columns"], stored["weights"]
+    if columns.shape[0] != size:
+        return None
+    return columns, weights
+
+
+def discard_without_columns(run_dir: Path, levels: Sequence[int]) -> list[int]:
+    """Remove the stored C_geo of the garment levels (of a case of several) that were written without their
+    columns, which a joint fit cannot join (`read_columns`); `calfit identify` then estimates them again.
+    Returns the levels removed."""
+    removed = []
+    for level in levels:
+        path = Path(run_dir) / level_file(level)
+        if not path.is_file():
+            continue
+        with np.load(path) as stored:
+            stale = "columns" not in stored.files
+        if stale:
+            path.unlink()
+            removed.append(level)
+    return removed

@@ -32,6 +32,7 @@ from typing import Sequence
 import numpy as np
 
 from .forward import LegModel
+from .objectives import _array_sha
 
 
 class LevelsModel:
@@ -103,7 +104,7 @@ class AtTension:
 
 
 class JointDisplacementObjective:
-    """The displacement residuals of every garment level, concatenated (module text). It offers what
+    """The displacement residuals of every garment level, whitened together (module text). It offers what
     `identify`, `pipeline` and `diagnose` use of a `DisplacementResidualObjective`, with `level_outputs` in place
     of `outputs`: the runner hands it every level's (nodal displacement, output folder) of one evaluation."""
 
@@ -123,6 +124,64 @@ class JointDisplacementObjective:
                                             / bounds[-1])
         self.source = self.parts[0].source
         self.fingerprint = "levels[" + "|".join(part.fingerprint for part in self.parts) + "]"
+        self.geometry_columns = None   # G, the levels' columns stacked, when the levels are whitened together
+        self._whiten = self._colour = self._nuisance = None
+        kinds = [getattr(part, "geometry", "none") for part in self.parts]
+        if "covariance" in kinds:
+            raise ValueError(
+                f"garment level {kinds.index('covariance') + 1}'s skin uncertainty was stored without its columns "
+                "(a run folder made before the levels' common skin error was kept), so the covariance between the "
+                "levels cannot be formed: rerun `calfit identify CASE_DIR --out RUN_DIR` to estimate it again")
+        if "columns" in kinds:
+            self._whiten_together()
+
+    def _whiten_together(self) -> None:
+        """C = blockdiag(C_meas,k) + G diag(w) G^T with G the levels' geometry columns stacked (a level without
+        them adds zero rows), its symmetric inverse square root and square root, and the projection that removes
+        each level's own residual rigid motion after the joint whitening."""
+        weights = [part.geometry_weights for part in self.parts if part.geometry == "columns"]
+        if any(w.shape != weights[0].shape or not np.allclose(w, weights[0], rtol=1e-9, atol=0) for w in weights):
+            raise ValueError("the garment levels' skin uncertainties were made with other mode variances (another "
+                             "skin uncertainty or mesh): estimate them again together (`calfit identify`)")
+        weights = weights[0]
+        n = self.n_residuals
+        columns = np.zeros((n, len(weights)))
+        covariance = np.zeros((n, n))
+        rigid = np.zeros((n, self.nuisance_dof))
+        column = 0
+        for part, rows in zip(self.parts, self.slices):
+            if part.geometry == "columns":
+                columns[rows] = part.geometry_columns
+                covariance[rows, rows] = part.measurement_covariance
+            else:
+                covariance[rows, rows] = part._colour @ part._colour   # C_k = C_k^1/2 C_k^1/2
+            rigid[rows, column:column + part.nuisance_dof] = part.rigid_columns
+            column += part.nuisance_dof
+        covariance += (columns * weights) @ columns.T
+        values, vectors = np.linalg.eigh(covariance)
+        if values[0] <= 0:
+            raise ValueError("the joint covariance of the garment levels is not positive definite")
+        self._whiten = (vectors / np.sqrt(values)) @ vectors.T
+        self._colour = (vectors * np.sqrt(values)) @ vectors.T
+        self._nuisance, _ = np.linalg.qr(self._whiten @ rigid)
+        self.geometry_columns, self.geometry_weights = columns, weights
+        self.fingerprint += f":together:{_array_sha(columns, weights)}"
+
+    @property
+    def together(self) -> bool:
+        """Whether the levels' data are whitened together (their geometry columns known), not each on its own."""
+        return self._whiten is not None
+
+    @property
+    def covariance_mm2(self) -> np.ndarray:
+        """The covariance every level's data are whitened with: C (together), or blockdiag(C_k) (each alone)."""
+        if self.together:
+            return self._colour @ self._colour
+        n = self.n_residuals
+        covariance = np.zeros((n, n))
+        for part, rows in zip(self.parts, self.slices):
+            covariance[rows, rows] = part._colour @ part._colour
+        return covariance
 
     @property
     def n_residuals(self) -> int:
@@ -133,10 +192,20 @@ class JointDisplacementObjective:
         residuals = np.asarray(residuals, float)
         return [residuals[part] for part in self.slices]
 
+    def weigh(self, values_mm: np.ndarray) -> np.ndarray:
+        """P C^-1/2 of every level's values (mm) stacked: jointly, or each level by its own part."""
+        values_mm = np.asarray(values_mm, float)
+        if not self.together:
+            return np.concatenate([part.weigh(values_mm[rows]) for part, rows in zip(self.parts, self.slices)])
+        whitened = self._whiten @ values_mm
+        return whitened - self._nuisance @ (self._nuisance.T @ whitened)
+
     def residuals(self, nodal_per_level: Sequence[np.ndarray]) -> np.ndarray:
         if len(nodal_per_level) != len(self.parts):
             raise ValueError(f"{len(nodal_per_level)} nodal fields for {len(self.parts)} garment levels")
-        return np.concatenate([part.residuals(u) for part, u in zip(self.parts, nodal_per_level)])
+        if not self.together:
+            return np.concatenate([part.residuals(u) for part, u in zip(self.parts, nodal_per_level)])
+        return self.weigh(np.concatenate([part.difference(u) for part, u in zip(self.parts, nodal_per_level)]))
 
     def cost_of(self, residuals: np.ndarray) -> float:
         """F (mm^2) of a joint residual vector."""
@@ -149,12 +218,20 @@ class JointDisplacementObjective:
         return float(self.reference_variance_mm2 * (n - n_parameters - self.nuisance_dof) / n)
 
     def residual_mm(self, residuals: np.ndarray) -> np.ndarray:
-        """(N, 2) u_model - u_measured in mm, the levels one after the other (as `positions_mm`)."""
-        return np.vstack([part.residual_mm(r) for part, r in zip(self.parts, self.split(residuals))])
+        """(N, 2) u_model - u_measured in mm (each level's fitted residual rigid motion removed), the levels one
+        after the other (as `positions_mm`)."""
+        if not self.together:
+            return np.vstack([part.residual_mm(r) for part, r in zip(self.parts, self.split(residuals))])
+        return (self._colour @ np.asarray(residuals, float)).reshape(-1, 2)
 
     def level_misfits(self, residuals: np.ndarray) -> list[float]:
-        """Each level's own F (its points, its s^2)."""
-        return [part.cost_of(r) for part, r in zip(self.parts, self.split(residuals))]
+        """Each level's own F (its points, its s^2, its own covariance): the misfit that level alone would have
+        at the same parameters."""
+        if not self.together:
+            return [part.cost_of(r) for part, r in zip(self.parts, self.split(residuals))]
+        # each level's part of the residual in mm less a rigid motion of that level, which its own projection removes
+        values = self.residual_mm(residuals).ravel()
+        return [part.cost_of(part.weigh(values[rows])) for part, rows in zip(self.parts, self.slices)]
 
     def outputs(self, nodal_per_level: Sequence[np.ndarray], outdirs: Sequence[Path]) -> dict:
         """`level_outputs` with the levels' nodal fields and output folders in two sequences (a one-level
@@ -163,15 +240,25 @@ class JointDisplacementObjective:
 
     def level_outputs(self, levels: Sequence[tuple[np.ndarray, Path]]) -> dict:
         """Cost, residuals, each level's misfit and, when the decks asked for them, dr/d(engine parameter) of
-        every level concatenated per engine parameter name."""
+        every level (concatenated per engine parameter name, or whitened together)."""
         if len(levels) != len(self.parts):
             raise ValueError(f"{len(levels)} engine results for {len(self.parts)} garment levels")
-        outputs = [part.outputs(nodal, Path(outdir)) for part, (nodal, outdir) in zip(self.parts, levels)]
-        residuals = np.concatenate([np.asarray(out["residuals"], float) for out in outputs])
+        if not self.together:
+            outputs = [part.outputs(nodal, Path(outdir)) for part, (nodal, outdir) in zip(self.parts, levels)]
+            residuals = np.concatenate([np.asarray(out["residuals"], float) for out in outputs])
+            joined = {"cost": self.cost_of(residuals), "residuals": residuals.tolist(),
+                      "level_misfits": [float(out["cost"]) for out in outputs]}
+            sensitivities = [out.get("sensitivity") or {} for out in outputs]
+            if all(sensitivities):
+                names = [name for name in sensitivities[0] if all(name in s for s in sensitivities[1:])]
+                joined["sensitivity"] = {name: [v for s in sensitivities for v in s[name]] for name in names}
+            return joined
+        residuals = self.residuals([nodal for nodal, _ in levels])
         joined = {"cost": self.cost_of(residuals), "residuals": residuals.tolist(),
-                  "level_misfits": [float(out["cost"]) for out in outputs]}
-        sensitivities = [out.get("sensitivity") or {} for out in outputs]
-        if all(sensitivities):
-            names = [name for name in sensitivities[0] if all(name in s for s in sensitivities[1:])]
-            joined["sensitivity"] = {name: [v for s in sensitivities for v in s[name]] for name in names}
+                  "level_misfits": self.level_misfits(residuals)}
+        observed = [part.observed_sensitivities(Path(outdir)) for part, (_, outdir) in zip(self.parts, levels)]
+        if all(observed):
+            names = [name for name in observed[0] if all(name in s for s in observed[1:])]
+            joined["sensitivity"] = {name: self.weigh(np.concatenate([s[name] for s in observed])).tolist()
+                                     for name in names}
         return joined

@@ -109,6 +109,8 @@ class Measurements:
     description: str = ""
     kind: list[str] = field(default_factory=list)
     measurement_covariance_mm2: np.ndarray | None = None   # the measurement's part when a model part is added
+    model_columns_mm: np.ndarray | None = None   # (2N, m) G: the model part is G diag(model_weights) G^T (levels)
+    model_weights: np.ndarray | None = None      # (m,) the variances of the model part's modes
 
     def __len__(self) -> int:
         return len(self.position_mm)
@@ -138,12 +140,24 @@ class Measurements:
         """Sparse (2N, 2M) map from the nodal displacement of `mesh` (interleaved) to what was measured."""
         return self.observer()(mesh)
 
-    def with_model_covariance(self, covariance_mm2: np.ndarray, description: str) -> "Measurements":
-        """The same measurements with the covariance of the model's own predictions added (geometry_uncertainty)."""
+    def with_model_covariance(self, covariance_mm2: np.ndarray, description: str, columns_mm: np.ndarray | None = None,
+                              weights: np.ndarray | None = None) -> "Measurements":
+        """The same measurements with the covariance of the model's own predictions added (geometry_uncertainty).
+        columns_mm and weights, when given, are what makes it, covariance_mm2 = G diag(w) G^T: a case of several
+        garment levels keeps them, so that the joint fit can form the covariance between the levels
+        (`levels.JointDisplacementObjective`)."""
+        if (columns_mm is None) != (weights is None):
+            raise ValueError("the model covariance's columns and their weights come together")
+        if columns_mm is not None:
+            columns_mm, weights = np.asarray(columns_mm, float), np.asarray(weights, float).ravel()
+            if columns_mm.shape != (len(self.covariance_mm2), len(weights)):
+                raise ValueError(f"the model covariance's columns are {columns_mm.shape} for "
+                                 f"{len(self.covariance_mm2)} measured values and {len(weights)} weights")
         return replace(self, covariance_mm2=self.covariance_mm2 + covariance_mm2,
                        description=f"{self.description}; {description}",
                        measurement_covariance_mm2=(self.covariance_mm2 if self.measurement_covariance_mm2 is None
-                                                   else self.measurement_covariance_mm2))
+                                                   else self.measurement_covariance_mm2),
+                       model_columns_mm=columns_mm, model_weights=weights)
 
     def rigid_columns(self, centre_mm) -> np.ndarray:
         """(2N, 3) displacement of the measured places under a unit translation along x, y and a unit rotation

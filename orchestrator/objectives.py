@@ -92,10 +92,24 @@ class DisplacementResidualObjective:
             self._colour = (vectors * np.sqrt(values)) @ vectors.T
         self.nuisance_dof = 0
         self._nuisance = np.zeros((len(self.measured), 0))
+        self.rigid_columns = np.zeros((len(self.measured), 0))   # unwhitened, for a joint fit of garment levels
         if measurements.rigid_nuisance:
-            basis, _ = np.linalg.qr(self._whiten @ measurements.rigid_columns(self.positions_mm.mean(axis=0)))
+            self.rigid_columns = measurements.rigid_columns(self.positions_mm.mean(axis=0))
+            basis, _ = np.linalg.qr(self._whiten @ self.rigid_columns)
             self._nuisance, self.nuisance_dof = basis, basis.shape[1]
         self.reference_variance_mm2 = measurements.reference_variance_mm2
+        # the model's geometry part of the covariance: "none", "columns" (its columns G and weights w are kept with
+        # the measurement's own part, from which `levels.JointDisplacementObjective` forms the blocks between
+        # garment levels) or "covariance" (added without them)
+        self.geometry, self.geometry_columns, self.geometry_weights = "none", None, None
+        self.measurement_covariance = None
+        if measurements.measurement_covariance_mm2 is not None:
+            self.geometry = "covariance"
+        if measurements.model_columns_mm is not None:
+            self.geometry = "columns"
+            self.geometry_columns = np.asarray(measurements.model_columns_mm, float)
+            self.geometry_weights = np.asarray(measurements.model_weights, float)
+            self.measurement_covariance = np.asarray(measurements.measurement_covariance_mm2, float)
         self.fingerprint = (f"F:{measurements.source}:{_array_sha(self.positions_mm, self.measured, covariance)}:"
                             f"{_array_sha(self.observation.data, self.observation.indices)}")
 
@@ -116,9 +130,17 @@ class DisplacementResidualObjective:
     def _project(self, whitened: np.ndarray) -> np.ndarray:
         return whitened - self._nuisance @ (self._nuisance.T @ whitened)
 
-    def residuals(self, nodal_u: np.ndarray) -> np.ndarray:
+    def difference(self, nodal_u: np.ndarray) -> np.ndarray:
+        """O u_s - u_e (mm, interleaved): what the model predicts of the measurements less what was measured."""
         simulated = self.observation @ leg_rows(nodal_u, self.observation.shape[1] // 2).ravel()
-        return self._project(self._whiten @ (simulated - self.measured))
+        return simulated - self.measured
+
+    def weigh(self, values_mm: np.ndarray) -> np.ndarray:
+        """P C^-1/2 of a vector of these measurements' values (mm): a residual vector."""
+        return self._project(self._whiten @ values_mm)
+
+    def residuals(self, nodal_u: np.ndarray) -> np.ndarray:
+        return self.weigh(self.difference(nodal_u))
 
     def cost_of(self, residuals: np.ndarray) -> float:
         """F (mm^2) of a residual vector."""
@@ -137,17 +159,20 @@ class DisplacementResidualObjective:
     def outputs(self, nodal_u: np.ndarray, outdir: Path) -> dict:
         """Cost and residuals; with the engine's sensitivities (a deck with *SENSITIVITY), also
         dr/d(engine parameter) = P C^-1/2 O du/dtheta per engine parameter name."""
-        from .results import EngineResults
-
         r = self.residuals(nodal_u)
         out = {"cost": self.cost_of(r), "residuals": r.tolist()}
-        sensitivities = EngineResults(Path(outdir)).sensitivities()
-        if sensitivities:
-            n_nodes = self.observation.shape[1] // 2
-            out["sensitivity"] = {
-                name: self._project(self._whiten @ (self.observation @ leg_rows(du, n_nodes).ravel())).tolist()
-                for name, du in sensitivities.items()}
+        observed = self.observed_sensitivities(outdir)
+        if observed:
+            out["sensitivity"] = {name: self.weigh(values).tolist() for name, values in observed.items()}
         return out
+
+    def observed_sensitivities(self, outdir: Path) -> dict[str, np.ndarray]:
+        """O du/dtheta (mm per unit, interleaved) per engine parameter name; empty when the deck asked for none."""
+        from .results import EngineResults
+
+        sensitivities = EngineResults(Path(outdir)).sensitivities()
+        n_nodes = self.observation.shape[1] // 2
+        return {name: self.observation @ leg_rows(du, n_nodes).ravel() for name, du in sensitivities.items()}
 
 
 class LandmarkPressure:

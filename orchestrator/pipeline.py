@@ -29,7 +29,8 @@ from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, re
 from .figures import diagnosis_figure
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_uncertainty, table1_starts)
-from .geometry_uncertainty import INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, geometry_covariance
+from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
+                                   discard_without_columns, geometry_columns, geometry_covariance)
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .geometry_uncertainty import write as write_geometry
 from .imaging.case import read_model_choice
@@ -138,6 +139,10 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         levels = range(1, len(setup.case.tensions) + 1)
         if source == "dic" and any(read_window_table(run_dir, level) is None for level in levels):
             run_measure(case_dir, run_dir, window_px=window_px)
+        if setup.case.levels:
+            # skin uncertainties stored per level without their columns (before the levels' common skin error was
+            # kept) cannot be joined: they are estimated again below
+            discard_without_columns(run_dir, levels)
         measured = setup.level_measurements(source)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else setup.model.base_start
@@ -155,17 +160,22 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     geometry = None
     if measured is not None and source == "dic" and skin_uncertainty:
         # the uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit
-        # again with it in the weights (geometry_uncertainty); every garment level's windows under its own tension
+        # again with it in the weights (geometry_uncertainty); every garment level's windows under its own tension,
+        # with the columns that make it kept, from which the joint fit forms the covariance between the levels
         pixel = min(setup.case.pixel_size_mm)
         for level, (tension, level_measured) in enumerate(zip(setup.case.tensions, measured), start=1):
             stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
             if stored is None or not np.allclose(stored[1]["theta"], best.theta, rtol=1e-9):
-                covariance, info = geometry_covariance(
-                    setup, best.theta, level_measured, effects=setup.model.effects,
-                    skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
-                    interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM,
-                    tension_N_per_mm=None if level == 1 else tension)
-                write_geometry(run_dir, covariance, info, level)
+                options = dict(effects=setup.model.effects,
+                               skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
+                               interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM,
+                               tension_N_per_mm=None if level == 1 else tension)
+                if setup.case.levels:
+                    columns, weights, info = geometry_columns(setup, best.theta, level_measured, **options)
+                    write_geometry(run_dir, covariance_of(columns, weights), info, level, columns, weights)
+                else:
+                    covariance, info = geometry_covariance(setup, best.theta, level_measured, **options)
+                    write_geometry(run_dir, covariance, info, level)
         measured = setup.level_measurements(source)
         first = best
         fits, best = fit_from([first.theta], setup.objective_of(measured),

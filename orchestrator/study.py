@@ -43,6 +43,8 @@ from .imaging.frame import RigidMotion
 from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, segment_t1
 from .meshing import Mesh, mesh_from_labels
+from .geometry_uncertainty import level_file as geometry_level_file
+from .geometry_uncertainty import read_columns as read_geometry_columns
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .measure import level_files as measure_level_files
 from .measure import Measurements, dic_measurements, points_measurements, read_window_table
@@ -224,8 +226,18 @@ class RunSetup:
         if geometry is None:
             return measured
         covariance, info = geometry
-        return measured.with_model_covariance(covariance, f"skin uncertain by {info['skin_sigma_mm']:.3f} mm RMS "
-                                                          f"at wavelengths over {info['cutoff_mm']:g} mm")
+        description = f"skin uncertain by {info['skin_sigma_mm']:.3f} mm RMS at wavelengths over {info['cutoff_mm']:g} mm"
+        if not self.case.levels:
+            return measured.with_model_covariance(covariance, description)
+        # several garment levels: one skin error moves every level's prediction, so the joint fit needs the columns
+        # that make each level's C_geo (`levels.JointDisplacementObjective`)
+        columns = read_geometry_columns(self.run_dir, 2 * len(measured), level)
+        if columns is None:
+            raise RunFolderError(f"{self.run_dir / geometry_level_file(level)} holds the skin's uncertainty of garment "
+                                 f"level {level} alone (written before the levels' common skin error was kept): rerun "
+                                 f"`calfit identify {self.case.folder} --out {self.run_dir}` to estimate it for the "
+                                 "levels together")
+        return measured.with_model_covariance(covariance, description, *columns)
 
     def level_measurements(self, data: str = "auto") -> list[Measurements]:
         """The measurements of every garment level, the first level's first."""

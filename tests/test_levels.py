@@ -134,6 +134,145 @@ def test_levels_refuse_the_explicit_garment_and_a_single_level_objective(leg):
         LevelsModel(model, (0.16, 0.0))
 
 
+# --- the levels whitened together ---------------------------------------------------------------------
+
+def _spd(rng, size: int, scale: float) -> np.ndarray:
+    """A dense covariance like overlapping DIC windows' (correlated neighbours), of variance about scale^2."""
+    a = rng.normal(size=(size, size)) / np.sqrt(size)
+    return scale ** 2 * (0.5 * np.eye(size) + a @ a.T)
+
+
+def _window_like(mesh, rng, count: int, scale: float):
+    """Made-up DIC-like measurements at `count` element centroids: a dense covariance, the bones' residual rigid
+    motion as a nuisance."""
+    from orchestrator.measure import Measurements
+
+    centroids = mesh.nodes[mesh.elements[:, :3]].mean(axis=1)
+    points = centroids[rng.choice(len(centroids), count, replace=False)]
+    return Measurements("dic", points, rng.normal(0.0, 0.1, (count, 2)), _spd(rng, 2 * count, scale),
+                        rigid_nuisance=True)
+
+
+@pytest.fixture(scope="module")
+def together(leg):
+    """Two levels of 12 and 9 windows sharing 7 geometry modes: G_k of each level, one set of variances w."""
+    model, _ = leg
+    rng = np.random.default_rng(11)
+    weights = rng.uniform(0.5, 2.0, 7) * 1e-4
+    measured, columns = [], []
+    for count, scale in ((12, 0.01), (9, 0.02)):
+        alone = _window_like(model.mesh, rng, count, scale)
+        g = rng.normal(size=(2 * count, 7))
+        columns.append(g)
+        measured.append(alone.with_model_covariance((g * weights) @ g.T, "made-up geometry", g, weights))
+    parts = [DisplacementResidualObjective(model.mesh, m) for m in measured]
+    return JointDisplacementObjective(parts), measured, columns, weights
+
+
+def test_the_joint_covariance_has_the_cross_blocks_of_the_common_geometry(together):
+    joint, measured, (g1, g2), weights = together
+    assert joint.together
+    first, second = joint.slices
+    covariance = joint.covariance_mm2
+    np.testing.assert_allclose(covariance[first, second], (g1 * weights) @ g2.T, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(covariance[second, first], (g2 * weights) @ g1.T, rtol=1e-9, atol=1e-15)
+    for rows, m in zip(joint.slices, measured):   # each level's own block: its measurement and its C_geo
+        np.testing.assert_allclose(covariance[rows, rows], m.covariance_mm2, rtol=1e-9, atol=1e-15)
+    # F of eq. 2 keeps its unit (the mean variance of every level's values) and its floor counts both motions
+    assert joint.reference_variance_mm2 == pytest.approx(np.trace(covariance) / joint.n_residuals, rel=1e-12)
+    assert joint.nuisance_dof == 6
+    assert joint.noise_floor(4) == pytest.approx(joint.reference_variance_mm2 * (42 - 4 - 6) / 42, rel=1e-12)
+    # the cache key changes with the common geometry: a fit whitened level by level is not reused
+    assert ":together:" in joint.fingerprint
+
+
+def test_whitening_together_is_generalised_least_squares_with_each_levels_rigid_motion(together):
+    """What a direct Cholesky factor of the full C gives: the same weighted sums of squares and cross products
+    (the Gauss-Newton steps and F), after removing each level's rigid motion in the whitened space."""
+    from scipy.linalg import block_diag, cho_factor, solve_triangular
+
+    joint, measured, columns, weights = together
+    full = block_diag(*(m.measurement_covariance_mm2 for m in measured)) + (np.vstack(columns) * weights) @ np.vstack(
+        columns).T
+    lower = np.linalg.cholesky(full)
+    rigid = block_diag(*(m.rigid_columns(m.position_mm.mean(axis=0)) for m in measured))
+    x = solve_triangular(lower, rigid, lower=True)
+
+    def by_cholesky(values):
+        w = solve_triangular(lower, values, lower=True)
+        return w - x @ np.linalg.solve(x.T @ x, x.T @ w)
+
+    rng = np.random.default_rng(5)
+    values = rng.normal(0.0, 0.05, (joint.n_residuals, 5))
+    ours = np.column_stack([joint.weigh(v) for v in values.T])
+    direct = by_cholesky(values)
+    np.testing.assert_allclose(ours.T @ ours, direct.T @ direct, rtol=1e-9)
+    # each level's rigid motion of the bones is absorbed, whatever its size
+    motion = rigid @ rng.normal(0.0, 1.0, 6)
+    np.testing.assert_allclose(joint.weigh(values[:, 0] + motion), ours[:, 0], atol=1e-9)
+    # coloured back: the values less each level's generalised-least-squares rigid motion
+    w = solve_triangular(lower, values[:, 0], lower=True)
+    fitted = rigid @ np.linalg.solve(x.T @ x, x.T @ w)
+    np.testing.assert_allclose(joint.residual_mm(ours[:, 0]).ravel(), values[:, 0] - fitted, atol=1e-12)
+    # each level's own misfit: the F that level alone (its own covariance and motion) has
+    expected = [part.cost_of(part.weigh(values[rows, 0])) for part, rows in zip(joint.parts, joint.slices)]
+    assert joint.level_misfits(ours[:, 0]) == pytest.approx(expected, rel=1e-9)
+
+
+def test_the_levels_residuals_are_their_differences_whitened_together(leg, together):
+    model, _ = leg
+    joint = together[0]
+    rng = np.random.default_rng(8)
+    nodal = [rng.normal(0.0, 0.1, (len(model.mesh.nodes), 2)) for _ in joint.parts]
+    residuals = joint.residuals(nodal)
+    np.testing.assert_allclose(residuals, joint.weigh(np.concatenate([p.difference(u) for p, u in zip(joint.parts, nodal)])),
+                               rtol=0, atol=0)
+    # not what each level whitened alone gives: the common skin error is counted once
+    alone = np.concatenate([part.residuals(u) for part, u in zip(joint.parts, nodal)])
+    assert not np.allclose(residuals @ residuals, alone @ alone, rtol=1e-3)
+
+
+def test_an_evaluation_whitens_the_levels_and_their_sensitivities_together(leg, together, tmp_path):
+    model, _ = leg
+    joint = together[0]
+    with Evaluator(LevelsModel(model, TENSIONS), joint, tmp_path, progress=False, keep_jobs=True) as evaluator:
+        record = evaluator(THETA)
+        job = tmp_path / "jobs" / evaluator.task(THETA).key
+    assert record["status"] == OK
+    outdirs = [job / f"level-{k}" / "out" for k in (1, 2)]
+    nodal = [EngineResults(outdir).displacement() for outdir in outdirs]
+    residuals = joint.residuals(nodal)
+    np.testing.assert_allclose(record["outputs"]["residuals"], residuals, rtol=1e-12, atol=0)
+    assert record["cost"] == pytest.approx(joint.cost_of(residuals), rel=1e-12)
+    assert record["outputs"]["level_misfits"] == pytest.approx(joint.level_misfits(residuals), rel=1e-12)
+    observed = [part.observed_sensitivities(outdir) for part, outdir in zip(joint.parts, outdirs)]
+    jacobian = residual_jacobian(LevelsModel(model, TENSIONS), record, THETA)
+    assert jacobian.shape == (joint.n_residuals, 4) and np.abs(jacobian).max() > 0
+    for name, values in record["outputs"]["sensitivity"].items():
+        np.testing.assert_allclose(values, joint.weigh(np.concatenate([o[name] for o in observed])), rtol=1e-12)
+
+
+def test_a_level_stored_without_its_columns_is_refused_or_estimated_again(leg, tmp_path):
+    from orchestrator import geometry_uncertainty as geometry
+
+    model, _ = leg
+    rng = np.random.default_rng(2)
+    old = [_window_like(model.mesh, rng, 6, 0.01) for _ in range(2)]
+    old = [m.with_model_covariance(1e-6 * np.eye(12), "per level") for m in old]
+    with pytest.raises(ValueError, match=r"rerun `calfit identify CASE_DIR --out RUN_DIR`"):
+        JointDisplacementObjective([DisplacementResidualObjective(model.mesh, m) for m in old])
+    # the run folder: level 1 written as before (no columns), level 2 with them
+    g = rng.normal(size=(12, 3))
+    geometry.write(tmp_path, np.eye(12), {"theta": [1.0]}, 1)
+    geometry.write(tmp_path, g @ g.T, {"theta": [1.0]}, 2, g, np.ones(3))
+    assert geometry.read_columns(tmp_path, 12, 1) is None
+    columns, weights = geometry.read_columns(tmp_path, 12, 2)
+    np.testing.assert_array_equal(columns, g)
+    assert set(geometry.read_covariance(tmp_path, 12, 2)[1]) == {"theta"}   # the columns stay out of the info
+    assert geometry.discard_without_columns(tmp_path, [1, 2]) == [1]
+    assert not (tmp_path / geometry.level_file(1)).exists() and (tmp_path / geometry.level_file(2)).exists()
+
+
 # --- case.toml -------------------------------------------------------------------------------------
 
 SHAPE, PIXEL = (48, 64), (0.5, 0.4)
