@@ -111,7 +111,10 @@ class JointDisplacementObjective:
     name = "displacement_residual_levels"
     needs_vtu = False
 
-    def __init__(self, parts: Sequence):
+    def __init__(self, parts: Sequence, between: dict | None = None):
+        """parts: each level's `DisplacementResidualObjective`; between: {(k, l): (n_k, n_l) covariance (mm^2)} of the
+        measurement errors of levels k < l (0-based), e.g. the noise of I0 that every level's DIC shares
+        (`measure.reference_noise_covariance`)."""
         self.parts = tuple(parts)
         if len(self.parts) < 2:
             raise ValueError(f"a joint objective needs at least two garment levels, got {len(self.parts)}")
@@ -124,7 +127,7 @@ class JointDisplacementObjective:
                                             / bounds[-1])
         self.source = self.parts[0].source
         self.fingerprint = "levels[" + "|".join(part.fingerprint for part in self.parts) + "]"
-        self.geometry_columns = None   # G, the levels' columns stacked, when the levels are whitened together
+        self.geometry_columns = self.geometry_weights = None   # G (the levels' columns stacked) and w, when known
         self._whiten = self._colour = self._nuisance = None
         kinds = [getattr(part, "geometry", "none") for part in self.parts]
         if "covariance" in kinds:
@@ -132,21 +135,30 @@ class JointDisplacementObjective:
                 f"garment level {kinds.index('covariance') + 1}'s skin uncertainty was stored without its columns "
                 "(a run folder made before the levels' common skin error was kept), so the covariance between the "
                 "levels cannot be formed: rerun `calfit identify CASE_DIR --out RUN_DIR` to estimate it again")
-        if "columns" in kinds:
+        self.between = {(int(k), int(l)): np.asarray(block, float) for (k, l), block in (between or {}).items()
+                        if block is not None and np.any(block)}
+        for (k, l), block in self.between.items():
+            if not 0 <= k < l < len(self.parts) or block.shape != (self.parts[k].n_residuals, self.parts[l].n_residuals):
+                raise ValueError(f"the covariance between garment levels {k + 1} and {l + 1} is {block.shape}")
+        if "columns" in kinds or self.between:
             self._whiten_together()
 
     def _whiten_together(self) -> None:
-        """C = blockdiag(C_meas,k) + G diag(w) G^T with G the levels' geometry columns stacked (a level without
-        them adds zero rows), its symmetric inverse square root and square root, and the projection that removes
-        each level's own residual rigid motion after the joint whitening."""
+        """C = blockdiag(C_meas,k) + the measurement covariance between levels + G diag(w) G^T with G the levels'
+        geometry columns stacked (a level without them adds zero rows), its symmetric inverse square root and
+        square root, and the projection that removes each level's own residual rigid motion after the joint
+        whitening."""
         weights = [part.geometry_weights for part in self.parts if part.geometry == "columns"]
         if any(w.shape != weights[0].shape or not np.allclose(w, weights[0], rtol=1e-9, atol=0) for w in weights):
             raise ValueError("the garment levels' skin uncertainties were made with other mode variances (another "
                              "skin uncertainty or mesh): estimate them again together (`calfit identify`)")
-        weights = weights[0]
+        weights = weights[0] if weights else np.zeros(0)
         n = self.n_residuals
         columns = np.zeros((n, len(weights)))
         covariance = np.zeros((n, n))
+        for (k, l), block in self.between.items():
+            covariance[self.slices[k], self.slices[l]] = block
+            covariance[self.slices[l], self.slices[k]] = block.T
         rigid = np.zeros((n, self.nuisance_dof))
         column = 0
         for part, rows in zip(self.parts, self.slices):
@@ -164,12 +176,13 @@ class JointDisplacementObjective:
         self._whiten = (vectors / np.sqrt(values)) @ vectors.T
         self._colour = (vectors * np.sqrt(values)) @ vectors.T
         self._nuisance, _ = np.linalg.qr(self._whiten @ rigid)
-        self.geometry_columns, self.geometry_weights = columns, weights
-        self.fingerprint += f":together:{_array_sha(columns, weights)}"
+        self.geometry_columns, self.geometry_weights = (columns, weights) if len(weights) else (None, None)
+        self.fingerprint += f":together:{_array_sha(columns, weights, *(self.between[key] for key in sorted(self.between)))}"
 
     @property
     def together(self) -> bool:
-        """Whether the levels' data are whitened together (their geometry columns known), not each on its own."""
+        """Whether the levels' data are whitened together (their geometry columns or the measurement covariance
+        between them known), not each on its own."""
         return self._whiten is not None
 
     @property

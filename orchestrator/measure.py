@@ -111,6 +111,7 @@ class Measurements:
     measurement_covariance_mm2: np.ndarray | None = None   # the measurement's part when a model part is added
     model_columns_mm: np.ndarray | None = None   # (2N, m) G: the model part is G diag(model_weights) G^T (levels)
     model_weights: np.ndarray | None = None      # (m,) the variances of the model part's modes
+    reference_noise_sigma: float | None = None   # DIC: the noise of I0 (intensity), shared by every garment level
 
     def __len__(self) -> int:
         return len(self.position_mm)
@@ -334,7 +335,34 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]
     return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept] - offset, covariance, operators, True,
-                        f"DIC: {int(kept.sum())} windows of {window_px} px kept of {len(kept)}", kinds)
+                        f"DIC: {int(kept.sum())} windows of {window_px} px kept of {len(kept)}", kinds,
+                        reference_noise_sigma=float(reference_noise_sigma))
+
+
+def reference_noise_covariance(first: Measurements, second: Measurements) -> np.ndarray | None:
+    """(2 N_1, 2 N_2) covariance (mm^2) between the errors of two DIC measurements made on the same reference I0
+    (two garment levels: the same windows of I0, correlated with two loaded images). A window's error is the
+    loaded image's noise less the reference's, both through B_i (`imaging.windows`); the reference's noise is one
+    and the same in both, so Cov(u_i, u_j) = sigma_0^2 sum_{x in both} B_i(x) B_j(x)^T over the pixels of I0 that
+    windows i and j share (half of each window's variance when I0 and I1 are equally noisy). None for points."""
+    a, b = first.operators, second.operators
+    if a is None or b is None or first.reference_noise_sigma is None or second.reference_noise_sigma is None:
+        return None
+    if a.window_px != b.window_px or a.shape != b.shape or not np.allclose(a.to_mm, b.to_mm):
+        raise ValueError("two garment levels measured with other windows or on another reference image")
+    variance = first.reference_noise_sigma * second.reference_noise_sigma
+    to_mm = np.diag(a.to_mm)
+    reach = a.window_px - 1 + 1e-9
+    covariance = np.zeros((2 * len(a), 2 * len(b)))
+    tree = cKDTree(b.centres)
+    for i, centre in enumerate(a.centres):
+        for j in tree.query_ball_point(centre, reach * np.sqrt(2)):
+            if np.any(np.abs(centre - b.centres[j]) > reach):
+                continue
+            shared, in_i, in_j = np.intersect1d(a.pixels[i], b.pixels[j], assume_unique=True, return_indices=True)
+            if shared.size:
+                covariance[2 * i:2 * i + 2, 2 * j:2 * j + 2] = variance * to_mm @ (a.B[i][:, in_i] @ b.B[j][:, in_j].T) @ to_mm
+    return covariance
 
 
 # --- run folder ---------------------------------------------------------------------------------

@@ -247,9 +247,15 @@ class RunSetup:
         """The displacement residual of these measurements, one per garment level: a
         `DisplacementResidualObjective` for one, their `levels.JointDisplacementObjective` for several."""
         from .levels import JointDisplacementObjective
+        from .measure import reference_noise_covariance
 
         parts = [DisplacementResidualObjective(self.mesh, m) for m in measured]
-        return parts[0] if len(parts) == 1 else JointDisplacementObjective(parts)
+        if len(parts) == 1:
+            return parts[0]
+        # the levels' DIC windows are the same windows of I0: its noise is in every level's errors
+        between = {(k, l): reference_noise_covariance(measured[k], measured[l])
+                   for k in range(len(measured)) for l in range(k + 1, len(measured))}
+        return JointDisplacementObjective(parts, between)
 
     def displacement_objective(self, data: str = "auto"):
         """The displacement residual of the run's measurements, of every garment level (`objective_of`)."""

@@ -142,40 +142,46 @@ def _spd(rng, size: int, scale: float) -> np.ndarray:
     return scale ** 2 * (0.5 * np.eye(size) + a @ a.T)
 
 
-def _window_like(mesh, rng, count: int, scale: float):
+def _window_like(mesh, rng, count: int, covariance: np.ndarray):
     """Made-up DIC-like measurements at `count` element centroids: a dense covariance, the bones' residual rigid
     motion as a nuisance."""
     from orchestrator.measure import Measurements
 
     centroids = mesh.nodes[mesh.elements[:, :3]].mean(axis=1)
     points = centroids[rng.choice(len(centroids), count, replace=False)]
-    return Measurements("dic", points, rng.normal(0.0, 0.1, (count, 2)), _spd(rng, 2 * count, scale),
-                        rigid_nuisance=True)
+    return Measurements("dic", points, rng.normal(0.0, 0.1, (count, 2)), covariance, rigid_nuisance=True)
 
 
 @pytest.fixture(scope="module")
 def together(leg):
-    """Two levels of 12 and 9 windows sharing 7 geometry modes: G_k of each level, one set of variances w."""
+    """Two levels of 12 and 9 windows sharing 7 geometry modes (G_k of each level, one set of variances w), their
+    measurement errors correlated between the levels (as the noise of I0 makes them)."""
     model, _ = leg
     rng = np.random.default_rng(11)
     weights = rng.uniform(0.5, 2.0, 7) * 1e-4
+    noise = _spd(rng, 42, 0.015)   # both levels' measurement errors
+    rows = (slice(0, 24), slice(24, 42))
     measured, columns = [], []
-    for count, scale in ((12, 0.01), (9, 0.02)):
-        alone = _window_like(model.mesh, rng, count, scale)
+    for count, level_rows in zip((12, 9), rows):
+        alone = _window_like(model.mesh, rng, count, noise[level_rows, level_rows])
         g = rng.normal(size=(2 * count, 7))
         columns.append(g)
         measured.append(alone.with_model_covariance((g * weights) @ g.T, "made-up geometry", g, weights))
     parts = [DisplacementResidualObjective(model.mesh, m) for m in measured]
-    return JointDisplacementObjective(parts), measured, columns, weights
+    between = noise[rows[0], rows[1]]
+    return JointDisplacementObjective(parts, {(0, 1): between}), measured, columns, weights, between
 
 
 def test_the_joint_covariance_has_the_cross_blocks_of_the_common_geometry(together):
-    joint, measured, (g1, g2), weights = together
+    joint, measured, (g1, g2), weights, between = together
     assert joint.together
     first, second = joint.slices
     covariance = joint.covariance_mm2
-    np.testing.assert_allclose(covariance[first, second], (g1 * weights) @ g2.T, rtol=1e-9, atol=1e-15)
-    np.testing.assert_allclose(covariance[second, first], (g2 * weights) @ g1.T, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(covariance[first, second], between + (g1 * weights) @ g2.T, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(covariance[second, first], between.T + (g2 * weights) @ g1.T, rtol=1e-9, atol=1e-15)
+    # without the measurement's part between the levels: the geometry's G_1 W G_2^T alone
+    alone = JointDisplacementObjective(joint.parts).covariance_mm2
+    np.testing.assert_allclose(alone[first, second], (g1 * weights) @ g2.T, rtol=1e-9, atol=1e-15)
     for rows, m in zip(joint.slices, measured):   # each level's own block: its measurement and its C_geo
         np.testing.assert_allclose(covariance[rows, rows], m.covariance_mm2, rtol=1e-9, atol=1e-15)
     # F of eq. 2 keeps its unit (the mean variance of every level's values) and its floor counts both motions
@@ -191,9 +197,11 @@ def test_whitening_together_is_generalised_least_squares_with_each_levels_rigid_
     (the Gauss-Newton steps and F), after removing each level's rigid motion in the whitened space."""
     from scipy.linalg import block_diag, cho_factor, solve_triangular
 
-    joint, measured, columns, weights = together
+    joint, measured, columns, weights, between = together
     full = block_diag(*(m.measurement_covariance_mm2 for m in measured)) + (np.vstack(columns) * weights) @ np.vstack(
         columns).T
+    full[:24, 24:] += between
+    full[24:, :24] += between.T
     lower = np.linalg.cholesky(full)
     rigid = block_diag(*(m.rigid_columns(m.position_mm.mean(axis=0)) for m in measured))
     x = solve_triangular(lower, rigid, lower=True)
@@ -252,12 +260,48 @@ def test_an_evaluation_whitens_the_levels_and_their_sensitivities_together(leg, 
         np.testing.assert_allclose(values, joint.weigh(np.concatenate([o[name] for o in observed])), rtol=1e-12)
 
 
+def test_the_noise_of_i0_correlates_the_levels_windows():
+    """Two levels measured with windows of the same I0: the covariance between their errors is I0's share,
+    sigma_0^2 sum B_i B_j^T, which within one level is what its covariance holds at intensity variance sigma_0^2."""
+    from orchestrator.imaging.windows import WindowOperators
+    from orchestrator.measure import Measurements, reference_noise_covariance
+
+    rng = np.random.default_rng(4)
+    image = ndimage_smooth(rng.normal(1000.0, 300.0, (64, 64)))
+    centres = np.array([[20, 20], [20, 28], [28, 24], [36, 36], [44, 30]])
+    sigma0, sigma1 = 12.0, 9.0
+
+    def level(kept):
+        operators = WindowOperators(image, centres[kept], 16, (0.5, 0.4), sigma0)
+        covariance = operators.covariance(np.full(len(kept), sigma0 ** 2 + sigma1 ** 2))
+        return Measurements("dic", centres[kept] * 0.5, np.zeros((len(kept), 2)), covariance, operators, True,
+                            reference_noise_sigma=sigma0)
+
+    union = WindowOperators(image, centres, 16, (0.5, 0.4), sigma0).covariance(np.full(len(centres), sigma0 ** 2))
+    first, second = level([0, 1, 2, 4]), level([1, 2, 3])
+    cross = reference_noise_covariance(first, second)
+    rows = np.ravel([[2 * k, 2 * k + 1] for k in [0, 1, 2, 4]])
+    cols = np.ravel([[2 * k, 2 * k + 1] for k in [1, 2, 3]])
+    np.testing.assert_allclose(cross, union[np.ix_(rows, cols)], rtol=1e-12, atol=0)
+    assert np.any(cross) and not np.any(cross[0:2, 4:6])   # window 0 shares no pixel with window 3
+    # the same window at both levels: sigma_0^2 / (sigma_0^2 + sigma_1^2) of its variance is common
+    assert cross[2, 0] == pytest.approx(sigma0 ** 2 / (sigma0 ** 2 + sigma1 ** 2) * first.covariance_mm2[2, 2], rel=1e-12)
+    assert reference_noise_covariance(first, Measurements("points.csv", np.zeros((1, 2)), np.zeros((1, 2)),
+                                                          np.eye(2))) is None
+
+
+def ndimage_smooth(values: np.ndarray) -> np.ndarray:
+    from scipy import ndimage
+
+    return ndimage.gaussian_filter(values, 1.5)
+
+
 def test_a_level_stored_without_its_columns_is_refused_or_estimated_again(leg, tmp_path):
     from orchestrator import geometry_uncertainty as geometry
 
     model, _ = leg
     rng = np.random.default_rng(2)
-    old = [_window_like(model.mesh, rng, 6, 0.01) for _ in range(2)]
+    old = [_window_like(model.mesh, rng, 6, _spd(rng, 12, 0.01)) for _ in range(2)]
     old = [m.with_model_covariance(1e-6 * np.eye(12), "per level") for m in old]
     with pytest.raises(ValueError, match=r"rerun `calfit identify CASE_DIR --out RUN_DIR`"):
         JointDisplacementObjective([DisplacementResidualObjective(model.mesh, m) for m in old])
