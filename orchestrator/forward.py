@@ -351,7 +351,6 @@ class LegModel:
                 engine_name, factor = engine_constant(self.tissue_laws[tissue], constant, per_tissue[tissue])
                 state.sensitivity[name].append((f"MATERIAL, {elset}, {engine_name}", factor))
         values = dict(zip(self.space.names[self.law_size:], theta[self.law_size:]))
-        values = dict(zip(self.space.names[4:], theta[4:]))
         element_sets = list(state.constants) + [group.name for group in self.groups]
         for name in self.effects:
             item = effect(name)

@@ -119,3 +119,16 @@ def test_directions_the_data_do_not_fix_leave_their_parameters_undetermined():
     assert not undetermined.any()
     np.testing.assert_allclose(basis @ np.linalg.lstsq(well_posed @ basis, noise, rcond=None)[0],
                                np.linalg.lstsq(well_posed, noise, rcond=None)[0], atol=1e-12)
+
+
+def test_effects_follow_laws_of_any_size(leg_mesh):
+    """The effects' parameters come after the laws' constants, however many: a Mooney-Rivlin fat (five constants in
+    all) with drainage and stiffening writes dv and both C20 where they belong."""
+    model = LegModel(leg_mesh, 0.16, tissues={"fat": TissueLaw("mooney_rivlin")}, effects=("drainage", "stiffening"))
+    assert model.space.names == ("C10_fat", "C10_muscle", "C01_fat", "Kv_fat", "Kv_muscle", "dv_muscle", "C20_fat",
+                                 "C20_muscle")
+    deck = model.deck([1.4, 11.0, 1.0, 90.0, 60.0, -0.04, 200.0, 300.0])
+    assert "*VOLUME CHANGE, ELSET=MUSCLE\n-0.04\n" in deck
+    assert _material_block(deck, "FAT") == ("*HYPERELASTIC, POLYNOMIAL, N=2",
+                                            pytest.approx([1.4e-3, 1e-3, 0.2, 0.0, 0.0, 1 / 0.09, 0.0]))
+    assert _material_block(deck, "MUSCLE") == ("*HYPERELASTIC, AVRIL", pytest.approx([11e-3, 0.06, 0.3]))
