@@ -356,16 +356,20 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         ranking.append(EffectScore(name, parameters, score["statistic"], q, float(stats.chi2.sf(score["statistic"], q)),
                                    score["predicted_reduction"], misfit - score["predicted_reduction"],
                                    score["orthogonal_fraction"], score["step"]))
+    columns = {}
     if garment_effects:
-        columns, garment_runs = garment_columns(evaluator_factory, model, theta, r, garment_effects)
-        runs += garment_runs
-        for name, G in columns.items():
-            score = score_effect(r, J, G, chi2_to_misfit, deff)
-            q = G.shape[1]
-            ranking.append(EffectScore(name, ["bridging"] + (["mu"] if q == 2 else []), score["statistic"], q,
-                                       float(stats.chi2.sf(score["statistic"], q)), score["predicted_reduction"],
-                                       misfit - score["predicted_reduction"], score["orthogonal_fraction"],
-                                       score["step"]))
+        try:
+            columns, garment_runs = garment_columns(evaluator_factory, model, theta, r, garment_effects)
+            runs += garment_runs
+        except RuntimeError as error:   # the band does not go on at these constants: said, the rest is ranked
+            skipped.update({name: f"the explicit band was not solved at the fitted constants ({error})"
+                            for name in garment_effects})
+    for name, G in columns.items():
+        score = score_effect(r, J, G, chi2_to_misfit, deff)
+        q = G.shape[1]
+        ranking.append(EffectScore(name, ["bridging"] + (["mu"] if q == 2 else []), score["statistic"], q,
+                                   float(stats.chi2.sf(score["statistic"], q)), score["predicted_reduction"],
+                                   misfit - score["predicted_reduction"], score["orthogonal_fraction"], score["step"]))
     ranking.sort(key=lambda s: (s.p_value, -s.statistic))
     lack_of_fit = lack_of_fit_p < alpha
     for score in ranking:
