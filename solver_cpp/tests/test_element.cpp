@@ -267,7 +267,8 @@ double circle_pressure_error(int n_faces, double R, double T) {
 }
 
 // Contact: the complex-step tangent against central differences, for a penetrating
-// slave node, frictionless and sticking / slipping with friction.
+// slave node, frictionless and sticking / slipping with friction, after a converged
+// contact or touching for the first time (open at the last converged state).
 void contact_tests() {
   ContactLaw law{1e3, 0.0, 0.0};
   Eigen::VectorXd x(14);
@@ -276,12 +277,13 @@ void contact_tests() {
   // penetrates, one at y = -0.02 is outside.
   // Nodes: slave, a, b, before a, after b, and the previously touched segment o1, o2.
   x << 0.4, 0.06, 0.0, 0.0, 1.0, 0.1, -0.8, 0.05, 1.9, 0.35, -0.05, 0.0, 0.95, 0.1;
-  for (int variant = 0; variant < 3; ++variant) {
+  for (int variant = 0; variant < 5; ++variant) {
     ContactHistory h;
     int n = 10;
     if (variant > 0) {
-      law = ContactLaw{1e3, 0.3, variant == 1 ? 1e4 : 1e2};  // stick (stiff) or slip (soft)
-      h = ContactHistory{true, 0, 0.35, 2.0};
+      // a stiff stick slope takes the trial traction out of the cone (slip), a soft one leaves it inside (stick)
+      law = ContactLaw{1e3, 0.3, variant % 2 == 1 ? 1e4 : 10.0};
+      h = variant <= 2 ? ContactHistory{true, 0, 0.35, 2.0} : ContactHistory{false, 0, 0.35, 0.0, 0.02};
       n = 14;
     }
     const Eigen::VectorXd xe = x.head(n);
@@ -302,6 +304,11 @@ void contact_tests() {
     }
     if (worst > 1e-5 * K.cwiseAbs().maxCoeff()) std::cerr << "contact tangent off by " << worst << " variant " << variant << '\n';
     CHECK(worst <= 1e-5 * K.cwiseAbs().maxCoeff());
+    if (variant > 0) {  // the friction branch taken: slip at mu p, stick below it
+      if (variant % 2 == 1) CHECK(std::abs(std::abs(p.shear) - 0.3 * p.pressure) < 1e-12 * p.pressure);
+      if (variant % 2 == 0) CHECK(std::abs(p.shear) < 0.3 * p.pressure);
+      CHECK(p.shear != 0.0);
+    }
     // Action and reaction: the contact forces sum to zero.
     double sum_x = 0.0, sum_y = 0.0;
     for (int k = 0; k < n / 2; ++k) {

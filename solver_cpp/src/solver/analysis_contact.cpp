@@ -78,6 +78,18 @@ void StaticAnalysis::build_contacts() {
   }
 }
 
+void StaticAnalysis::anchor_contacts() {
+  if (std::none_of(contacts_.begin(), contacts_.end(), [](const ContactState& c) { return c.law.friction > 0.0; }))
+    return;
+  const Eigen::VectorXd saved = residual_;
+  residual_.setZero(n_dofs_);
+  std::vector<ContactElement> unused;
+  contact_residual(u_, false, unused);
+  for (ContactState& c : contacts_)
+    if (c.law.friction > 0.0) c.history = c.trial;
+  residual_ = saved;
+}
+
 void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, std::vector<ContactElement>& elements) {
   auto position = [&](int node) {
     return Eigen::Vector2d(model_.coordinates[node].x() + u[2 * node], model_.coordinates[node].y() + u[2 * node + 1]);
@@ -85,10 +97,13 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
   const LoadState& loads = model_.steps[current_step_].loads;
   for (ContactState& c : contacts_) {
     const bool active = loads.contact_active[c.pair] != 0;
+    // With friction, an inactive pair still records where each slave node faces the master: the
+    // first touch after *MODEL CHANGE, ADD is then located within its increment like any other.
+    const bool friction = c.law.friction > 0.0;
     for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
       c.trial[i] = ContactHistory{};
       c.points[i] = ContactPoint{};
-      if (!active) continue;
+      if (!active && !friction) continue;
       const int slave = c.slave_nodes[i];
       const Eigen::Vector2d xs = position(slave);
       // Closest master segment by straight distance; then, among it and its neighbours,
@@ -111,7 +126,7 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
         const auto& seg = c.segments[k];
         std::vector<int> nodes = {slave, seg[0], seg[1], c.previous[k] >= 0 ? c.segments[c.previous[k]][0] : seg[0],
                                   c.next[k] >= 0 ? c.segments[c.next[k]][1] : seg[1]};
-        if (c.law.friction > 0.0 && h.touching) {
+        if (friction && h.anchored()) {
           nodes.push_back(c.segments[h.segment][0]);
           nodes.push_back(c.segments[h.segment][1]);
         }
@@ -135,7 +150,14 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       const std::vector<int> nodes = element_nodes(best);
       Eigen::VectorXd r;
       Eigen::MatrixXd K;
-      const ContactPoint point = contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r, tangent ? &K : nullptr);
+      const ContactPoint point =
+          contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r, tangent && active ? &K : nullptr);
+      if (!active || !point.touching) {
+        // Open (or the pair inactive): keep the master point the node faces, for its first touch.
+        if (friction && point.gap >= 0.0 && point.xi >= -0.5 && point.xi <= 1.5)
+          c.trial[i] = ContactHistory{false, point.segment, point.xi, 0.0, point.gap};
+        if (!active) continue;
+      }
       c.points[i] = point;
       if (!point.touching) continue;
       c.trial[i] = ContactHistory{true, point.segment, point.xi, point.shear};

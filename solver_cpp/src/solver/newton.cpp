@@ -102,6 +102,7 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
 
 StepResult StaticAnalysis::run_step(int step, const std::function<void(const std::string&)>& log) {
   prepare_step(step);
+  if (step == 0) anchor_contacts();
   const StepDef& s = model_.steps[step];
   StepResult result;
   double time = 0.0, dt = s.initial_dt;

@@ -146,6 +146,9 @@ private:
   void build_contacts();
   // Adds the contact forces at u to residual_; collects contact elements for the tangent.
   void contact_residual(const Eigen::VectorXd& u, bool tangent, std::vector<ContactElement>& elements);
+  // With friction: the contact history of the reference state (where each slave node touches or faces the
+  // master), so that a node touching within the first increment is anchored like any later one.
+  void anchor_contacts();
   void rebuild_system(const std::vector<ContactElement>& contact);
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
