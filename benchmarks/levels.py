@@ -16,8 +16,9 @@ truth each, about 3 minutes each here), a last table counts the truths inside th
 with one level and with two (the intervals' coverage: about 95 % if they are honest) beside the half widths.
 
 The two levels' data are whitened together (`levels.JointDisplacementObjective`): one segmented skin makes the
-model's geometry error of both levels, and whitened level by level (before) the two-level intervals were too
-narrow (seeds 1-3: 9 of 12 truths inside, 12 of 12 with one level).
+model's geometry error of both levels, and I0's noise is in both levels' windows. Whitened level by level (before)
+the two-level intervals were too narrow (seeds 1-5: 16 of 20 truths inside, 20 of 20 with one level); together,
+18 of 20 (docs/case-folder.md, "More garment levels", says where the two left come from).
 """
 
 from __future__ import annotations

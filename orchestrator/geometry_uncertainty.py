@@ -34,12 +34,12 @@ g = (y(+h) - y(-h)) / 2h from two meshes moved by +-h (`meshing.labels.interface
 parameters. The floor then counts every part, and the identification reports the measurement's share.
 
 Several garment levels ([[garment.levels]]). Each level's windows get their own C_geo, made at that level's
-tension and stored as geometry_uncertainty-level-<k>.npz (`level_file`). One skin error acts on every level at
-once, so the levels' geometry errors are correlated; the joint fit (`levels.JointDisplacementObjective`) whitens
-each level by its own covariance and so treats them as independent, and its intervals are too narrow: on three
-phantom truths (`benchmarks/levels.py`) 9 of 12 truths lay inside the two-level 95 % intervals, 12 of 12 inside
-the one-level ones. The cross-level blocks, G_k diag(w) G_l^T from the same columns at each level's tension,
-would need one whitening of all the levels' data together.
+tension and stored as geometry_uncertainty-level-<k>.npz (`level_file`), with its columns G_k and their variances
+w (`geometry_columns`): the same modes and the same w at every level, since they describe the segmentation, not
+the load. One skin error acts on every level at once, so the levels' geometry errors are correlated, G_k W G_l^T
+between levels k and l, and the joint fit (`levels.JointDisplacementObjective`) whitens all the levels' data
+together with them. A run folder of several levels whose files hold no columns (written before) is refused by the
+commands after `calfit identify`, which estimates them again (`discard_without_columns`).
 """
 
 from __future__ import annotations

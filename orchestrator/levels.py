@@ -10,17 +10,31 @@ socks.
   `tension_N_per_mm`); one evaluation is one deck per level (`decks`), which `runner.execute_task` runs in the
   sub-folders level-1, level-2, ... of the job. The parameters, the start, the mesh and the map from the
   model's parameters to the engine's sensitivities are the base model's: every level is the same tissue.
-- `JointDisplacementObjective(parts)`: each level's `objectives.DisplacementResidualObjective` (its own
-  measurements, covariance and residual rigid motion of the bones: each image was aligned on its own)
-  concatenated. The misfit stays Bouten and Drapier's eq. 2 over all the levels' points, F = s^2 r.r / n, s^2
-  the mean variance of one component over all of them, and its floor s^2 (n - p - k) / n with k the nuisance
-  parameters of every level.
+- `JointDisplacementObjective(parts, between)`: every level's data whitened together. Each level's
+  `objectives.DisplacementResidualObjective` gives its differences O u_s - u_e (its own measurements and residual
+  rigid motion of the bones: each image was aligned on its own); they are stacked and whitened with the symmetric
+  inverse square root of the full covariance
+
+      C = blockdiag(C_meas,k) + B + G W G^T,   G = [G_1; G_2; ...],
+
+  B the measurement errors' covariance between levels (`between`: the noise of I0, whose windows every level's DIC
+  shares, `measure.reference_noise_covariance`; half of each window's variance) and G_k W G_l^T the model's
+  geometry uncertainty between levels k and l: the same skin modes and interface shifts with the same variances W,
+  seen at each level's tension (`geometry_uncertainty`). One segmented skin makes every level's geometry error, so
+  the levels' errors are not independent, and whitened level by level (as before) a second level halved the
+  intervals while the errors stayed: 9 of 12 benchmark truths inside their two-level 95 % intervals, 12 of 12
+  with one level (`benchmarks/levels.py`, seeds 1-3). Each level's rigid motion is then projected out of the
+  jointly whitened vector (the nuisance basis is block-diagonal before whitening). The misfit stays Bouten and
+  Drapier's eq. 2 over all the levels' points, F = s^2 r.r / n, s^2 the mean variance of one component over all
+  of them, its floor s^2 (n - p - k) / n with k the nuisance parameters of every level; `residual_mm` colours back
+  with C^1/2 (u_model - u_measured, each level's fitted rigid motion removed) and `level_misfits` are each level's
+  own F, its part of that residual weighed by its own covariance: what that level alone would show at the same
+  parameters. Without geometry columns nor measurement covariance between levels (points, whose errors are
+  independent, before the skin's uncertainty is estimated) the levels' own residuals are concatenated.
 - `AtTension(base, tension)`: the base model whose decks default to another tension (a level's pressures).
 
 The explicit garment (`[model] garment = "explicit"`) is not fitted with levels: its band is meshed at its
-design tension, so each sock would need its own band mesh. Each level's whitening holds that level's share of the
-model's geometry uncertainty only (`geometry_uncertainty`): the skin error common to the levels is counted as
-independent between them, which makes the joint intervals too narrow.
+design tension, so each sock would need its own band mesh.
 """
 
 from __future__ import annotations

@@ -25,7 +25,8 @@ every window).
 In a run folder: measurements.csv (every window tried, kept or why not, with its covariance), measurements.npz
 (what rebuilds the Measurements), measurements.json (summary) and measurements.png (the vectors on the image).
 A case with more garment levels ([[garment.levels]]) has the same four files for each more loaded image,
-measurements-level-2.csv and so on (`level_files`): the same windows of I0, correlated with that image.
+measurements-level-2.csv and so on (`level_files`): the same windows of I0, correlated with that image. The noise of
+I0 is then in every level's errors, and `reference_noise_covariance` gives their covariance between two levels.
 """
 
 from __future__ import annotations

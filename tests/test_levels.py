@@ -390,14 +390,29 @@ def _random_truth(seed: int) -> np.ndarray:
             return truth
 
 
+# seed 2 with the levels whitened together: C10 of fat +2.3 % off against a half width of 2.2 % (its interval starts
+# 0.2 % above the truth), Kv of muscle -0.36 % against 0.31 % (0.05 % short). Its data's errors weigh as C says
+# (chi^2/dof 1.03 against the truth's field seen through the same windows), and the model, its mesh and its segmented
+# skin fitted to that noiseless field are off by +0.3 % and +0.02 % only: what remains is a bias of the DIC data that
+# C does not hold (Kv of muscle came out low in 6 of 7 benchmark truths with one level as well), not a test to tune.
+SEED2_OUTSIDE = pytest.mark.xfail(reason="C10 of fat and Kv of muscle just outside their two-level intervals (see "
+                                         "above): a bias of the DIC data common to the levels", strict=False)
+
+
 @pytest.mark.slow
-def test_two_levels_are_identified_from_the_images_alone(tmp_path):
+@pytest.mark.parametrize("seed", [pytest.param(2, marks=SEED2_OUTSIDE), 3, 5])
+def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
+    """Seeds 2 and 3 are the benchmark's truths (`benchmarks/levels.py --seeds 2 3`, the same images) that fell
+    outside their two-level intervals while the levels were whitened each on its own (C10 of fat and Kv of muscle
+    of seed 2, Kv of fat of seed 3); whitened together (the skin's and I0's errors common to the levels), seed 3's
+    truths are all inside, seed 2's two are still just outside (SEED2_OUTSIDE)."""
     from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
     from orchestrator.study import make_phantom_case
 
-    truth = _random_truth(5)
+    truth = _random_truth(seed)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
-                                labels=None, points_spacing_mm=None, rigid=SCANNER_MOTION, noise_seeds=(15, 25))
+                                labels=None, points_spacing_mm=None, rigid=SCANNER_MOTION,
+                                noise_seeds=(10 + seed, 20 + seed))
     assert sorted(p.name for p in case.iterdir()) == ["case.toml", "loaded-level-2.png", "loaded.png", "unloaded.png"]
     identification = run_identify(case, tmp_path / "run", workers=2, progress=False)
     montecarlo = run_montecarlo(tmp_path / "run", workers=2, progress=False)
