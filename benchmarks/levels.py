@@ -17,8 +17,8 @@ with one level and with two (the intervals' coverage: about 95 % if they are hon
 
 The two levels' data are whitened together (`levels.JointDisplacementObjective`): one segmented skin makes the
 model's geometry error of both levels, and I0's noise is in both levels' windows. Whitened level by level (before)
-the two-level intervals were too narrow (seeds 1-5: 16 of 20 truths inside, 20 of 20 with one level); together,
-18 of 20 (docs/case-folder.md, "More garment levels", says where the two left come from).
+the two-level intervals were too narrow (seeds 1-7: 23 of 28 truths inside, 27 of 28 with one level); together,
+26 of 28, and 30 of 32 on seeds 1-8 (docs/case-folder.md, "More garment levels", says where the two left come from).
 """
 
 from __future__ import annotations
