@@ -83,7 +83,11 @@ def _to_x(space, theta) -> np.ndarray:
 
 
 def _from_x(space, x) -> np.ndarray:
-    return space.clip(space.from_x(x)) if space is not None else np.exp(np.asarray(x, float))
+    """theta of x, inside the box (x is clipped to the box first: theta is monotone in x, and a wild step in
+    ln theta would overflow exp before the clip)."""
+    if space is None:
+        return np.exp(np.asarray(x, float))
+    return space.clip(space.from_x(np.clip(x, space.to_x(space.lower), space.to_x(space.upper))))
 
 
 def _dtheta_dx(space, theta) -> np.ndarray:

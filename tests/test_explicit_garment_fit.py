@@ -13,6 +13,8 @@ leg's rows of a result that holds the band's too."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -22,7 +24,7 @@ from orchestrator.materials import AVRIL_BOUNDS_KPA
 from orchestrator.meshing import leg_slice_mesh
 from orchestrator.objectives import DisplacementResidualObjective
 from orchestrator.results import EngineResults
-from orchestrator.runner import Evaluator, run_engine
+from orchestrator.runner import LOG_NAME, Evaluator, run_engine
 
 TENSION = 0.16  # N/mm
 SIGMA_MM = 0.02
@@ -89,6 +91,8 @@ def test_explicit_garment_parameters_are_identified_back(tmp_path, meshes, seed)
     print(f"truth {np.round(truth, 2)} kPa, fit {np.round(fit.theta, 2)}, errors {np.round(100 * error, 1)} %, "
           f"misfit {fit.cost / floor:.2f} x floor, {fit.iterations} iterations, {fit.engine_runs} engine runs")
     assert fit.converged, fit.message
-    assert fit.engine_runs <= fit.iterations + 2   # one run per iteration: the Jacobian came from the engine
+    # the Jacobian came from the engine: no finite-difference probe among the runs (only steps, kept or refused)
+    records = [json.loads(line) for line in (tmp_path / "fit" / LOG_NAME).read_text().splitlines()]
+    assert len(records) == fit.engine_runs and not any(record["tag"] == "lm-jacobian" for record in records)
     assert fit.cost < 1.5 * floor
     assert abs(error[1]) < 0.10                    # C10 of muscle

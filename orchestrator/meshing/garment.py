@@ -50,6 +50,13 @@ the contact holds its translations and only its sliding around the leg is free: 
 statically indeterminate and carry tangential forces, each a jump in the hoop force (measured: 7e-3 and
 9.5e-3 N/mm, jumps of up to 6.5% of T at the GARMENT_PIN_X nodes). Step 4 therefore releases GARMENT_PIN_X
 and keeps GARMENT_PIN_Y alone against sliding, whose reaction is then 2e-6 N/mm.
+The pins hold their tangential components (u_x at the top and bottom, u_y at the right) from the inflated circle
+on, so the circle is turned and shifted rigidly (`_place_on_design_wrap`) until those components are the ones of
+the design wrap, band station I on skin node I: the pins then impose no slide. Without it they held the band
+0.2-0.5 mm round from where it wraps, by an amount that depends on which nodes of a mesh are extremal; without
+friction the band slid back once released, but friction locked the offset in as a twist, and the tissue's
+displacement under the band with mu = 0.3 differed by 33 um RMS between a 1,100- and an 8,000-element leg (16 um
+once placed; 13 um without friction; benchmarks/friction_convergence.py).
 
 Positions are in mm in the image frame; elements are counter-clockwise in deck coordinates (see
 mesh.py); GARMENT_IN are the band's inner faces, ordinary outward faces of the band, as calfit-fe
@@ -61,7 +68,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
+from scipy.optimize import brentq, least_squares
 from scipy.spatial import ConvexHull
 
 from .mesh import Mesh, _id_lines, signed_areas
@@ -332,6 +339,9 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
                          "ask for a smaller clearance or a larger design stretch")
     inflated_nodes = inflated_ring(stations, depth, centroid, inflated_radius,
                                    band_thickness_stretch(C10, D1, inflated_stretch)).reshape(-1, 2)
+    design = {k: corners[i] for i, k in enumerate(inner_corners)}   # band station I on skin corner I
+    inflated_nodes = _place_on_design_wrap(inflated_nodes, centroid, [(k, 0, design[k][0]) for k in pins_x]
+                                           + [(k, 1, design[k][1]) for k in pin_y])
     return GarmentBand(
         nodes=nodes, elements=elements, inner_faces=np.asarray(inner_faces, dtype=np.int64),
         station_elements=np.asarray(station_elements, dtype=np.int64), inner_corners=inner_corners,
@@ -340,6 +350,23 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
         C10=C10, D1=D1, thickness_mm=thickness_mm, design_stretch=stretch, design_tension_N_per_mm=tension_N_per_mm,
         inflation_pressure_MPa=float(ring_pressure(inflated_stretch)), inflated_radius_mm=inflated_radius,
         inflated_nodes=inflated_nodes, centroid=centroid)
+
+
+def _place_on_design_wrap(positions: np.ndarray, centre: np.ndarray,
+                          pinned: list[tuple[int, int, float]]) -> np.ndarray:
+    """positions turned about centre by phi and shifted by t, (phi, t) such that each pinned (node, component,
+    value) holds value (module text: the pins' tangential components at the design wrap). Least squares: with one
+    x pin (top and bottom the same node) the placement is not unique, and the smallest motion is taken."""
+    def moved(p):
+        rotation = np.array([[np.cos(p[0]), -np.sin(p[0])], [np.sin(p[0]), np.cos(p[0])]])
+        return centre + (positions - centre) @ rotation.T + p[1:]
+
+    def mismatch(p):
+        placed = moved(p)
+        return [placed[node, component] - value for node, component, value in pinned]
+
+    solution = least_squares(mismatch, np.zeros(3), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return moved(solution.x)
 
 
 def inflated_ring(stations: np.ndarray, depth: np.ndarray, centre: np.ndarray, radius: float,
