@@ -32,26 +32,16 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
+from orchestrator.forward import LEG_PARAMETERS
 from orchestrator.geometry_uncertainty import skin_perimeter_mm
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.pipeline import run_identify, run_montecarlo
 from orchestrator.results import MMHG_PER_KPA
+from orchestrator.phantom.truths import random_truth
 from orchestrator.study import load_run, make_phantom_case
 
-PHYSIOLOGICAL_KPA = ((2.0, 9.0), (6.0, 20.0), (50.0, 200.0), (35.0, 140.0))   # C10 fat, muscle; Kv fat, muscle
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 FIRST_TENSION = 0.16   # N/mm
-
-
-def random_truth(seed: int) -> np.ndarray:
-    """Log-uniform in the physiological ranges, each parameter at least 15 % off the fits' start."""
-    rng = np.random.default_rng(seed)
-    start = np.array(TABLE2_CENTRAL_KPA)
-    while True:
-        truth = np.exp([rng.uniform(np.log(low), np.log(high)) for low, high in PHYSIOLOGICAL_KPA])
-        if np.all(np.abs(truth / start - 1.0) > 0.15):
-            return truth
 
 
 def first_level_only(case: Path, target: Path) -> Path:

@@ -15,25 +15,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
+from orchestrator.forward import LEG_PARAMETERS
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.pipeline import run_identify, run_montecarlo
+from orchestrator.phantom.truths import random_truth
 from orchestrator.study import make_phantom_case
 
-PHYSIOLOGICAL_KPA = ((2.0, 9.0), (6.0, 20.0), (50.0, 200.0), (35.0, 140.0))   # C10 fat, muscle; Kv fat, muscle
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 FAST_SEEDS = (1,)
 SLOW_SEEDS = (2, 3, 4)
-
-
-def random_truth(seed: int) -> np.ndarray:
-    """Log-uniform in the physiological ranges, each parameter at least 15 % off the fit's start."""
-    rng = np.random.default_rng(seed)
-    start = np.array(TABLE2_CENTRAL_KPA)
-    while True:
-        truth = np.exp([rng.uniform(np.log(low), np.log(high)) for low, high in PHYSIOLOGICAL_KPA])
-        if np.all(np.abs(truth / start - 1.0) > 0.15):
-            return truth
 
 
 @pytest.fixture(scope="module", params=[pytest.param(s) for s in FAST_SEEDS] +

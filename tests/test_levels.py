@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from orchestrator.decks import deck_key
-from orchestrator.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel
+from orchestrator.forward import LEG_PARAMETERS, LegModel
 from orchestrator.identify import residual_jacobian
 from orchestrator.imaging.case import DisplacementPoints, GarmentLevel, read_case, write_case_folder
 from orchestrator.imaging.errors import CaseError
@@ -26,6 +26,7 @@ from orchestrator.imaging.frame import RigidMotion
 from orchestrator.levels import AtTension, JointDisplacementObjective, LevelsModel
 from orchestrator.meshing import leg_slice_mesh
 from orchestrator.objectives import DisplacementResidualObjective
+from orchestrator.phantom.truths import random_truth
 from orchestrator.results import EngineResults
 from orchestrator.runner import BAD_DECK, OK, Evaluator
 
@@ -377,17 +378,7 @@ def test_a_level_of_another_matrix_size_is_refused(levels_case):
 
 # --- slow: a two-level phantom identified from its images --------------------------------------------
 
-PHYSIOLOGICAL_KPA = ((2.0, 9.0), (6.0, 20.0), (50.0, 200.0), (35.0, 140.0))
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
-
-
-def _random_truth(seed: int) -> np.ndarray:
-    """Log-uniform in the physiological ranges, each parameter at least 15 % off the fit's start."""
-    rng = np.random.default_rng(seed)
-    while True:
-        truth = np.exp([rng.uniform(np.log(low), np.log(high)) for low, high in PHYSIOLOGICAL_KPA])
-        if np.all(np.abs(truth / np.array(TABLE2_CENTRAL_KPA) - 1.0) > 0.15):
-            return truth
 
 
 # seed 2 with the levels whitened together: C10 of fat +2.3 % off against a half width of 2.2 % (its interval starts
@@ -409,7 +400,7 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
     from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
     from orchestrator.study import make_phantom_case
 
-    truth = _random_truth(seed)
+    truth = random_truth(seed)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
                                 labels=None, points_spacing_mm=None, rigid=SCANNER_MOTION,
                                 noise_seeds=(10 + seed, 20 + seed))
