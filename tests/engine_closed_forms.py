@@ -45,6 +45,16 @@ def _fmt(v: float) -> str:
     return text
 
 
+def full_gradient(F2) -> np.ndarray:
+    """The 3x3 deformation gradient of a plane-strain F (2x2, F33 = 1), or a general 3x3 F as given."""
+    F2 = np.asarray(F2, dtype=float)
+    if F2.shape == (3, 3):
+        return F2.copy()
+    F = np.eye(3)
+    F[:2, :2] = F2
+    return F
+
+
 @dataclass(frozen=True)
 class Law:
     """A material law by its deck name and parameters (deck order)."""
@@ -131,12 +141,7 @@ class Law:
 
     # -- full Cauchy tensor for a plane-strain F (2x2, F33 = 1) or a general F (3x3) -------
     def cauchy(self, F2):
-        F = np.eye(3)
-        F2 = np.asarray(F2, dtype=float)
-        if F2.shape == (3, 3):
-            F = F2.copy()
-        else:
-            F[:2, :2] = F2
+        F = full_gradient(F2)
         J = np.linalg.det(F)
         if self.kind == "ELASTIC":
             E, nu = self.params

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from engine_closed_forms import Law, stretch_for_stress_given_other, stretches_for_stress
+from engine_closed_forms import Law, full_gradient, stretch_for_stress_given_other, stretches_for_stress
 from engine_run import run_ccx, run_engine
 from fe_cases import cook_membrane, deck, edge_loads, fmt, unit_square
 from orchestrator.results import EngineResults
@@ -72,12 +72,7 @@ class PolynomialLaw(Law):
         return w + sum((J - 1.0) ** (2 * k + 2) / d for k, d in enumerate(ds) if d > 0)
 
     def cauchy(self, F2):
-        F = np.eye(3)
-        F2 = np.asarray(F2, dtype=float)
-        if F2.shape == (3, 3):
-            F = F2.copy()
-        else:
-            F[:2, :2] = F2
+        F = full_gradient(F2)
         C = F.T @ F
         h = 1e-30
         S = np.zeros((3, 3))
