@@ -4,9 +4,10 @@
   with a catalog effect fitted they are skipped with the reason. The band model fits friction's coefficient mu as
   its only effect, writes *FRICTION only for mu > 0, differences runs (no engine sensitivity through friction), and
   refuses mu both fixed and fitted.
-- Slow: a phantom made with the band and friction (mu = 0.3), then one made with the frictionless band on a calf
-  with a groove that the band bridges, each identified with Laplace's law (the default model) and diagnosed: the
-  hidden effect is ranked first, and its refit brings the misfit to within 1.2 times the noise floor.
+- Slow: a phantom made with the frictionless band on a calf with a groove that the band bridges, then one made with
+  the band and friction (mu = 0.3) on the convex calf, each identified with Laplace's law (the default model) and
+  diagnosed: the hidden effect is ranked first and its refit explains the residual, to within 1.2 times the noise
+  floor for bridging, 1.35 for friction (measured 1.26: see the test).
 """
 
 from __future__ import annotations
@@ -52,10 +53,11 @@ def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
         LegModel(leg_mesh, 0.16, garment="explicit", effects=("friction", "drainage"))
 
 
-def _diagnosed(tmp_path, phantom=None, friction_mu: float = 0.0):
+def _diagnosed(tmp_path, phantom=None, friction_mu: float = 0.0, fit_elements: int | None = None):
     case, _ = make_phantom_case(tmp_path / "case", tmp_path / "truth", theta_kPa=TRUTH_KPA, n_elements=2000,
                                 rigid=SCANNER_MOTION, garment="explicit", friction_mu=friction_mu, phantom=phantom)
-    identified = run_identify(case, tmp_path / "run", data="points", workers=2, progress=False)
+    identified = run_identify(case, tmp_path / "run", data="points", n_elements=fit_elements, workers=2,
+                              progress=False)
     return identified, run_diagnose(tmp_path / "run", workers=2, progress=False)
 
 
@@ -80,3 +82,20 @@ def test_bridging_over_a_groove_is_found_and_its_refit_reaches_the_floor(tmp_pat
     bridged = next(f for f in diagnosis["refits"] if f["effects"] == ["bridging"])
     assert bridged["misfit_over_floor"] <= 1.2 and diagnosis["explained"]
     assert np.all(np.abs(np.array(bridged["theta"])[[1, 3]] / np.array(TRUTH_KPA)[[1, 3]] - 1) < 0.05)
+
+
+@pytest.mark.slow
+def test_garment_friction_is_found_and_its_refit_reaches_the_floor(tmp_path):
+    """The convex calf under the band with Coulomb friction mu = 0.3: the band holds the skin where Laplace's law
+    has no tangential traction."""
+    identified, diagnosis = _diagnosed(tmp_path, friction_mu=0.3)
+    print(_summary(identified, diagnosis))
+    assert diagnosis["misfit"] > 2.0 * diagnosis["noise_floor"]
+    assert diagnosis["ranking"][0]["effect"] == "friction" and diagnosis["ranking"][0]["significant"]
+    refitted = next(f for f in diagnosis["refits"] if f["effects"] == ["friction"])
+    # Not yet the 1.2 x floor of the bridging case: 1.26 measured here (1.30 with a 1,500-element fit), against
+    # 1.33 for the same band model at the truth's constants and mu: what is left is the friction band's own
+    # difference between the truth's mesh of the true shapes and the fit's mesh from the images (issue 13)
+    assert refitted["misfit_over_floor"] <= 1.35 and diagnosis["explained"]
+    assert abs(refitted["theta"][-1] - 0.3) < 0.05                      # the friction coefficient
+    assert np.all(np.abs(np.array(refitted["theta"][:4]) / np.array(TRUTH_KPA) - 1) < 0.10)
