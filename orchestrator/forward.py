@@ -30,13 +30,15 @@ from scipy.spatial import cKDTree
 from .decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
 from .heterogeneity import group_elsets_text, groups_for
 from .imaging.case import GARMENTS
-from .materials import (AVRIL, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS, MaterialError, TissueLaw,
-                        deck_material, default_bounds, default_start, engine_constant, tissue_name, tissue_set)
+from .materials import (AVRIL, AVRIL_START_KPA, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS,
+                        MaterialError, TissueLaw, deck_material, default_bounds, default_start, engine_constant,
+                        tissue_name, tissue_set)
 from .meshing import Mesh
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
-# Avril et al. Table 2, central values (kPa): the phantom's default truth and the fits' usual start.
-TABLE2_CENTRAL_KPA = (4.5, 11.2, 106.0, 69.5)
+# Avril et al. Table 2, central values (kPa), in LEG_PARAMETERS order: the phantom's default truth and the fits' usual
+# start (`materials.AVRIL_START_KPA`).
+TABLE2_CENTRAL_KPA = tuple(AVRIL_START_KPA[name.split("_")[1]][name.split("_")[0]] for name in LEG_PARAMETERS)
 CANDIDATE_ELEMENTS = 8   # nearest element centroids searched for the triangle holding a point
 INSIDE_TOLERANCE = 1e-9
 
