@@ -355,8 +355,8 @@ def garment_band(leg: Mesh, tension_N_per_mm: float = DEFAULT_TENSION_N_PER_MM,
 def _place_on_design_wrap(positions: np.ndarray, centre: np.ndarray,
                           pinned: list[tuple[int, int, float]]) -> np.ndarray:
     """positions turned about centre by phi and shifted by t, (phi, t) such that each pinned (node, component,
-    value) holds value (module text: the pins' tangential components at the design wrap). Least squares: with one
-    x pin (top and bottom the same node) the placement is not unique, and the smallest motion is taken."""
+    value) holds value (module text: the pins' tangential components at the design wrap). Least squares from no
+    motion: with one x pin (top and bottom the same node) the placement is not unique, and a small one is taken."""
     def moved(p):
         rotation = np.array([[np.cos(p[0]), -np.sin(p[0])], [np.sin(p[0]), np.cos(p[0])]])
         return centre + (positions - centre) @ rotation.T + p[1:]
