@@ -320,8 +320,8 @@ class LegModel:
     @property
     def base_start(self) -> list[float]:
         """The laws' start (kPa): case.toml's, else Avril et al. Table 2 (`materials.default_start`)."""
-        return [default_start(name.split("_", 1)[1], self.tissue_laws[name.split("_", 1)[1]], name.split("_", 1)[0])
-                for name in self.law_parameters]
+        constants_and_tissues = (name.split("_", 1) for name in self.law_parameters)
+        return [default_start(tissue, self.tissue_laws[tissue], constant) for constant, tissue in constants_and_tissues]
 
     def start(self, base_kPa: Sequence[float] | None = None) -> list[float]:
         """A start point: the laws' constants (`base_start` when not given), every effect parameter at zero (off)."""

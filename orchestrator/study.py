@@ -36,12 +36,12 @@ from scipy import ndimage
 from .forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
-from .materials import law_notes
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
 from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
 from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, segment_t1
+from .materials import law_notes
 from .meshing import Mesh, mesh_from_labels
 from .geometry_uncertainty import level_file as geometry_level_file
 from .geometry_uncertainty import read_columns as read_geometry_columns
