@@ -46,7 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from .forward import LegModel
-from .objectives import _array_sha
+from .objectives import _array_sha, symmetric_roots
 
 
 class LevelsModel:
@@ -184,11 +184,7 @@ class JointDisplacementObjective:
             rigid[rows, column:column + part.nuisance_dof] = part.rigid_columns
             column += part.nuisance_dof
         covariance += (columns * weights) @ columns.T
-        values, vectors = np.linalg.eigh(covariance)
-        if values[0] <= 0:
-            raise ValueError("the joint covariance of the garment levels is not positive definite")
-        self._whiten = (vectors / np.sqrt(values)) @ vectors.T
-        self._colour = (vectors * np.sqrt(values)) @ vectors.T
+        self._whiten, self._colour = symmetric_roots(covariance, "the joint covariance of the garment levels")
         self._nuisance, _ = np.linalg.qr(self._whiten @ rigid)
         self.geometry_columns, self.geometry_weights = (columns, weights) if len(weights) else (None, None)
         self.fingerprint += f":together:{_array_sha(columns, weights, *(self.between[key] for key in sorted(self.between)))}"

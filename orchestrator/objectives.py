@@ -39,6 +39,15 @@ def leg_rows(nodal: np.ndarray, n_nodes: int) -> np.ndarray:
     return np.asarray(nodal, float)[:n_nodes]
 
 
+def symmetric_roots(covariance: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(C^-1/2, C^1/2), the symmetric roots of a covariance, so that a whitened residual r_i stays attached to
+    measurement i; ValueError naming `what` when C is not positive definite."""
+    values, vectors = np.linalg.eigh(covariance)
+    if values[0] <= 0:
+        raise ValueError(f"{what} is not positive definite")
+    return (vectors / np.sqrt(values)) @ vectors.T, (vectors * np.sqrt(values)) @ vectors.T
+
+
 def _array_sha(*arrays) -> str:
     return text_sha256("".join(text_sha256(np.ascontiguousarray(a).tobytes().hex()) for a in arrays))[:16]
 
@@ -85,11 +94,7 @@ class DisplacementResidualObjective:
             sigma = np.sqrt(np.diagonal(covariance))
             self._whiten, self._colour = np.diag(1.0 / sigma), np.diag(sigma)
         else:
-            values, vectors = np.linalg.eigh(covariance)
-            if values[0] <= 0:
-                raise ValueError("the measurement covariance is not positive definite")
-            self._whiten = (vectors / np.sqrt(values)) @ vectors.T
-            self._colour = (vectors * np.sqrt(values)) @ vectors.T
+            self._whiten, self._colour = symmetric_roots(covariance, "the measurement covariance")
         self.nuisance_dof = 0
         self._nuisance = np.zeros((len(self.measured), 0))
         self.rigid_columns = np.zeros((len(self.measured), 0))   # unwhitened, for a joint fit of garment levels
