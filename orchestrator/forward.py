@@ -32,7 +32,7 @@ from .heterogeneity import group_elsets_text, groups_for
 from .imaging.case import GARMENTS
 from .materials import (AVRIL, AVRIL_START_KPA, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS,
                         MaterialError, TissueLaw, deck_material, default_bounds, default_start, engine_constant,
-                        tissue_name, tissue_set)
+                        sum_only_pairs, tissue_name, tissue_set)
 from .meshing import Mesh
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
@@ -316,6 +316,11 @@ class LegModel:
     @property
     def law_size(self) -> int:
         return sum(len(law.free) for law in self.tissue_laws.values())
+
+    @property
+    def sum_only(self) -> list[tuple[str, str]]:
+        """Pairs of theta's parameters that act only through their sum (`materials.sum_only_pairs`)."""
+        return sum_only_pairs(self.tissue_laws)
 
     @property
     def base_start(self) -> list[float]:

@@ -331,6 +331,8 @@ class NoiseMonteCarloResult:
     wall_time_s: float
     method: str = "noise"
     undetermined: list[str] = field(default_factory=list)   # in a direction the data do not fix: interval = box
+    # pairs that act only through their sum (forward.LegModel.sum_only): the sum's value and interval
+    sums: list[dict] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -351,22 +353,40 @@ def _engine_or_fd_jacobian(evaluator: Evaluator, record: dict, space, x: np.ndar
     return np.column_stack([(np.asarray(rec["outputs"]["residuals"]) - r) / FD_STEP for rec in records])
 
 
-def _free_directions(J: np.ndarray, noise_scale: float, width_x: np.ndarray,
-                     identifiable_half_width: float) -> tuple[np.ndarray, np.ndarray]:
+def _free_directions(J: np.ndarray, noise_scale: float, width_x: np.ndarray, identifiable_half_width: float,
+                     structural: Sequence[np.ndarray] = ()) -> tuple[np.ndarray, np.ndarray]:
     """The directions of x that the data fix, and the parameters that they do not.
 
     A right singular vector v_i of J is free when the 95 % noise spread along it, 2 noise_scale / s_i, is longer
     than the box across in that direction (sum_j |v_ij| width_j, wherever the fit lies in it): the misfit is flat
     to within the noise across the whole box (C10 and C01 of an incompressible tissue in plane strain, which act
     only through their sum), and a Gauss-Newton step along it amplifies the noise by 1 / s_i and sends the draws
-    to the box's corners. A parameter is undetermined when a free direction spreads it over more than twice the
-    identifiable half width (in x: a relative change for the constants). Returns ((p, k) orthonormal fixed
-    directions, (p,) bool undetermined)."""
+    to the box's corners. `structural`: unit directions of x known to leave the model unchanged (`sum_only`),
+    taken out of J first, so that a finite-difference Jacobian's noise along them cannot pass for information. A
+    parameter is undetermined when a free direction spreads it over more than twice the identifiable half width
+    (in x: a relative change for the constants). Returns ((p, k) orthonormal fixed directions, (p,) bool
+    undetermined)."""
+    for direction in structural:
+        J = J - np.outer(J @ direction, direction)
     _, singular, vt = np.linalg.svd(J, full_matrices=False)
     spread = 2.0 * noise_scale / np.maximum(singular, 1e-300)
     free = spread > np.abs(vt) @ width_x
     undetermined = np.any(free[:, None] & (np.abs(vt) * spread[:, None] > 2.0 * identifiable_half_width), axis=0)
     return vt[~free].T, undetermined
+
+
+def _sum_only_directions(evaluator: Evaluator, best: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int]]]:
+    """The model's pairs of parameters that act only through their sum, as unit directions of x at `best` (x = ln
+    theta: d(a + b) = a dx_a + b dx_b = 0 along (b, -a)) and as index pairs."""
+    names = list(getattr(getattr(evaluator.model, "space", None), "names", ()))
+    pairs = [(names.index(a), names.index(b)) for a, b in getattr(evaluator.model, "sum_only", ())
+             if a in names and b in names]
+    directions = []
+    for i, j in pairs:
+        direction = np.zeros(len(best))
+        direction[i], direction[j] = best[j], -best[i]
+        directions.append(direction / np.linalg.norm(direction))
+    return directions, pairs
 
 
 def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int = NOISE_DRAWS,
@@ -384,7 +404,9 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     intervals are the central `confidence` quantiles of the refitted draws; a parameter is identifiable when
     its interval's half width is at most `identifiable_half_width` of its value, and reported as on a bound when
     a fifth of its draws end on the box's edge. Directions of x that the data do not fix (`_free_directions`) are
-    left out of the refits; a parameter they move is `undetermined`: not identifiable, its interval the whole box."""
+    left out of the refits; a parameter they move is `undetermined`: not identifiable, its interval the whole box.
+    Pairs that the model says act only through their sum are among those directions, whatever J says, and their
+    sum's interval is reported (`sums`)."""
     began = time.perf_counter()
     launched0 = evaluator.launched
     space = parameter_space(evaluator)
@@ -401,7 +423,8 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     box_low = np.array(space.lower) if space is not None else np.full(p, -np.inf)
     box_high = np.array(space.upper) if space is not None else np.full(p, np.inf)
     width_x = _to_x(space, box_high) - _to_x(space, box_low) if space is not None else np.full(p, np.inf)
-    basis, undetermined = _free_directions(J, np.sqrt(inflation), width_x, identifiable_half_width)
+    structural, pairs = _sum_only_directions(evaluator, best)
+    basis, undetermined = _free_directions(J, np.sqrt(inflation), width_x, identifiable_half_width, structural)
 
     def refit_step(jacobian: np.ndarray, residuals: np.ndarray) -> np.ndarray:
         """argmin |J dx - residual| over dx in the determined directions, one column per residual column."""
@@ -434,12 +457,19 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     identifiable = np.where(linear, (lower > 0) | (upper < 0), half <= identifiable_half_width) & ~undetermined
     names = list(space.names) if space is not None else [f"theta{j}" for j in range(p)]
     edge = np.mean(np.isclose(samples, box_low) | np.isclose(samples, box_high), axis=0) >= 0.2
+    sums = []
+    for i, j in pairs:   # what the data do fix of a pair that acts only through its sum
+        total = samples[:, i] + samples[:, j]
+        low, high = np.percentile(total, [tail, 100.0 - tail])
+        value = best[i] + best[j]
+        sums.append({"names": [names[i], names[j]], "value": float(value), "lower": float(low), "upper": float(high),
+                     "identifiable": bool((high - low) / (2.0 * value) <= identifiable_half_width)})
     return NoiseMonteCarloResult(names, best.tolist(), draws, failed, inflation, confidence, lower.tolist(),
                                  upper.tolist(), central.tolist(), half.tolist(), identifiable.tolist(),
                                  [nm for nm, ok in zip(names, identifiable) if not ok],
                                  [nm for nm, e in zip(names, edge) if e], samples.tolist(),
                                  evaluator.launched - launched0, time.perf_counter() - began,
-                                 undetermined=[nm for nm, u in zip(names, undetermined) if u])
+                                 undetermined=[nm for nm, u in zip(names, undetermined) if u], sums=sums)
 
 
 @dataclass

@@ -179,6 +179,15 @@ def engine_constant(law: TissueLaw, constant: str, constants_MPa: Mapping[str, f
     return "D1", -1.0 / (kv * kv * KPA_PER_MPA)
 
 
+def sum_only_pairs(tissue_laws: dict[str, TissueLaw]) -> list[tuple[str, str]]:
+    """The parameter pairs (C10_<tissue>, C01_<tissue>) that act only through their sum: both free in the
+    Mooney-Rivlin law of an incompressible tissue (`law_notes`). The displacements cannot separate them, whatever
+    the data; a finite-difference Jacobian (friction) or the u/p element's weak J = 1 leave them a small singular
+    value that is not information."""
+    return [(f"C10_{tissue}", f"C01_{tissue}") for tissue, law in tissue_laws.items()
+            if law.law == "mooney_rivlin" and law.incompressible and {"C10", "C01"} <= set(law.free)]
+
+
 def law_notes(tissue: str, law: TissueLaw) -> list[str]:
     """What the displacements of a slice cannot tell of a tissue's law, said before the fit (the setup lines). In
     plane strain (lambda_3 = 1) an incompressible tissue has I2 = lambda1^2 lambda2^2 + lambda1^2 + lambda2^2 =

@@ -418,7 +418,16 @@ def intervals_summary(result: dict) -> list[str]:
         lines.append(f"{100 * result['confidence']:.0f} % intervals from {result['draws'] - result['failed']} refitted "
                      f"noise draws" + (f", noise variance inflated x{result['inflation']:.2f} (misfit above its floor)"
                                        if result["inflation"] > 1.0 else ""))
+        lines += sum_only_lines(result)
     return lines
+
+
+def sum_only_lines(montecarlo: dict) -> list[str]:
+    """A sentence per pair of parameters that act only through their sum (identify.NoiseMonteCarloResult.sums)."""
+    return [f"{a} and {b} act only through their sum, {total['value']:.4g} in [{total['lower']:.4g}, "
+            f"{total['upper']:.4g}] ({'identifiable' if total['identifiable'] else 'NOT identifiable either'}); each "
+            "alone is not identifiable, its interval the search box." for total in montecarlo.get("sums", [])
+            for a, b in [total["names"]]]
 
 
 def fit_summary(fit: dict, names: Sequence[str]) -> str:

@@ -40,7 +40,7 @@ from .imaging.segment import BONE
 from .imaging.warp import warp_image
 from .measure import FILES as MEASURE_FILES
 from .objectives import leg_rows
-from .pipeline import identified_data
+from .pipeline import identified_data, sum_only_lines
 from .results import MMHG_PER_KPA
 from .runlock import holds_run_folder
 from .study import load_run, read_json
@@ -285,6 +285,7 @@ def _montecarlo_section(identification: dict, montecarlo: dict, truth: dict | No
             alerts.append(f"Not identifiable: {', '.join(poorly)} (95 % interval wider than +-10 % of the value).")
         if montecarlo["on_bound"]:
             alerts.append(f"On a bound of the search box: {', '.join(montecarlo['on_bound'])}.")
+        alerts += sum_only_lines(montecarlo)
         if montecarlo["inflation"] > 1.0:
             alerts.append(f"Noise variance inflated x{montecarlo['inflation']:.2f}: the misfit is above its floor.")
     else:

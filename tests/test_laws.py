@@ -46,7 +46,9 @@ def test_laws_make_their_parameters_and_deck_materials(leg_mesh):
                "muscle": TissueLaw("neo_hooke", incompressible=True)}
     model = LegModel(leg_mesh, 0.16, tissues=tissues, hybrid=True)
     assert model.space.names == ("C10_fat", "C10_muscle", "C01_fat", "Kv_fat")
-    assert model.space.linear == (False,) * 4
+    assert model.space.linear == (False,) * 4 and model.sum_only == []     # the fat compressible: C10, C01 apart
+    incompressible_fat = {"fat": TissueLaw("mooney_rivlin", incompressible=True)}
+    assert LegModel(leg_mesh, 0.16, tissues=incompressible_fat, hybrid=True).sum_only == [("C10_fat", "C01_fat")]
     deck = model.deck([1.4, 0.9, 1.0, 50.0])
     assert _material_block(deck, "FAT") == ("*HYPERELASTIC, POLYNOMIAL, N=2",
                                             pytest.approx([1.4e-3, 1.0e-3, -4e-5, 0.0, 0.0, 1 / 0.05, 0.0]))
@@ -113,6 +115,14 @@ def test_directions_the_data_do_not_fix_leave_their_parameters_undetermined():
     noise = rng.standard_normal(200)
     step = basis @ np.linalg.lstsq(J @ basis, noise, rcond=None)[0]
     assert abs(step[0] * c10 + step[1] * c01) > 0 and abs(step[0] * c01 - step[1] * c10) < 1e-12   # along the sum only
+
+    # differenced with friction, the columns carry the runs' noise (5 % here): J alone now calls the pair fixed, and
+    # the Monte-Carlo would send its draws to the box's corners; the model's word that only the sum acts prevails
+    noisy = J + 0.05 * np.column_stack([rng.standard_normal(200), rng.standard_normal(200), np.zeros(200)])
+    assert not _free_directions(noisy, 1.0, x_high - x_low, 0.10)[1].any()
+    along = np.array([c01, -c10, 0.0]) / np.hypot(c01, c10)
+    basis, undetermined = _free_directions(noisy, 1.0, x_high - x_low, 0.10, structural=[along])
+    assert undetermined.tolist() == [True, True, False] and basis.shape == (3, 2) and np.abs(basis.T @ along).max() < 1e-12
 
     well_posed = np.column_stack([g, h, rng.standard_normal(200)])
     basis, undetermined = _free_directions(well_posed, 1.0, x_high - x_low, 0.10)
