@@ -277,19 +277,22 @@ void contact_tests() {
   // penetrates, one at y = -0.02 is outside.
   // Nodes: slave, a, b, before a, after b, and the previously touched segment o1, o2.
   x << 0.4, 0.06, 0.0, 0.0, 1.0, 0.1, -0.8, 0.05, 1.9, 0.35, -0.05, 0.0, 0.95, 0.1;
-  for (int variant = 0; variant < 5; ++variant) {
+  // Variants 5 and 6: the slipping ones (1 and 3) held sticking, as Newton holds a node that reversed its slip.
+  for (int variant = 0; variant < 7; ++variant) {
     ContactHistory h;
     int n = 10;
-    if (variant > 0) {
+    const bool hold = variant >= 5;
+    const int base = hold ? 2 * variant - 9 : variant;
+    if (base > 0) {
       // a stiff stick slope takes the trial traction out of the cone (slip), a soft one leaves it inside (stick)
-      law = ContactLaw{1e3, 0.3, variant % 2 == 1 ? 1e4 : 10.0};
-      h = variant <= 2 ? ContactHistory{true, 0, 0.35, 2.0} : ContactHistory{false, 0, 0.35, 0.0, 0.02};
+      law = ContactLaw{1e3, 0.3, base % 2 == 1 ? 1e4 : 10.0};
+      h = base <= 2 ? ContactHistory{true, 0, 0.35, 2.0} : ContactHistory{false, 0, 0.35, 0.0, 0.02};
       n = 14;
     }
     const Eigen::VectorXd xe = x.head(n);
     Eigen::VectorXd r;
     Eigen::MatrixXd K;
-    const ContactPoint p = contact_element(xe, law, h, 0, 0.2, r, &K);
+    const ContactPoint p = contact_element(xe, law, h, 0, 0.2, r, &K, hold);
     CHECK(p.touching);
     CHECK(p.gap < 0.0);
     const double step = 1e-7;
@@ -298,16 +301,23 @@ void contact_tests() {
       Eigen::VectorXd xp = xe, xm = xe, rp, rm;
       xp[j] += step;
       xm[j] -= step;
-      contact_element(xp, law, h, 0, 0.2, rp, nullptr);
-      contact_element(xm, law, h, 0, 0.2, rm, nullptr);
+      contact_element(xp, law, h, 0, 0.2, rp, nullptr, hold);
+      contact_element(xm, law, h, 0, 0.2, rm, nullptr, hold);
       worst = std::max(worst, ((rp - rm) / (2 * step) - K.col(j)).cwiseAbs().maxCoeff());
     }
     if (worst > 1e-5 * K.cwiseAbs().maxCoeff()) std::cerr << "contact tangent off by " << worst << " variant " << variant << '\n';
     CHECK(worst <= 1e-5 * K.cwiseAbs().maxCoeff());
-    if (variant > 0) {  // the friction branch taken: slip at mu p, stick below it
-      if (variant % 2 == 1) CHECK(std::abs(std::abs(p.shear) - 0.3 * p.pressure) < 1e-12 * p.pressure);
-      if (variant % 2 == 0) CHECK(std::abs(p.shear) < 0.3 * p.pressure);
+    if (base > 0) {  // the friction branch taken: slip at mu p, stick below it
+      if (base % 2 == 1 && !hold) CHECK(std::abs(std::abs(p.shear) - 0.3 * p.pressure) < 1e-12 * p.pressure);
+      if (base % 2 == 0) CHECK(std::abs(p.shear) < 0.3 * p.pressure && p.slip == 0);
       CHECK(p.shear != 0.0);
+      CHECK((p.slip != 0) == (base % 2 == 1));
+    }
+    if (hold) {  // held: the trial traction, outside the cone, in the direction the law would slip
+      Eigen::VectorXd free_r;
+      const ContactPoint slipping = contact_element(xe, law, h, 0, 0.2, free_r, nullptr);
+      CHECK(std::abs(p.shear) > 0.3 * p.pressure);
+      CHECK(p.slip == slipping.slip && p.shear * slipping.shear > 0.0);
     }
     // Action and reaction: the contact forces sum to zero.
     double sum_x = 0.0, sum_y = 0.0;

@@ -61,6 +61,7 @@ struct ContactPoint {
   bool touching = false;
   int segment = -1;
   double xi = 0, gap = 0, pressure = 0, shear = 0;
+  int slip = 0;  // +1 / -1: slipping, the shear returned onto +mu p_N / -mu p_N; 0: sticking or open
 };
 
 // Nodes of the local contact element, in this order: slave, a, b, the node before a
@@ -70,9 +71,12 @@ struct ContactPoint {
 // the residual r (2 per node).
 constexpr int kContactNodes = 5, kFrictionNodes = 7;
 
+// hold_stick: the shear is the trial traction even outside the cone (ContactPoint::slip still says where the
+// law would slip): Newton's iterates hold a node that chatters between slip directions there (see
+// StaticAnalysis::contact_residual), and a converged state is accepted only if no held node lies outside it.
 template <typename T>
 ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, const ContactHistory& history,
-                              int segment, double weight, T* r) {
+                              int segment, double weight, T* r, bool hold_stick = false) {
   using std::sqrt;
   using V = Eigen::Matrix<T, 2, 1>;
   auto node = [&](int k) { return V(x[2 * k], x[2 * k + 1]); };
@@ -115,10 +119,11 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
     if (!history.touching) slip *= -gap / (history.gap - gap);  // slip since the first touch
     const T trial = history.shear - law.stick_slope * slip;
     const double limit = law.friction * std::real(pressure);
-    if (std::abs(std::real(trial)) <= limit) {
+    if (std::abs(std::real(trial)) > limit) out.slip = std::real(trial) > 0 ? 1 : -1;
+    if (out.slip == 0 || hold_stick) {
       shear = trial;
     } else {
-      shear = (std::real(trial) > 0 ? 1.0 : -1.0) * law.friction * pressure;
+      shear = out.slip * law.friction * pressure;
     }
   }
   out.pressure = std::real(pressure);
@@ -134,8 +139,9 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
   return out;
 }
 
-// Residual and its exact tangent (complex step) for a local contact element.
+// Residual and its exact tangent (complex step) for a local contact element; hold_stick: see contact_residual.
 ContactPoint contact_element(const Eigen::VectorXd& x, const ContactLaw& law, const ContactHistory& history,
-                             int segment, double weight, Eigen::VectorXd& r, Eigen::MatrixXd* K);
+                             int segment, double weight, Eigen::VectorXd& r, Eigen::MatrixXd* K,
+                             bool hold_stick = false);
 
 }  // namespace calfit

@@ -74,6 +74,8 @@ void StaticAnalysis::build_contacts() {
     state.history.assign(state.slave_nodes.size(), ContactHistory{});
     state.trial = state.history;
     state.points.assign(state.slave_nodes.size(), ContactPoint{});
+    state.iterate_slip.assign(state.slave_nodes.size(), 0);
+    state.hold.assign(state.slave_nodes.size(), kFree);
     contacts_.push_back(std::move(state));
   }
 }
@@ -88,6 +90,42 @@ void StaticAnalysis::anchor_contacts() {
   for (ContactState& c : contacts_)
     if (c.law.friction > 0.0) c.history = c.trial;
   residual_ = saved;
+}
+
+void StaticAnalysis::forget_contact_iterates() {
+  for (ContactState& c : contacts_) {
+    std::fill(c.iterate_slip.begin(), c.iterate_slip.end(), 0);
+    std::fill(c.hold.begin(), c.hold.end(), kFree);
+  }
+}
+
+bool StaticAnalysis::hold_chattering_contacts() {
+  bool held = false;
+  for (ContactState& c : contacts_) {
+    for (std::size_t i = 0; i < c.points.size(); ++i) {
+      const int slip = c.points[i].slip;
+      if (slip == 0 || c.hold[i] != kFree) continue;
+      if (slip == -c.iterate_slip[i]) {
+        c.hold[i] = kHeld;
+        held = true;
+      }
+      c.iterate_slip[i] = slip;
+    }
+  }
+  return held;
+}
+
+bool StaticAnalysis::release_slipping_contacts() {
+  bool released = false;
+  for (ContactState& c : contacts_) {
+    for (std::size_t i = 0; i < c.points.size(); ++i) {
+      if (c.hold[i] == kHeld && c.points[i].touching && c.points[i].slip != 0) {
+        c.hold[i] = kReleased;
+        released = true;
+      }
+    }
+  }
+  return released;
 }
 
 void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, std::vector<ContactElement>& elements) {
@@ -150,8 +188,16 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       const std::vector<int> nodes = element_nodes(best);
       Eigen::VectorXd r;
       Eigen::MatrixXd K;
-      const ContactPoint point =
-          contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r, tangent && active ? &K : nullptr);
+      // Coulomb's law is a bang-bang switch for Newton: a slipping node carries +-mu p_N whatever its slip, its
+      // tangent has no tangential stiffness, and where the converged state sticks, Newton can throw the node from
+      // slipping one way to slipping the other and back (the garment band's first touch: the friction forces of
+      // a dozen skin nodes flipped sign at every iteration for 12 iterations). A node that reversed its slip
+      // direction within the increment is held sticking (shear = trial, residual and tangent) while Newton
+      // iterates, and released when the converged state would have it slip (release_slipping_contacts): an
+      // accepted state obeys the same Coulomb law.
+      const bool hold = friction && active && c.hold[i] == kHeld;
+      const ContactPoint point = contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r,
+                                                 tangent && active ? &K : nullptr, hold);
       if (!active || !point.touching) {
         // Open (or the pair inactive): keep the master point the node faces, for its first touch.
         if (friction && point.gap >= 0.0 && point.xi >= -0.5 && point.xi <= 1.5)

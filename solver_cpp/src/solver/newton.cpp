@@ -208,19 +208,37 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     }
     int rises = 0;
     double last_correction = std::numeric_limits<double>::infinity();
+    forget_contact_iterates();
     for (int it = 0;; ++it) {
-      const double relative = ev.norm / std::max(ev.reference, increment_reference);
+      // Friction nodes that chatter between slip directions are held sticking (hold_chattering_contacts): the
+      // residual at u changes with them.
+      if (hold_chattering_contacts()) {
+        ev = evaluate(u, lambda, true);
+        if (!ev.ok) {
+          rec.note = "residual not finite";
+          return false;
+        }
+      }
+      double relative = ev.norm / std::max(ev.reference, increment_reference);
+      auto converged = [&] {
+        return relative <= settings_.residual_tolerance ||
+               (relative <= settings_.floor_tolerance &&
+                last_correction <= settings_.correction_tolerance * std::max(u.cwiseAbs().maxCoeff(), 1e-300)) ||
+               last_correction <= 1e-13 * model_size_;
+      };
+      // A converged state must obey Coulomb's law at the held nodes too; those it would let slip slip from now
+      // on, and Newton iterates on from the residual with them slipping.
+      if (converged() && release_slipping_contacts()) {
+        ev = evaluate(u, lambda, true);
+        relative = ev.norm / std::max(ev.reference, increment_reference);
+        last_correction = std::numeric_limits<double>::infinity();
+      }
       rec.residual_norms.push_back(relative);
-      if (relative <= settings_.residual_tolerance) return true;
-      // Stiff penalties (contact) put a round-off floor under the residual; there the
-      // correction has become negligible while the residual is still small.
-      if (relative <= settings_.floor_tolerance &&
-          last_correction <= settings_.correction_tolerance * std::max(u.cwiseAbs().maxCoeff(), 1e-300))
-        return true;
-      // A state where every force is round-off from the start (all nodes moved rigidly, only
-      // hybrid pressures free) has no force scale at all: there, a correction at the
-      // round-off of the model's size means that nothing is left to solve.
-      if (last_correction <= 1e-13 * model_size_) return true;
+      // Converged: the residual below the tolerance; or, as stiff penalties (contact) put a round-off floor
+      // under the residual, a small residual with a negligible correction; or, in a state where every force is
+      // round-off from the start (all nodes moved rigidly, only hybrid pressures free) and there is no force
+      // scale at all, a correction at the round-off of the model's size: nothing is left to solve.
+      if (converged()) return true;
       if (!std::isfinite(relative) || it >= settings_.max_iterations) {
         rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
         return false;
@@ -269,6 +287,7 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     Eigen::VectorXd target = u;
     apply_prescribed(target, lambda);
     rec.converged = newton(u, lambda, target - u, rec, time == 0.0 && result.cutbacks == 0, factorization_committed);
+    forget_contact_iterates();  // later evaluations (output, sensitivities, the next increment) hold no node
     factorization_committed = rec.converged;
     result.records.push_back(rec);
     // An increment whose prescribed displacements invert an element stops before its first residual.

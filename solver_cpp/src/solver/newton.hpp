@@ -136,7 +136,12 @@ private:
     std::vector<double> master_weight;         // per node: tributary length (for output)
     std::vector<ContactHistory> history, trial;
     std::vector<ContactPoint> points;
+    // Within the Newton iterations of one increment (see hold_chattering_contacts): each slave node's last slip
+    // direction at an iterate (0: none yet), and whether it is held sticking (kHeld) or was released from it.
+    std::vector<int> iterate_slip;
+    std::vector<char> hold;
   };
+  static constexpr char kFree = 0, kHeld = 1, kReleased = 2;
   struct ContactElement {
     std::vector<int> dofs;
     Eigen::MatrixXd K;
@@ -149,6 +154,14 @@ private:
   // With friction: the contact history of the reference state (where each slave node touches or faces the
   // master), so that a node touching within the first increment is anchored like any later one.
   void anchor_contacts();
+  // Coulomb friction within Newton's iterations (see contact_residual). At an iterate (the last state
+  // evaluated): holds sticking the slave nodes that slip opposite to the way they slipped at an earlier iterate
+  // of the increment, true if it held any (the residual must then be evaluated again). At a converged iterate:
+  // releases the held nodes that the law would let slip, true if any (the increment then iterates on).
+  // forget_contact_iterates() clears both at the start and end of an increment's iterations.
+  bool hold_chattering_contacts();
+  bool release_slipping_contacts();
+  void forget_contact_iterates();
   void rebuild_system(const std::vector<ContactElement>& contact);
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
