@@ -182,7 +182,7 @@ def paper_size(args, root: Path) -> None:
 
 
 def versus_ccx(args, root: Path, name: str, write_deck, fe_dir: Path, fe_med: float, timeout: float | None = None,
-               parts: dict[str, int] | None = None) -> None:
+               parts: dict[str, int] | None = None, runs: int | None = None) -> None:
     """CalculiX on the deck that write_deck(folder) writes, --ccx-runs times: its median wall time, the agreement
     of its displacements with calfit-fe's run in fe_dir and the ratio of the medians. A run killed at `timeout`
     seconds (default --timeout) is reported as such, with the ratio it bounds."""
@@ -191,7 +191,7 @@ def versus_ccx(args, root: Path, name: str, write_deck, fe_dir: Path, fe_med: fl
         return
     limit = timeout or args.timeout
     ccx_times = []
-    for k in range(args.ccx_runs):
+    for k in range(runs or args.ccx_runs):
         d = root / f"{name}{k}"
         d.mkdir()
         r = run_ccx(write_deck(d), limit)
@@ -207,7 +207,7 @@ def versus_ccx(args, root: Path, name: str, write_deck, fe_dir: Path, fe_med: fl
             return
         ccx_times.append(r["wall_s"])
     ccx_med = statistics.median(ccx_times)
-    print(f"  ccx 2.20   median wall {ccx_med:8.3f} s over {args.ccx_runs} runs (single thread), same deck")
+    print(f"  ccx 2.20   median wall {ccx_med:8.3f} s over {len(ccx_times)} runs (single thread), same deck")
     agreement(fe_dir, root / f"{name}0", parts)
     print(f"  ratio ccx / calfit-fe = {ccx_med / fe_med:6.1f}x    target >= {TARGET_SPEEDUP:.0f}x")
 
@@ -448,9 +448,9 @@ def nearly_incompressible(args, root: Path) -> None:
 GARMENT_FRICTION = 0.3   # textile on skin: 0.3 to 0.5 in the literature; the second paper gives no value
 TARGET_GARMENT_ITERATIONS = 40   # Newton iterations of the release and contact (step 3) and the settling (step 4)
 TARGET_GARMENT_S = 2.0
-# CalculiX's face-to-face friction cuts the release back to increments of 1e-4 on the 1,000-element leg; a bound
-# keeps the benchmark finite
-GARMENT_CCX_TIMEOUT_S = 600.0
+# CalculiX's face-to-face friction cut the release back below 1e-4 on the 1,000-element leg (exit 201); on the
+# 2,000-element one it took 1,263 s (one run, the machine loaded); a bound keeps the benchmark finite
+GARMENT_CCX_TIMEOUT_S = 1800.0
 
 
 def explicit_garment(args, root: Path) -> None:
@@ -480,7 +480,11 @@ def explicit_garment(args, root: Path) -> None:
             if with_ccx:
                 versus_ccx(args, root, f"{name}-ccx", lambda folder: write_leg_deck(folder, text),
                            root / f"{name}0", statistics.median(times), timeout=GARMENT_CCX_TIMEOUT_S,
-                           parts={"leg": len(leg.nodes), "band": len(band.nodes)})
+                           parts={"leg": len(leg.nodes), "band": len(band.nodes)}, runs=1 if mu > 0 else None)
+                if mu > 0:
+                    print("    not a reference: CalculiX's face-to-face friction depends on its increments (the "
+                          "slider of tests/test_engine_friction.py, closed form 0.2: ccx 0.30 / 0.22 / 0.12 / 0.065 "
+                          "with 1 / 5 / 25 / 100 increments; calfit-fe 0.2 with 1, 3, 12)")
 
 
 SENSITIVITY_PARAMETERS = [

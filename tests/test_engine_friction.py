@@ -19,14 +19,19 @@ overclosure d. With penalty K, stick slope lambda and friction mu, per unit cont
    force is weighted by each slave node's tributary length as the normal one is).
 3. Reference state: a slave node touching the master in the very first increment of the analysis is anchored
    like any other (the contact history of the reference state is recorded before the first increment).
+4. CalculiX (live, when installed): on the same slider its face-to-face penalty friction depends on its increments,
+   which is why the garment with friction is compared with it in benchmarks/engine.py but not held to 0.5 %.
 """
 
 from __future__ import annotations
 
+import re
+import shutil
+
 import numpy as np
 import pytest
 
-from engine_run import run_engine
+from engine_run import CCX, run_ccx, run_engine
 from fe_cases import _grid_triangles, _ids, boundary_faces, fmt
 
 K, STICK, E_BODY = 100.0, 100.0, 1e6
@@ -109,3 +114,25 @@ def test_contact_from_the_reference_state_is_anchored(tmp_path):
     N, F, _ = slider_forces(tmp_path, "closed", mu=0.3, shift=0.002, increments=1, gap=0.0)
     assert N == pytest.approx(K * OVERCLOSURE * LENGTH, rel=2e-3)
     assert F == pytest.approx(STICK * 0.002 * LENGTH, rel=2e-3)
+
+
+@pytest.mark.ccx
+@pytest.mark.skipif(shutil.which(CCX) is None, reason="ccx (CalculiX) not installed")
+def test_calculix_friction_on_the_slider_depends_on_its_increments(tmp_path):
+    """CalculiX 2.20 on the slider sticking (closed form F = 0.2, which calfit-fe gives with 1, 3 and 12
+    increments above): 0.30 with 1 increment, 0.22 with 5, 0.12 with 25, 0.065 with 100, falling as its increments
+    shrink (measured; with mu = 0.1 it even slides at 0.065 < mu N with 25). Its garment with friction differs from
+    calfit-fe's by 4.2 % of max |u| (2,000 elements): not a reference. When a CalculiX release converges here,
+    this test fails: then hold the garment with friction to the 0.5 % of the others."""
+    forces = {}
+    for increments in (5, 100):
+        text, _ = slider_deck(mu=0.3, shift=0.004, increments=increments)
+        text = text.replace("*END STEP", "*NODE PRINT, NSET=SLIDER_TOP\nU\n"
+                            "*NODE PRINT, NSET=SLIDER_TOP, TOTALS=ONLY\nRF\n*END STEP")
+        rc, _, out = run_ccx(text, tmp_path / f"inc{increments}", "slider")
+        assert rc == 0, out[-2000:]
+        totals = [line.split() for line in (tmp_path / f"inc{increments}" / "slider.dat").read_text().splitlines()
+                  if re.match(r"^\s*-?\d", line)]
+        forces[increments] = float(totals[-1][0])
+    normal, tangential = expected_forces(0.3, 0.004)
+    assert forces[5] > 1.05 * tangential and forces[100] < 0.5 * tangential, forces
