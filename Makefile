@@ -44,10 +44,10 @@ test-cpp: setup
 	ctest --test-dir $$(ls -d build/*/ | head -n 1) --output-on-failure
 
 test: test-cpp
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow" -q --durations=15
 
 test-slow: setup
-	$(PY) -m pytest -m slow -q
+	$(PY) -m pytest -m slow -q --durations=15
 
 fuzz: setup
 	$(PY) tests/fuzz_decks.py --inputs 100000 --seed 1

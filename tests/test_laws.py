@@ -142,3 +142,42 @@ def test_effects_follow_laws_of_any_size(leg_mesh):
     assert _material_block(deck, "FAT") == ("*HYPERELASTIC, POLYNOMIAL, N=2",
                                             pytest.approx([1.4e-3, 1e-3, 0.2, 0.0, 0.0, 1 / 0.09, 0.0]))
     assert _material_block(deck, "MUSCLE") == ("*HYPERELASTIC, AVRIL", pytest.approx([11e-3, 0.06, 0.3]))
+
+
+class _SumOnlyEvaluator:
+    """A stand-in for the engine's evaluator: residuals g (C10_fat + C01_fat - 2.4) + h (C10_muscle - 0.9) and a
+    jitter of 1e-4 that changes with theta, as a differenced run under friction has (its Newton tolerance)."""
+
+    def __init__(self, sum_only):
+        from types import SimpleNamespace
+
+        from orchestrator.forward import ParameterSpace
+        space = ParameterSpace(("C10_fat", "C10_muscle", "C01_fat"), (0.1, 0.1, 0.05), (30.0, 30.0, 30.0))
+        self.model = SimpleNamespace(space=space, sum_only=sum_only)
+        self.launched = self.replayed = 0
+        rng = np.random.default_rng(5)
+        self.g, self.h = rng.standard_normal(300), rng.standard_normal(300)
+
+    def evaluate(self, thetas, tag="", label=""):
+        records = []
+        for theta in thetas:
+            fat, muscle = theta[0] + theta[2], theta[1]
+            jitter = 1e-4 * np.random.default_rng(abs(hash(tuple(np.round(theta, 12))))).standard_normal(300)
+            r = self.g * (fat - 2.4) + self.h * (muscle - 0.9) + jitter
+            self.launched += 1
+            records.append({"status": "ok", "cost": float(r @ r), "outputs": {"residuals": r.tolist()}})
+        return records
+
+    def __call__(self, theta):
+        return self.evaluate([theta])[0]
+
+
+def test_levenberg_marquardt_does_not_wander_along_a_sum():
+    """C10 and C01 of an incompressible fat act only through their sum: LM fits the sum and the muscle, and leaves
+    the pair's split where it started (1:1 here) instead of following the differenced Jacobian's jitter along it."""
+    from orchestrator.identify import levenberg_marquardt
+
+    fit = levenberg_marquardt(_SumOnlyEvaluator([("C10_fat", "C01_fat")]), [2.25, 5.6, 2.25])
+    c10, muscle, c01 = fit.theta
+    assert fit.converged and abs(c10 + c01 - 2.4) < 1e-3 and abs(muscle - 0.9) < 1e-3
+    assert abs(c10 / c01 - 1.0) < 0.01, fit.theta                      # without the projection: 1.05
