@@ -2,17 +2,22 @@
 (Table 1: adipose C10 1.4, C01 1.0, C20 -0.04 kPa; gastrocnemius C10 0.9, C01 0.6 kPa; bulk moduli of 1e8, i.e.
 incompressible), on u/p elements (CPE6H), under the explicit garment band with Coulomb friction (mu = 0.3).
 
-The phantom is made on its own 2,000-element mesh of the phantom's true shapes, with scanner motion and points of
-0.05 mm noise (a DIC window's); the fit runs from case.toml alone ([model] and [model.<tissue>] tables) on a mesh
-of 1,000 elements made from the images, from the default start (C10 = C01 = half of Avril et al.'s Table 2 C10,
-2 to 6 times the truth), by Levenberg-Marquardt with differenced runs (no sensitivities through friction), then the
-noise Monte-Carlo. The muscle's C01 is fixed at its Table 1 value, the fat's C20 too.
+The phantom is made on its own 8,000-element mesh of the phantom's true shapes, with scanner motion and points of
+0.05 mm noise (a DIC window's); the fit runs from case.toml alone ([model] and [model.<tissue>] tables) on the mesh
+that a case with friction gets by default (2,000 elements, made from the images), from the default start (C10 =
+C01 = half of Avril et al.'s Table 2 C10, 2 to 6 times the truth), by Levenberg-Marquardt with differenced runs (no
+sensitivities through friction), then the noise Monte-Carlo. The muscle's C01 is fixed at its Table 1 value, the
+fat's C20 too. Measured: the muscle's C10 0.895 (-0.5 %) in [0.882, 0.912]; the fat's sum 2.45 (+2.2 %) in [1.92,
+2.81] (not identifiable: +-18 %); C10 and C01 of the fat undetermined; 0.98 x the noise floor; 7 LM iterations and
+41 runs. The truth's mesh matters: made on 2,000 elements, the phantom is itself 1.16 x the floor away from the
+2,000-element fit at the truth (0.98 x from the 8,000), and the muscle's C10 came out 2.9 % low, outside its +-1.6 %
+interval.
 
 What can be identified: in plane strain an incompressible tissue has I1bar = I2bar, so the fat's C10 and C01 act
 only through their sum. The run must say so before the fit (setup line) and after it (neither identifiable), the
 sum's interval must hold the truth (and the sum be within 10 % where that interval is narrow enough to call it
-identified); the muscle's C10 (its C01 fixed) is identifiable and within 10 %. Every free parameter's truth lies in
-its 95 % interval.
+identified: the Monte-Carlo reports it, `sums`); the muscle's C10 (its C01 fixed) is identifiable and within 10 %.
+Every free parameter's truth lies in its 95 % interval.
 """
 
 from __future__ import annotations
@@ -46,20 +51,14 @@ fixed = { C01 = 0.6 }
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not yet (issue 13): on a 1,000-element fit the muscle's C10 comes out 0.856 "
-                   "(-4.9 %) with an interval [0.801, 0.868], and the fat's C10 + C01 2.83 (+18 %) with [2.77, 30.1], "
-                   "at 1.24 x the floor: the friction band's difference between the truth's mesh of the true shapes "
-                   "and the fit's from the images, which the noise Monte-Carlo does not count (600 elements: 0.873, "
-                   "[0.857, 0.895])")
 def test_second_paper_model_is_identified_back(tmp_path):
     case, _ = make_phantom_case(tmp_path / "case", tmp_path / "truth", theta_kPa=list(TABLE1_KPA.values()),
-                                n_elements=2000, rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)),
-                                points_sigma_mm=0.05, garment="explicit", friction_mu=0.3,
-                                tissues={"fat": FAT, "muscle": MUSCLE}, hybrid=True)
+                                rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)), points_sigma_mm=0.05,
+                                garment="explicit", friction_mu=0.3, tissues={"fat": FAT, "muscle": MUSCLE}, hybrid=True)
     with open(case / "case.toml", "a") as toml:
         toml.write(FIT_TABLES)
     run = tmp_path / "run"
-    result = run_identify(case, run, data="points", n_elements=1000, workers=2, progress=False)
+    result = run_identify(case, run, data="points", workers=2, progress=False)
     names, theta = result["parameters"], np.array(result["best"]["theta"])
     assert names == ["C10_fat", "C10_muscle", "C01_fat"]
     assert any("C10_fat and C01_fat act only through their sum" in line for line in result["setup_lines"])
@@ -68,17 +67,16 @@ def test_second_paper_model_is_identified_back(tmp_path):
     intervals = run_montecarlo(run, draws=30, workers=2, progress=False)
     truth = np.array([TABLE1_KPA[name] for name in names])
     lower, upper = np.array(intervals["lower"]), np.array(intervals["upper"])
-    samples = np.array(intervals["samples"])
-    fat_sum = samples[:, 0] + samples[:, 2]
-    print(f"fit {dict(zip(names, theta.round(3)))}, misfit {result['misfit_over_floor']:.2f} x floor, "
+    fat = intervals["sums"][0]
+    print(f"fit {dict(zip(names, theta.round(4)))}, misfit {result['misfit_over_floor']:.3f} x floor, "
           f"{result['best']['iterations']} iterations, {result['best']['engine_runs']} runs; intervals "
-          f"{np.column_stack([lower, upper]).round(3).tolist()}, undetermined {intervals['undetermined']}; fat C10 + C01 "
-          f"{theta[0] + theta[2]:.3f} in {np.percentile(fat_sum, [2.5, 97.5]).round(3)} (truth 2.4)")
-    assert result["misfit_over_floor"] < 1.5
+          f"{np.column_stack([lower, upper]).round(4).tolist()}, undetermined {intervals['undetermined']}; fat C10 + C01 "
+          f"{fat['value']:.3f} in [{fat['lower']:.3f}, {fat['upper']:.3f}] (truth 2.4)")
+    assert result["misfit_over_floor"] < 1.2
     assert np.all((lower <= truth) & (truth <= upper)), "a truth outside its 95 % interval"
     assert intervals["identifiable"] == [False, True, False]          # the fat's C10 and C01 are not, alone
+    assert intervals["undetermined"] == ["C10_fat", "C01_fat"]         # whatever the differenced Jacobian says
     assert abs(theta[1] / truth[1] - 1) <= 0.10                       # C10 of muscle
-    low, high = np.percentile(fat_sum, [2.5, 97.5])
-    assert low <= 2.4 <= high                                          # the fat's sum, in its interval
-    if (high - low) / (2 * (theta[0] + theta[2])) <= 0.10:            # and within 10 % where it is identified
-        assert abs((theta[0] + theta[2]) / 2.4 - 1) <= 0.10
+    assert fat["names"] == ["C10_fat", "C01_fat"] and fat["lower"] <= 2.4 <= fat["upper"]   # the sum, in its interval
+    if fat["identifiable"]:                                            # and within 10 % where it is identified
+        assert abs(fat["value"] / 2.4 - 1) <= 0.10
