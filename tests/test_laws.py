@@ -181,3 +181,16 @@ def test_levenberg_marquardt_does_not_wander_along_a_sum():
     c10, muscle, c01 = fit.theta
     assert fit.converged and abs(c10 + c01 - 2.4) < 1e-3 and abs(muscle - 0.9) < 1e-3
     assert abs(c10 / c01 - 1.0) < 0.01, fit.theta                      # without the projection: 1.05
+
+
+def test_a_sum_only_pair_is_reported_by_its_sum():
+    from orchestrator.pipeline import intervals_summary
+
+    result = {"method": "noise", "names": ["C10_fat", "C10_muscle", "C01_fat"], "lower": [0.1, 0.88, 0.05],
+              "upper": [30.0, 0.91, 30.0], "central": [1.2, 0.9, 1.2], "relative_half_width": [12.0, 0.016, 12.0],
+              "identifiable": [False, True, False], "on_bound": [], "confidence": 0.95, "draws": 30, "failed": 0,
+              "inflation": 1.0, "sums": [{"names": ["C10_fat", "C01_fat"], "value": 2.45, "lower": 1.92, "upper": 2.81,
+                                          "identifiable": False}]}
+    lines = intervals_summary(result)
+    assert lines[-1] == ("C10_fat and C01_fat act only through their sum, 2.45 in [1.92, 2.81] (NOT identifiable "
+                         "either); each alone is not identifiable, its interval the search box.")
