@@ -73,11 +73,19 @@ void set_blas_threads(int threads) {
 // OpenMP's worker threads spin after every parallel region and OpenBLAS's after every BLAS call: on a machine
 // with few cores each steals the other's core (assembling 800 T6 took 5 times longer than with them asleep).
 // libgomp reads OMP_WAIT_POLICY when it is loaded, before main, so a process started without it restarts
-// itself once with PASSIVE; if the restart fails it carries on as it is.
-void prefer_passive_waiting(char** argv) {
-  if (std::getenv("OMP_WAIT_POLICY") != nullptr) return;
-  if (setenv("OMP_WAIT_POLICY", "PASSIVE", 1) != 0) return;
-  execv("/proc/self/exe", argv);
+// itself once with PASSIVE. OpenBLAS starts its worker threads when it is loaded too, and they spin (sched_yield)
+// for a while even when --threads keeps them idle (a sixth of a 22.5k-DOF run's samples on the second core with
+// --threads 1): with --threads the restart also sets OPENBLAS_NUM_THREADS, so that none is started beyond
+// those allowed. If the restart fails it carries on as it is.
+void restart_with_thread_environment(const Arguments& args, char** argv) {
+  bool changed = false;
+  if (std::getenv("OMP_WAIT_POLICY") == nullptr) changed = setenv("OMP_WAIT_POLICY", "PASSIVE", 1) == 0;
+  if (args.threads > 0) {
+    const std::string threads = std::to_string(args.threads);
+    const char* blas = std::getenv("OPENBLAS_NUM_THREADS");
+    if ((blas == nullptr || threads != blas) && setenv("OPENBLAS_NUM_THREADS", threads.c_str(), 1) == 0) changed = true;
+  }
+  if (changed) execv("/proc/self/exe", argv);
 }
 
 std::string default_outdir(const std::string& deck) {
@@ -90,12 +98,12 @@ std::string default_outdir(const std::string& deck) {
 
 int main(int argc, char** argv) {
   using namespace calfit;
-  prefer_passive_waiting(argv);
   Arguments args;
   if (!parse_arguments(argc, argv, args)) {
     std::cerr << kUsageText;
     return kUsage;
   }
+  restart_with_thread_environment(args, argv);
   if (args.outdir.empty()) args.outdir = default_outdir(args.deck);
   if (args.threads > 0) set_blas_threads(args.threads);
   const auto start = std::chrono::steady_clock::now();

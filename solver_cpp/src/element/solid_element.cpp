@@ -7,6 +7,58 @@ namespace {
 // Voigt positions of the in-plane components 11, 22, 12 in the 6x6 tangent.
 constexpr int kPlane[3] = {0, 1, 3};
 
+// The element kernels for N nodes, in fixed-size matrices: with the dynamic sizes of ElementMatrix, w B^T D B
+// (12 x 3 x 12 for a T6) went through Eigen's general matrix product (packing, blocking), a sixth of the 22.5k-DOF
+// calf's tangent evaluations.
+template <int N>
+void add_tangent_fixed(const ReferencePoint& p, const Eigen::Matrix2d& F, const Mat3& S, const Mat6& D,
+                       ElementMatrix& K) {
+  const Eigen::Matrix<double, N, 2> dN = p.dN_dX;
+  Eigen::Matrix<double, 3, 2 * N> B;  // as strain_operator
+  for (int a = 0; a < N; ++a) {
+    const double g1 = dN(a, 0), g2 = dN(a, 1);
+    for (int i = 0; i < 2; ++i) {
+      B(0, 2 * a + i) = F(i, 0) * g1;
+      B(1, 2 * a + i) = F(i, 1) * g2;
+      B(2, 2 * a + i) = F(i, 0) * g2 + F(i, 1) * g1;
+    }
+  }
+  Eigen::Matrix3d D3;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) D3(r, c) = p.weight * D(kPlane[r], kPlane[c]);
+  const Eigen::Matrix<double, 3, 2 * N> DB = D3 * B;
+  Eigen::Matrix<double, 2 * N, 2 * N> Kp = B.transpose().lazyProduct(DB);  // coefficient-wise, not a GEMM
+  const Eigen::Matrix<double, N, N> G = dN * (p.weight * S.topLeftCorner<2, 2>()) * dN.transpose();
+  for (int b = 0; b < N; ++b)
+    for (int a = 0; a < N; ++a) {  // the geometric stiffness couples like components only
+      Kp(2 * a, 2 * b) += G(a, b);
+      Kp(2 * a + 1, 2 * b + 1) += G(a, b);
+    }
+  K.template topLeftCorner<2 * N, 2 * N>() += Kp;
+}
+
+template <int N>
+bool internal_force_fixed(const std::vector<ReferencePoint>& points, const Material& material, const ElementVector& ue,
+                          const ElementKinematics& kin, ElementVector& f, ElementMatrix* K) {
+  const Eigen::Map<const Eigen::Matrix<double, 2, N>> u(ue.data());  // column a: node a's (u_x, u_y)
+  Eigen::Matrix<double, 2, N> forces = Eigen::Matrix<double, 2, N>::Zero();
+  if (K) K->setZero(2 * N, 2 * N);
+  const auto elastic = [&material](const Mat3& C, Mat3& S, Mat6* D) { material.stress(C, S, D); };
+  Mat3 S;
+  Mat6 D;
+  for (const ReferencePoint& p : points) {
+    const Eigen::Matrix<double, N, 2> dN = p.dN_dX;
+    const Eigen::Matrix2d F = Eigen::Matrix2d::Identity() + u * dN;
+    if (F.determinant() <= 0.0) return false;
+    stress_with_growth(elastic, right_cauchy_green(F, kin.axial_stretch), kin.growth, S, K ? &D : nullptr);
+    const Eigen::Matrix2d P = p.weight * (F * S.topLeftCorner<2, 2>());
+    forces.noalias() += P * dN.transpose();
+    if (K) add_tangent_fixed<N>(p, F, S, D, *K);
+  }
+  f = Eigen::Map<const Eigen::Matrix<double, 2 * N, 1>>(forces.data());
+  return true;
+}
+
 }  // namespace
 
 std::vector<ReferencePoint> reference_points(ElementShape shape, const NodeMatrix& X, double thickness,
@@ -56,19 +108,11 @@ Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> strain_operator
 
 void add_displacement_tangent(const ReferencePoint& p, const Eigen::Matrix2d& F, const Mat3& S, const Mat6& D,
                               ElementMatrix& K) {
-  const int n = static_cast<int>(p.dN_dX.rows());
-  const auto B = strain_operator(F, p.dN_dX);
-  Eigen::Matrix3d D3;
-  for (int r = 0; r < 3; ++r)
-    for (int c = 0; c < 3; ++c) D3(r, c) = D(kPlane[r], kPlane[c]);
-  K.topLeftCorner(2 * n, 2 * n).noalias() += p.weight * B.transpose() * D3 * B;
-  const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 6, 6> G =
-      p.weight * p.dN_dX * S.topLeftCorner<2, 2>() * p.dN_dX.transpose();
-  for (int a = 0; a < n; ++a)
-    for (int b = 0; b < n; ++b) {
-      K(2 * a, 2 * b) += G(a, b);
-      K(2 * a + 1, 2 * b + 1) += G(a, b);
-    }
+  if (p.dN_dX.rows() == 6) {
+    add_tangent_fixed<6>(p, F, S, D, K);
+  } else {
+    add_tangent_fixed<3>(p, F, S, D, K);
+  }
 }
 
 NodeMatrix nodal_displacements(const ElementVector& ue, int n_nodes) {
@@ -89,22 +133,8 @@ double SolidElement::reference_area() const {
 
 bool SolidElement::internal_force(const ElementVector& ue, const ElementKinematics& kin, ElementVector& f,
                                   ElementMatrix* K) const {
-  const int n = node_count(shape_);
-  const NodeMatrix u = nodal_displacements(ue, n);
-  f.setZero(2 * n);
-  if (K) K->setZero(2 * n, 2 * n);
-  const auto elastic = [this](const Mat3& C, Mat3& S, Mat6* D) { material_->stress(C, S, D); };
-  Mat3 S;
-  Mat6 D;
-  for (const ReferencePoint& p : points_) {
-    const Eigen::Matrix2d F = deformation_gradient(u, p.dN_dX);
-    if (F.determinant() <= 0.0) return false;
-    stress_with_growth(elastic, right_cauchy_green(F, kin.axial_stretch), kin.growth, S, K ? &D : nullptr);
-    const Eigen::Matrix2d P = F * S.topLeftCorner<2, 2>();
-    for (int a = 0; a < n; ++a) f.segment<2>(2 * a) += p.weight * P * p.dN_dX.row(a).transpose();
-    if (K) add_displacement_tangent(p, F, S, D, *K);
-  }
-  return true;
+  if (shape_ == ElementShape::T6) return internal_force_fixed<6>(points_, *material_, ue, kin, f, K);
+  return internal_force_fixed<3>(points_, *material_, ue, kin, f, K);
 }
 
 ElementState SolidElement::state(const ElementVector& ue, const ElementKinematics& kin) const {

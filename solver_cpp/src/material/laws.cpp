@@ -8,14 +8,27 @@
 
 namespace calfit {
 
+namespace {
+
+// x^n for n >= 0 by repeated products: exact for the small integer exponents of the polynomial law,
+// and 0^0 = 1 (std::pow would take a logarithm, and no term here needs a negative power).
+double power(double x, int n) {
+  double r = 1.0;
+  for (int k = 0; k < n; ++k) r *= x;
+  return r;
+}
+
+}  // namespace
+
 IsochoricDerivatives ReducedPolynomialIsochoric::evaluate(double I1bar, double) const {
   IsochoricDerivatives w;
   const double x = I1bar - 3.0;
-  for (std::size_t k = 0; k < c_.size(); ++k) {
-    const double i = static_cast<double>(k + 1);
-    w.W += c_[k] * std::pow(x, i);
-    w.W1 += c_[k] * i * std::pow(x, i - 1.0);
-    if (k >= 1) w.W11 += c_[k] * i * (i - 1.0) * std::pow(x, i - 2.0);
+  for (std::size_t k = 0; k < c_.size(); ++k) {  // products, not std::pow: a neo-Hooke point took two logarithms
+    const int n = static_cast<int>(k) + 1;
+    const double i = n;
+    w.W += c_[k] * power(x, n);
+    w.W1 += c_[k] * i * power(x, n - 1);
+    if (k >= 1) w.W11 += c_[k] * i * (i - 1.0) * power(x, n - 2);
   }
   return w;
 }
@@ -41,18 +54,6 @@ std::string MooneyRivlinIsochoric::description() const {
   out << "Mooney-Rivlin (C10=" << c10_ << ", C01=" << c01_ << ")";
   return out.str();
 }
-
-namespace {
-
-// x^n for n >= 0 by repeated products: exact for the small integer exponents of the polynomial law,
-// and 0^0 = 1 (std::pow would take a logarithm, and no term here needs a negative power).
-double power(double x, int n) {
-  double r = 1.0;
-  for (int k = 0; k < n; ++k) r *= x;
-  return r;
-}
-
-}  // namespace
 
 // Term by term, with x = I1bar - 3, y = I2bar - 3:
 //   d/dx c x^i y^j = c i x^(i-1) y^j,  d/dy = c j x^i y^(j-1), and so on; a derivative that lowers an
@@ -117,10 +118,11 @@ VolumetricDerivatives PolynomialVolumetric::evaluate(double J) const {
   const double x = J - 1.0;
   for (std::size_t k = 0; k < d_.size(); ++k) {
     if (d_[k] == 0.0) continue;
-    const double n = 2.0 * static_cast<double>(k + 1);
-    u.U += std::pow(x, n) / d_[k];
-    u.dU += n * std::pow(x, n - 1.0) / d_[k];
-    u.d2U += n * (n - 1.0) * std::pow(x, n - 2.0) / d_[k];
+    const int m = 2 * (static_cast<int>(k) + 1);
+    const double n = m;
+    u.U += power(x, m) / d_[k];
+    u.dU += n * power(x, m - 1) / d_[k];
+    u.d2U += n * (n - 1.0) * power(x, m - 2) / d_[k];
   }
   return u;
 }

@@ -57,27 +57,35 @@ std::string json_number(double v) {
 
 constexpr int kVtkTriangle = 5, kVtkQuadraticTriangle = 22;
 
-std::string base64(const std::string& bytes) {
+// Base64 of the concatenation of two byte ranges (a VTK header and its values) without copying them into one
+// string first, into a buffer sized once: the copy and character by character appends took a third of the time
+// of writing the 22.5k-DOF calf's VTU.
+std::string base64(const unsigned char* head, std::size_t head_size, const unsigned char* tail, std::size_t tail_size) {
   static const char* table = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-  std::string out;
-  out.reserve((bytes.size() + 2) / 3 * 4);
+  const std::size_t size = head_size + tail_size;
+  auto byte = [&](std::size_t k) -> unsigned { return k < head_size ? head[k] : tail[k - head_size]; };
+  std::string out((size + 2) / 3 * 4, '=');
+  char* o = out.data();
   std::size_t i = 0;
-  for (; i + 2 < bytes.size(); i += 3) {
-    const unsigned v = (static_cast<unsigned char>(bytes[i]) << 16) | (static_cast<unsigned char>(bytes[i + 1]) << 8) |
-                       static_cast<unsigned char>(bytes[i + 2]);
-    out += table[(v >> 18) & 63];
-    out += table[(v >> 12) & 63];
-    out += table[(v >> 6) & 63];
-    out += table[v & 63];
+  for (; i + 2 < size; i += 3, o += 4) {
+    unsigned v;
+    if (i >= head_size) {
+      const unsigned char* t = tail + (i - head_size);
+      v = (static_cast<unsigned>(t[0]) << 16) | (static_cast<unsigned>(t[1]) << 8) | t[2];
+    } else {  // a group that touches the header
+      v = (byte(i) << 16) | (byte(i + 1) << 8) | byte(i + 2);
+    }
+    o[0] = table[(v >> 18) & 63];
+    o[1] = table[(v >> 12) & 63];
+    o[2] = table[(v >> 6) & 63];
+    o[3] = table[v & 63];
   }
-  if (i < bytes.size()) {
-    const bool two = i + 1 < bytes.size();
-    const unsigned v = (static_cast<unsigned char>(bytes[i]) << 16) |
-                       (two ? static_cast<unsigned char>(bytes[i + 1]) << 8 : 0u);
-    out += table[(v >> 18) & 63];
-    out += table[(v >> 12) & 63];
-    out += two ? table[(v >> 6) & 63] : '=';
-    out += '=';
+  if (i < size) {  // one or two bytes left: padded with '='
+    const bool two = i + 1 < size;
+    const unsigned v = (byte(i) << 16) | (two ? byte(i + 1) << 8 : 0u);
+    o[0] = table[(v >> 18) & 63];
+    o[1] = table[(v >> 12) & 63];
+    if (two) o[2] = table[(v >> 6) & 63];
   }
   return out;
 }
@@ -102,11 +110,11 @@ std::string xml_attribute(const std::string& text) {
 template <typename T>
 void data_array(std::ostream& out, const char* vtk_type, const char* name, int components, const std::vector<T>& values) {
   const std::uint64_t size = values.size() * sizeof(T);
-  std::string bytes(reinterpret_cast<const char*>(&size), sizeof(size));
-  bytes.append(reinterpret_cast<const char*>(values.data()), size);
   out << "        <DataArray type=\"" << vtk_type << "\"";
   if (name) out << " Name=\"" << xml_attribute(name) << "\"";
-  out << " NumberOfComponents=\"" << components << "\" format=\"binary\">\n" << base64(bytes)
+  out << " NumberOfComponents=\"" << components << "\" format=\"binary\">\n"
+      << base64(reinterpret_cast<const unsigned char*>(&size), sizeof(size),
+                reinterpret_cast<const unsigned char*>(values.data()), size)
       << "\n        </DataArray>\n";
 }
 

@@ -15,13 +15,9 @@ namespace calfit {
 using namespace analysis_support;
 
 void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
-  std::vector<std::vector<int>> dofs = element_dofs_;
   system_contact_dofs_.clear();
-  for (const ContactElement& c : contact) {
-    dofs.push_back(c.dofs);
-    system_contact_dofs_.push_back(c.dofs);
-  }
-  auto rebuilt = std::make_unique<SparseSystem>(dofs, free_, saddle_point_);
+  for (const ContactElement& c : contact) system_contact_dofs_.push_back(c.dofs);
+  auto rebuilt = std::make_unique<SparseSystem>(element_dofs_, free_, saddle_point_, system_contact_dofs_);
   if (system_) rebuilt->inherit_solver_choices(*system_);
   system_ = std::move(rebuilt);
 }

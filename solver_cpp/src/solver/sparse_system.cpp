@@ -4,68 +4,118 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <utility>
+
+#ifdef _OPENMP
+#include <omp.h>
+#endif
 
 namespace calfit {
+namespace {
+
+// CHOLMOD (SuiteSparse 5) runs the copy and zeroing loops of its supernodal factorization on a fixed 4 OpenMP
+// threads, whatever --threads says: on 2 cores the wake-ups and waits cost more than the loops (the 22.5k-DOF calf
+// of benchmarks/engine.py: 49 ms per factorization against 25 ms serial; 0.68 s against 0.53 s at 200k DOF). The
+// parallelism that pays in a factorization is the BLAS's, which --threads sets. While a solve runs, OpenMP regions
+// are made inactive (max-active-levels 0: every region one thread) and restored after, so that the engine's own
+// parallel loops keep their threads. Those loops only copy, so the digits do not depend on it.
+class SerialOpenMpRegions {
+public:
+#ifdef _OPENMP
+  SerialOpenMpRegions() : saved_(omp_get_max_active_levels()) { omp_set_max_active_levels(0); }
+  ~SerialOpenMpRegions() { omp_set_max_active_levels(saved_); }
+
+private:
+  int saved_;
+#endif
+public:
+  SerialOpenMpRegions(const SerialOpenMpRegions&) = delete;
+  SerialOpenMpRegions& operator=(const SerialOpenMpRegions&) = delete;
+};
+
+}  // namespace
 
 SparseSystem::SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free,
-                           bool saddle_point)
-    : equation_(free.size(), -1), element_dofs_(element_dofs), saddle_point_(saddle_point) {
+                           bool saddle_point, const std::vector<std::vector<int>>& appended_dofs)
+    : equation_(free.size(), -1), saddle_point_(saddle_point) {
   int n = 0;
   for (std::size_t d = 0; d < free.size(); ++d)
     if (free[d]) equation_[d] = n++;
-
-  // The pattern, column by column, in one flat array (counted first, then filled; sorted and made unique per
-  // column): the 22.5k-DOF calf has 0.8 million element entries, and a vector per column cost 20 ms of a 0.25 s run.
-  std::vector<int> column_start(static_cast<std::size_t>(n) + 1, 0), free_equations;
-  for (const std::vector<int>& dofs : element_dofs) {
-    int m = 0;
-    for (int d : dofs) m += equation_[d] >= 0;
-    for (int d : dofs)
-      if (equation_[d] >= 0) column_start[static_cast<std::size_t>(equation_[d]) + 1] += m;
-  }
-  for (int c = 0; c < n; ++c) column_start[c + 1] += column_start[c];
-  std::vector<int> entries(static_cast<std::size_t>(column_start[n])), next(column_start.begin(), column_start.end() - 1);
-  for (const std::vector<int>& dofs : element_dofs) {
-    free_equations.clear();
-    for (int d : dofs)
-      if (equation_[d] >= 0) free_equations.push_back(equation_[d]);
-    for (int c : free_equations)
-      for (int r : free_equations) entries[next[c]++] = r;
-  }
-  std::size_t nnz = 0;
-  std::vector<int> column_end(static_cast<std::size_t>(n));
-  for (int c = 0; c < n; ++c) {
-    int* begin = entries.data() + column_start[c];
-    std::sort(begin, entries.data() + column_start[c + 1]);
-    column_end[c] = static_cast<int>(std::unique(begin, entries.data() + column_start[c + 1]) - entries.data());
-    nnz += static_cast<std::size_t>(column_end[c] - column_start[c]);
-  }
-  matrix_.resize(n, n);
-  matrix_.reserve(static_cast<Eigen::Index>(nnz));
-  for (int c = 0; c < n; ++c) {
-    matrix_.startVec(c);
-    for (int p = column_start[c]; p < column_end[c]; ++p) matrix_.insertBack(entries[p], c) = 0.0;
-  }
-  matrix_.finalize();
-
-  const int* outer = matrix_.outerIndexPtr();
-  const int* inner = matrix_.innerIndexPtr();
-  auto entry = [&](int r, int c) {
-    const int* first = inner + outer[c];
-    const int* last = inner + outer[c + 1];
-    return static_cast<int>(std::lower_bound(first, last, r) - inner);
+  const std::size_t n_blocks = element_dofs.size() + appended_dofs.size();
+  auto block = [&](std::size_t b) -> const std::vector<int>& {
+    return b < element_dofs.size() ? element_dofs[b] : appended_dofs[b - element_dofs.size()];
   };
-  positions_.resize(element_dofs.size());
-  for (std::size_t e = 0; e < element_dofs.size(); ++e) {
-    const std::vector<int>& dofs = element_dofs[e];
-    const int m = static_cast<int>(dofs.size());
-    std::vector<int>& pos = positions_[e];
-    pos.assign(static_cast<std::size_t>(m * m), -1);
-    for (int j = 0; j < m; ++j)
-      for (int i = 0; i < m; ++i) {
-        const int r = equation_[dofs[i]], c = equation_[dofs[j]];
-        if (r >= 0 && c >= 0) pos[i + m * j] = entry(r, c);
+
+  // Flat arrays throughout (a vector per column or per element, and a sort and a binary search per entry, took
+  // 23 ms of a 0.23 s run on the 22.5k-DOF calf, more than its assembly). The blocks' equations, -1 prescribed:
+  std::vector<int> block_equations;
+  block_start_.assign(n_blocks + 1, 0);
+  position_start_.assign(n_blocks + 1, 0);
+  for (std::size_t b = 0; b < n_blocks; ++b) {
+    const std::vector<int>& dofs = block(b);
+    for (int d : dofs) block_equations.push_back(equation_[d]);
+    block_start_[b + 1] = static_cast<int>(block_equations.size());
+    position_start_[b + 1] = position_start_[b] + static_cast<std::size_t>(dofs.size() * dofs.size());
+  }
+  // Which blocks each equation belongs to, with its local index there (counted, then filled).
+  std::vector<int> incidence_start(static_cast<std::size_t>(n) + 1, 0);
+  for (int r : block_equations)
+    if (r >= 0) ++incidence_start[static_cast<std::size_t>(r) + 1];
+  for (int c = 0; c < n; ++c) incidence_start[c + 1] += incidence_start[c];
+  std::vector<std::pair<int, int>> incidence(static_cast<std::size_t>(incidence_start[n]));
+  {
+    std::vector<int> next(incidence_start.begin(), incidence_start.end() - 1);
+    for (std::size_t b = 0; b < n_blocks; ++b)
+      for (int k = block_start_[b]; k < block_start_[b + 1]; ++k)
+        if (block_equations[k] >= 0) incidence[next[block_equations[k]]++] = {static_cast<int>(b), k - block_start_[b]};
+  }
+
+  // The rows of each column, unsorted: the equations of the blocks that hold the column's, each once (a marker
+  // per row). The pattern is symmetric, so transposing it (a counting sort) lists every column's rows in
+  // increasing order: compressed-column storage as CHOLMOD and Eigen expect.
+  std::vector<int> rows, column_start(static_cast<std::size_t>(n) + 1, 0), marker(static_cast<std::size_t>(n), -1);
+  rows.reserve(static_cast<std::size_t>(incidence_start[n]) * 8);
+  for (int c = 0; c < n; ++c) {
+    for (int q = incidence_start[c]; q < incidence_start[c + 1]; ++q) {
+      const int b = incidence[q].first;
+      for (int k = block_start_[b]; k < block_start_[b + 1]; ++k) {
+        const int r = block_equations[k];
+        if (r >= 0 && marker[r] != c) {
+          marker[r] = c;
+          rows.push_back(r);
+        }
       }
+    }
+    column_start[c + 1] = static_cast<int>(rows.size());
+  }
+  const std::size_t nnz = rows.size();
+  matrix_.resize(n, n);
+  matrix_.resizeNonZeros(static_cast<Eigen::Index>(nnz));
+  int* outer = matrix_.outerIndexPtr();
+  int* inner = matrix_.innerIndexPtr();
+  std::copy(column_start.begin(), column_start.end(), outer);  // symmetric: the transpose has the same column counts
+  {
+    std::vector<int> next(column_start.begin(), column_start.end() - 1);
+    for (int c = 0; c < n; ++c)
+      for (int p = column_start[c]; p < column_start[c + 1]; ++p) inner[next[rows[p]]++] = c;
+  }
+  std::fill(matrix_.valuePtr(), matrix_.valuePtr() + nnz, 0.0);
+
+  // Each block's m x m entries into the value array (-1 where a dof is prescribed), column by column: the rows of
+  // column c are looked up in a table of where each sits in that column.
+  positions_.assign(position_start_[n_blocks], -1);
+  std::vector<int>& where = marker;
+  for (int c = 0; c < n; ++c) {
+    for (int p = outer[c]; p < outer[c + 1]; ++p) where[inner[p]] = p;
+    for (int q = incidence_start[c]; q < incidence_start[c + 1]; ++q) {
+      const auto [b, j] = incidence[q];
+      const int m = block_start_[b + 1] - block_start_[b];
+      int* pos = positions_.data() + position_start_[b] + static_cast<std::size_t>(m) * j;
+      for (int i = 0; i < m; ++i) {
+        const int r = block_equations[block_start_[b] + i];
+        if (r >= 0) pos[i] = where[r];
+      }
+    }
   }
   // The pattern is symmetric: column r holds row c where column c holds row r, and walking the columns in order
   // meets the entries (c, r) of column r in increasing c, so a cursor per column finds every transpose in O(nnz).
@@ -143,7 +193,10 @@ bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& 
   const int n = size();
   const double target = tolerance * std::max(b.norm(), 1e-300);
   const int m = max_iterations;
-  Eigen::MatrixXd basis(n, m + 1);
+  // The preconditioned directions F^-1 v_k are kept (the columns of `directions`, touched only as GMRES reaches
+  // them): the update x0 + F^-1 V y is then x0 + Z y, without one more back-substitution (3 ms of the 22.5k-DOF
+  // calf's, each), at the price of n doubles per step taken.
+  Eigen::MatrixXd basis(n, m + 1), directions(n, m);
   Eigen::MatrixXd hessenberg = Eigen::MatrixXd::Zero(m + 1, m);
   Eigen::VectorXd g = Eigen::VectorXd::Zero(m + 1), cosines(m), sines(m);
   x = cholesky_->solve(b);
@@ -156,7 +209,8 @@ bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& 
   g(0) = beta;
   int k = 0;
   for (; k < m; ++k) {
-    Eigen::VectorXd w = matrix_ * cholesky_->solve(basis.col(k));
+    directions.col(k) = cholesky_->solve(basis.col(k));
+    Eigen::VectorXd w = matrix_ * directions.col(k);
     for (int i = 0; i <= k; ++i) {  // modified Gram-Schmidt
       hessenberg(i, k) = basis.col(i).dot(w);
       w -= hessenberg(i, k) * basis.col(i);
@@ -184,7 +238,7 @@ bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& 
   if (iterations) *iterations = k;
   const Eigen::VectorXd y =
       hessenberg.topLeftCorner(k, k).triangularView<Eigen::Upper>().solve(g.head(k));
-  x += cholesky_->solve(basis.leftCols(k) * y);
+  x += directions.leftCols(k) * y;
   return x.allFinite() && (b - matrix_ * x).norm() <= target;
 }
 
@@ -217,6 +271,7 @@ bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
 }
 
 bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance) {
+  const SerialOpenMpRegions serial;
   if (size() == 0) {
     x.resize(0);
     return true;
@@ -304,6 +359,7 @@ Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B) const {
 }
 
 bool SparseSystem::solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
+  const SerialOpenMpRegions serial;
   if (factor_ == Factor::None) return false;
   // a Cholesky factor may be of the symmetric part, or of an earlier matrix than the one held (Newton iterations
   // reuse it): GMRES on it solves the matrix held, as a fresh factorization would
@@ -313,6 +369,7 @@ bool SparseSystem::solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) 
 }
 
 bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, double tolerance) {
+  const SerialOpenMpRegions serial;
   if (size() == 0 || B.cols() == 0) {
     X.setZero(size(), B.cols());
     return true;

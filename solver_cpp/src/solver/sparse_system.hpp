@@ -29,8 +29,9 @@ namespace calfit {
 class SparseSystem {
 public:
   // element_dofs[e]: global dofs of element e in its local order; free[dof]: unknown or prescribed.
+  // appended_dofs: further elements (contact), numbered after those of element_dofs in add().
   SparseSystem(const std::vector<std::vector<int>>& element_dofs, const std::vector<char>& free,
-               bool saddle_point = false);
+               bool saddle_point = false, const std::vector<std::vector<int>>& appended_dofs = {});
 
   int size() const { return static_cast<int>(matrix_.rows()); }
   int equation(int dof) const { return equation_[dof]; }  // -1 when prescribed
@@ -74,8 +75,9 @@ public:
 
 private:
   std::vector<int> equation_;
-  std::vector<std::vector<int>> element_dofs_;
-  std::vector<std::vector<int>> positions_;  // per element: m x m entries into valuePtr, -1 when prescribed
+  std::vector<int> block_start_;              // element e's dofs are block_start_[e] .. block_start_[e + 1] - 1
+  std::vector<std::size_t> position_start_;  // element e's m x m entries into valuePtr, -1 when prescribed, ...
+  std::vector<int> positions_;               // ... are positions_[position_start_[e] ..] (column-major)
   std::vector<int> transpose_position_;      // entry (r, c) -> entry (c, r)
   Eigen::SparseMatrix<double> matrix_;
   Eigen::SparseMatrix<double> symmetric_part_;  // (K + K^T) / 2, for unsymmetric K
@@ -111,8 +113,8 @@ private:
 
 template <typename Block>
 void SparseSystem::add(int element, const Block& K, const int* local, int n_local) {
-  const std::vector<int>& pos = positions_[element];
-  const int m = static_cast<int>(element_dofs_[element].size());
+  const int* pos = positions_.data() + position_start_[element];
+  const int m = block_start_[element + 1] - block_start_[element];
   double* values = matrix_.valuePtr();
   if (!local) {
     for (int j = 0; j < m; ++j)
