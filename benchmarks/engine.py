@@ -481,7 +481,7 @@ def explicit_garment(args, root: Path) -> None:
                 versus_ccx(args, root, f"{name}-ccx", lambda folder: write_leg_deck(folder, text),
                            root / f"{name}0", statistics.median(times), timeout=GARMENT_CCX_TIMEOUT_S,
                            parts={"leg": len(leg.nodes), "band": len(band.nodes)}, runs=1 if mu > 0 else None)
-                if mu > 0:
+                if mu > 0 and not args.no_ccx:
                     print("    not a reference: CalculiX's face-to-face friction depends on its increments (the "
                           "slider of tests/test_engine_friction.py, closed form 0.2: ccx 0.30 / 0.22 / 0.12 / 0.065 "
                           "with 1 / 5 / 25 / 100 increments; calfit-fe 0.2 with 1, 3, 12)")
