@@ -7,15 +7,11 @@ namespace {
 // Voigt positions of the in-plane components 11, 22, 12 in the 6x6 tangent.
 constexpr int kPlane[3] = {0, 1, 3};
 
-// The element kernels for N nodes, in fixed-size matrices: with the dynamic sizes of ElementMatrix, w B^T D B
-// (12 x 3 x 12 for a T6) went through Eigen's general matrix product (packing, blocking), a sixth of the 22.5k-DOF
-// calf's tangent evaluations.
-template <int N>
-void add_tangent_fixed(const ReferencePoint& p, const Eigen::Matrix2d& F, const Mat3& S, const Mat6& D,
-                       ElementMatrix& K) {
-  const Eigen::Matrix<double, N, 2> dN = p.dN_dX;
-  Eigen::Matrix<double, 3, 2 * N> B;  // as strain_operator
-  for (int a = 0; a < N; ++a) {
+// B of the Green-Lagrange strain's variation, dE = B du (Voigt 11, 22, 2 x 12): B_a = [F_i1 g1; F_i2 g2; F_i1 g2 +
+// F_i2 g1] for node a's gradient (g1, g2), in a fixed- or a dynamic-size matrix.
+template <typename Gradients, typename Operator>
+void fill_strain_operator(const Eigen::Matrix2d& F, const Gradients& dN, Operator& B) {
+  for (int a = 0; a < static_cast<int>(dN.rows()); ++a) {
     const double g1 = dN(a, 0), g2 = dN(a, 1);
     for (int i = 0; i < 2; ++i) {
       B(0, 2 * a + i) = F(i, 0) * g1;
@@ -23,6 +19,17 @@ void add_tangent_fixed(const ReferencePoint& p, const Eigen::Matrix2d& F, const 
       B(2, 2 * a + i) = F(i, 0) * g2 + F(i, 1) * g1;
     }
   }
+}
+
+// The element kernels for N nodes, in fixed-size matrices: with the dynamic sizes of ElementMatrix, w B^T D B
+// (12 x 3 x 12 for a T6) went through Eigen's general matrix product (packing, blocking), a sixth of the 22.5k-DOF
+// calf's tangent evaluations.
+template <int N>
+void add_tangent_fixed(const ReferencePoint& p, const Eigen::Matrix2d& F, const Mat3& S, const Mat6& D,
+                       ElementMatrix& K) {
+  const Eigen::Matrix<double, N, 2> dN = p.dN_dX;
+  Eigen::Matrix<double, 3, 2 * N> B;
+  fill_strain_operator(F, dN, B);
   Eigen::Matrix3d D3;
   for (int r = 0; r < 3; ++r)
     for (int c = 0; c < 3; ++c) D3(r, c) = p.weight * D(kPlane[r], kPlane[c]);
@@ -93,16 +100,8 @@ Mat3 right_cauchy_green(const Eigen::Matrix2d& F, double axial_stretch) {
 
 Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> strain_operator(const Eigen::Matrix2d& F,
                                                                                  const NodeMatrix& dN_dX) {
-  const int n = static_cast<int>(dN_dX.rows());
-  Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> B(3, 2 * n);
-  for (int a = 0; a < n; ++a) {
-    const double g1 = dN_dX(a, 0), g2 = dN_dX(a, 1);
-    for (int i = 0; i < 2; ++i) {
-      B(0, 2 * a + i) = F(i, 0) * g1;
-      B(1, 2 * a + i) = F(i, 1) * g2;
-      B(2, 2 * a + i) = F(i, 0) * g2 + F(i, 1) * g1;
-    }
-  }
+  Eigen::Matrix<double, 3, Eigen::Dynamic, Eigen::RowMajor, 3, 12> B(3, 2 * static_cast<int>(dN_dX.rows()));
+  fill_strain_operator(F, dN_dX, B);
   return B;
 }
 
