@@ -189,14 +189,11 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
                                        + "; ".join(rec["message"] for rec in retried if rec["status"] != OK))
             J = np.column_stack([(c - r) / (signs[j] * FD_STEP) for j, c in enumerate(columns)])
         structural = _sum_only_directions(evaluator, _from_x(space, x))[0]
-        for direction in structural:
-            J = J - np.outer(J @ direction, direction)
+        J = _without(J, structural)
         gradient, normal = J.T @ r, J.T @ J
         improved = False
         while lam < 1e12:
-            step = np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient)
-            for direction in structural:
-                step -= (step @ direction) * direction
+            step = _without(np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient), structural)
             step *= min(1.0, MAX_LM_STEP / max(np.max(np.abs(step)), 1e-300))   # a trust region in x
             step = _to_x(space, _from_x(space, x + step)) - x                     # projected onto the box
             trial = evaluator(_from_x(space, x + step))
@@ -374,13 +371,18 @@ def _free_directions(J: np.ndarray, noise_scale: float, width_x: np.ndarray, ide
     parameter is undetermined when a free direction spreads it over more than twice the identifiable half width
     (in x: a relative change for the constants). Returns ((p, k) orthonormal fixed directions, (p,) bool
     undetermined)."""
-    for direction in structural:
-        J = J - np.outer(J @ direction, direction)
-    _, singular, vt = np.linalg.svd(J, full_matrices=False)
+    _, singular, vt = np.linalg.svd(_without(J, structural), full_matrices=False)
     spread = 2.0 * noise_scale / np.maximum(singular, 1e-300)
     free = spread > np.abs(vt) @ width_x
     undetermined = np.any(free[:, None] & (np.abs(vt) * spread[:, None] > 2.0 * identifiable_half_width), axis=0)
     return vt[~free].T, undetermined
+
+
+def _without(a: np.ndarray, directions: Sequence[np.ndarray]) -> np.ndarray:
+    """a (a Jacobian, rows over x, or a step in x) without its parts along orthonormal directions of x."""
+    for direction in directions:
+        a = a - np.multiply.outer(a @ direction, direction)
+    return a
 
 
 def _sum_only_directions(evaluator: Evaluator, best: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int]]]:

@@ -185,14 +185,19 @@ def sum_only_pairs(tissue_laws: dict[str, TissueLaw]) -> list[tuple[str, str]]:
     the data; a finite-difference Jacobian (friction) or the u/p element's weak J = 1 leave them a small singular
     value that is not information."""
     return [(f"C10_{tissue}", f"C01_{tissue}") for tissue, law in tissue_laws.items()
-            if law.law == "mooney_rivlin" and law.incompressible and {"C10", "C01"} <= set(law.free)]
+            if _mooney_rivlin_pair_free(law) and law.incompressible]
+
+
+def _mooney_rivlin_pair_free(law: TissueLaw) -> bool:
+    """A Mooney-Rivlin law whose C10 and C01 are both fitted."""
+    return law.law == "mooney_rivlin" and {"C10", "C01"} <= set(law.free)
 
 
 def law_notes(tissue: str, law: TissueLaw) -> list[str]:
     """What the displacements of a slice cannot tell of a tissue's law, said before the fit (the setup lines). In
     plane strain (lambda_3 = 1) an incompressible tissue has I2 = lambda1^2 lambda2^2 + lambda1^2 + lambda2^2 =
     1 + lambda1^2 + lambda2^2 = I1, so C10 and C01 act only through their sum (and nearly so when D1 is small)."""
-    if law.law != "mooney_rivlin" or not {"C10", "C01"} <= set(law.free):
+    if not _mooney_rivlin_pair_free(law):
         return []
     how = "only" if law.incompressible else "almost only"
     return [f"{tissue}: in plane strain an {'' if law.incompressible else 'almost '}incompressible tissue has "
