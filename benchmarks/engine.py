@@ -67,7 +67,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from engine_run import parse_ccx_dat  # noqa: E402
+from engine_run import node_to_surface, parse_ccx_dat  # noqa: E402
 from leg_decks import garment_text, nonuniform_follower_text  # noqa: E402
 from orchestrator.engine import find_engine  # noqa: E402
 from orchestrator.meshing import (  # noqa: E402
@@ -203,13 +203,23 @@ def versus_ccx(args, root: Path, name: str, write_deck, fe_dir: Path, fe_med: fl
             print(f"  ccx run {k}: " + (f"not finished within {limit:.0f} s: ratio ccx / calfit-fe > "
                                         f"{limit / fe_med:.0f}x" if killed else
                                         f"exit {r['exit']} after {r['wall_s']:.0f} s"
-                                        + (f" ({errors[0]})" if errors else "")))
+                                        + (f" ({errors[0]})" if errors else "")) + ccx_reached(d / "leg.sta"))
             return
         ccx_times.append(r["wall_s"])
     ccx_med = statistics.median(ccx_times)
     print(f"  ccx 2.20   median wall {ccx_med:8.3f} s over {len(ccx_times)} runs (single thread), same deck")
     agreement(fe_dir, root / f"{name}0", parts)
     print(f"  ratio ccx / calfit-fe = {ccx_med / fe_med:6.1f}x    target >= {TARGET_SPEEDUP:.0f}x")
+
+
+def ccx_reached(status: Path) -> str:
+    """Where a CalculiX run got to, from the last line of its .sta file (step, increment, attempt, iterations,
+    total time, step time, increment size)."""
+    rows = [line.split() for line in status.read_text().splitlines()[2:]] if status.is_file() else []
+    if not rows or len(rows[-1]) < 7:
+        return ""
+    step, _, _, _, _, step_time, increment = rows[-1][:7]
+    return f"; its last increment: step {step}, step time {float(step_time):.4g}, size {float(increment):.2e}"
 
 
 def _paper_deck(folder: Path, mesh) -> Path:
@@ -485,6 +495,11 @@ def explicit_garment(args, root: Path) -> None:
                     print("    not a reference: CalculiX's face-to-face friction depends on its increments (the "
                           "slider of tests/test_engine_friction.py, closed form 0.2: ccx 0.30 / 0.22 / 0.12 / 0.065 "
                           "with 1 / 5 / 25 / 100 increments; calfit-fe 0.2 with 1, 3, 12)")
+                    print("  CalculiX's node-to-surface contact, whose friction gives the slider's closed form "
+                          "(tests/test_engine_friction.py), on the same deck:")
+                    versus_ccx(args, root, f"{name}-ccx-n2s", lambda folder: write_leg_deck(folder, node_to_surface(text)),
+                               root / f"{name}0", statistics.median(times), timeout=GARMENT_CCX_TIMEOUT_S,
+                               parts={"leg": len(leg.nodes), "band": len(band.nodes)}, runs=1)
 
 
 SENSITIVITY_PARAMETERS = [

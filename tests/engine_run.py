@@ -10,6 +10,7 @@ printed time), which is how the CalculiX cross-checks read CalculiX.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -108,6 +109,22 @@ def parse_ccx_dat(path: Path) -> dict[int, np.ndarray]:
     if not blocks:
         raise RuntimeError(f"no displacement block in {path}")
     return blocks[-1]
+
+
+NODE_TO_SURFACE_SIGMA_INF = 1e-8  # MPa
+
+
+def node_to_surface(deck_text: str) -> str:
+    """The deck with CalculiX's node-to-surface penalty contact instead of its face-to-face one. CalculiX's LINEAR
+    law for it takes K, sigma_inf, c0: it rounds the kink at zero clearance over sigma_inf pi / K and pulls open
+    pairs with sigma_inf, so a tiny sigma_inf (1e-8 MPa) leaves the penalty pressure K d; calfit-fe reads the two
+    and ignores them (no adhesion)."""
+    deck_text = re.sub(r"TYPE=SURFACE TO SURFACE", "TYPE=NODE TO SURFACE", deck_text, flags=re.I)
+    deck_text, count = re.subn(r"(\*SURFACE BEHAVIOR,\s*PRESSURE-OVERCLOSURE=LINEAR\s*\n)([^,\n]+)\n",
+                               rf"\g<1>\g<2>, {NODE_TO_SURFACE_SIGMA_INF:g}, 1e-3\n", deck_text, flags=re.I)
+    if count == 0:
+        raise ValueError("no *SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR with K alone in the deck")
+    return deck_text
 
 
 def run_ccx(deck_text: str, workdir: Path, name: str = "ccxjob", timeout: float = CCX_TIMEOUT_S, threads: int = 1):
