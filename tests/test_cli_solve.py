@@ -47,8 +47,16 @@ def test_runner_raises_deck_rejected_with_engine_message(tmp_path):
 
 
 def test_runner_timeout_stops_the_engine(leg_deck, tmp_path):
+    # The leg deck's pressure in a million increments: minutes of work, so that the engine is still running when the
+    # watchdog fires whatever the load of the machine (the deck itself converges in some 10 ms, which a 1 ms timeout
+    # on a busy machine could miss: the watchdog's thread woke after the engine had finished).
+    text = leg_deck.read_text().replace("*STEP, NLGEOM, INC=100\n*STATIC\n1, 1, 0.0001, 1\n",
+                                        "*STEP, NLGEOM, INC=1000000\n*STATIC\n1e-6, 1, 1e-6, 1e-6\n")
+    assert "INC=1000000" in text
+    deck = leg_deck.with_name("slow.inp")   # beside the mesh that the deck includes
+    deck.write_text(text)
     with pytest.raises(EngineFailed, match="timeout"):
-        run_engine(leg_deck, tmp_path / "out", timeout_s=1e-3)
+        run_engine(deck, tmp_path / "out", timeout_s=0.5)
 
 
 def test_calfit_solve_json_prints_one_object(leg_deck, tmp_path, capsys):
