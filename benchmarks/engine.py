@@ -27,7 +27,8 @@
    templates/leg_garment.inp.j2: inflate, let go, contact + release, settle), frictionless and with friction: on
    --garment-elements T6 elements (1,000: 5k DOF) median wall time and Newton iterations per step (targets: at
    most 40 for the release, contact and settling, under 2 s); on --garment-ccx-elements (2,000) the same beside
-   CalculiX, with their ratio and agreement (leg and band apart too).
+   CalculiX, with their ratio and agreement (leg and band apart too); with friction CalculiX's face-to-face contact
+   and its node-to-surface one (whose friction gives the slider's closed form: solver_cpp/README.md, Contact).
 4. Parameter sensitivities on the paper-size slice under a Laplace-law garment (uniform
    tension, a TYPE=FOURIER profile with no terms): *SENSITIVITY for 10 parameters (C10
    and D1 of fat and muscle, the garment TENSION, profile coefficients A1, B1, A2, B2,
