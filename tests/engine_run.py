@@ -116,9 +116,9 @@ NODE_TO_SURFACE_SIGMA_INF = 1e-8  # MPa
 
 def node_to_surface(deck_text: str) -> str:
     """The deck with CalculiX's node-to-surface penalty contact instead of its face-to-face one. CalculiX's LINEAR
-    law for it takes K, sigma_inf, c0: it rounds the kink at zero clearance over sigma_inf pi / K and pulls open
-    pairs with sigma_inf, so a tiny sigma_inf (1e-8 MPa) leaves the penalty pressure K d; calfit-fe reads the two
-    and ignores them (no adhesion)."""
+    law for it takes K, sigma_inf, c0 (here 1e-3 mm): it rounds the kink at zero clearance over sigma_inf pi / K
+    and pulls open pairs with sigma_inf, so a tiny sigma_inf (1e-8 MPa) leaves the penalty pressure K d; calfit-fe
+    reads the two and ignores them (no adhesion)."""
     deck_text = re.sub(r"TYPE=SURFACE TO SURFACE", "TYPE=NODE TO SURFACE", deck_text, flags=re.I)
     deck_text, count = re.subn(r"(\*SURFACE BEHAVIOR,\s*PRESSURE-OVERCLOSURE=LINEAR\s*\n)([^,\n]+)\n",
                                rf"\g<1>\g<2>, {NODE_TO_SURFACE_SIGMA_INF:g}, 1e-3\n", deck_text, flags=re.I)

@@ -118,6 +118,16 @@ def test_contact_from_the_reference_state_is_anchored(tmp_path):
     assert F == pytest.approx(STICK * 0.002 * LENGTH, rel=2e-3)
 
 
+def calculix_slider_forces(deck: str, folder) -> tuple[float, float]:
+    """(N, F) of CalculiX on the slider's deck, from the total reaction at the slider's top that it prints."""
+    deck = deck.replace("*END STEP", "*NODE PRINT, NSET=SLIDER_TOP\nU\n"
+                        "*NODE PRINT, NSET=SLIDER_TOP, TOTALS=ONLY\nRF\n*END STEP")
+    rc, _, out = run_ccx(deck, folder, "slider")
+    assert rc == 0, out[-2000:]
+    totals = [line.split() for line in (folder / "slider.dat").read_text().splitlines() if re.match(r"^\s*-?\d", line)]
+    return -float(totals[-1][1]), float(totals[-1][0])
+
+
 @pytest.mark.ccx
 @pytest.mark.skipif(shutil.which(CCX) is None, reason="ccx (CalculiX) not installed")
 def test_calculix_friction_on_the_slider_depends_on_its_increments(tmp_path):
@@ -129,13 +139,7 @@ def test_calculix_friction_on_the_slider_depends_on_its_increments(tmp_path):
     forces = {}
     for increments in (5, 100):
         text, _ = slider_deck(mu=0.3, shift=0.004, increments=increments)
-        text = text.replace("*END STEP", "*NODE PRINT, NSET=SLIDER_TOP\nU\n"
-                            "*NODE PRINT, NSET=SLIDER_TOP, TOTALS=ONLY\nRF\n*END STEP")
-        rc, _, out = run_ccx(text, tmp_path / f"inc{increments}", "slider")
-        assert rc == 0, out[-2000:]
-        totals = [line.split() for line in (tmp_path / f"inc{increments}" / "slider.dat").read_text().splitlines()
-                  if re.match(r"^\s*-?\d", line)]
-        forces[increments] = float(totals[-1][0])
+        forces[increments] = calculix_slider_forces(text, tmp_path / f"inc{increments}")[1]
     normal, tangential = expected_forces(0.3, 0.004)
     assert forces[5] > 1.05 * tangential and forces[100] < 0.5 * tangential, forces
 
@@ -154,13 +158,7 @@ def test_calculix_node_to_surface_friction_gives_the_same_forces(tmp_path, mu):
     fe = run_engine(text, tmp_path / "fe")
     assert fe.returncode == 0, fe.stderr
     reaction = np.asarray(fe.vtu(1).point_data["reaction"])[top, :2].sum(axis=0)
-    ccx_text = text.replace("*END STEP", "*NODE PRINT, NSET=SLIDER_TOP\nU\n"
-                            "*NODE PRINT, NSET=SLIDER_TOP, TOTALS=ONLY\nRF\n*END STEP")
-    rc, _, out = run_ccx(ccx_text, tmp_path / "ccx", "slider")
-    assert rc == 0, out[-2000:]
-    totals = [line.split() for line in (tmp_path / "ccx" / "slider.dat").read_text().splitlines()
-              if re.match(r"^\s*-?\d", line)]
-    ccx_tangential, ccx_normal = float(totals[-1][0]), -float(totals[-1][1])
+    ccx_normal, ccx_tangential = calculix_slider_forces(text, tmp_path / "ccx")
     normal, tangential = expected_forces(mu, 0.004)
     assert ccx_normal == pytest.approx(normal, rel=2e-4) and ccx_tangential == pytest.approx(tangential, rel=1e-3)
     assert -reaction[1] == pytest.approx(ccx_normal, rel=2e-4)
