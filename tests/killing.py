@@ -1,12 +1,14 @@
 """Kill a calfit command part-way and count its engine launches: the helpers of the resume tests (issue 17).
 
 A command is killed with SIGKILL (no handler runs, as when a machine loses power) once its run folder's log
-holds a given number of evaluations; a wrapper around calfit-fe counts the engine launches, so that a test can
+holds a given number of evaluations, together with every process it started (its engines and workers: a machine
+that loses power loses them too; an engine left running would note its launch after the count was read); a wrapper around calfit-fe counts the engine launches, so that a test can
 tell the evaluations read back from the log from those run again."""
 
 from __future__ import annotations
 
 import json
+import os
 import signal
 import stat
 import subprocess
@@ -38,12 +40,13 @@ def log_lines(run: Path) -> list[dict]:
 
 def kill_after(command, environment, run: Path, evaluations: int, *, deadline_s: float = 300.0) -> None:
     """Start the command and SIGKILL it once the run's log holds `evaluations` lines."""
-    process = subprocess.Popen(command, env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    process = subprocess.Popen(command, env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                               start_new_session=True)
     try:
         deadline = time.monotonic() + deadline_s
         while len(log_lines(run)) < evaluations and process.poll() is None and time.monotonic() < deadline:
             time.sleep(0.01)
         assert process.poll() is None, "the command finished before it could be interrupted"
-        process.send_signal(signal.SIGKILL)
+        os.killpg(process.pid, signal.SIGKILL)
     finally:
         process.wait(timeout=60)

@@ -170,7 +170,9 @@ def test_identify_notice_and_quiet(identified, capsys):
     assert f"identification written to {run}/identification.json" in loud.err
     assert main(arguments + ["--quiet"]) == 0
     quiet = capsys.readouterr()
-    assert quiet.err == "" and quiet.out == loud.out and "levenberg-marquardt" in quiet.out
+    # the same summary, but for the wall time each replay took (0.0 s or 0.1 s on a busy machine)
+    same = [re.sub(r"\d+\.\d s\b", "<t> s", text) for text in (quiet.out, loud.out)]
+    assert quiet.err == "" and same[0] == same[1] and "levenberg-marquardt" in quiet.out
 
 
 def test_montecarlo_progress_and_quiet(identified, capsys, plain_environment):
