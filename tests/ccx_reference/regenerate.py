@@ -11,7 +11,8 @@ where CalculiX runs ARRUDA-BOYCE with mu = 2 C10, lambda_m = 1e4, D = 1/Kv (same
 up to terms of order 1/lambda_m^2). The leg-like slice deck comes from
 orchestrator.meshing.leg_slice_deck (two tissues, clamped bones, follower pressure on the
 skin; Table 2 values of Avril et al.); the same slice under a pressure varying around the
-leg, and under the explicit garment band (penalty contact, frictionless), come from tests/leg_decks.py.
+leg, and under the explicit garment band (penalty contact, frictionless, and with friction through CalculiX's
+node-to-surface contact), come from tests/leg_decks.py.
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ SYM = [("INNER", 1, 2), ("XSYM", 1, 1), ("YSYM", 2, 2)]
 # one sector, 3.4 % of the leg's own max |u|), with 2,000 by 0.31 % (1.2 %): the two contact discretizations
 # (node-to-segment on straight sub-segments here, CalculiX's face-to-face on quadratic faces) converge together.
 GARMENT_ELEMENTS = 2000
+# With friction, the release converged in its increments (tests/leg_decks.py garment_friction_text says by how much):
+# calfit-fe takes it in 50 increments where CalculiX took 200, which keeps the fast test fast.
+GARMENT_FRICTION_ENGINE_RELEASE = (0.02, 1.0, 1e-5, 0.02)
 
 
 @dataclass
@@ -91,6 +95,28 @@ def _leg_garment(name, n_elements):
                    "(frictionless penalty contact; inflate, let go, release, settle)", text, text, {"kind": "leg"})
 
 
+def _leg_garment_friction(name, n_elements):
+    from leg_decks import GARMENT_FRICTION, GARMENT_FRICTION_RELEASE, garment_friction_text
+    from orchestrator.meshing import garment_band, leg_slice_mesh
+
+    leg = leg_slice_mesh(n_elements, order=2)
+    text = garment_friction_text(leg, garment_band(leg))
+    return CcxCase(name, f"leg-like slice, {n_elements} elements order 2, under the explicit garment band "
+                   f"(node-to-surface penalty contact, Coulomb friction mu = {GARMENT_FRICTION}, the release in "
+                   f"increments of {GARMENT_FRICTION_RELEASE[0]}; inflate, let go, release, settle)", text, text,
+                   {"kind": "leg", "engine_release": GARMENT_FRICTION_ENGINE_RELEASE})
+
+
+def engine_release(deck_text: str, release_static: tuple[float, ...]) -> str:
+    """The deck with the release step (the one that adds the contact pair) in increments of release_static
+    (initial, period, min, max)."""
+    head, sep, tail = deck_text.partition("*MODEL CHANGE, TYPE=CONTACT PAIR, ADD")
+    static_line = head.rstrip("\n").rsplit("\n", 1)[-1]
+    assert sep and head.rstrip("\n").rsplit("\n", 2)[-2] == "*STATIC", "no *STATIC right before the contact's ADD"
+    line = ", ".join(f"{v:g}" for v in release_static)
+    return head.rstrip("\n")[: -len(static_line)] + line + "\n" + sep + tail
+
+
 def cases() -> dict[str, CcxCase]:
     """Every reference case by name (decks are regenerated deterministically)."""
     out = [
@@ -111,6 +137,7 @@ def cases() -> dict[str, CcxCase]:
         out.append(_leg("leg_slice_cpe3", 1200, 1))
         out.append(_leg_follower("leg_follower_cpe6", 600, 6))
         out.append(_leg_garment("leg_garment_cpe6", GARMENT_ELEMENTS))
+        out.append(_leg_garment_friction("leg_garment_friction_cpe6", GARMENT_ELEMENTS))
     except ImportError:
         pass
     return {c.name: c for c in out}
