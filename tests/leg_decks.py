@@ -68,4 +68,3 @@ def garment_friction_text(leg, band, release_static=GARMENT_FRICTION_RELEASE) ->
     """garment_text with friction GARMENT_FRICTION, CalculiX's node-to-surface contact and the release in
     increments of release_static (initial, period, min, max)."""
     return node_to_surface(garment_text(leg, band, GARMENT_FRICTION, release_static=release_static, max_increments=400))
-
