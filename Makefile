@@ -61,7 +61,7 @@ sanitize: setup
 	  --engine $(SANITIZE_BUILD)/solver_cpp/calfit-fe --inputs 3000 --seed 1 --timeout 120
 
 bench: setup
-	$(PY) -m pip install --quiet felupe
+	$(PY) -m pip install --quiet felupe pyvale
 	for b in benchmarks/*.py; do $(PY) $$b || exit 1; done
 
 clean:

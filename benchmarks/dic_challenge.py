@@ -1,0 +1,339 @@
+"""calfit's DIC windows on the DIC Challenge 2.0 "Star" images: spatial resolution, noise and their product.
+Prints figures and saves a figure, asserts nothing.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/dic_challenge.py [--windows 16 32 64] [--step 4] [--images DIR]
+                                                             [--out benchmarks/figures/dic_challenge.png]
+
+The images. Reu et al., "DIC Challenge 2.0: Developing Images and Guidelines for Evaluating Accuracy and Resolution
+of 2D Analyses", Experimental Mechanics 62 (2022), made speckle images deformed by a vertical displacement that is a
+sinusoid across the rows whose period grows along the columns (a "star"), with image noise. pyvale (a benchmark
+dependency: `pip install pyvale`, which `make bench` does) ships one pair in its package data,
+`pyvale/data/dic/challenge/DIC_Challenge_Star_Noise_{Ref,Def}.tiff` (4000 x 501 pixels, 8 bit; taken here for the
+Challenge's Star 5); --images reads the same two files from another folder (e.g. pyvale's wheel unzipped).
+The commanded field, read off the images with calfit's own windows (a cosine fitted down 8 columns from x = 600 to
+3900 px: period 9.8 + 0.0726 x, crest at row 250.0 +- 0.3; the horizontal displacement is noise), is
+
+    v(x, y) = 0.5 cos(2 pi (y - 250) / p(x)),   p(x) = 10 + 0.0725 x   (px; x the column, y the row from the top)
+
+so that along the centre row v sits on its crest, 0.5 px, at every x while the period grows from 10 to 300 px.
+A window centred there measures the crest averaged over its height: measured / commanded along that row, against
+the period, is the window's transfer function. The Challenge's metrics, as computed here (the paper's own text was
+not at hand when this was written; these follow the descriptions of it that were):
+- spatial resolution l10: the period at which the measured amplitude is attenuated by 10 %;
+- noise n: the standard deviation of the measured displacement (the Challenge's submissions report it on a separate
+  image with noise and no motion, which pyvale does not ship; here: the scatter of the measured displacement about
+  what the windows should see of the commanded field where the period is long, p >= 200 px);
+- the Metrological Efficiency Indicator MEI = n x l10 (px^2): lower is better, and a code cannot lower one of the
+  two by changing its window without raising the other.
+
+What calfit does (`orchestrator.imaging.dic.correlate`: ZNCC then IC-GN, affine window; one pass, no prior) is run
+on windows along the centre row every --step pixels for each window size, on a 301-row strip around the centre row
+(enough for the 64-pixel windows' search area; the whole image only costs time). Beside it, what the linearised
+windows should see of the commanded field (`orchestrator.imaging.windows.WindowOperators(...).observe`: the
+gradient-weighted affine fit over each window, the observation operator calfit's identification compares its model
+with) and, for reference, the textbook limit of an affine window with uniform weights: the mean of the cosine over
+its h rows, sin(pi h / p) / (h sin(pi / p)), which is 0.9 at p = 63.8 / 127.7 / 255.6 px for h = 16 / 32 / 64
+(67.8 px for a 17-pixel subset).
+
+The ratios are measured (or predicted) / commanded at the window centre (calfit's windows have an even side, so their
+centre is half a pixel off the crest), averaged along x over a sliding 100-pixel span (the period changes by 7 px over
+it). l10 is the first rise of that curve through 0.9 going to longer periods; "l10 last", the period beyond which it
+stays above 0.9, shows how much the noise moves it where the curve runs nearly level with 0.9. The predicted noise is
+calfit's covariance (`DICResult.covariance_mm2`, pixel size 1 mm here so mm = px), RMS over the same windows as the
+measured noise, with the image noise calfit estimates (`estimate_noise_sigma`) and rescaled to the noise read from
+the flat top of the images' power spectrum (`noise_floor`), a check on that estimate.
+
+The published figures of the Challenge's codes on these images (code, subset, n, l10, MEI) are not reproduced here:
+the paper's tables and figures were not reachable from where this script was written. Add them to PUBLISHED, each
+with its table or figure, to print them beside calfit's.
+
+About 1.5 minutes on a 2-core machine with the defaults (about 1,000 windows per size).
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from orchestrator.imaging.dic import correlate, spline_gradient
+from orchestrator.imaging.windows import WindowOperators
+
+AMPLITUDE_PX = 0.5
+CREST_ROW = 250
+PERIOD_AT_0_PX, PERIOD_SLOPE = 10.0, 0.0725
+STRIP_HALF_ROWS = 150            # rows kept on either side of the crest: the 64-px windows search +-128 rows
+SMOOTH_SPAN_PX = 100             # sliding mean along x of the attenuation
+NOISE_MIN_PERIOD_PX = 200.0      # where the noise is measured
+PLATEAU_MIN_PERIOD_PX = 250.0    # where the plateau is read
+LEVEL = 0.9                      # 10 % attenuation
+IMAGE_NAMES = ("DIC_Challenge_Star_Noise_Ref.tiff", "DIC_Challenge_Star_Noise_Def.tiff")
+
+# Published figures of the Challenge's codes on the same images, for the table: (code, subset px, n px, l10 px,
+# MEI px^2, where it comes from). Empty: none could be checked against the paper when this was written.
+PUBLISHED: tuple[tuple[str, int, float, float, float, str], ...] = ()
+
+
+def period_px(x) -> np.ndarray:
+    return PERIOD_AT_0_PX + PERIOD_SLOPE * np.asarray(x, float)
+
+
+def commanded_v(x, y) -> np.ndarray:
+    return AMPLITUDE_PX * np.cos(2.0 * np.pi * (np.asarray(y, float) - CREST_ROW) / period_px(x))
+
+
+def uniform_window(h: int, period) -> np.ndarray:
+    """Attenuation of a cosine's crest by an affine window of h rows with uniform weights (the mean over the rows)."""
+    period = np.asarray(period, float)
+    return np.sin(np.pi * h / period) / (h * np.sin(np.pi / period))
+
+
+def pyvale_images_folder() -> Path:
+    spec = importlib.util.find_spec("pyvale")   # finds the package without importing it (pyvale's import is slow)
+    if spec is None or not spec.submodule_search_locations:
+        sys.exit("dic_challenge: the Star images come with pyvale, which is not installed in this environment.\n"
+                 "  Install it:  .venv/bin/python -m pip install pyvale   (make bench does)\n"
+                 "  or unpack its wheel (pip download pyvale --no-deps; unzip) and pass "
+                 "--images .../pyvale/data/dic/challenge")
+    return Path(list(spec.submodule_search_locations)[0]) / "data" / "dic" / "challenge"
+
+
+def load_star(folder: Path | None) -> tuple[np.ndarray, np.ndarray]:
+    from PIL import Image
+
+    folder = pyvale_images_folder() if folder is None else Path(folder)
+    paths = [folder / name for name in IMAGE_NAMES]
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        sys.exit("dic_challenge: missing " + ", ".join(missing) + " (pyvale's package data: data/dic/challenge)")
+    reference, deformed = (np.asarray(Image.open(p), dtype=float) for p in paths)
+    return reference, deformed
+
+
+def sliding_mean(values: np.ndarray, span: int) -> np.ndarray:
+    """NaN-aware mean over `span` neighbours (centred); NaN where none is finite."""
+    finite = np.isfinite(values)
+    kernel = np.ones(max(int(span), 1))
+    total = np.convolve(np.where(finite, values, 0.0), kernel, mode="same")
+    count = np.convolve(finite.astype(float), kernel, mode="same")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan)
+
+
+def first_crossing(period: np.ndarray, ratio: np.ndarray, level: float = LEVEL) -> float:
+    """The shortest period at which the curve rises through `level` (interpolated); NaN if it never does."""
+    ok = np.isfinite(ratio)
+    period, ratio = period[ok], ratio[ok]
+    up = np.flatnonzero((ratio[:-1] < level) & (ratio[1:] >= level))
+    if up.size == 0:
+        return float("nan")
+    i = int(up[0])
+    p0, p1, r0, r1 = period[i], period[i + 1], ratio[i], ratio[i + 1]
+    return float(p0 + (level - r0) * (p1 - p0) / (r1 - r0))
+
+
+def last_crossing(period: np.ndarray, ratio: np.ndarray, level: float = LEVEL) -> float:
+    """The period beyond which the curve stays at or above `level` (interpolated); NaN if it ends below it."""
+    ok = np.isfinite(ratio)
+    period, ratio = period[ok], ratio[ok]
+    below = np.flatnonzero(ratio < level)
+    if below.size == 0 or below[-1] == len(ratio) - 1:
+        return float("nan")
+    i = int(below[-1])
+    p0, p1, r0, r1 = period[i], period[i + 1], ratio[i], ratio[i + 1]
+    return float(p0 + (level - r0) * (p1 - p0) / (r1 - r0))
+
+
+def noise_floor(image: np.ndarray, from_cycles_per_px: float = 0.4) -> float:
+    """Standard deviation of white image noise from the flat top of the image's power spectrum (Hann-windowed),
+    where max(|kx|, |ky|) >= from_cycles_per_px: the speckle's own power has died out there on these images. A
+    check on calfit's estimator (`estimate_noise_sigma`), whose calm half of an image that is speckle everywhere
+    still holds texture."""
+    taper = np.outer(np.hanning(image.shape[0]), np.hanning(image.shape[1]))
+    power = np.abs(np.fft.fft2((image - image.mean()) * taper)) ** 2 / (image.size * np.mean(taper ** 2))
+    ky = np.abs(np.fft.fftfreq(image.shape[0]))[:, None]
+    kx = np.abs(np.fft.fftfreq(image.shape[1]))[None, :]
+    return float(np.sqrt(power[np.maximum(kx, ky) >= from_cycles_per_px].mean()))
+
+
+def observe_in_chunks(reference, gradients, centres, window, noise_sigma, field, chunk: int = 200) -> np.ndarray:
+    """WindowOperators(...).observe(field) a few hundred windows at a time (a 64-px window holds 16 kB of weights)."""
+    out = []
+    for start in range(0, len(centres), chunk):
+        operators = WindowOperators(reference, centres[start:start + chunk], window, (1.0, 1.0), noise_sigma,
+                                    gradients=gradients)
+        out.append(operators.observe(field))
+    return np.concatenate(out)
+
+
+def analyse(reference, deformed, gradients, field, window: int, step: int, row0: int) -> dict:
+    """Measured and predicted displacement along the crest for one window size, and the Challenge's metrics."""
+    width = reference.shape[1]
+    crest = CREST_ROW - row0
+    columns = np.arange(window // 2, width - window // 2 + 1, step)
+    centres = np.column_stack([np.full(len(columns), crest), columns])
+    began = time.perf_counter()
+    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window)
+    seconds_dic = time.perf_counter() - began
+    began = time.perf_counter()
+    seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field)[:, 1]
+    seconds_operator = time.perf_counter() - began
+
+    x = result.centre_rc[:, 1]
+    y = result.centre_rc[:, 0] + row0
+    period = period_px(x)
+    commanded = commanded_v(x, y)
+    measured = result.displacement_px[:, 1]
+    failed = ~np.isfinite(measured) | ~np.all(np.isfinite(result.covariance_mm2), axis=(1, 2))
+    measured = np.where(failed, np.nan, measured)
+    sigma = np.sqrt(np.where(failed, np.nan, result.covariance_mm2[:, 1, 1]))   # pixel = 1 mm
+
+    span = max(SMOOTH_SPAN_PX // step, 1)
+    ratio_measured = sliding_mean(measured / commanded, span)
+    ratio_seen = sliding_mean(seen / commanded, span)
+    long = period >= NOISE_MIN_PERIOD_PX
+    residual = (measured - seen)[long]
+    residual = residual[np.isfinite(residual)]
+    noise = float(np.std(residual))
+    noise_predicted = float(np.sqrt(np.nanmean(sigma[long] ** 2)))
+    l10 = first_crossing(period, ratio_measured)
+    fine = np.linspace(period.min(), period.max(), 20000)
+    plateau = period >= PLATEAU_MIN_PERIOD_PX
+    gap = np.abs(ratio_measured - ratio_seen)
+    gap[period < 2 * window] = np.nan    # where the windows see almost nothing, the ratio is noise over a tiny signal
+    worst = int(np.nanargmax(gap))
+    return dict(window=window, x=x, period=period, commanded=commanded, measured=measured, seen=seen, sigma=sigma,
+                ratio_measured=ratio_measured, ratio_seen=ratio_seen, failed=int(failed.sum()), windows=len(x),
+                noise=noise, noise_predicted=noise_predicted, noise_sigma=result.noise_sigma[0], l10=l10,
+                l10_last=last_crossing(period, ratio_measured), l10_seen=first_crossing(period, ratio_seen),
+                l10_uniform=first_crossing(fine, uniform_window(window, fine)), mei=noise * l10,
+                plateau=float(np.nanmean(measured[plateau])), plateau_seen=float(np.mean(seen[plateau])),
+                gap=float(gap[worst]), gap_period=float(period[worst]), seconds_dic=seconds_dic,
+                seconds_operator=seconds_operator, zncc=float(np.median(result.confidence)))
+
+
+BANDS_PX = ((10, 20), (20, 40), (40, 80), (80, 150), (150, 300))
+
+
+def report(results: list[dict], floor_sigma: float) -> None:
+    print(f"\nDIC Challenge 2.0 Star images, crest row {CREST_ROW}, commanded {AMPLITUDE_PX} px, period "
+          f"{PERIOD_AT_0_PX:g} + {PERIOD_SLOPE:g} x px; n from p >= {NOISE_MIN_PERIOD_PX:g} px, plateau p >= "
+          f"{PLATEAU_MIN_PERIOD_PX:g} px")
+    print(f"{'window':>7s} {'windows':>8s} {'failed':>6s} {'n px':>7s} {'n pred':>7s} {'@floor':>7s} {'l10 px':>7s} "
+          f"{'l10 last':>8s} {'l10 op':>7s} {'l10 unif':>8s} {'MEI px2':>8s} {'plateau':>8s} {'plat op':>8s} "
+          f"{'ZNCC':>6s} {'DIC s':>6s} {'op s':>5s}")
+    for r in results:
+        print(f"{r['window']:5d}px {r['windows']:8d} {r['failed']:6d} {r['noise']:7.4f} {r['noise_predicted']:7.4f} "
+              f"{r['noise_predicted'] * floor_sigma / r['noise_sigma']:7.4f} {r['l10']:7.1f} {r['l10_last']:8.1f} "
+              f"{r['l10_seen']:7.1f} {r['l10_uniform']:8.1f} {r['mei']:8.3f} {r['plateau']:8.4f} "
+              f"{r['plateau_seen']:8.4f} {r['zncc']:6.3f} {r['seconds_dic']:6.1f} {r['seconds_operator']:5.1f}")
+    sigma = results[0]["noise_sigma"]
+    print(f"  n: std of measured - operator prediction; n pred: calfit's covariance (RMS sigma) with calfit's image "
+          f"noise {sigma:.3f} grey levels; @floor: the same with the noise of the spectrum's flat top, "
+          f"{floor_sigma:.3f} (scaled); l10: first rise through 0.9 of the measured curve, l10 last: beyond which it "
+          f"stays above 0.9; l10 op / unif: first rise of the operator's prediction / of a uniform affine window; "
+          f"MEI = n x l10")
+    for r in results:
+        print(f"  {r['window']:2d} px: largest gap between the measured and the predicted attenuation "
+              f"(p >= 2 windows): {r['gap']:.3f} at p = {r['gap_period']:.0f} px")
+
+    print("\nmeasured - operator prediction of v (px) by period band: mean (std) over the windows")
+    print(f"{'window':>7s} " + " ".join(f"{f'{a}-{b} px':>16s}" for a, b in BANDS_PX))
+    for r in results:
+        cells = []
+        for a, b in BANDS_PX:
+            band = (r["period"] >= a) & (r["period"] < b)
+            d = (r["measured"] - r["seen"])[band]
+            d = d[np.isfinite(d)]
+            cells.append(f"{np.mean(d):+8.4f} ({np.std(d):.4f})" if d.size else f"{'-':>16s}")
+        print(f"{r['window']:5d}px " + " ".join(f"{c:>16s}" for c in cells))
+
+    print("\nbeside the Challenge's codes (same images, same metrics):")
+    if PUBLISHED:
+        print(f"{'code':>14s} {'subset':>7s} {'n px':>7s} {'l10 px':>7s} {'MEI px2':>8s}  source")
+        for code, subset, n, l10, mei, source in PUBLISHED:
+            print(f"{code:>14s} {subset:5d}px {n:7.4f} {l10:7.1f} {mei:8.3f}  {source}")
+    else:
+        print("  (no published figures included: see the module text; the textbook limit of an affine window, "
+              "l10 unif above, is 67.8 px for a 17-px subset)")
+    for r in results:
+        print(f"  calfit {r['window']:2d}px: n {r['noise']:.4f} px, l10 {r['l10']:.1f} px, MEI {r['mei']:.3f} px^2")
+
+
+def figure(results: list[dict], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 8.5), gridspec_kw=dict(height_ratios=(1, 1.4)))
+    for r, colour in zip(results, colours):
+        top.plot(r["x"], r["measured"], color=colour, lw=0.6, label=f"{r['window']} px windows")
+    top.plot(results[0]["x"], results[0]["commanded"], color="black", lw=1.0, ls="--", label="commanded")
+    top.set_xlabel("x along the crest row (px)")
+    top.set_ylabel("measured v (px)")
+    top.set_ylim(-0.1, 0.7)
+    top.set_xlim(0, 4000)
+    periods = top.secondary_xaxis("top", functions=(period_px, lambda p: (p - PERIOD_AT_0_PX) / PERIOD_SLOPE))
+    periods.set_xlabel("period p (px)")
+    top.legend(loc="lower right", fontsize=8, ncol=2)
+    top.set_title("calfit DIC on the DIC Challenge 2.0 Star images (crest row, amplitude 0.5 px)", fontsize=10)
+
+    for r, colour in zip(results, colours):
+        bottom.plot(r["period"], r["ratio_measured"], color=colour, lw=1.6,
+                    label=f"{r['window']} px: measured, l10 = {r['l10']:.0f} px")
+        bottom.plot(r["period"], r["ratio_seen"], color=colour, lw=1.2, ls="--",
+                    label=f"{r['window']} px: observation operator, l10 = {r['l10_seen']:.0f} px")
+        bottom.plot(r["period"], uniform_window(r["window"], r["period"]), color=colour, lw=0.8, ls=":")
+    bottom.plot([], [], color="grey", lw=0.8, ls=":", label="uniform affine window (textbook)")
+    bottom.axhline(LEVEL, color="black", lw=0.8)
+    bottom.text(295, LEVEL + 0.01, "10 % attenuation", ha="right", va="bottom", fontsize=8)
+    bottom.set_xlim(0, 300)
+    bottom.set_ylim(0.0, 1.1)
+    bottom.set_xlabel("period p (px)")
+    bottom.set_ylabel("measured / commanded amplitude")
+    bottom.grid(alpha=0.3)
+    bottom.legend(loc="lower right", fontsize=7.5)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    print(f"\nfigure: {out}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--windows", type=int, nargs="+", default=[16, 32, 64], help="window sides, px")
+    parser.add_argument("--step", type=int, default=4, help="pixels between window centres along the crest row")
+    parser.add_argument("--images", type=Path, default=None, help="folder holding the two Star TIFFs "
+                        "(default: pyvale's package data)")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/figures/dic_challenge.png"))
+    args = parser.parse_args()
+
+    reference, deformed = load_star(args.images)
+    row0 = CREST_ROW - STRIP_HALF_ROWS
+    reference = reference[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
+    deformed = deformed[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
+    rows, cols = np.mgrid[0:reference.shape[0], 0:reference.shape[1]]
+    field = np.stack([np.zeros(reference.shape), commanded_v(cols, rows + row0)])   # (u_x, u_y), px = mm here
+    gradients = spline_gradient(reference)
+    floor_sigma = float(np.sqrt(0.5 * (noise_floor(reference) ** 2 + noise_floor(deformed) ** 2)))
+    print(f"Star images {reference.shape[1]} px wide, rows {row0}-{row0 + reference.shape[0] - 1} kept; windows "
+          f"{', '.join(map(str, args.windows))} px every {args.step} px along row {CREST_ROW}")
+    results = []
+    for window in args.windows:
+        results.append(analyse(reference, deformed, gradients, field, window, args.step, row0))
+        r = results[-1]
+        print(f"  {window:2d} px: {r['windows']} windows, DIC {r['seconds_dic']:.1f} s, operator "
+              f"{r['seconds_operator']:.1f} s", flush=True)
+    report(results, floor_sigma)
+    figure(results, args.out)
+
+
+if __name__ == "__main__":
+    main()
