@@ -1,4 +1,5 @@
-"""Segmentation of a T1-weighted calf slice into background, fat, muscle and bone.
+"""Segmentation of a T1-weighted calf slice into background, fat, muscle and bone, and the checks that say where
+a label map is doubtful.
 
 The first paper segments the T1 slice into tibia, fibula, fat and muscle
 (section 2.1.1); the second thresholds fat first, as it is bright in T1
@@ -9,9 +10,14 @@ a finer matrix of the same leg segments the same):
    dark (air, cortex, flowing blood, fascia), intermediate (muscle, skin) and
    bright (fat, fatty marrow) grey levels;
 2. the leg is the largest non-dark component with its holes filled;
-3. bones are the dark components inside the leg, opened to drop thin fascia,
-   holes filled (so the bright marrow joins its cortex), larger than
-   `min_bone_area_mm2` (veins are smaller);
+3. bones (`find_bones`) are cortex plus marrow, whatever the marrow's grey level: on the image smoothed less
+   (`bone_smoothing_mm`, so that a 1 mm cortex stays darker than the dark threshold at 0.6 mm pixels), a region
+   of the leg enclosed by the dark mask is marrow when its rim is a cortex, at least `min_cortex_mm` thick and
+   a tenth of the region's radius along most of its length (measured on a grid of 0.1 mm interpolated from the
+   image, so the test does not depend on the pixel); thin septa and fascia that close a loop are not. The dark
+   mask with that marrow is opened by a disk of `bone_opening_mm` (which drops the fascia, septa and vessels
+   stuck to a bone but not a bone, a solid region at least 8 mm across), and its pieces of plausible area
+   (`min_bone_area_mm2` to `max_bone_area_mm2`) are the bones. A dark marrow is found as part of the dark mask;
 4. muscle is the largest component of the non-bright, non-bone leg opened by
    a disk of `skin_opening_mm` (which cuts the thin skin ring away from it),
    grown back inside the non-bright mask, small holes (veins) filled;
@@ -19,17 +25,30 @@ a finer matrix of the same leg segments the same):
    the first paper's model (section 2.2.4).
 
 Labels: 0 background, 1 fat, 2 muscle, 3 bone.
+
+`segmentation_checks` reads any label map (this segmentation or a user's labels.png) and returns a
+`SegmentationWarning` for each place it is unsure of: an island of one tissue inside another (fat inside the
+muscle, muscle inside the fat, fat inside a bone: a lost marrow) of at least `min_island_mm2`, and a bone count
+other than the calf's two (tibia and fibula), each with its place in mm (image frame) and a sentence saying it.
 """
 
 from __future__ import annotations
+
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy import ndimage
 from skimage import filters, morphology
 
+from .case import FIRST_COMPARTMENT
 from .errors import ImagingError
 
 BACKGROUND, FAT, MUSCLE, BONE = 0, 1, 2, 3
+TISSUE_NAMES = {BACKGROUND: "background", FAT: "fat", MUSCLE: "muscle", BONE: "bone"}
+CALF_BONES = ("tibia", "fibula")
+RIM_GRID_MM = 0.1          # the grid on which a rim's thickness is measured
+RIM_THICK_SHARE = 0.8      # share of a marrow's rim that must be cortex-thick (a partial-volumed pixel may not be)
+CORTEX_TO_MARROW_RADIUS = 0.1   # a long bone's cortex is several tenths of its marrow's radius
 
 
 def largest_component(mask: np.ndarray) -> np.ndarray:
@@ -42,7 +61,7 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
 
 
 def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothing_mm: float = 0.36,
-               skin_opening_mm: float = 0.8, min_bone_area_mm2: float = 40.0,
+               bone_smoothing_mm: float = 0.2, skin_opening_mm: float = 0.8, min_bone_area_mm2: float = 40.0,
                max_vein_hole_mm2: float = 30.0) -> np.ndarray:
     """Label map (uint8) of a T1 slice: 0 background, 1 fat (with skin), 2 muscle, 3 bone."""
     image = np.asarray(image, dtype=float)
@@ -56,13 +75,8 @@ def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothi
     if leg.sum() * pixel_area < 100.0:
         raise ImagingError("no leg found in the image: it has no large region brighter than the background")
 
-    dark = ndimage.binary_opening(leg & (smooth <= dark_level), structure=morphology.disk(max(1, int(round(scale_px)))))
-    components, count = ndimage.label(dark)
-    bone = np.zeros_like(leg)
-    for index, piece in enumerate(ndimage.find_objects(components), start=1):
-        filled = ndimage.binary_fill_holes(components[piece] == index)
-        if filled.sum() * pixel_area >= min_bone_area_mm2:
-            bone[piece] |= filled
+    bone = find_bones(ndimage.gaussian_filter(image, bone_smoothing_mm / min(pixel_size_mm)), leg, dark_level,
+                      pixel_size_mm, min_bone_area_mm2=min_bone_area_mm2)
     if not bone.any():
         raise ImagingError(f"no bone found: no dark ring inside the leg encloses {min_bone_area_mm2} mm^2")
 
@@ -81,8 +95,179 @@ def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothi
     return labels
 
 
+def find_bones(image: np.ndarray, leg: np.ndarray, dark_level: float, pixel_size_mm, *, min_cortex_mm: float = 0.5,
+               bone_opening_mm: float = 1.0, min_bone_area_mm2: float = 40.0,
+               max_bone_area_mm2: float = 1500.0) -> np.ndarray:
+    """Mask of the bones in the leg: the dark mask (image <= dark_level) with the regions it encloses whose rim is
+    a cortex (see the module text), opened by a disk of bone_opening_mm, pieces of min_bone_area_mm2 to
+    max_bone_area_mm2 (15 cm^2: over twice a tibia's cross-section in the calf)."""
+    pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
+    # no opening before the holes are filled: at 0.6 mm a 1.2 mm cortex is a ring two pixels wide, which any
+    # opening by a whole-pixel disk erases, and the fibula's marrow then became an island of fat
+    dark = leg & (image <= dark_level)
+    enclosed, count = ndimage.label(ndimage.binary_fill_holes(dark) & ~dark)
+    marrow = np.zeros_like(dark)
+    for index, piece in enumerate(ndimage.find_objects(enclosed), start=1):
+        region = enclosed[piece] == index
+        area = region.sum() * pixel_area
+        if area > max_bone_area_mm2:
+            continue
+        # a speck smaller than the cortex is thick has no rim to measure: noise inside a dark region, kept with it
+        cortex_mm = max(min_cortex_mm, CORTEX_TO_MARROW_RADIUS * np.sqrt(area / np.pi))
+        if area < np.pi * min_cortex_mm ** 2 or _thick_rim_share(
+                image, dark_level, enclosed, index, piece, pixel_size_mm, cortex_mm) >= RIM_THICK_SHARE:
+            marrow[piece] |= region
+    solid = _opening_mm(dark | marrow, bone_opening_mm, pixel_size_mm)
+    pieces, _ = ndimage.label(solid)
+    areas = np.bincount(pieces.ravel()) * pixel_area
+    plausible = (areas >= min_bone_area_mm2) & (areas <= max_bone_area_mm2)
+    plausible[0] = False
+    return plausible[pieces]
+
+
+def _opening_mm(mask: np.ndarray, radius_mm: float, pixel_size_mm) -> np.ndarray:
+    """Opening by a Euclidean disk of radius_mm (through distance transforms: the radius need not be whole pixels)."""
+    core = ndimage.distance_transform_edt(mask, sampling=pixel_size_mm) > radius_mm
+    if not core.any():
+        return core
+    return ndimage.distance_transform_edt(~core, sampling=pixel_size_mm) <= radius_mm
+
+
+def _thick_rim_share(image: np.ndarray, dark_level: float, regions: np.ndarray, index: int,
+                     piece: tuple[slice, slice], pixel_size_mm, thickness_mm: float) -> float:
+    """Share of the dark rim around region `index` of the labelled `regions` (`piece` its bounding box) that is at
+    least thickness_mm thick, measured on a grid of RIM_GRID_MM interpolated (bilinearly) from the image, where the
+    partial-volumed edge of a cortex lands between pixels instead of on one of them."""
+    margin = int(np.ceil(2 * thickness_mm / min(pixel_size_mm))) + 2
+    window = tuple(slice(max(s.start - margin, 0), min(s.stop + margin, n)) for s, n in zip(piece, image.shape))
+    factor = max(1, int(np.ceil(max(pixel_size_mm) / RIM_GRID_MM)))
+    fine_pixel = (pixel_size_mm[0] / factor, pixel_size_mm[1] / factor)
+    fine = ndimage.zoom(image[window], factor, order=1, grid_mode=True, mode="nearest")
+    dark = fine <= dark_level
+    # the region grown by one pixel: its edge on the fine grid may lie up to a pixel from its edge on the image's
+    grown = ndimage.binary_dilation(regions[window] == index, structure=np.ones((3, 3)))
+    inside = np.kron(grown, np.ones((factor, factor), bool))
+    inside &= ~dark
+    rim = dark & ndimage.binary_dilation(inside)
+    if not rim.any():
+        return 0.0
+    return float(_opening_mm(dark, thickness_mm / 2, fine_pixel)[rim].mean())
+
+
 def dice(a: np.ndarray, b: np.ndarray) -> float:
     """Dice overlap 2|A n B| / (|A| + |B|) of two masks."""
     a, b = np.asarray(a, bool), np.asarray(b, bool)
     total = a.sum() + b.sum()
     return 1.0 if total == 0 else 2.0 * np.logical_and(a, b).sum() / total
+
+
+# ----------------------------------------------------------------- checks
+
+
+@dataclass(frozen=True)
+class SegmentationWarning:
+    """A place where a label map is doubtful: kind ("island" or "bone_count"), the place (x, y) in mm in the image
+    frame, the area concerned (mm^2), a sentence that says it, and a few words for a figure."""
+
+    kind: str
+    position_mm: tuple[float, float]
+    area_mm2: float
+    message: str
+    short: str
+
+    def as_dict(self) -> dict:
+        info = asdict(self)
+        info["position_mm"] = [round(float(v), 2) for v in self.position_mm]
+        info["area_mm2"] = round(float(self.area_mm2), 1)
+        return info
+
+    @classmethod
+    def from_dict(cls, info: dict) -> "SegmentationWarning":
+        return cls(info["kind"], tuple(info["position_mm"]), float(info["area_mm2"]), info["message"], info["short"])
+
+
+def tissue_map(labels: np.ndarray) -> np.ndarray:
+    """The label map with the muscle compartments (>= 4) as muscle."""
+    labels = np.asarray(labels)
+    return np.where(labels >= FIRST_COMPARTMENT, MUSCLE, labels).astype(np.uint8)
+
+
+def segmentation_checks(labels: np.ndarray, pixel_size_mm, *, min_island_mm2: float = 25.0,
+                        bones: tuple[str, ...] = CALF_BONES) -> list[SegmentationWarning]:
+    """What is doubtful in a label map (0 background, 1 fat, 2 muscle, 3 bone, >= 4 compartments): islands of fat or
+    muscle of at least min_island_mm2 (25 mm^2: about an element of a 400-element mesh of a calf) inside another
+    tissue, and a bone count other than len(bones). Islands come largest first, then the bone count."""
+    tissues = tissue_map(labels)
+    pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
+    warnings = []
+    for tissue in (FAT, MUSCLE):
+        warnings += _islands(tissues, tissue, pixel_size_mm, min_island_mm2)
+    warnings.sort(key=lambda w: -w.area_mm2)
+    pieces, count = ndimage.label(tissues == BONE, structure=np.ones((3, 3)))
+    if count != len(bones):
+        found = sorted(((_place(pieces == k, pixel_size_mm), float((pieces == k).sum() * pixel_area))
+                        for k in range(1, count + 1)), key=lambda item: -item[1])
+        expected = f"a calf slice has {len(bones)} ({' and '.join(bones)})"
+        listing = ", ".join(f"{area:.0f} mm2 at {_at(place)}" for place, area in found)
+        if count > len(bones):
+            place, area = found[-1]   # the smallest is the likeliest to be something else
+            message = f"{count} bones where {expected}: {listing} mm"
+            short = f"{count} bones, {len(bones)} expected"
+        elif count:
+            place = tuple(np.mean([p for p, _ in found], axis=0))
+            area = sum(a for _, a in found)
+            message = (f"{count} bone{'s' if count > 1 else ''} where {expected}: {listing} mm; one is missing "
+                       "(its marrow read as another tissue) or two are joined")
+            short = f"{count} bone{'s' if count > 1 else ''}, {len(bones)} expected"
+        else:
+            place, area = _place(tissues > BACKGROUND, pixel_size_mm), 0.0
+            message, short = f"no bone where {expected}", f"no bone, {len(bones)} expected"
+        warnings.append(SegmentationWarning("bone_count", place, area, message, short))
+    return warnings
+
+
+def _islands(tissues: np.ndarray, tissue: int, pixel_size_mm, min_area_mm2: float) -> list[SegmentationWarning]:
+    """Pieces of `tissue` cut off from its main body and enclosed by another tissue: for fat, the pieces that do not
+    reach the outside of the leg (the subcutaneous fat and the skin do); for muscle, all but the largest piece."""
+    pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
+    pieces, count = ndimage.label(tissues == tissue, structure=np.ones((3, 3)))
+    if count == 0:
+        return []
+    sizes = np.bincount(pieces.ravel())
+    if tissue == FAT:
+        outside = ndimage.binary_dilation(tissues == BACKGROUND, border_value=1)
+        main = set(np.unique(pieces[outside]))
+    else:
+        main = {int(np.argmax(sizes[1:])) + 1}
+    found = []
+    for index, piece in enumerate(ndimage.find_objects(pieces), start=1):
+        area = sizes[index] * pixel_area
+        if index in main or area < min_area_mm2:
+            continue
+        window = tuple(slice(max(s.start - 1, 0), s.stop + 1) for s in piece)
+        island = pieces[window] == index
+        around = tissues[window][ndimage.binary_dilation(island, structure=np.ones((3, 3))) & ~island]
+        host = int(np.bincount(around, minlength=BONE + 1).argmax())
+        offset = (window[0].start, window[1].start)
+        place = _place(island, pixel_size_mm, offset)
+        name, host_name = TISSUE_NAMES[tissue], TISSUE_NAMES[host]
+        found.append(SegmentationWarning(
+            "island", place, area, f"an island of {name} of {area:.0f} mm2 inside the {host_name} at {_at(place)} mm",
+            f"{name} in {host_name}, {area:.0f} mm2"))
+    return found
+
+
+def _place(mask: np.ndarray, pixel_size_mm, offset: tuple[int, int] = (0, 0)) -> tuple[float, float]:
+    """(x, y) mm of a region: its centroid, or its pixel nearest the centroid when the centroid falls outside it (a
+    crescent), so that a marker drawn there lands on the region."""
+    rows, cols = np.nonzero(mask)
+    row, col = rows.mean(), cols.mean()
+    if not mask[int(round(row)), int(round(col))]:
+        nearest = np.argmin((rows - row) ** 2 + (cols - col) ** 2)
+        row, col = rows[nearest], cols[nearest]
+    dy, dx = pixel_size_mm
+    return float((col + offset[1] + 0.5) * dx), float((row + offset[0] + 0.5) * dy)
+
+
+def _at(place: tuple[float, float]) -> str:
+    return f"({place[0]:.1f}, {place[1]:.1f})"
