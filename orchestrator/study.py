@@ -434,8 +434,9 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     effect); with `compartments` the truth is meshed with the muscle compartments, and `labels` should then be
     "compartments" so that the fit can separate them. labels: what the case's labels.png holds
     (`orchestrator.phantom.write_case`). edit_deck(deck_text, mesh) -> deck_text: physics outside the catalog
-    written into the truth's deck directly (how a case with an unknown effect is made). phantom: the
-    `orchestrator.phantom.CalfPhantom` to render (default: the standard calf and scanner). garment, friction_mu:
+    written into the truth's deck directly (how a case with an unknown effect is made). phantom: the phantom to
+    mesh and render, an `orchestrator.phantom.CalfPhantom` (default: the standard calf and scanner) or
+    `MRIPhantom` (the second, independent renderer). garment, friction_mu:
     the truth's garment, Laplace's law or the explicit band with that friction; tissues, hybrid: the tissues' laws
     (theta_kPa then holds their free constants) and u/p elements (`forward.LegModel`)."""
     from .phantom import CalfPhantom, write_case

@@ -8,7 +8,7 @@ optionally points.csv (the true displacement at grid points in the tissue,
 plus Gaussian measurement noise of sigma_mm).
 
 The truth goes to a separate folder (default: a sibling `<case>.truth`):
-truth.json (phantom parameters, rigid motion, noise seeds, description of the
+truth.json (the phantom's `description()`, rigid motion, noise seeds, description of the
 displacement), displacement_mm.npy ((2, H, W) on the pixels of the unloaded
 image, mm), and the exact label maps of both images. Both folders are staged
 in temporary siblings and renamed into place only when complete.
@@ -33,16 +33,18 @@ from ..imaging._formats import write_png16
 from ..imaging.case import DisplacementPoints, GarmentLevel, replace_folder, write_case_folder
 from ..imaging.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
 from ..imaging.segment import segment_t1
-from .render import CalfPhantom, as_displacement_fn, bone_clamped_compression, loaded_labels, make_loaded_image, render_unloaded
+from .render import (CalfPhantom, Phantom, as_displacement_fn, bone_clamped_compression, loaded_labels, make_loaded_image,
+                     render_unloaded)
 
 
-def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *, rigid: RigidMotion | None = None,
+def write_case(folder, phantom: Phantom | None = None, displacement=None, *, rigid: RigidMotion | None = None,
                truth_folder=None, name: str = "phantom-calf", tension_N_per_mm: float = 0.16,
                tension_rel_uncertainty: float = 0.10, labels: str | None = "segmented", points_spacing_mm: float | None = None,
                points_sigma_mm: float = 0.05, noise_seeds: tuple[int, int] = (0, 1), description: str = "",
                levels=(), overwrite: bool = False) -> tuple[Path, Path]:
     """Render the phantom unloaded and loaded (displacement in mm, callable or (2, H, W); default a bone-clamped
     radial compression) and write the case folder and the truth folder. Returns (case folder, truth folder).
+    phantom: a `CalfPhantom` (default) or any `render.Phantom`, e.g. `mri.MRIPhantom`.
 
     labels: "segmented" (segment_t1 of the unloaded image), "truth" (exact phantom labels), "compartments" (exact
     labels with the muscle compartments as labels 4, 5, ..., a user's hand segmentation) or None (no labels.png).
@@ -85,10 +87,9 @@ def write_case(folder, phantom: CalfPhantom | None = None, displacement=None, *,
     truth_folder.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
     try:
-        truth = {"case_folder": str(folder), "description": description,
-                 "shape": dataclasses.asdict(phantom.geometry.shape), "contrast": dataclasses.asdict(phantom.contrast),
+        truth = {"case_folder": str(folder), "description": description, **phantom.description(),
                  "image_shape": list(phantom.image_shape), "pixel_size_mm": list(phantom.pixel_size_mm),
-                 "supersampling": phantom.supersampling, "noise_seeds": list(noise_seeds),
+                 "noise_seeds": list(noise_seeds),
                  "rigid_motion": dataclasses.asdict(rigid) if rigid is not None else None,
                  "landmarks": phantom.geometry.landmarks(), "displacement_file": "displacement_mm.npy",
                  "labels_in_case": labels}

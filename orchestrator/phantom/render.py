@@ -18,6 +18,10 @@ are therefore blurred over about a pixel, not aligned with the pixel grid,
 and the images are not made by the interpolation the identification uses
 (no inverse crime).
 
+`render_unloaded`, `make_loaded_image` and `loaded_labels` take any `Phantom` (a `render(to_material,
+noise_seed)` method and exact labels): `orchestrator.phantom.mri.MRIPhantom` is a second one, drawn and
+rendered independently of `CalfPhantom` (box-averaged partial volume instead of the k-space band limit).
+
 `displacement` is a callable u(x_mm, y_mm) -> (ux_mm, uy_mm) on arrays in the
 image frame of the unloaded image, or a (2, H, W) field on its pixel grid
 (interpolated bilinearly, held constant beyond the edge). The engine that
@@ -27,7 +31,9 @@ interpolated nodal field as such a callable.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import numpy as np
 from scipy import ndimage
@@ -78,20 +84,67 @@ class CalfPhantom:
         """Ground-truth label map of the unloaded image (pixel centres)."""
         return self.geometry.labels_at(*pixel_centres_mm(self.image_shape, self.pixel_size_mm), compartments=compartments)
 
+    def description(self) -> dict:
+        """What truth.json records of the phantom."""
+        return {"shape": dataclasses.asdict(self.geometry.shape), "contrast": dataclasses.asdict(self.contrast),
+                "supersampling": self.supersampling}
 
-def render_unloaded(phantom: CalfPhantom, noise_seed: int | None = 0) -> np.ndarray:
+    def render(self, to_material, noise_seed: int | None) -> np.ndarray:
+        """Sample the material intensity at the material points to_material(x, y) of a grid `supersampling` times
+        finer than the pixels, keep the k-space of the pixel grid (what an MR scanner acquires; Tukey-apodised
+        against Gibbs ringing), then bias and noise (noise_seed None: noiseless)."""
+        n = self.supersampling
+        if n < 1 or n % 2 == 0:
+            raise ValueError("supersampling must be an odd positive integer (so that a fine sample sits at each pixel centre)")
+        height, width = self.image_shape
+        dy, dx = self.pixel_size_mm
+        fine_rows, fine_cols = np.indices((height * n, width * n), dtype=float)
+        X, Y = to_material((fine_cols + 0.5) * dx / n, (fine_rows + 0.5) * dy / n)
+        fine = self.intensity_at(X, Y, edge_mm=min(dx, dy) / n)
+        signal = _keep_pixel_bandwidth(np.roll(fine, (-(n // 2), -(n // 2)), axis=(0, 1)), (height, width))
+        x_centre, y_centre = pixel_centres_mm(self.image_shape, self.pixel_size_mm)
+        signal *= bias_field(x_centre, y_centre, self.extent_mm, self.contrast.bias_amplitude)
+        if noise_seed is None:
+            return signal
+        return add_rician_noise(signal, self.contrast.noise_sigma, np.random.default_rng(noise_seed))
+
+
+class Phantom(Protocol):
+    """What the case machinery (`render_unloaded`, `make_loaded_image`, `write_case`, `study.make_phantom_case`)
+    needs of a phantom: `CalfPhantom` and `orchestrator.phantom.mri.MRIPhantom` are two.
+
+    geometry.labels_at(x, y, compartments) gives the exact labels at material points (mm), geometry.landmarks()
+    the five LANDMARK_NAMES; bone_clamped_compression also reads geometry.shape.centre_mm and
+    geometry.tibia / geometry.fibula .radial_excess(x, y). render(to_material, noise_seed) makes the image whose
+    pixel at the scanner point y shows the material point to_material(y)."""
+
+    geometry: Any
+    image_shape: tuple[int, int]
+    pixel_size_mm: tuple[float, float]
+
+    @property
+    def extent_mm(self) -> tuple[float, float]: ...
+
+    def labels(self, compartments: bool = False) -> np.ndarray: ...
+
+    def description(self) -> dict: ...
+
+    def render(self, to_material, noise_seed: int | None) -> np.ndarray: ...
+
+
+def render_unloaded(phantom: Phantom, noise_seed: int | None = 0) -> np.ndarray:
     """The unloaded image I0 (float, fat ~ 1). noise_seed=None gives the noiseless image."""
-    return _render(phantom, lambda x, y: (x, y), noise_seed)
+    return phantom.render(lambda x, y: (x, y), noise_seed)
 
 
-def make_loaded_image(phantom: CalfPhantom, displacement, rigid: RigidMotion | None = None,
+def make_loaded_image(phantom: Phantom, displacement, rigid: RigidMotion | None = None,
                       noise_seed: int | None = 1) -> np.ndarray:
     """The loaded image I1 of the phantom deformed by `displacement` (mm) and moved by `rigid`, by inverse warping."""
     displacement_fn = as_displacement_fn(displacement, phantom.pixel_size_mm)
-    return _render(phantom, lambda x, y: material_points(x, y, displacement_fn, rigid), noise_seed)
+    return phantom.render(lambda x, y: material_points(x, y, displacement_fn, rigid), noise_seed)
 
 
-def loaded_labels(phantom: CalfPhantom, displacement, rigid: RigidMotion | None = None,
+def loaded_labels(phantom: Phantom, displacement, rigid: RigidMotion | None = None,
                   compartments: bool = False) -> np.ndarray:
     """Ground-truth label map of the loaded image (pixel centres)."""
     displacement_fn = as_displacement_fn(displacement, phantom.pixel_size_mm)
@@ -142,25 +195,6 @@ def as_displacement_fn(displacement, pixel_size_mm: tuple[float, float]) -> Disp
     return interpolated
 
 
-def _render(phantom: CalfPhantom, to_material, noise_seed: int | None) -> np.ndarray:
-    """Sample the material intensity on a grid `supersampling` times finer than the pixels, keep the k-space
-    of the pixel grid (what an MR scanner acquires; Tukey-apodised against Gibbs ringing), then bias and noise."""
-    n = phantom.supersampling
-    if n < 1 or n % 2 == 0:
-        raise ValueError("supersampling must be an odd positive integer (so that a fine sample sits at each pixel centre)")
-    height, width = phantom.image_shape
-    dy, dx = phantom.pixel_size_mm
-    fine_rows, fine_cols = np.indices((height * n, width * n), dtype=float)
-    X, Y = to_material((fine_cols + 0.5) * dx / n, (fine_rows + 0.5) * dy / n)
-    fine = phantom.intensity_at(X, Y, edge_mm=min(dx, dy) / n)
-    signal = _keep_pixel_bandwidth(np.roll(fine, (-(n // 2), -(n // 2)), axis=(0, 1)), (height, width))
-    x_centre, y_centre = pixel_centres_mm(phantom.image_shape, phantom.pixel_size_mm)
-    signal *= bias_field(x_centre, y_centre, phantom.extent_mm, phantom.contrast.bias_amplitude)
-    if noise_seed is None:
-        return signal
-    return add_rician_noise(signal, phantom.contrast.noise_sigma, np.random.default_rng(noise_seed))
-
-
 def _keep_pixel_bandwidth(fine: np.ndarray, shape: tuple[int, int], taper: float = 0.5) -> np.ndarray:
     """Down-sample a finely sampled image (whose sample 0 of each block is the pixel centre) by truncating its
     spectrum to the frequencies of the coarse grid, with a Tukey window of the given taper fraction."""
@@ -179,10 +213,11 @@ def _tukey(size: int, taper: float) -> np.ndarray:
     return np.where(position <= edge, 1.0, 0.5 * (1.0 + np.cos(np.pi * (position - edge) / taper)))
 
 
-def bone_clamped_compression(geometry: CalfGeometry, strain: float = 0.025, ramp_mm: float = 8.0) -> DisplacementFn:
+def bone_clamped_compression(geometry, strain: float = 0.025, ramp_mm: float = 8.0) -> DisplacementFn:
     """An analytic stand-in for the engine: a radial shrink towards the leg centre, u = -strain (X - c) w(X),
     with w rising smoothly (C1) from 0 on the bones to 1 at `ramp_mm` from them, so the bones stay clamped
-    as in the first paper's boundary conditions (section 2.2.2). |grad u| < 1 for strain < 0.05."""
+    as in the first paper's boundary conditions (section 2.2.2). |grad u| < 1 for strain < 0.05.
+    geometry: a `CalfGeometry` or an `mri.LegGeometry` (it reads shape.centre_mm and tibia / fibula .radial_excess)."""
     cx, cy = geometry.shape.centre_mm
 
     def displacement(x, y):
