@@ -453,8 +453,8 @@ class LegGeometry:
     def compartment_at_leg(self, w: np.ndarray) -> np.ndarray:
         """Index in COMPARTMENTS of leg-frame points assumed to be in the muscle: lateral between the two
         fibular septa, deep posterior between the interosseous membrane and the transverse septum, anterior in
-        front of the membrane and lateral to the tibia's crest, superficial posterior the rest (with the thin
-        muscle over the tibia's medial face)."""
+        front of the membrane, lateral to the tibia's crest and on the tibia's side of the anterior septum,
+        superficial posterior the rest (with the thin muscle over the tibia's medial face)."""
         w = np.asarray(w, complex)
         lateral_reference = self.fibula.centre + 10.0 * np.exp(1j * np.angle(
             (self.anterior_septum.direction + self.posterior_septum.direction) / 2.0))
@@ -466,7 +466,8 @@ class LegGeometry:
         deep = (s > 0) & (s < 1) & ~in_front & (front * self.transverse_septum.side(w) > 0)
         beside_crest = ((w - self.tibia.centre) / self.crest_direction).imag
         lateral_of_crest = beside_crest * ((self.fibula.centre - self.tibia.centre) / self.crest_direction).imag > 0
-        anterior = in_front & lateral_of_crest
+        tibial_side_of_septum = self.anterior_septum.side(w) * self.anterior_septum.side(self.tibia.centre) > 0
+        anterior = in_front & lateral_of_crest & tibial_side_of_septum
         index = np.where(lateral, 1, np.where(anterior, 0, np.where(deep, 2, 3)))
         return index.astype(np.uint8)
 
