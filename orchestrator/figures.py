@@ -172,11 +172,16 @@ def images_figure(path: Path, unloaded: np.ndarray, loaded: np.ndarray, pixel_si
 
 
 def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh, pixel_size_mm,
-                        landmarks: dict[str, tuple[float, float]]) -> Path:
+                        landmarks: dict[str, tuple[float, float]], warnings=None) -> Path:
     """The tissues of I0 tinted (fat, muscle, bone, compartments), the mesh's edges and the named landmarks
-    (Avril et al. Fig. 2)."""
+    (Avril et al. Fig. 2), and a ringed marker with a few words at each place the labels are unsure of
+    (`warnings`, `imaging.segment.SegmentationWarning`s; by default the checks of these labels)."""
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Patch
+
+    from .imaging.segment import segmentation_checks
+
+    warnings = segmentation_checks(labels, pixel_size_mm) if warnings is None else list(warnings)
 
     figure, ax = plt.subplots(figsize=(8.0, 7.5))
     _image_axes(ax, image, pixel_size_mm)
@@ -197,10 +202,19 @@ def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh,
     handles.append(matplotlib.lines.Line2D([], [], color="black", linewidth=0.6,
                                            label=f"mesh: {len(mesh.elements)} {mesh.element_type}"))
     _landmark_markers(ax, landmarks)
+    for warning in warnings:
+        x, y = warning.position_mm
+        ax.plot(x, y, "o", markersize=16, markerfacecolor="none", markeredgecolor="magenta", markeredgewidth=1.8)
+        ax.annotate(warning.short, (x, y), xytext=(10, 10), textcoords="offset points", fontsize=7, color="magenta",
+                    bbox={"boxstyle": "round,pad=0.2", "facecolor": "black", "alpha": 0.7, "linewidth": 0})
+    if warnings:
+        handles.append(matplotlib.lines.Line2D([], [], marker="o", linestyle="none", markersize=9, markerfacecolor="none",
+                                               markeredgecolor="magenta", label=f"segmentation unsure ({len(warnings)})"))
     _zoom_to(ax, labels > 0, pixel_size_mm)
     landmark_handles, _ = ax.get_legend_handles_labels()
     ax.legend(handles=handles + landmark_handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
-    ax.set_title("segmentation of I0 and the finite-element mesh", fontsize=10)
+    ax.set_title("segmentation of I0 and the finite-element mesh"
+                 + (f"; {len(warnings)} place{'s' if len(warnings) > 1 else ''} unsure" if warnings else ""), fontsize=10)
     return _save(figure, path)
 
 

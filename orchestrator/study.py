@@ -40,7 +40,7 @@ from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find
 from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
 from .imaging.resolution import coarsen_image, working_resolution
-from .imaging.segment import MUSCLE, segment_t1
+from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
 from .materials import law_notes
 from .meshing import Mesh, mesh_from_labels
 from .geometry_uncertainty import level_file as geometry_level_file
@@ -110,11 +110,13 @@ class RunSetup:
     missing_fraction: dict = field(default_factory=dict)    # setup.json "missing_fraction": image name -> share
     level_motions: tuple = ()     # the bones' rigid motion of each more garment level's image (case.levels order)
     levels_aligned: tuple = ()    # each more garment level's image aligned on the bones of I0
+    segmentation_warnings: dict = field(default_factory=dict)   # label map -> [SegmentationWarning], setup.json
 
     def setup_lines(self) -> list[str]:
         """What the user should know of how the images were read: the slice taken from a DICOM series, averaged
         over blocks of pixels, pixels with no value given the background's grey level, and the muscle
-        compartments, found in I0 (and where to check them) or given by the labels."""
+        compartments, found in I0 (and where to check them) or given by the labels, and where a segmentation (or
+        labels.png) is unsure (`imaging.segment.segmentation_checks`)."""
         case, lines = self.case, []
         for role in ("unloaded", "loaded"):
             if f"{role}_slice" in case.files:
@@ -143,6 +145,8 @@ class RunSetup:
                          f"{self.run_dir / info['figure']}")
         elif info["source"] == "labels":
             lines.append(f"muscle compartments: {count} from the labels")
+        lines += [f"{source} unsure: {warning.message}" for source, warnings in self.segmentation_warnings.items()
+                  for warning in warnings]
         return lines
 
     def solve(self, theta: Sequence[float], folder: Path, model: LegModel | None = None):
@@ -220,8 +224,10 @@ class RunSetup:
             raise RunFolderError(f"{self.run_dir} holds no DIC measurements{'' if level == 1 else f' of garment level {level}'}:"
                                  f" run `calfit measure CASE_DIR --out {self.run_dir}` first")
         summary = read_json(summary_path, "calfit measure")
+        # measurements made before the prefilter and the edges' error model were neither prefiltered nor had one
         measured = dic_measurements(self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm,
-                                    summary["noise_sigma"][0])
+                                    summary["noise_sigma"][0], summary.get("prefilter_px", 0.0),
+                                    summary.get("edge_variance_px2", 0.0))
         geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level)
         if geometry is None:
             return measured
@@ -286,6 +292,11 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
     labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
     area_change = check_compression(segmented_unloaded > 0, labels_loaded > 0, unloaded_name, loaded_name)
+    # labels.png is meshed as given; what is doubtful in it, or in the segmentations, is said, not corrected
+    unloaded_source = case.files["labels"].name if case.labels is not None else f"segmentation of {unloaded_name}"
+    segmentation_warnings = {source: [w.as_dict() for w in segmentation_checks(labels, case.pixel_size_mm)]
+                             for source, labels in ((unloaded_source, labels_unloaded),
+                                                    (f"segmentation of {loaded_name} aligned on the bones", labels_loaded))}
     prepared_levels = [_prepare_level(case, level, labels_unloaded, segmented_unloaded, align) for level in case.levels]
     for level, (_, _, _, share) in zip(case.levels, prepared_levels):
         if share is not None:
@@ -313,7 +324,7 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     temporary.replace(run_dir / SETUP_ARRAYS)
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
                                       "order": order, "compartments": compartment_info,
-                                      "missing_fraction": missing_fraction,
+                                      "missing_fraction": missing_fraction, "segmentation_warnings": segmentation_warnings,
                                       **({"levels": [info for _, _, info, _ in prepared_levels]} if case.levels else {}),
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
@@ -397,9 +408,11 @@ def load_run(run_dir: str | Path) -> RunSetup:
                                       tuple(entry["rigid_motion"]["centre_mm"])) for entry in stored_levels)
     motion = RigidMotion(info["rigid_motion"]["angle_deg"], tuple(info["rigid_motion"]["translation_mm"]),
                          tuple(info["rigid_motion"]["centre_mm"]))
+    segmentation_warnings = {source: [SegmentationWarning.from_dict(w) for w in warnings]
+                             for source, warnings in info.get("segmentation_warnings", {}).items()}
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
                     case_model(mesh, case), info.get("compartments", {"source": "none"}),
-                    info.get("missing_fraction", {}), level_motions, levels_aligned)
+                    info.get("missing_fraction", {}), level_motions, levels_aligned, segmentation_warnings)
 
 
 def truth_mesh(phantom, *, compartments: bool = False, n_elements: int = 2000, order: int = 2,
