@@ -270,13 +270,12 @@ class LegGeometry:
         self.tibia_marrow = self.tibia.shrunk(AngularProfile.of(
             lambda phi: s.tibia_cortex_mm + 0.3 * np.cos(phi - np.pi / 2)))
         fibula_centre = complex(*s.fibula_offset_mm)
-        self.fibula = PolarCurve(self.frame, fibula_centre, AngularProfile.of(
+        self.fibula = PolarCurve(self.frame, fibula_centre, AngularProfile.of(   # a rounded triangle, a little flattened
             lambda phi: s.fibula_radius_mm * (1.0 + 0.10 * np.cos(3.0 * (phi - 0.3)) + 0.06 * np.cos(2.0 * phi))))
-        self.fibula_marrow = self.fibula.shrunk(AngularProfile.of(lambda phi: s.fibula_cortex_mm + 0.0 * phi))
+        self.fibula_marrow = self.fibula.shrunk(AngularProfile([s.fibula_cortex_mm]))
         T, F = self.tibia.centre, self.fibula.centre
-        # bulges are given towards the front; an arc bulges to the left of its chord, which is the front when
-        # the chord runs laterally (its left normal i (F - T) then points forwards)
-        forwards = np.sign((F - T).real)
+        # bulges are given towards the front; an arc bulges to the left of its chord
+        forwards = self._front_sign()
         self.membrane = ArcCurve(T, F, forwards * s.membrane_bulge_mm)
         self.transverse_septum = ArcCurve(T, F, forwards * s.transverse_septum_bulge_mm)
         self.anterior_septum = ArcCurve(F, self._through_fascia(s.anterior_septum_deg), 1.5)
@@ -285,7 +284,7 @@ class LegGeometry:
         ends = [self._under_fascia(angle, s.aponeurosis_depth_mm) for angle in s.aponeurosis_deg]
         self.aponeurosis = ArcCurve(ends[0], ends[1], -0.25 * abs(ends[1] - ends[0]))   # bowed backwards
         self.vessels = self._place_vessels(np.random.default_rng([s.seed, 2]))
-        self._check(s)
+        self._check()
 
     # -- construction -------------------------------------------------------
 
@@ -370,8 +369,9 @@ class LegGeometry:
         muscle (soleal and gastrocnemial venous sinuses), clear of the other vessels and of the septa."""
         s = self.shape
         found: list[Vessel] = []
-        wanted = [("fat_vessel", FAT, 0.5, 1.0)] * s.small_fat_vessels + [("muscle_vein", MUSCLE, 1.0, 2.0)] * s.small_muscle_veins
-        for index, (name, tissue, smallest, largest) in enumerate(wanted):
+        wanted = ([("fat_vessel", FAT, 0.5, 1.0, number) for number in range(1, s.small_fat_vessels + 1)]
+                  + [("muscle_vein", MUSCLE, 1.0, 2.0, number) for number in range(1, s.small_muscle_veins + 1)])
+        for name, tissue, smallest, largest, number in wanted:
             for _ in range(200):
                 radius = rng.uniform(smallest, largest)
                 if tissue == FAT:
@@ -382,7 +382,7 @@ class LegGeometry:
                     fits = (self.compartment_at_leg(np.array([centre]))[0] == COMPARTMENTS.index("superficial_posterior")
                             and self._muscle_clearance_mm(np.array([centre]))[0] > radius + 3.0)
                 if fits and all(abs(centre - other.centre) > radius + other.radius_mm + 3.0 for other in placed + found):
-                    found.append(Vessel(f"{name}_{index + 1}", centre, radius, tissue))
+                    found.append(Vessel(f"{name}_{number}", centre, radius, tissue))
                     break
         return found
 
@@ -408,7 +408,7 @@ class LegGeometry:
         """Every dark line drawn in the muscle: the septa and the aponeurosis."""
         return self.septa() + (self.aponeurosis,)
 
-    def _check(self, s: LegShape, margin_mm: float = 1.0) -> None:
+    def _check(self, margin_mm: float = 1.0) -> None:
         """Every part inside its host with room for a mesh: no fat or muscle thinner than about 1 mm."""
         phi = np.linspace(-np.pi, np.pi, 720, endpoint=False)
         if np.min(self.skin_inner.radius(phi) - self.fascia.radius(phi)) < 1.5:
@@ -435,7 +435,6 @@ class LegGeometry:
         w = self.frame.to_leg(x, y)
         labels = np.zeros(w.shape, np.uint8)
         leg = self.skin.excess(w) < 0
-        labels[leg] = FAT
         inner = w[leg]
         muscle = self.fascia.excess(inner) < 0
         bone = (self.tibia.excess(inner) < 0) | (self.fibula.excess(inner) < 0)

@@ -26,6 +26,8 @@ with the coverage clip(1/2 + (w/2 - distance) / h, 0, 1) of a sample of size h (
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .anatomy import LegGeometry
@@ -94,6 +96,28 @@ def _fade_slope(t):
     return 30.0 * t * t * (t - 1.0) ** 2
 
 
+@dataclass(frozen=True)
+class SeptumFamily:
+    """Fat septa along the level lines of count * coordinate + tilt * depth + warp * noise(X), shown where
+    presence(X) + presence_bias is high (coordinate: phi / 2 pi for septa across the fat, the depth for septa
+    along it)."""
+
+    count: int               # lines around the leg, or across the fat's depth
+    tilt: float              # lines crossed between the skin and the fascia: obliquity
+    warp: float              # amplitude of the noise, in lines: bends
+    noise: GradientNoise
+    presence: GradientNoise
+    presence_bias: float     # higher: more of each line shown
+
+    def coverage(self, coordinate, coordinate_gradient, depth, depth_gradient, w, width, sample_mm):
+        n, nx, ny = self.noise(w.real, w.imag, gradient=True)
+        level = self.count * coordinate + self.tilt * depth + self.warp * n
+        gradient = self.count * coordinate_gradient + self.tilt * depth_gradient + self.warp * (nx + 1j * ny)
+        distance = np.abs(level - np.round(level)) / np.maximum(np.abs(gradient), 1e-9)
+        shown = smoothstep(0.5 + 1.2 * (self.presence(w.real, w.imag) + self.presence_bias))
+        return line_coverage(distance, width, sample_mm) * shown, level
+
+
 class FatSepta:
     """The fibrous septa of the subcutaneous fat (module text): `coverage(w, sample_mm)` at leg-frame fat points."""
 
@@ -101,51 +125,39 @@ class FatSepta:
                  tangential_septa: int = 2, width_mm: tuple[float, float] = (0.3, 0.6)):
         self.geometry = geometry
         rng = np.random.default_rng([seed, 3])
-        # (lines around the leg, tilt across the depth in lines, warp in lines, noise, presence noise, presence
-        # bias): the radial septa, mostly present, and a sparse family crossing them obliquely (branches)
-        self.radial = [(radial_septa, rng.uniform(-0.6, 0.6), 0.2, GradientNoise([seed, 4], 12.0),
-                        GradientNoise([seed, 5], 4.0), 0.5),
-                       (crossing_septa, rng.choice([-1.0, 1.0]) * rng.uniform(0.8, 1.5), 0.2, GradientNoise([seed, 6], 12.0),
-                        GradientNoise([seed, 7], 3.0), -0.8)]
-        self.tangential = (tangential_septa + 1, 0.15, GradientNoise([seed, 8], 15.0), GradientNoise([seed, 9], 5.0), -0.4)
+        # across the fat: the radial septa, mostly shown, and a sparse family crossing them obliquely (branches)
+        self.across = (
+            SeptumFamily(radial_septa, rng.uniform(-0.6, 0.6), 0.2, GradientNoise([seed, 4], 12.0),
+                         GradientNoise([seed, 5], 4.0), 0.5),
+            SeptumFamily(crossing_septa, rng.choice([-1.0, 1.0]) * rng.uniform(0.8, 1.5), 0.2,
+                         GradientNoise([seed, 6], 12.0), GradientNoise([seed, 7], 3.0), -0.8))
+        # along the fat: a few stretches of septa parallel to the skin, at 1/3 and 2/3 of its depth
+        self.along = SeptumFamily(tangential_septa + 1, 0.0, 0.15, GradientNoise([seed, 8], 15.0),
+                                  GradientNoise([seed, 9], 5.0), -0.4)
         self.width_mm = width_mm
         self.width_noise = GradientNoise([seed, 10], 3.0)
 
     def coverage(self, w: np.ndarray, sample_mm: float) -> np.ndarray:
         """Share (0-1) of each sample of size sample_mm at leg-frame points w covered by a septum."""
         rho, z = self.geometry.skin_inner.polar(w)
+        rho = np.maximum(rho, 1e-6)
         outer, outer_slope = self.geometry.skin_inner.radius.evaluate(z)
         inner, inner_slope = self.geometry.fascia.radius.evaluate(z)
         thickness, thickness_slope = outer - inner, outer_slope - inner_slope
         depth = (outer - rho) / thickness
-        # grad of the depth fraction, as a complex number (x + i y of the leg frame): radial and tangential parts
+        # gradients as complex numbers (x + i y of the leg frame), from their radial (z) and tangential (i z) parts
         depth_gradient = z * (-1.0 / thickness) + 1j * z * ((outer_slope * thickness - (outer - rho) * thickness_slope)
-                                                           / (thickness ** 2 * np.maximum(rho, 1e-6)))
-        phi = np.angle(z)
+                                                           / (thickness ** 2 * rho))
+        turn, turn_gradient = np.angle(z) / (2.0 * np.pi), 1j * z / (2.0 * np.pi * rho)
         low, high = self.width_mm
         width = low + (high - low) * smoothstep(0.5 + 0.35 * self.width_noise(w.real, w.imag))
         covered = np.zeros(w.shape)
-        for count, tilt, warp, noise, presence, bias in self.radial:
-            n, nx, ny = noise(w.real, w.imag, gradient=True)
-            level = count * phi / (2.0 * np.pi) + tilt * depth + warp * n
-            gradient = (count / (2.0 * np.pi)) * 1j * z / np.maximum(rho, 1e-6) + tilt * depth_gradient + warp * (nx + 1j * ny)
-            covered = np.maximum(covered, self._line(level, gradient, width, sample_mm) * self._present(presence, w, bias))
-        count, warp, noise, presence, bias = self.tangential
-        n, nx, ny = noise(w.real, w.imag, gradient=True)
-        level = count * depth + warp * n
-        gradient = count * depth_gradient + warp * (nx + 1j * ny)
-        inside = (level > 0.5) & (level < count - 0.5)     # not the skin or the fascia themselves
-        covered = np.maximum(covered, inside * self._line(level, gradient, width, sample_mm) * self._present(presence, w, bias))
-        return covered
-
-    @staticmethod
-    def _line(level, gradient, width, sample_mm):
-        distance = np.abs(level - np.round(level)) / np.maximum(np.abs(gradient), 1e-9)
-        return line_coverage(distance, width, sample_mm)
-
-    @staticmethod
-    def _present(presence: GradientNoise, w, bias):
-        return smoothstep(0.5 + 1.2 * (presence(w.real, w.imag) + bias))
+        for family in self.across:
+            covered = np.maximum(covered, family.coverage(turn, turn_gradient, depth, depth_gradient, w, width,
+                                                          sample_mm)[0])
+        along, level = self.along.coverage(depth, depth_gradient, depth, depth_gradient, w, width, sample_mm)
+        beneath = (level > 0.5) & (level < self.along.count - 0.5)     # not the skin or the fascia themselves
+        return np.maximum(covered, along * beneath)
 
 
 class MuscleStreaks:
@@ -181,8 +193,10 @@ class MuscleStreaks:
             level = local.real / self.spacing_mm + 0.12 * n[members]
             gradient = direction / self.spacing_mm + 0.12 * (nx[members] + 1j * ny[members])
             distance = np.abs(level - np.round(level)) / np.abs(gradient)
-            # the presence noise varies along each streak and jumps from one streak to the next (its index)
-            present = smoothstep(0.5 + 1.5 * (self.presence(local.imag * self.stretch + 37.0 * np.round(level),
-                                                             np.round(level) * 5.3) - self.threshold))
+            # each streak (index k) reads the presence noise along a row of its own (5.3 mm apart, over three
+            # lattice cells, and shifted by 37 mm), stretched along it: it shows over stretches of about length_mm
+            streak = np.round(level)
+            present = smoothstep(0.5 + 1.5 * (self.presence(local.imag * self.stretch + 37.0 * streak, 5.3 * streak)
+                                              - self.threshold))
             covered[members] = line_coverage(distance, width[members], sample_mm) * present
         return covered
