@@ -11,13 +11,15 @@ a finer matrix of the same leg segments the same):
    bright (fat, fatty marrow) grey levels;
 2. the leg is the largest non-dark component with its holes filled;
 3. bones (`find_bones`) are cortex plus marrow, whatever the marrow's grey level: on the image smoothed less
-   (`bone_smoothing_mm`, so that a 1 mm cortex stays darker than the dark threshold at 0.6 mm pixels), a region
-   of the leg enclosed by the dark mask is marrow when its rim is a cortex, at least `min_cortex_mm` thick and
-   a tenth of the region's radius along most of its length (measured on a grid of 0.1 mm interpolated from the
-   image, so the test does not depend on the pixel); thin septa and fascia that close a loop are not. The dark
-   mask with that marrow is opened by a disk of `bone_opening_mm` (which drops the fascia, septa and vessels
-   stuck to a bone but not a bone, a solid region at least 8 mm across), and its pieces of plausible area
-   (`min_bone_area_mm2` to `max_bone_area_mm2`) are the bones. A dark marrow is found as part of the dark mask;
+   (`bone_smoothing_mm`: a Gaussian of 0.36 mm lifts the middle of a 1 mm cortex above the dark threshold at
+   0.6 mm pixels, and its ring opens), a region of the leg enclosed by the dark mask is marrow when its rim is a
+   cortex: at least `min_cortex_mm` (0.5 mm) and a tenth of the region's radius thick along 80 % of its length,
+   measured on a grid of 0.1 mm interpolated from the image, so that the test does not depend on the pixel (a
+   1 mm cortex at 0.6 mm pixels is 0.6-0.7 mm thick at the threshold). Septa and fascia that close a loop around
+   a compartment are too thin for its size, even as black as cortex. The dark mask with that marrow is opened by
+   a disk of `bone_opening_mm` (1 mm: it drops the fascia, septa and vessels stuck to a bone, not the bone, a
+   solid region at least 8 mm across), and its pieces of plausible area (`min_bone_area_mm2` to
+   `max_bone_area_mm2`) are the bones. A marrow as dark as the cortex is part of the dark mask itself;
 4. muscle is the largest component of the non-bright, non-bone leg opened by
    a disk of `skin_opening_mm` (which cuts the thin skin ring away from it),
    grown back inside the non-bright mask, small holes (veins) filled;
@@ -48,7 +50,7 @@ TISSUE_NAMES = {BACKGROUND: "background", FAT: "fat", MUSCLE: "muscle", BONE: "b
 CALF_BONES = ("tibia", "fibula")
 RIM_GRID_MM = 0.1          # the grid on which a rim's thickness is measured
 RIM_THICK_SHARE = 0.8      # share of a marrow's rim that must be cortex-thick (a partial-volumed pixel may not be)
-CORTEX_TO_MARROW_RADIUS = 0.1   # a long bone's cortex is several tenths of its marrow's radius
+CORTEX_TO_MARROW_RADIUS = 0.1   # a long bone's cortex is several tenths of its marrow's radius, septa round a compartment a few hundredths
 
 
 def largest_component(mask: np.ndarray) -> np.ndarray:
@@ -102,18 +104,18 @@ def find_bones(image: np.ndarray, leg: np.ndarray, dark_level: float, pixel_size
     a cortex (see the module text), opened by a disk of bone_opening_mm, pieces of min_bone_area_mm2 to
     max_bone_area_mm2 (15 cm^2: over twice a tibia's cross-section in the calf)."""
     pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
-    # no opening before the holes are filled: at 0.6 mm a 1.2 mm cortex is a ring two pixels wide, which any
-    # opening by a whole-pixel disk erases, and the fibula's marrow then became an island of fat
+    # no opening before the holes are filled: at 0.6 mm a 1.2 mm cortex is a ring two pixels wide, which an
+    # opening by the smallest disk (one pixel) erases, and the fibula's marrow then became an island of fat
     dark = leg & (image <= dark_level)
-    enclosed, count = ndimage.label(ndimage.binary_fill_holes(dark) & ~dark)
+    enclosed, _ = ndimage.label(ndimage.binary_fill_holes(dark) & ~dark)
     marrow = np.zeros_like(dark)
     for index, piece in enumerate(ndimage.find_objects(enclosed), start=1):
         region = enclosed[piece] == index
         area = region.sum() * pixel_area
         if area > max_bone_area_mm2:
             continue
-        # a speck smaller than the cortex is thick has no rim to measure: noise inside a dark region, kept with it
         cortex_mm = max(min_cortex_mm, CORTEX_TO_MARROW_RADIUS * np.sqrt(area / np.pi))
+        # a speck smaller than the cortex is thick has no rim to measure: noise inside a dark region, kept with it
         if area < np.pi * min_cortex_mm ** 2 or _thick_rim_share(
                 image, dark_level, enclosed, index, piece, pixel_size_mm, cortex_mm) >= RIM_THICK_SHARE:
             marrow[piece] |= region
