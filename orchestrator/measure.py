@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import ndimage, sparse, stats
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
@@ -45,6 +45,7 @@ from .imaging.dic import correlate, grid_centres, roi_centres
 from .imaging.frame import RigidMotion, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
+from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter
 from .imaging.windows import WindowOperators
 
 WINDOW_CHOICES = (16, 32, 64)
@@ -54,6 +55,7 @@ MAX_UNCERTAINTY_PX = 0.25
 MEDIAN_THRESHOLD = 2.0
 MEDIAN_EPSILON_PX = 0.1
 MEDIAN_NEIGHBOURS = 8
+RESIDUAL_ALPHA = 1e-3   # a window's residual beyond what the error model allows at this level is not trusted
 PRIOR_SMOOTHING = 1e-3      # thin-plate smoothing of the first pass (it only has to bend the windows, not fit noise)
 VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
 KINDS = ("grid", "skin", "fascia", "vessel")
@@ -250,12 +252,14 @@ def normalised_median_outliers(positions_mm: np.ndarray, displacement_px: np.nda
 def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm, motion: RigidMotion, *,
                 landmarks: dict | None = None, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, min_confidence: float = MIN_CONFIDENCE,
-                max_uncertainty_px: float = MAX_UNCERTAINTY_PX) -> tuple[Measurements, WindowTable, dict]:
+                max_uncertainty_px: float = MAX_UNCERTAINTY_PX,
+                prefilter_px: float = PREFILTER_SIGMA_PX) -> tuple[Measurements, WindowTable, dict]:
     """DIC between the two images (module text). Returns the kept windows as Measurements, every window tried,
     and a summary."""
     if window_px not in WINDOW_CHOICES:
         raise ValueError(f"the DIC window must be one of {WINDOW_CHOICES} pixels, not {window_px}")
     began = time.perf_counter()
+    prefilter = Prefilter(prefilter_px)
     step_px = int(step_px or window_px // 2)
     pixel = float(min(pixel_size_mm))
     roi_spacing_mm = float(roi_spacing_mm or step_px * pixel)
@@ -263,12 +267,16 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     centres, kinds = window_centres(labels, pixel_size_mm, window_px, step_px, roi_spacing_mm, vessels)
     if len(centres) == 0:
         raise ValueError("the segmentation holds no fat or muscle where a DIC window could sit")
-    first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion)
+    first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion, prefilter=prefilter)
     trusted = _checks(first, min_confidence, max_uncertainty_px, step_px * pixel) == KEPT
     prior = prior_field(first.position_mm[trusted], first.displacement_mm[trusted], unloaded.shape, pixel_size_mm)
     result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion,
-                       prior_field_mm=prior, noise_sigma=first.noise_sigma)
-    status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel)
+                       prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter)
+    # the error of the images' edges, calibrated on the residuals of the windows that matched (`prefilter`)
+    edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence))
+    result = result.with_edge_variance(edges.edge_variance_px2)
+    unpredicted = residual_outliers(result, edges, prefilter)
+    status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, unpredicted)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
     kept = status == KEPT
@@ -276,14 +284,18 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     if kept.any():
         # what the windows see of the prior is not the prior at their centres: the data the model is compared with
         # are the displacements less that difference (measure_dic text)
-        seen = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0]).observe(prior)
+        seen = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0],
+                               prefilter=prefilter).observe(prior)
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset)
-    measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0])
+    measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
+                                    edges.edge_variance_px2)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
+               "prefilter_px": prefilter_px, "edge_variance_px2": edges.edge_variance_px2,
+               "residual_over_noise": edges.residual_over_noise,
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
                "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},
                "noise_sigma": list(result.noise_sigma),
@@ -295,7 +307,26 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     return measurements, table, summary
 
 
-def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: float) -> np.ndarray:
+def residual_outliers(result, edges, prefilter: Prefilter) -> np.ndarray:
+    """Windows whose match leaves more residual than the error model predicts for them (`imaging.prefilter`): a
+    chi^2 test at RESIDUAL_ALPHA on the window's independent values (its pixels over those one prefiltered value
+    spreads over). A sliding interface, a vessel that fills or a failed match shows here; its error could not be
+    predicted from the images' noise and edges."""
+    kappa = edges.residual_over_noise
+    outliers = np.zeros(len(result.confidence), bool)
+    if not np.isfinite(kappa) or kappa <= 0:
+        return outliers
+    for k, window in enumerate(result.edge_residuals):
+        if window.count == 0:
+            continue
+        independent = window.count / prefilter.correlated_pixels
+        bound = stats.chi2.ppf(1.0 - RESIDUAL_ALPHA, independent) / independent
+        outliers[k] = window.residual_ratio(edges.edge_variance_px2, kappa) > bound
+    return outliers
+
+
+def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: float,
+            unpredicted: np.ndarray | None = None) -> np.ndarray:
     """Status of every window: kept, or the first check it fails (module text)."""
     status = np.full(len(result.confidence), KEPT, dtype=object)
     correlated = np.all(np.isfinite(result.displacement_px), axis=1)
@@ -304,6 +335,8 @@ def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: f
     status[low] = f"low match (ZNCC < {min_confidence:g})"
     uncertain = correlated & ~low & ~(result.uncertainty_px <= max_uncertainty_px)
     status[uncertain] = f"uncertain (> {max_uncertainty_px:g} px)"
+    if unpredicted is not None:
+        status[(status == KEPT) & unpredicted] = "residual above its error model"
     candidates = status == KEPT
     outliers = normalised_median_outliers(result.position_mm, result.displacement_px, candidates, radius_mm=3.0 * step_mm)
     status[outliers & candidates] = f"median test (> {MEDIAN_THRESHOLD:g})"
@@ -325,14 +358,16 @@ def prior_field(positions_mm: np.ndarray, displacement_mm: np.ndarray, shape, pi
 
 
 def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, pixel_size_mm,
-                     reference_noise_sigma: float) -> Measurements:
-    """The kept windows of a table as Measurements (operators and covariance rebuilt from I0)."""
+                     reference_noise_sigma: float, prefilter_px: float, edge_variance_px2: float) -> Measurements:
+    """The kept windows of a table as Measurements (operators and covariance rebuilt from I0, prefiltered as the
+    windows were correlated, with the error of the images' edges)."""
     kept = table.kept
     if kept.sum() < 10:
         raise ValueError(f"only {int(kept.sum())} DIC windows passed the checks ({table.counts()}); the images do "
                          "not correlate: check that both slices show the same level of the leg")
-    operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma)
-    covariance = operators.covariance(table.intensity_variance[kept])
+    operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
+                                prefilter=Prefilter(prefilter_px))
+    covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]
     return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept] - offset, covariance, operators, True,
@@ -349,20 +384,23 @@ def reference_noise_covariance(first: Measurements, second: Measurements) -> np.
     a, b = first.operators, second.operators
     if a is None or b is None or first.reference_noise_sigma is None or second.reference_noise_sigma is None:
         return None
-    if a.window_px != b.window_px or a.shape != b.shape or not np.allclose(a.to_mm, b.to_mm):
+    if (a.window_px != b.window_px or a.shape != b.shape or not np.allclose(a.to_mm, b.to_mm)
+            or a.prefilter != b.prefilter):
         raise ValueError("two garment levels measured with other windows or on another reference image")
     variance = first.reference_noise_sigma * second.reference_noise_sigma
     to_mm = np.diag(a.to_mm)
-    reach = a.window_px - 1 + 1e-9
+    reach = a.window_px - 1 + 2 * a.prefilter.radius + 1e-9
     covariance = np.zeros((2 * len(a), 2 * len(b)))
     tree = cKDTree(b.centres)
     for i, centre in enumerate(a.centres):
         for j in tree.query_ball_point(centre, reach * np.sqrt(2)):
             if np.any(np.abs(centre - b.centres[j]) > reach):
                 continue
-            shared, in_i, in_j = np.intersect1d(a.pixels[i], b.pixels[j], assume_unique=True, return_indices=True)
+            shared, in_i, in_j = np.intersect1d(a.noise_pixels[i], b.noise_pixels[j], assume_unique=True,
+                                                return_indices=True)
             if shared.size:
-                covariance[2 * i:2 * i + 2, 2 * j:2 * j + 2] = variance * to_mm @ (a.B[i][:, in_i] @ b.B[j][:, in_j].T) @ to_mm
+                weight = variance * a.noise_ratio[shared]
+                covariance[2 * i:2 * i + 2, 2 * j:2 * j + 2] = to_mm @ ((a.B[i][:, in_i] * weight) @ b.B[j][:, in_j].T) @ to_mm
     return covariance
 
 

@@ -12,57 +12,75 @@ u(centre) by far more than the noise: comparing a model with DIC at window centr
 The model is therefore observed as DIC observes it: `observation` is the sparse matrix of the K(x), applied to
 the model's displacement on the pixels (what is known as DIC-levelled finite-element data).
 
-Overlapping windows share pixels, so their errors are correlated. With B_i(x) = rows u, v of H_s,i^-1 S_i(x)^T
-(H_s the Gauss-Newton matrix of the noiseless reference, `dic.denoised_hessian`) and s_i^2 the intensity-noise
-variance of window i,
+Both images are prefiltered (`prefilter`), so S and grad f are those of the prefiltered reference, and a window's
+error is sum_y B~_i(y) e(y) over the raw errors e, with B_i(x) = rows u, v of H_s,i^-1 S_i(x)^T (H_s the Gauss-Newton
+matrix of the noiseless reference, `dic.denoised_hessian`) and B~_i = G * B_i its spread by the prefilter, reaching
+the kernel's radius beyond the window. Overlapping windows share raw pixels, so their errors are correlated: with
+s_i^2 the intensity-noise variance of window i in the tissue, rho its Rician share at each pixel (0.43 in air,
+`prefilter.rician_variance_ratio`) and s_edge^2 the variance of the position of the images' edges,
 
-    Cov(u_i, u_j) = s_i s_j sum_{x in both} B_i(x) B_j(x)^T,
+    Cov(u_i, u_j) = sum_{y in both} B~_i(y) [s_i s_j rho(y) + s_edge^2 |grad I0(y)|^2] B~_j(y)^T,
 
-which is s_i^2 H_s^-1 H H_s^-1 on the diagonal (the covariance each window reports) and positive semi-definite (a Gram
-matrix scaled by a diagonal). `covariance` assembles it for the fit's weighting, its noise floor and its
+which on the diagonal is the covariance each window reports (with s_edge = 0) and is positive semi-definite (a
+Gram matrix scaled by positive weights). `covariance` assembles it for the fit's weighting, its noise floor and its
 Monte-Carlo intervals.
 """
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .dic import denoised_hessian, spline_gradient, steepest_descent
+from .dic import denoised_hessian, spline_gradient, zero_normalised_steepest_descent
+from .prefilter import Prefilter, edge_strength, rician_variance_ratio
 
 
 class WindowOperators:
-    """The linear maps B_i and K_i of a set of square windows on a reference image (module text)."""
+    """The linear maps B~_i and K_i of a set of square windows on a reference image (module text), for windows
+    correlated on images smoothed by `prefilter` (default: `dic.correlate`'s)."""
 
     def __init__(self, reference: np.ndarray, centres_rc, window_px: int, pixel_size_mm, reference_noise_sigma: float,
-                 gradients=None):
+                 gradients=None, prefilter: Prefilter | None = None):
+        reference = np.asarray(reference, float)
         self.shape = tuple(np.shape(reference))
         self.centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
         self.window_px = int(window_px)
+        self.prefilter = Prefilter() if prefilter is None else prefilter
         dy, dx = (float(v) for v in pixel_size_mm)
         self.to_mm = np.array([dx, dy])
-        grad_rows, grad_cols = gradients if gradients is not None else spline_gradient(reference)
-        size = self.window_px
+        smooth = self.prefilter(reference)
+        grad_rows, grad_cols = gradients if gradients is not None else spline_gradient(smooth)
+        self._reference = reference
+        self.reference_noise_sigma = float(reference_noise_sigma)
+        size, reach = self.window_px, self.prefilter.radius
         local_rows, local_cols = np.mgrid[0:size, 0:size]
-        self.pixels = []      # flat pixel indices of each window
-        self.B = []           # (2, size^2) per window, px per intensity unit
-        self.K = []           # (2, 2, size^2) per window: centre displacement (px) per pixel displacement (px)
+        spread_rows, spread_cols = np.mgrid[-reach:size + reach, -reach:size + reach]
+        self.pixels = []        # flat pixel indices of each window
+        self.K = []             # (2, 2, size^2) per window: centre displacement (px) per pixel displacement (px)
+        self.noise_pixels = []  # flat indices of the raw pixels whose error reaches each window (inside the image)
+        self.B = []             # (2, len(noise_pixels)) per window: B~, px per raw intensity unit
         for row, col in self.centres:
             r0, c0 = row - size // 2, col - size // 2
             rows, cols = local_rows + r0, local_cols + c0
             if r0 < 0 or c0 < 0 or r0 + size > self.shape[0] or c0 + size > self.shape[1]:
                 raise ValueError(f"the window centred at row {row}, column {col} does not fit in the image")
             fx, fy = grad_cols[rows, cols], grad_rows[rows, cols]
-            steepest = steepest_descent(fx, fy)
-            hessian = steepest.T @ steepest
-            signal = denoised_hessian(hessian, size, reference_noise_sigma)
+            steepest, hessian = zero_normalised_steepest_descent(smooth[rows, cols], fx, fy)
+            signal = denoised_hessian(hessian, size, reference_noise_sigma, self.prefilter.derivative_noise_gain)
             if signal is None:
                 raise ValueError(f"the window centred at row {row}, column {col} holds less texture than noise")
             self.pixels.append((rows * self.shape[1] + cols).ravel())
-            self.B.append(np.linalg.solve(signal, steepest.T)[[0, 3]])
             fit = np.linalg.solve(hessian, steepest.T)[[0, 3]]
             self.K.append(fit[:, None, :] * np.stack([fx.ravel(), fy.ravel()])[None, :, :])
+            spread = self.prefilter.spread(np.linalg.solve(signal, steepest.T)[[0, 3]].reshape(2, size, size))
+            reach_rows, reach_cols = (spread_rows + r0).ravel(), (spread_cols + c0).ravel()
+            inside = ((reach_rows >= 0) & (reach_rows < self.shape[0]) & (reach_cols >= 0)
+                      & (reach_cols < self.shape[1]))
+            self.noise_pixels.append(reach_rows[inside] * self.shape[1] + reach_cols[inside])
+            self.B.append(spread.reshape(2, -1)[:, inside])
 
     def __len__(self) -> int:
         return len(self.centres)
@@ -92,26 +110,38 @@ class WindowOperators:
         values = np.stack([field_mm[0].ravel()[pixels], field_mm[1].ravel()[pixels]], axis=1).ravel()
         return (matrix @ values).reshape(-1, 2)
 
-    def covariance(self, intensity_variance: np.ndarray) -> np.ndarray:
+    @cached_property
+    def noise_ratio(self) -> np.ndarray:
+        """rho of every pixel of the reference, flat (`prefilter.rician_variance_ratio`)."""
+        return rician_variance_ratio(self._reference, self.reference_noise_sigma).ravel()
+
+    def covariance(self, intensity_variance: np.ndarray, edge_variance_px2: float = 0.0) -> np.ndarray:
         """Dense (2N, 2N) covariance (mm^2, interleaved u_x, u_y per window) of the windows' errors, overlaps
-        included; intensity_variance: s_i^2 of each window (`DICResult.intensity_variance`)."""
+        included; intensity_variance: s_i^2 of each window (`DICResult.intensity_variance`); edge_variance_px2:
+        s_edge^2 of the images' edges (`prefilter.EdgeResiduals`)."""
         variance = np.asarray(intensity_variance, float)
         if variance.shape != (len(self),) or not np.all(np.isfinite(variance) & (variance > 0)):
             raise ValueError("the covariance needs a positive, finite intensity variance for every window")
+        if not (edge_variance_px2 >= 0.0 and np.isfinite(edge_variance_px2)):
+            raise ValueError(f"the variance of the edges' position is a non-negative number, not {edge_variance_px2}")
         scale = np.sqrt(variance)
+        rho = self.noise_ratio
+        edges = edge_variance_px2 * edge_strength(self._reference).ravel() if edge_variance_px2 > 0 else 0.0
         n = len(self)
         covariance = np.zeros((2 * n, 2 * n))
-        reach = self.window_px - 1 + 1e-9
+        reach = self.window_px - 1 + 2 * self.prefilter.radius + 1e-9
         pairs = cKDTree(self.centres).query_pairs(reach * np.sqrt(2), output_type="ndarray")
         pairs = np.vstack([np.column_stack([np.arange(n), np.arange(n)]), pairs.reshape(-1, 2)])
         to_mm = np.diag(self.to_mm)
         for i, j in pairs:
             if np.any(np.abs(self.centres[i] - self.centres[j]) > reach):
                 continue
-            shared, in_i, in_j = np.intersect1d(self.pixels[i], self.pixels[j], assume_unique=True, return_indices=True)
+            shared, in_i, in_j = np.intersect1d(self.noise_pixels[i], self.noise_pixels[j], assume_unique=True,
+                                                return_indices=True)
             if shared.size == 0:
                 continue
-            block = scale[i] * scale[j] * to_mm @ (self.B[i][:, in_i] @ self.B[j][:, in_j].T) @ to_mm
+            weight = scale[i] * scale[j] * rho[shared] + (edges[shared] if edge_variance_px2 > 0 else 0.0)
+            block = to_mm @ ((self.B[i][:, in_i] * weight) @ self.B[j][:, in_j].T) @ to_mm
             covariance[2 * i:2 * i + 2, 2 * j:2 * j + 2] = block
             covariance[2 * j:2 * j + 2, 2 * i:2 * i + 2] = block.T
         return covariance
