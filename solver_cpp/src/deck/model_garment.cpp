@@ -1,5 +1,6 @@
 // Deck keywords -> Model: the garment's pressure (*TENSION PROFILE with its factor T(theta) / TENSION, *LAPLACE
-// PRESSURE p = T/r, Avril et al. eq. (1); solver_cpp/README.md, Project keywords).
+// PRESSURE p = T/r, Avril et al. eq. (1), with the share REFERENCE of the reference-curvature law;
+// solver_cpp/README.md, Project keywords).
 #include "deck/model_builder.hpp"
 
 #include <algorithm>
@@ -117,7 +118,7 @@ void ModelBuilder::read_fourier_profile(const KeywordBlock& b, TensionProfile& p
 }
 
 void ModelBuilder::laplace_pressure(const KeywordBlock& b) {
-  b.allow_only({"SURFACE", "TENSION", "PROFILE", "OP"});
+  b.allow_only({"SURFACE", "TENSION", "PROFILE", "REFERENCE", "OP"});
   step_data(b);
   no_data(b);
   apply_op(b, loads_.laplace);
@@ -131,6 +132,13 @@ void ModelBuilder::laplace_pressure(const KeywordBlock& b) {
     load.profile = model_.profile(*profile);
     if (load.profile < 0)
       throw DeckError(b.where, "tension profile " + *profile + " is not defined (*TENSION PROFILE, NAME=" + *profile + ")");
+  }
+  if (const auto reference = b.value("REFERENCE")) {
+    load.reference = to_double(*reference, b.where, "REFERENCE");
+    if (!(load.reference >= 0.0 && load.reference <= 1.0))
+      throw DeckError(b.where, "REFERENCE=" + *reference +
+                                   " is outside [0, 1]: it is the share of the reference-curvature law (0: the pressure "
+                                   "follows the deformed contour, 1: it is fixed by the unloaded contour)");
   }
   loads_.laplace[surface] = load;
 }

@@ -85,9 +85,13 @@ struct ContactPairDef {
   SourceLocation where;
 };
 
+// *LAPLACE PRESSURE on one surface: f = (1 - reference) f_deformed + reference f_reference, the
+// membrane load on the deformed contour and the follower pressure fixed by the reference contour's
+// curvature (solver_cpp/README.md, Project keywords).
 struct LaplaceLoad {
-  double tension = 0.0;  // force per unit length
-  int profile = -1;      // index into Model::profiles, -1 for constant tension
+  double tension = 0.0;    // force per unit length
+  int profile = -1;        // index into Model::profiles, -1 for constant tension
+  double reference = 0.0;  // alpha in [0, 1]: the reference-contour law's share
 };
 
 // *RIGID MOTION: both dofs of every node of a set follow u = t + (R(angle) - I)(X - center),

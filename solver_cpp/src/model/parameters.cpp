@@ -67,20 +67,44 @@ SensitivityParameter material_constant(const Model& model, const DataLine& line)
   return p;
 }
 
-// TENSION, <surface>: the garment tension of the last step's *LAPLACE PRESSURE there.
-SensitivityParameter laplace_tension(const Model& model, const DataLine& line) {
-  expect_fields(line, 2, "TENSION, surface");
+// The surface of a TENSION or REFERENCE line: it must carry a *LAPLACE PRESSURE in the last step.
+int laplace_surface(const Model& model, const DataLine& line, const std::string& kind, const std::string& quantity) {
+  expect_fields(line, 2, kind + ", surface");
   const std::string name = upper(line.fields[1]);
   const int surface = model.surface(name);
   if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
   if (!model.steps.back().loads.laplace.count(surface))
-    throw DeckError(line.where, "the last step has no *LAPLACE PRESSURE on surface " + name + ": no TENSION to differentiate");
+    throw DeckError(line.where, "the last step has no *LAPLACE PRESSURE on surface " + name + ": no " + quantity +
+                                    " to differentiate");
+  return surface;
+}
+
+// TENSION, <surface>: the garment tension of the last step's *LAPLACE PRESSURE there.
+SensitivityParameter laplace_tension(const Model& model, const DataLine& line) {
+  const int surface = laplace_surface(model, line, "TENSION", "TENSION");
   SensitivityParameter p;
-  p.name = "TENSION:" + name;
+  p.name = "TENSION:" + model.surface_names[surface];
   p.where = line.where;
-  p.affine = true;  // the membrane load is linear in the nodal tension
+  p.affine = true;  // both shares of the load are linear in the nodal tension
   p.get = [surface](const ParameterState& s) { return s.loads.laplace.at(surface).tension; };
   p.set = [surface](ParameterState& s, double value) { s.loads.laplace.at(surface).tension = value; };
+  p.scope.faces = faces_of(model, surface);
+  sort_unique(p.scope.faces);
+  return p;
+}
+
+// REFERENCE, <surface>: the share alpha of the reference-contour law in the last step's *LAPLACE PRESSURE
+// there (0 where the keyword does not give it). The load (1 - alpha) f_deformed + alpha f_reference is affine
+// in alpha, dR/dalpha = -(f_reference - f_deformed) at fixed u: the score of the reference law. The setter
+// takes any value (the difference of (3) in sensitivity.hpp evaluates alpha + |alpha| or 1 + 0).
+SensitivityParameter laplace_reference(const Model& model, const DataLine& line) {
+  const int surface = laplace_surface(model, line, "REFERENCE", "REFERENCE share");
+  SensitivityParameter p;
+  p.name = "REFERENCE:" + model.surface_names[surface];
+  p.where = line.where;
+  p.affine = true;
+  p.get = [surface](const ParameterState& s) { return s.loads.laplace.at(surface).reference; };
+  p.set = [surface](ParameterState& s, double value) { s.loads.laplace.at(surface).reference = value; };
   p.scope.faces = faces_of(model, surface);
   sort_unique(p.scope.faces);
   return p;
@@ -268,6 +292,7 @@ const std::map<std::string, Resolver>& kinds() {
   static const std::map<std::string, Resolver> table = {
       {"MATERIAL", material_constant},
       {"TENSION", laplace_tension},
+      {"REFERENCE", laplace_reference},
       {"PROFILE", profile_coefficient},
       {"VOLUME CHANGE", volume_change},
       {"AXIAL STRETCH", axial_stretch},

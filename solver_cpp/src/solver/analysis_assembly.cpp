@@ -74,7 +74,7 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
     EdgeVector fe;
     EdgeMatrix dfe;
     if (laplace) {
-      laplace_membrane_load(x, f.tension(lambda), fe, tangent ? &dfe : nullptr);
+      garment_load(x, f.tension(lambda), f.reference_pressure(lambda), fe, tangent ? &dfe : nullptr);
     } else {
       follower_pressure_load(x, ramp(f.start, f.end, lambda), fe, tangent ? &dfe : nullptr);
     }
@@ -112,17 +112,19 @@ FieldOutput StaticAnalysis::output() {
   for (std::size_t e = 0; e < elements_.size(); ++e)
     out.element_states.push_back(
         elements_[e]->state(local_unknowns(u_, static_cast<int>(e)), kinematics(static_cast<int>(e), last_lambda_)));
-  // Nodal garment pressure: the Laplace load's nodal force over the node's consistent
-  // length, along the node's outward normal.
+  // Nodal garment pressure: the deformed-contour share's nodal force over the node's consistent
+  // length, along the node's outward normal (T / r), plus the reference-contour share's follower
+  // pressure at the node (alpha p0; its length-weighted mean where faces of several surfaces meet).
   const int n_nodes = static_cast<int>(model_.coordinates.size());
   out.laplace_pressure = Eigen::VectorXd::Zero(n_nodes);
   Eigen::MatrixXd force = Eigen::MatrixXd::Zero(n_nodes, 2), normal = Eigen::MatrixXd::Zero(n_nodes, 2);
-  Eigen::VectorXd length = Eigen::VectorXd::Zero(n_nodes);
+  Eigen::VectorXd length = Eigen::VectorXd::Zero(n_nodes), reference_force = Eigen::VectorXd::Zero(n_nodes);
   for (const FaceLoad& f : laplace_faces_) {
     const ElementDef& e = model_.elements[f.element];
     const EdgeNodes x = face_positions(f, u_);
     EdgeVector fe;
     laplace_membrane_load(x, f.tension(last_lambda_), fe, nullptr);
+    const Eigen::VectorXd reference_pressure = f.reference_pressure(last_lambda_);
     Eigen::VectorXd w;
     EdgeNodes nw;
     face_weights(x, w, nw);
@@ -132,11 +134,14 @@ FieldOutput StaticAnalysis::output() {
       force.row(node) += fe.segment<2>(2 * kk).transpose();
       normal.row(node) += nw.row(kk);
       length[node] += w[kk];
+      reference_force[node] += w[kk] * reference_pressure[kk];
     }
   }
-  for (int node = 0; node < n_nodes; ++node)
+  for (int node = 0; node < n_nodes; ++node) {
     if (length[node] > 0.0 && normal.row(node).norm() > 0.0)
       out.laplace_pressure[node] = -force.row(node).dot(normal.row(node).normalized()) / length[node];
+    if (reference_force[node] != 0.0) out.laplace_pressure[node] += reference_force[node] / length[node];
+  }
 
   // Contact tractions: as computed on the slave nodes, and on the master nodes the
   // slave forces they receive over their tributary length.

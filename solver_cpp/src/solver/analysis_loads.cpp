@@ -1,5 +1,6 @@
 // StaticAnalysis: the loads and kinematics of a step ramped over its increments (prescribed displacements,
-// rigid motions of node sets, forces, volume changes, follower and Laplace-law pressures).
+// rigid motions of node sets, forces, volume changes, follower and Laplace-law pressures, the latter's
+// reference-contour share with its nodal pressures p0).
 #include "solver/analysis_support.hpp"
 
 #include <algorithm>
@@ -14,9 +15,9 @@ namespace calfit {
 
 using namespace analysis_support;
 
-std::map<std::pair<int, int>, Eigen::VectorXd> StaticAnalysis::laplace_tensions(
+std::map<std::pair<int, int>, StaticAnalysis::LaplaceFace> StaticAnalysis::laplace_faces(
     const LoadState& state, const std::vector<TensionProfile>& profiles) const {
-  std::map<std::pair<int, int>, Eigen::VectorXd> tensions;  // (element, face) -> nodal tension
+  std::map<std::pair<int, int>, LaplaceFace> faces;
   for (const auto& [surface, load] : state.laplace) {
     const std::vector<Face>& surface_faces = model_.surfaces[surface];
     Eigen::Vector2d center = Eigen::Vector2d::Zero();
@@ -30,6 +31,7 @@ std::map<std::pair<int, int>, Eigen::VectorXd> StaticAnalysis::laplace_tensions(
       for (int n : nodes) center += model_.coordinates[n];
       center /= static_cast<double>(nodes.size());
     }
+    std::vector<Eigen::VectorXd> tensions;  // per face of the surface, at its nodes
     for (const Face& f : surface_faces) {
       const std::vector<int> local = face_nodes(model_.elements[f.element].shape, f.face);
       Eigen::VectorXd tension(local.size());
@@ -41,11 +43,73 @@ std::map<std::pair<int, int>, Eigen::VectorXd> StaticAnalysis::laplace_tensions(
         }
         tension(static_cast<Eigen::Index>(k)) = load.tension * factor;
       }
-      Eigen::VectorXd& total = tensions[{f.element, f.face}];
-      total = total.size() ? Eigen::VectorXd(total + tension) : tension;  // two surfaces may share a face
+      tensions.push_back(std::move(tension));
+    }
+    const double alpha = load.reference;
+    // alpha = 0 (the default) computes no reference pressure: today's load, to the bit.
+    const std::vector<Eigen::VectorXd> reference = alpha != 0.0 ? reference_pressures(surface_faces, tensions)
+                                                                : std::vector<Eigen::VectorXd>();
+    for (std::size_t i = 0; i < surface_faces.size(); ++i) {
+      const Eigen::VectorXd tension = (1.0 - alpha) * tensions[i];
+      const Eigen::VectorXd pressure = alpha != 0.0 ? Eigen::VectorXd(alpha * reference[i])
+                                                    : Eigen::VectorXd::Zero(tensions[i].size());
+      LaplaceFace& total = faces[{surface_faces[i].element, surface_faces[i].face}];
+      // two surfaces may share a face
+      total.tension = total.tension.size() ? Eigen::VectorXd(total.tension + tension) : tension;
+      total.reference_pressure =
+          total.reference_pressure.size() ? Eigen::VectorXd(total.reference_pressure + pressure) : pressure;
     }
   }
-  return tensions;
+  return faces;
+}
+
+std::vector<Eigen::VectorXd> StaticAnalysis::reference_pressures(const std::vector<Face>& faces,
+                                                                 const std::vector<Eigen::VectorXd>& tensions) const {
+  // The membrane load of the tensions on the REFERENCE contour, summed at the surface's nodes with the
+  // consistent lengths and normal sums (edge_loads.hpp): the curvature concentrated in the kinks between
+  // straight faces counts, as the deformed-contour law sees it. The nodal pressure is then computed as
+  // the output's laplace_pressure is (analysis_assembly.cpp): on a circle of radius R0 cut into equal
+  // chords, p0 = T / R0 exactly.
+  struct NodeSum {
+    Eigen::Vector2d force = Eigen::Vector2d::Zero(), normal = Eigen::Vector2d::Zero();
+    double length = 0.0;
+  };
+  std::map<int, NodeSum> sums;
+  std::vector<std::vector<int>> face_node_ids;
+  for (std::size_t i = 0; i < faces.size(); ++i) {
+    const ElementDef& e = model_.elements[faces[i].element];
+    const std::vector<int> local = face_nodes(e.shape, faces[i].face);
+    EdgeNodes X(static_cast<Eigen::Index>(local.size()), 2);
+    std::vector<int> ids;
+    for (std::size_t k = 0; k < local.size(); ++k) {
+      ids.push_back(e.nodes[local[k]]);
+      X.row(static_cast<Eigen::Index>(k)) = model_.coordinates[ids.back()].transpose();
+    }
+    EdgeVector force;
+    laplace_membrane_load(X, tensions[i], force, nullptr);
+    Eigen::VectorXd length;
+    EdgeNodes normal;
+    face_weights(X, length, normal);
+    for (std::size_t k = 0; k < ids.size(); ++k) {
+      const auto kk = static_cast<Eigen::Index>(k);
+      NodeSum& sum = sums[ids[k]];
+      sum.force += force.segment<2>(2 * kk);
+      sum.normal += normal.row(kk).transpose();
+      sum.length += length[kk];
+    }
+    face_node_ids.push_back(std::move(ids));
+  }
+  std::vector<Eigen::VectorXd> pressures;
+  for (const std::vector<int>& ids : face_node_ids) {
+    Eigen::VectorXd p(static_cast<Eigen::Index>(ids.size()));
+    for (std::size_t k = 0; k < ids.size(); ++k) {
+      const NodeSum& sum = sums.at(ids[k]);
+      const bool defined = sum.length > 0.0 && sum.normal.norm() > 0.0;
+      p(static_cast<Eigen::Index>(k)) = defined ? -sum.force.dot(sum.normal.normalized()) / sum.length : 0.0;
+    }
+    pressures.push_back(std::move(p));
+  }
+  return pressures;
 }
 
 void StaticAnalysis::prepare_step(int step) {
@@ -93,12 +157,14 @@ void StaticAnalysis::prepare_step(int step) {
                 });
 
   laplace_faces_.clear();
-  for_each_ramp(laplace_tensions(before, model_.profiles), laplace_tensions(now, model_.profiles),
-                [&](const std::pair<int, int>& key, const Eigen::VectorXd* start, const Eigen::VectorXd* end) {
+  for_each_ramp(laplace_faces(before, model_.profiles), laplace_faces(now, model_.profiles),
+                [&](const std::pair<int, int>& key, const LaplaceFace* start, const LaplaceFace* end) {
                   FaceLoad f = unloaded_face(key);
                   const Eigen::Index n = static_cast<Eigen::Index>(f.local.size());
-                  f.t_start = start ? *start : Eigen::VectorXd::Zero(n);
-                  f.t_end = end ? *end : Eigen::VectorXd::Zero(n);
+                  f.t_start = start ? start->tension : Eigen::VectorXd::Zero(n);
+                  f.t_end = end ? end->tension : Eigen::VectorXd::Zero(n);
+                  f.p_start = start ? start->reference_pressure : Eigen::VectorXd::Zero(n);
+                  f.p_end = end ? end->reference_pressure : Eigen::VectorXd::Zero(n);
                   laplace_faces_.push_back(f);
                 });
 }

@@ -88,7 +88,7 @@ Eigen::VectorXd StaticAnalysis::converged_scoped_residual(const ParameterScope& 
 void StaticAnalysis::subtract_face_loads(const ParameterState& state, const std::vector<std::pair<int, int>>& faces,
                                          const Eigen::VectorXd& u, Eigen::VectorXd& R) const {
   if (faces.empty()) return;
-  const auto tensions = laplace_tensions(state.loads, state.profiles);
+  const auto garment = laplace_faces(state.loads, state.profiles);
   for (const std::pair<int, int>& key : faces) {
     const FaceLoad f = unloaded_face(key);
     const std::vector<int>& dofs = element_dofs_[f.element];
@@ -102,8 +102,8 @@ void StaticAnalysis::subtract_face_loads(const ParameterState& state, const std:
       follower_pressure_load(x, p->second, fe, nullptr);
       subtract();
     }
-    if (const auto t = tensions.find(key); t != tensions.end()) {
-      laplace_membrane_load(x, t->second, fe, nullptr);
+    if (const auto g = garment.find(key); g != garment.end()) {
+      garment_load(x, g->second.tension, g->second.reference_pressure, fe, nullptr);
       subtract();
     }
   }

@@ -47,7 +47,7 @@ struct FieldOutput {
   Eigen::VectorXd displacement;                // 2 n_nodes
   Eigen::VectorXd reaction;                    // 2 n_nodes: f_int - f_ext
   std::vector<ElementState> element_states;
-  Eigen::VectorXd laplace_pressure;            // n_nodes: T / r applied (0 off the surface)
+  Eigen::VectorXd laplace_pressure;            // n_nodes: the garment pressure applied, (1 - alpha) T / r + alpha p0 (0 off the surface)
   Eigen::VectorXd contact_pressure, contact_shear;  // n_nodes: on slave and master nodes of contact pairs
   // Further named fields (sensitivities): nodal vectors (2 n_nodes, x y per node) and
   // element scalars (n_elements).
@@ -103,8 +103,18 @@ private:
     int element;
     std::vector<int> local;  // element-local node indices along the face
     double start = 0, end = 0;         // pressure (follower)
-    Eigen::VectorXd t_start, t_end;    // nodal tension (Laplace)
+    Eigen::VectorXd t_start, t_end;    // nodal tension of the deformed-contour share (Laplace)
+    Eigen::VectorXd p_start, p_end;    // nodal pressure of the reference-contour share (Laplace)
     Eigen::VectorXd tension(double lambda) const { return t_start + lambda * (t_end - t_start); }
+    Eigen::VectorXd reference_pressure(double lambda) const { return p_start + lambda * (p_end - p_start); }
+  };
+  // The garment's load on one face of a *LAPLACE PRESSURE surface, f = (1 - alpha) f_deformed(T) +
+  // alpha f_reference(T) (edge_loads.hpp, garment_load): the membrane tension of the first share and the
+  // nodal follower pressure of the second, summed over the surfaces that share the face. Both are linear in
+  // T, so the step ramps them linearly, as it ramps T.
+  struct LaplaceFace {
+    Eigen::VectorXd tension;             // (1 - alpha) T at the face's nodes
+    Eigen::VectorXd reference_pressure;  // alpha p0 at the face's nodes (zero where alpha = 0)
   };
   struct Ramp {
     int dof;
@@ -174,9 +184,13 @@ private:
   void prepare_rigid_motions(const LoadState& before, const LoadState& now);
   // Growth and axial stretch of element e at load fraction lambda of the current step.
   ElementKinematics kinematics(int element, double lambda) const;
-  // Nodal garment tension of every face of the Laplace-loaded surfaces: (element, face) -> T.
-  std::map<std::pair<int, int>, Eigen::VectorXd> laplace_tensions(const LoadState& state,
-                                                                   const std::vector<TensionProfile>& profiles) const;
+  // The garment's load of every face of the Laplace-loaded surfaces: (element, face) -> its two shares.
+  std::map<std::pair<int, int>, LaplaceFace> laplace_faces(const LoadState& state,
+                                                           const std::vector<TensionProfile>& profiles) const;
+  // The reference contour's nodal pressures p0_a = -(F0_a . n0_a) / L0_a of one surface whose faces carry the
+  // nodal tensions `tensions` (same order as `faces`), returned per face at its nodes (analysis_loads.cpp).
+  std::vector<Eigen::VectorXd> reference_pressures(const std::vector<Face>& faces,
+                                                   const std::vector<Eigen::VectorXd>& tensions) const;
   FaceLoad unloaded_face(const std::pair<int, int>& key) const;  // element and face nodes, no load yet
   // Element e as the end of the current step sees it with the parameters of `state`, for
   // the sensitivities: built with state's material, under state's end-of-step growth and
