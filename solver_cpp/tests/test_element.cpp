@@ -3,8 +3,11 @@
 // growth eigenstrain g != 1 and an axial stretch lambda_z != 1), the force as the
 // gradient of the element energy g^3 W(C / g^2), no force in the grown stress-free state
 // F = g I, zero residual under rigid motion,
-// objectivity of the internal force, load stiffness of the follower pressure and of
-// the Laplace-law membrane against finite differences, and p = T/R on a circle.
+// objectivity of the internal force, load stiffness of the follower pressure (uniform and
+// interpolated from nodal pressures), of the Laplace-law membrane and of the garment's mixed
+// load (membrane plus nodal follower pressure, REFERENCE=alpha) against finite differences,
+// the nodal follower pressure at uniform values against the uniform one, the garment's load
+// at alpha = 0 against the membrane load to the bit, and p = T/R on a circle.
 #include "check.hpp"
 #include "contact/node_to_segment.hpp"
 #include "element/mixed_element.hpp"
@@ -334,6 +337,52 @@ void contact_tests() {
   CHECK(r.cwiseAbs().maxCoeff() == 0.0);
 }
 
+// The garment's face loads (edge_loads.hpp): tangents of the nodal follower pressure and of the mixed load
+// against central differences; a uniform nodal pressure is the uniform follower pressure; an all-zero reference
+// pressure leaves the membrane load as it is, to the bit (REFERENCE=0 is today's load).
+void garment_load_tests() {
+  for (int n : {2, 3}) {
+    Eigen::VectorXd nodal(n), tension(n);
+    for (int k = 0; k < n; ++k) {
+      nodal[k] = 0.5 + 0.3 * k * k;  // a pressure that varies along the face
+      tension[k] = 0.2 + 0.1 * k;
+    }
+    edge_stiffness_test(n, [&](const EdgeNodes& x, EdgeVector& f, EdgeMatrix* df) { nodal_follower_pressure_load(x, nodal, f, df); });
+    edge_stiffness_test(n, [&](const EdgeNodes& x, EdgeVector& f, EdgeMatrix* df) {
+      garment_load(x, 0.6 * tension, 0.4 * nodal, f, df);
+    });
+
+    EdgeNodes x(n, 2);
+    if (n == 2) {
+      x << 0.1, -0.2, 1.2, 0.4;
+    } else {
+      x << 0.1, -0.2, 0.65, 0.1, 1.2, 0.4;  // straight, the mid-side node at the middle
+    }
+    EdgeVector f_uniform, f_nodal;
+    EdgeMatrix df_uniform, df_nodal;
+    follower_pressure_load(x, 0.7, f_uniform, &df_uniform);
+    nodal_follower_pressure_load(x, Eigen::VectorXd::Constant(n, 0.7), f_nodal, &df_nodal);
+    CHECK((f_nodal - f_uniform).cwiseAbs().maxCoeff() <= 1e-15 * f_uniform.cwiseAbs().maxCoeff());
+    CHECK((df_nodal - df_uniform).cwiseAbs().maxCoeff() <= 1e-15 * df_uniform.cwiseAbs().maxCoeff());
+    // The interpolated pressure's resultant is -integral p(xi) n ds: on a straight face n ds is the chord
+    // rotated, times dxi, so it is -(the nodal pressures' mean with the weights integral N_a dxi: 1/2 1/2,
+    // or 1/6 4/6 1/6) times the rotated chord.
+    const Eigen::Vector2d chord = (x.row(n - 1) - x.row(0)).transpose();
+    const double mean = n == 2 ? 0.5 * (nodal[0] + nodal[1]) : (nodal[0] + 4.0 * nodal[1] + nodal[2]) / 6.0;
+    nodal_follower_pressure_load(x, nodal, f_nodal, nullptr);
+    Eigen::Vector2d resultant = Eigen::Vector2d::Zero();
+    for (int a = 0; a < n; ++a) resultant += f_nodal.segment<2>(2 * a);
+    CHECK((resultant + mean * Eigen::Vector2d(chord.y(), -chord.x())).norm() <= 1e-14 * mean * chord.norm());
+
+    EdgeVector f_membrane, f_garment;
+    EdgeMatrix df_membrane, df_garment;
+    laplace_membrane_load(x, tension, f_membrane, &df_membrane);
+    garment_load(x, tension, Eigen::VectorXd::Zero(n), f_garment, &df_garment);
+    CHECK(f_garment == f_membrane);
+    CHECK(df_garment == df_membrane);
+  }
+}
+
 }  // namespace
 
 int main() {
@@ -365,6 +414,7 @@ int main() {
       laplace_membrane_load(x, T, f, df);
     });
   }
+  garment_load_tests();
   // Pressure T/R on a circle, converging with refinement.
   const double coarse = circle_pressure_error(16, 50.0, 0.16), fine = circle_pressure_error(64, 50.0, 0.16);
   std::cout << "Laplace p vs T/R, relative error: 16 faces " << coarse << ", 64 faces " << fine << '\n';

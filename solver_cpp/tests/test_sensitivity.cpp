@@ -1,6 +1,7 @@
 // Sensitivity unit tests.
 //  - dR/dtheta of every parameter kind (each constant of each law, TENSION, PROFILE A<k>
-//    and B<k>, listed and unlisted, VOLUME CHANGE, AXIAL STRETCH, RIGID MOTION UX/UY/ANGLE,
+//    and B<k>, listed and unlisted, REFERENCE (the garment's reference-contour share, at 0 and
+//    inside (0, 1), where TENSION and PROFILE see both shares of the load), VOLUME CHANGE, AXIAL STRETCH, RIGID MOTION UX/UY/ANGLE,
 //    each where its keyword is absent and where it is given) against an independent central difference: the
 //    residual of the full evaluation path (StaticAnalysis::residual) of two models read
 //    from decks written with theta -/+ h, at the base model's converged u. This checks
@@ -55,6 +56,7 @@ struct SectorCase {
   std::string muscle_law, fat_law;  // as after *HYPERELASTIC, or ELASTIC
   std::map<std::string, double> muscle, fat;  // constant name -> value
   double tension = 0.3;
+  double reference = 0.0;  // REFERENCE= of the *LAPLACE PRESSURE
   std::map<int, std::pair<double, double>> harmonics = {{1, {0.1, 0.05}}};
   std::optional<double> muscle_dv, axial_stretch;
   std::optional<std::array<double, 3>> inner_motion;  // ux, uy, angle in degrees
@@ -65,6 +67,7 @@ struct SectorCase {
     if (name.rfind("MATERIAL:MUSCLE:", 0) == 0) return muscle.at(name.substr(16));
     if (name.rfind("MATERIAL:FAT:", 0) == 0) return fat.at(name.substr(13));
     if (name == "TENSION:SKIN") return tension;
+    if (name == "REFERENCE:SKIN") return reference;
     // An absent keyword is the same model as the keyword at its neutral value.
     if (name == "VOLUME CHANGE:MUSCLE") return muscle_dv ? *muscle_dv : muscle_dv.emplace(0.0);
     if (name == "AXIAL STRETCH") return axial_stretch ? *axial_stretch : axial_stretch.emplace(1.0);
@@ -133,7 +136,9 @@ struct SectorCase {
     if (inner_motion)
       d << "*RIGID MOTION, NSET=INNER\n" << number((*inner_motion)[0]) << ", " << number((*inner_motion)[1]) << ", "
         << number((*inner_motion)[2]) << "\n";
-    d << "*LAPLACE PRESSURE, SURFACE=SKIN, TENSION=" << number(tension) << ", PROFILE=GARMENT\n*END STEP\n";
+    d << "*LAPLACE PRESSURE, SURFACE=SKIN, TENSION=" << number(tension) << ", PROFILE=GARMENT";
+    if (reference != 0.0) d << ", REFERENCE=" << number(reference);
+    d << "\n*END STEP\n";
     if (!sensitivities.empty()) {
       d << "*SENSITIVITY\n";
       for (const std::string& line : sensitivities) d << line << "\n";
@@ -163,7 +168,7 @@ void check_residual_derivatives(SectorCase c, const std::string& label) {
   for (const std::string material : {"MUSCLE", "FAT"})
     for (const auto& entry : material == "MUSCLE" ? c.muscle : c.fat)
       c.sensitivities.push_back("MATERIAL, " + material + ", " + entry.first);
-  c.sensitivities.insert(c.sensitivities.end(), {"TENSION, SKIN", "PROFILE, GARMENT, A1", "PROFILE, GARMENT, B1",
+  c.sensitivities.insert(c.sensitivities.end(), {"TENSION, SKIN", "REFERENCE, SKIN", "PROFILE, GARMENT, A1", "PROFILE, GARMENT, B1",
                                                  "PROFILE, GARMENT, B2", "PROFILE, GARMENT, A3", "VOLUME CHANGE, MUSCLE",
                                                  "AXIAL STRETCH", "RIGID MOTION, INNER, UX", "RIGID MOTION, INNER, UY",
                                                  "RIGID MOTION, INNER, ANGLE"});
@@ -180,9 +185,10 @@ void check_residual_derivatives(SectorCase c, const std::string& label) {
     const std::string& name = model.sensitivity.parameters[j].name;
     const double theta = plain.value(name);
     const double h = 1e-4 * (theta != 0.0 ? std::abs(theta) : 0.1);
-    // The deck rejects C20 < 0, so at C20 = 0 the difference is one-sided: R is affine in
-    // C20, and the forward difference is exact up to round-off as well.
-    const bool one_sided = theta == 0.0 && name.size() > 4 && name.substr(name.size() - 4) == ":C20";
+    // The deck rejects C20 < 0 and REFERENCE < 0, so at 0 the difference is one-sided: R is
+    // affine in both, and the forward difference is exact up to round-off as well.
+    const bool one_sided = theta == 0.0 && ((name.size() > 4 && name.substr(name.size() - 4) == ":C20") ||
+                                            name.rfind("REFERENCE:", 0) == 0);
     SectorCase plus = plain, minus = plain;
     plus.value(name) = theta + h;
     minus.value(name) = one_sided ? theta : theta - h;
@@ -336,6 +342,7 @@ int main() {
   a.muscle_dv = -0.04;
   a.axial_stretch = 0.98;
   a.inner_motion = std::array<double, 3>{0.03, -0.02, 4.0};
+  a.reference = 0.6;  // both shares of the garment's load
   check_residual_derivatives(a, "kinematics-cpe6");
   a.element_type = "CPE6H";
   check_residual_derivatives(a, "kinematics-cpe6h");
@@ -345,6 +352,7 @@ int main() {
   b.muscle = {{"C10", 0.4}, {"C20", 0.05}, {"D1", 0.2}, {"D2", 0.5}};
   b.fat_law = "ARRUDA-BOYCE";
   b.fat = {{"MU", 0.6}, {"LAMBDA_M", 3.0}, {"D", 0.3}};
+  b.reference = 0.3;
   check_residual_derivatives(b, "polynomial-arruda-cpe6");
   b.element_type = "CPE6H";
   check_residual_derivatives(b, "polynomial-arruda-cpe6h");
