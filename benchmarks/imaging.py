@@ -1,6 +1,12 @@
 """Timings of the imaging room on the 420x420 phantom calf (0.36 mm pixels). Prints figures, asserts nothing.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/imaging.py
+    PYTHONPATH=. .venv/bin/python benchmarks/imaging.py [--foreign DIR] [--only errors]
+
+The last section holds `calfit measure` against the true field, per band of tissue (fat within 5 mm of the skin,
+other fat, muscle): the RMS error, the predicted sigma and chi^2/n of the errors whitened by the predicted
+covariance (`orchestrator.verification`), on engine-made cases of both phantom renderers (`CalfPhantom`, k-space
+band-limited; `MRIPhantom`, partial volume) and, with --foreign, on case folders made by another program: DIR holds
+case folders (their points.csv is ignored) and DIR/truth/<case>.npz their true fields (nodes_mm, cells, u_mm).
 
 Lines: phantom rendering, segmentation (segment_t1), bone alignment, one warp
 + contour mismatch evaluation (the inner loop of the identification, first
@@ -13,7 +19,9 @@ several repeats (the minimum is the least disturbed by other processes).
 
 from __future__ import annotations
 
+import argparse
 import importlib
+import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -27,9 +35,12 @@ from orchestrator.imaging.frame import RigidMotion, displacement_on_grid
 from orchestrator.imaging.mismatch import ContourMismatch
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.imaging.warp import warp_image
-from orchestrator.phantom import CalfPhantom, T1Contrast, bone_clamped_compression, make_loaded_image, render_unloaded
+from orchestrator.phantom import (CalfPhantom, MRIPhantom, T1Contrast, bone_clamped_compression, make_loaded_image,
+                                  render_unloaded)
+from orchestrator.phantom.truths import random_truth
 from orchestrator.pipeline import run_measure
 from orchestrator.study import load_run, make_phantom_case
+from orchestrator.verification import band_errors, errors_against, field_from_mesh_file
 
 
 def best_of(function, repeats: int = 5) -> tuple[float, object]:
@@ -47,6 +58,16 @@ def line(what: str, seconds: float, note: str = "") -> None:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--foreign", type=Path, help="a folder of case folders with truth/<case>.npz")
+    parser.add_argument("--only", choices=("errors",), help="only the measurement's error against the true field")
+    arguments = parser.parse_args()
+    if arguments.only != "errors":
+        timings()
+    measurement_error_by_band(arguments.foreign)
+
+
+def timings() -> None:
     phantom = CalfPhantom()
     pixel = phantom.pixel_size_mm
     compression = bone_clamped_compression(phantom.geometry)
@@ -120,6 +141,47 @@ def dic_accuracy(noise: float = 0.02) -> None:
                   f"at the centres median {np.median(centre_error):.4f} p90 {np.percentile(centre_error, 90):.4f}; "
                   f"as the windows see it median {np.median(seen_error):.4f} p90 {np.percentile(seen_error, 90):.4f}; "
                   f"predicted sigma median {summary['median_sigma_mm']:.4f}; {elapsed:.1f} s")
+
+
+def measurement_error_by_band(foreign: Path | None, seeds=(3, 4)) -> None:
+    """`calfit measure` (the default: 32-pixel windows, prefiltered, edges calibrated) against the true field, per
+    band (module text): engine-made cases of both renderers at random truths with a scanner motion, then the cases
+    of another program when given."""
+    print("\nThe measurement against the true field, per band (chi^2/n of the errors whitened by the predicted "
+          "covariance; 1 when the error model holds):")
+    with tempfile.TemporaryDirectory(prefix="calfit-bench-bands-") as scratch:
+        scratch = Path(scratch)
+        for name, phantom in (("CalfPhantom", CalfPhantom()), ("MRIPhantom", MRIPhantom.at_resolution(0.36))):
+            for seed in seeds:
+                case, truth = make_phantom_case(scratch / f"{name}-{seed}", phantom=phantom, theta_kPa=random_truth(seed),
+                                                n_elements=4000, labels=None, points_spacing_mm=None,
+                                                rigid=RigidMotion(-1.2, (1.1, 0.7), (75.6, 75.6)))
+                _print_bands(f"{name}, truth seed {seed}", case, scratch / f"run-{name}-{seed}",
+                             lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy"))
+        for case in sorted(p for p in (foreign.iterdir() if foreign else ()) if (p / "case.toml").is_file()):
+            truth_file = foreign / "truth" / f"{case.name}.npz"
+            if not truth_file.is_file():
+                continue
+            images_only = scratch / case.name
+            images_only.mkdir()
+            for item in case.iterdir():
+                if item.name != "points.csv":
+                    shutil.copy(item, images_only / item.name)
+            _print_bands(f"{case.name} (another program)", images_only, scratch / f"run-{case.name}",
+                         lambda shape, pixel, truth_file=truth_file: field_from_mesh_file(truth_file, shape, pixel))
+
+
+def _print_bands(title: str, case: Path, run: Path, true_field) -> None:
+    summary = run_measure(case, run)
+    setup = load_run(run)
+    measured = setup.measurements("dic")
+    field = true_field(setup.case.unloaded.shape, setup.case.pixel_size_mm)
+    rows, overall = band_errors(measured, errors_against(measured, None, field), setup.frame())
+    print(f"  {title}: {summary['kept']} of {summary['windows']} windows kept, edge position sigma "
+          f"{np.sqrt(summary['edge_variance_px2']):.3f} px, residual / noise {summary['residual_over_noise']:.2f}; "
+          f"chi2/n overall {overall:.2f}")
+    for row in rows:
+        print(f"    {row.line()}")
 
 
 if __name__ == "__main__":

@@ -274,7 +274,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                        prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter)
     # the error of the images' edges, calibrated on the residuals of the windows that matched (`prefilter`)
     edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence))
-    result = result.with_edge_variance(edges.edge_variance_px2)
+    noise_scale = edges.residual_over_noise / prefilter.residual_share(window_px)
+    result = result.calibrated(edges.edge_variance_px2, noise_scale)
     unpredicted = residual_outliers(result, edges, prefilter)
     status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, unpredicted)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
@@ -295,10 +296,10 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                                     edges.edge_variance_px2)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "edge_variance_px2": edges.edge_variance_px2,
-               "residual_over_noise": edges.residual_over_noise,
+               "residual_over_noise": edges.residual_over_noise, "noise_scale": noise_scale,
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
                "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},
-               "noise_sigma": list(result.noise_sigma),
+               "noise_sigma": list(result.noise_sigma), "noise_sigma_estimated": list(first.noise_sigma),
                "median_sigma_mm": float(np.median(np.sqrt(np.diagonal(measurements.covariance_mm2)))),
                "rigid_motion": {"angle_deg": motion.angle_deg, "translation_mm": list(motion.translation_mm),
                                 "centre_mm": list(motion.centre_mm)},

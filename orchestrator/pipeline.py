@@ -209,10 +209,40 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     if measured is not None:
         result["noise_floor"] = scorer.noise_floor(setup.model.space.size)
         result["misfit_over_floor"] = best.cost / result["noise_floor"]
+        if source == "dic":
+            result["floor_calibration"] = floor_calibration(run_dir)
     if measured is not None and setup.case.levels:
         result["levels"] = _level_fits(setup, scorer, measured, best.theta)
     write_json(run_dir / "identification.json", result)
     return result
+
+
+def floor_calibration(run_dir: Path) -> dict:
+    """How the DIC's error model, on which the floor rests, was calibrated on the case's own images (measure):
+    each image's noise, the edges' error of position found in the windows' residuals, how far those residuals agree
+    with what the model predicts of them (1 where it holds), and the windows kept or rejected by reason."""
+    summary = read_json(Path(run_dir) / "measurements.json", "calfit measure")
+    return {"prefilter_px": summary.get("prefilter_px", 0.0), "image_noise_sigma": summary["noise_sigma"],
+            "image_noise_sigma_estimated": summary.get("noise_sigma_estimated", summary["noise_sigma"]),
+            "edge_position_sigma_px": float(np.sqrt(summary.get("edge_variance_px2", 0.0))),
+            "residual_over_predicted": summary.get("residual_over_noise"), "windows": summary["windows"],
+            "kept": summary["kept"], "status": summary["status"]}
+
+
+def floor_sentence(calibration: dict) -> str:
+    """One sentence saying how the floor was calibrated (`floor_calibration`)."""
+    rejected = ", ".join(f"{count} {status}" for status, count in calibration["status"].items() if status != "kept")
+    agreement = calibration.get("residual_over_predicted")
+    estimated, used = calibration["image_noise_sigma_estimated"], calibration["image_noise_sigma"]
+    return (f"The floor rests on the DIC's error model calibrated on these images: image noise "
+            f"{used[0]:.4g} (I0) and {used[1]:.4g} (I1)"
+            + (f", {used[0] / estimated[0]:.2f} times what each image's own pixels gave, as the windows' residuals "
+               "showed" if not np.isclose(used[0], estimated[0], rtol=1e-3) else "")
+            + f"; both prefiltered by a Gaussian of {calibration['prefilter_px']:g} px; edges drawn within "
+            f"{calibration['edge_position_sigma_px']:.3f} px, found in the same residuals"
+            + (f" (their noise {agreement:.2f} times the images' estimate)" if agreement is not None else "")
+            + f"; {calibration['kept']} of {calibration['windows']} windows kept"
+            + (f" ({rejected})" if rejected else "") + ".")
 
 
 def _measurement_share(measured) -> float:

@@ -40,7 +40,7 @@ from .imaging.segment import BONE
 from .imaging.warp import warp_image
 from .measure import FILES as MEASURE_FILES
 from .objectives import leg_rows
-from .pipeline import identified_data, sum_only_lines
+from .pipeline import floor_sentence, identified_data, sum_only_lines
 from .results import MMHG_PER_KPA
 from .runlock import holds_run_folder
 from .study import load_run, read_json
@@ -258,6 +258,8 @@ def _identification_section(setup, identification: dict, staging: Path) -> dict:
         paragraphs.append(f"Displacement misfit {identification['best']['cost']:.4g} mm^2, "
                           f"{identification['misfit_over_floor']:.2f} times its noise floor "
                           f"({identification['noise_floor']:.4g} mm^2).")
+        if "floor_calibration" in identification:
+            paragraphs.append(floor_sentence(identification["floor_calibration"]))
     return _section("identification", "Identification", paragraphs=paragraphs, tables=[table1],
                     figures_=[_figure("warped_dk.png", "I1 warped by the identified model, the target I0, and the "
                                                        "contour distances d_k between their tissue boundaries "

@@ -25,7 +25,7 @@ import argparse
 from ..effects import EffectError, parse_effects
 from ..imaging.errors import CaseError, ImagingError
 from ..measure import DEFAULT_WINDOW_PX, WINDOW_CHOICES
-from ..pipeline import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, run_identify
+from ..pipeline import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, floor_sentence, run_identify
 from ..study import DATA_SOURCES
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, notice, parallel_options
 
@@ -74,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
                  + fit_summary(result["best"], result["parameters"]))
     if "noise_floor" in result:
         lines.append(f"misfit {result['misfit_over_floor']:.2f} x its noise floor {result['noise_floor']:.4g} mm^2")
+    if "floor_calibration" in result:
+        lines.append(floor_sentence(result["floor_calibration"]))
     lines += result.get("setup_lines", [])
     lines.append(f"run folder {args.out}; next: calfit montecarlo {args.out}")
     emit(args, result, lines)

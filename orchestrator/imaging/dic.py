@@ -140,16 +140,22 @@ class DICResult:
     prefilter_px: float = 0.0                       # sigma of the Gaussian both images were smoothed with
     edge_residuals: list | None = None              # (N,) `prefilter.EdgeResiduals` of each converged window
     edge_covariance_mm2: np.ndarray | None = None   # (N, 2, 2) the covariance's part per unit s_edge^2 (px^2)
-    edge_variance_px2: float = 0.0                  # s_edge^2 already in covariance_mm2 (`with_edge_variance`)
+    edge_variance_px2: float = 0.0                  # s_edge^2 already in covariance_mm2 (`calibrated`)
 
-    def with_edge_variance(self, edge_variance_px2: float) -> "DICResult":
-        """The same windows with the error of the images' edges in their covariance (`prefilter`, module text)."""
-        covariance = self.covariance_mm2 + (edge_variance_px2 - self.edge_variance_px2) * self.edge_covariance_mm2
+    def calibrated(self, edge_variance_px2: float, noise_scale: float = 1.0) -> "DICResult":
+        """The same windows with their error model calibrated on the images (`prefilter`, module text): the error of
+        the edges' position added to their covariance, and the noise's part (and the intensity variance) scaled by
+        noise_scale, what the windows' residuals say of the noise the images' own estimate gave."""
+        if self.edge_variance_px2 != 0.0:
+            raise ValueError("these windows' error model is calibrated already")
+        covariance = noise_scale * self.covariance_mm2 + edge_variance_px2 * self.edge_covariance_mm2
         dy, dx = self.pixel_size_mm
         to_px = np.diag([1.0 / dx, 1.0 / dy])
         uncertainty, anisotropy = _spread(np.where(np.isfinite(covariance), to_px @ np.nan_to_num(covariance, posinf=0.0)
                                                    @ to_px, np.inf))
         return replace(self, covariance_mm2=covariance, uncertainty_px=uncertainty, anisotropy=anisotropy,
+                       intensity_variance=noise_scale * self.intensity_variance,
+                       noise_sigma=tuple(float(np.sqrt(noise_scale) * s) for s in self.noise_sigma),
                        edge_variance_px2=float(edge_variance_px2))
 
     def pooled_edge_residuals(self, windows: np.ndarray | None = None) -> EdgeResiduals:
