@@ -24,6 +24,7 @@ from orchestrator.imaging.frame import RigidMotion
 from orchestrator.pipeline import run_diagnose, run_identify
 from orchestrator.regions import display_angle_deg
 from orchestrator.study import make_phantom_case
+from renderers import RENDERERS, phantom
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 OEDEMA_SECTOR_DEG = (210.0, 300.0)     # display angles (counter-clockwise, 90 at the top of the image)
@@ -39,7 +40,7 @@ HIDDEN = {
     "compartments": dict(values={"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
                          wrong="drainage", labels="compartments"),
 }
-FAST = {"drainage"}
+FAST = {("calf", "drainage")}
 
 
 def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
@@ -53,25 +54,26 @@ def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
     return deck_text.replace("*NODE FILE", f"*VOLUME CHANGE, ELSET=OEDEMA\n{dv}\n*NODE FILE", 1)
 
 
-def diagnosed(tmp_path_factory, name, *, effects=None, refit="auto", labels=None, edit_deck=None):
-    folder = tmp_path_factory.mktemp(name)
-    case, _ = make_phantom_case(folder / "case", effects=effects, labels=labels, rigid=SCANNER_MOTION,
-                                points_spacing_mm=None, edit_deck=edit_deck)
+def diagnosed(tmp_path_factory, name, *, renderer="calf", effects=None, refit="auto", labels=None, edit_deck=None):
+    folder = tmp_path_factory.mktemp(f"{renderer}-{name}")
+    case, _ = make_phantom_case(folder / "case", phantom=phantom(renderer), effects=effects, labels=labels,
+                                rigid=SCANNER_MOTION, points_spacing_mm=None, edit_deck=edit_deck)
     identification = run_identify(case, folder / "run", workers=2, progress=False)
     assert identification["data"]["source"] == "dic"
     return run_diagnose(folder / "run", refit_effects=refit, workers=2, progress=False)
 
 
-def _marks(name):
-    return [] if name in FAST else [pytest.mark.slow]
+def _marks(renderer, name):
+    return [] if (renderer, name) in FAST else [pytest.mark.slow]
 
 
-@pytest.fixture(scope="module", params=[pytest.param(n, marks=_marks(n)) for n in HIDDEN])
+@pytest.fixture(scope="module", params=[pytest.param((r, n), id=f"{r}-{n}", marks=_marks(r, n))
+                                        for r in RENDERERS for n in HIDDEN])
 def hidden(request, tmp_path_factory):
-    name = request.param
+    renderer, name = request.param
     spec = HIDDEN[name]
-    result = diagnosed(tmp_path_factory, name, effects={name: spec["values"]}, refit=["auto", spec["wrong"]],
-                       labels=spec.get("labels"))
+    result = diagnosed(tmp_path_factory, name, renderer=renderer, effects={name: spec["values"]},
+                       refit=["auto", spec["wrong"]], labels=spec.get("labels"))
     return name, spec, result
 
 
@@ -104,8 +106,9 @@ def test_a_wrong_effect_lowers_the_misfit_far_less_and_the_bic_says_so(hidden):
     assert wrong["bic"] > before["bic"] - 0.25 * (before["bic"] - right["bic"])
 
 
-def test_without_a_hidden_effect_nothing_is_significant(tmp_path_factory):
-    result = diagnosed(tmp_path_factory, "control")
+@pytest.mark.parametrize("renderer", ["calf", pytest.param("mri", marks=pytest.mark.slow)])
+def test_without_a_hidden_effect_nothing_is_significant(tmp_path_factory, renderer):
+    result = diagnosed(tmp_path_factory, "control", renderer=renderer)
     assert not any(score["significant"] for score in result["ranking"]), result["verdict"]
     assert 0.8 < result["misfit"] / result["noise_floor"] < 1.2
     assert "noise floor" in result["verdict"] and not result["refits"]
@@ -113,8 +116,9 @@ def test_without_a_hidden_effect_nothing_is_significant(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_physics_outside_the_catalog_is_reported_as_unexplained_and_located(tmp_path_factory):
-    result = diagnosed(tmp_path_factory, "oedema", edit_deck=oedema)
+@pytest.mark.parametrize("renderer", RENDERERS)
+def test_physics_outside_the_catalog_is_reported_as_unexplained_and_located(tmp_path_factory, renderer):
+    result = diagnosed(tmp_path_factory, "oedema", renderer=renderer, edit_deck=oedema)
     assert result["before"]["misfit_over_floor"] >= 2.0
     assert not result["explained"]
     assert "no catalog effect explains the residual" in result["verdict"]

@@ -2,7 +2,7 @@
 
 Each case is made by the engine from a random truth within physiological ranges (drawn log-uniformly, every
 parameter at least 15 % away from Avril et al.'s Table 2 central values, where the fit starts), on the
-phantom's own geometry (8,000 CPE6); the case folder holds the two images and case.toml only, with image noise
+phantom's own geometry (8,000 CPE6), rendered by either of the two phantoms (`renderers`); the case folder holds the two images and case.toml only, with image noise
 and a rigid scanner motion. calfit segments I0, measures the displacements by DIC, fits 1,000 CPE6 by
 Levenberg-Marquardt and draws the noise Monte-Carlo. Every truth must lie in its parameter's 95 % interval,
 and every parameter the interval calls identifiable must be within 10 % of its truth.
@@ -20,20 +20,21 @@ from orchestrator.imaging.frame import RigidMotion
 from orchestrator.pipeline import run_identify, run_montecarlo
 from orchestrator.phantom.truths import random_truth
 from orchestrator.study import make_phantom_case
+from renderers import phantom
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
-FAST_SEEDS = (1,)
-SLOW_SEEDS = (2, 3, 4)
+FAST = (("calf", 1),)
+SLOW = (("calf", 2), ("calf", 3), ("calf", 4), ("mri", 1), ("mri", 2), ("mri", 3))
 
 
-@pytest.fixture(scope="module", params=[pytest.param(s) for s in FAST_SEEDS] +
-                [pytest.param(s, marks=pytest.mark.slow) for s in SLOW_SEEDS])
+@pytest.fixture(scope="module", params=[pytest.param(p, id=f"{p[0]}-{p[1]}") for p in FAST] +
+                [pytest.param(p, id=f"{p[0]}-{p[1]}", marks=pytest.mark.slow) for p in SLOW])
 def identified(request, tmp_path_factory):
-    seed = request.param
+    renderer, seed = request.param
     truth = random_truth(seed)
-    folder = tmp_path_factory.mktemp(f"truth{seed}")
-    case, _ = make_phantom_case(folder / "case", theta_kPa=truth, labels=None, points_spacing_mm=None,
-                                rigid=SCANNER_MOTION, noise_seeds=(10 + seed, 20 + seed))
+    folder = tmp_path_factory.mktemp(f"{renderer}-truth{seed}")
+    case, _ = make_phantom_case(folder / "case", phantom=phantom(renderer), theta_kPa=truth, labels=None,
+                                points_spacing_mm=None, rigid=SCANNER_MOTION, noise_seeds=(10 + seed, 20 + seed))
     assert sorted(p.name for p in case.iterdir()) == ["case.toml", "loaded.png", "unloaded.png"]
     identification = run_identify(case, folder / "run", workers=2, progress=False)
     montecarlo = run_montecarlo(folder / "run", workers=2, progress=False)

@@ -1,14 +1,19 @@
 """Measure the displacements of the tissue between the two images (digital image correlation).
 
-    calfit measure CASE_DIR --out RUN_DIR [--window 16|32|64] [--step PX] [--roi-spacing MM] [--json] [--quiet]
+    calfit measure CASE_DIR --out RUN_DIR [--window 16|32|64] [--step PX] [--roi-spacing MM] [--prefilter PX]
+                   [--json] [--quiet]
 
 Slices with pixels finer than 0.18 mm are first averaged over blocks of pixels (reported), so that a window
-spans several grains of the texture. The loaded image is aligned on the bones (a rigid motion), then windows of
+spans several grains of the texture. Both images are smoothed by a Gaussian of --prefilter pixels (default 1;
+0 for none), which makes the correlation's spline exact on sharp, aliased edges. The loaded image is aligned on
+the bones (a rigid motion), then windows of
 --window pixels (default 32) on a grid inside the leg (every --step pixels, default half a window) and on the
 skin, the fascia and the vessels named among the case's landmarks are correlated in two passes (the second
 deforms each window by the first pass's field). Windows with a poor match, a large predicted uncertainty or
-that fail the normalised median test are rejected and counted. For every kept window: its displacement
-relative to the bones and its 2x2 covariance; overlapping windows' correlation is kept for the fit. Writes
+whose residual exceeds their error model or that fail the normalised median test are rejected and counted. The
+error model is calibrated on the windows' residuals (the images' noise, and how far their edges are drawn from the
+tissue). For every kept window: its displacement relative to the bones and its 2x2 covariance; overlapping windows'
+correlation is kept for the fit. Writes
 RUN_DIR/measurements.csv (every window, kept or why not), measurements.png (the vectors on the image),
 measurements.json (summary) and measurements.npz.
 `calfit identify` runs this itself when the case has no points.csv.
@@ -19,6 +24,7 @@ from __future__ import annotations
 import argparse
 
 from ..imaging.errors import CaseError, ImagingError
+from ..imaging.prefilter import PREFILTER_SIGMA_PX
 from ..measure import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
 from ..pipeline import run_measure
 from ._common import add_output_arguments, emit, fail, honours_quiet
@@ -33,6 +39,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"correlation window side in working pixels (default {DEFAULT_WINDOW_PX})")
     parser.add_argument("--step", type=int, help="grid step in pixels (default half a window)")
     parser.add_argument("--roi-spacing", type=float, help="spacing of the skin and fascia windows in mm (default: the step)")
+    parser.add_argument("--prefilter", type=float, default=PREFILTER_SIGMA_PX,
+                        help=f"sigma (pixels) of the Gaussian both images are smoothed with (default {PREFILTER_SIGMA_PX:g}; "
+                             "0: none)")
     add_output_arguments(parser)
 
 
@@ -45,6 +54,10 @@ def summary_lines(summary: dict, run_dir: str) -> list[str]:
     lines.append(f"image noise {summary['noise_sigma'][0]:.4g} (unloaded) and {summary['noise_sigma'][1]:.4g} (loaded); "
                  f"median standard deviation of a displacement {summary['median_sigma_mm']:.4f} mm; "
                  f"{summary['wall_time_s']:.1f} s")
+    if "edge_variance_px2" in summary:
+        lines.append(f"error model calibrated on the windows' residuals: noise x{summary['noise_scale']:.2f} in variance "
+                     f"against each image's own estimate, edges drawn within "
+                     f"{summary['edge_variance_px2'] ** 0.5:.3f} px (prefilter {summary['prefilter_px']:g} px)")
     lines.append(f"written: {', '.join(f'{run_dir}/{name}' for name in FILES.values())}")
     return lines
 
@@ -53,7 +66,7 @@ def summary_lines(summary: dict, run_dir: str) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     try:
         summary = run_measure(args.case_dir, args.out, window_px=args.window, step_px=args.step,
-                              roi_spacing_mm=args.roi_spacing)
+                              roi_spacing_mm=args.roi_spacing, prefilter_px=args.prefilter)
     except (CaseError, ImagingError, ValueError) as error:
         return fail(str(error))
     emit(args, summary, summary_lines(summary, args.out))
