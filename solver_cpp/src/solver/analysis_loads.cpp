@@ -4,6 +4,7 @@
 #include "solver/analysis_support.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
 #include <map>
@@ -65,49 +66,63 @@ std::map<std::pair<int, int>, StaticAnalysis::LaplaceFace> StaticAnalysis::lapla
 
 std::vector<Eigen::VectorXd> StaticAnalysis::reference_pressures(const std::vector<Face>& faces,
                                                                  const std::vector<Eigen::VectorXd>& tensions) const {
-  // The membrane load of the tensions on the REFERENCE contour, summed at the surface's nodes with the
-  // consistent lengths and normal sums (edge_loads.hpp): the curvature concentrated in the kinks between
-  // straight faces counts, as the deformed-contour law sees it. The nodal pressure is then computed as
-  // the output's laplace_pressure is (analysis_assembly.cpp): on a circle of radius R0 cut into equal
-  // chords, p0 = T / R0 exactly.
+  // The membrane load F0 of the tensions on the REFERENCE contour (edge_loads.hpp) holds the contour's
+  // curvature: distributed along curved faces, concentrated in the kink forces T (t+ - t-) at the corners
+  // between faces, as the deformed-contour law sees it. Each corner node takes F0, the consistent length and
+  // the normal sum of its faces, a T6 face's mid-side node's half of each (the kink force is the resultant
+  // of the pressure over the corner's tributary length, half of each face), and p0 = -(F0 . n0) / L0 as the
+  // output's laplace_pressure is computed (analysis_assembly.cpp). A mid-side node takes the mean of its
+  // face's corners: the pressure is linear along each face. (Its own -(F0 . n0) / L0 would be 0 on a
+  // straight T6 face and its corners' 3 T kappa: a pressure that puts its force where the kinks are, not
+  // where a pressure T kappa puts it; on the leg slice 8.5 % of max |u| from *DLOAD T kappa per face with
+  // 1,200 elements.) On a circle of radius R0 cut into equal chords, T3 or straight T6, p0 = T / R0 exactly.
   struct NodeSum {
     Eigen::Vector2d force = Eigen::Vector2d::Zero(), normal = Eigen::Vector2d::Zero();
     double length = 0.0;
   };
-  std::map<int, NodeSum> sums;
-  std::vector<std::vector<int>> face_node_ids;
+  std::map<int, NodeSum> corners;
+  std::vector<std::array<int, 2>> face_corners;
   for (std::size_t i = 0; i < faces.size(); ++i) {
     const ElementDef& e = model_.elements[faces[i].element];
     const std::vector<int> local = face_nodes(e.shape, faces[i].face);
-    EdgeNodes X(static_cast<Eigen::Index>(local.size()), 2);
-    std::vector<int> ids;
-    for (std::size_t k = 0; k < local.size(); ++k) {
-      ids.push_back(e.nodes[local[k]]);
-      X.row(static_cast<Eigen::Index>(k)) = model_.coordinates[ids.back()].transpose();
-    }
+    const auto n = static_cast<Eigen::Index>(local.size());
+    EdgeNodes X(n, 2);
+    for (Eigen::Index k = 0; k < n; ++k) X.row(k) = model_.coordinates[e.nodes[local[static_cast<std::size_t>(k)]]].transpose();
     EdgeVector force;
     laplace_membrane_load(X, tensions[i], force, nullptr);
     Eigen::VectorXd length;
     EdgeNodes normal;
     face_weights(X, length, normal);
-    for (std::size_t k = 0; k < ids.size(); ++k) {
-      const auto kk = static_cast<Eigen::Index>(k);
-      NodeSum& sum = sums[ids[k]];
-      sum.force += force.segment<2>(2 * kk);
-      sum.normal += normal.row(kk).transpose();
-      sum.length += length[kk];
+    const std::array<int, 2> ends = {e.nodes[local.front()], e.nodes[local.back()]};
+    const std::array<Eigen::Index, 2> end_rows = {0, n - 1};
+    for (int c = 0; c < 2; ++c) {
+      NodeSum& sum = corners[ends[c]];
+      const Eigen::Index row = end_rows[c];
+      sum.force += force.segment<2>(2 * row);
+      sum.normal += normal.row(row).transpose();
+      sum.length += length[row];
+      if (n == 3) {  // the mid-side node's share, half to each corner
+        sum.force += 0.5 * force.segment<2>(2);
+        sum.normal += 0.5 * normal.row(1).transpose();
+        sum.length += 0.5 * length[1];
+      }
     }
-    face_node_ids.push_back(std::move(ids));
+    face_corners.push_back(ends);
   }
   std::vector<Eigen::VectorXd> pressures;
-  for (const std::vector<int>& ids : face_node_ids) {
-    Eigen::VectorXd p(static_cast<Eigen::Index>(ids.size()));
-    for (std::size_t k = 0; k < ids.size(); ++k) {
-      const NodeSum& sum = sums.at(ids[k]);
-      const bool defined = sum.length > 0.0 && sum.normal.norm() > 0.0;
-      p(static_cast<Eigen::Index>(k)) = defined ? -sum.force.dot(sum.normal.normalized()) / sum.length : 0.0;
+  for (std::size_t i = 0; i < faces.size(); ++i) {
+    std::array<double, 2> p{};
+    for (int c = 0; c < 2; ++c) {
+      const NodeSum& sum = corners.at(face_corners[i][c]);
+      if (sum.length > 0.0 && sum.normal.norm() > 0.0) p[c] = -sum.force.dot(sum.normal.normalized()) / sum.length;
     }
-    pressures.push_back(std::move(p));
+    Eigen::VectorXd nodal(tensions[i].size());
+    if (nodal.size() == 2) {
+      nodal << p[0], p[1];
+    } else {
+      nodal << p[0], 0.5 * (p[0] + p[1]), p[1];
+    }
+    pressures.push_back(std::move(nodal));
   }
   return pressures;
 }
