@@ -8,7 +8,9 @@ included, summed at each face corner with half of each T6 face's mid-side share,
 L0 along the unit normal n0, p0 = -(F0 . n0) / L0; a mid-side node takes the mean of its face's corners.
 
 1. Circle of radius R0 cut into equal chords (CPE3, and CPE6 with straight skin faces as calfit's leg meshes
-   have): p0 = T / R0 at every node, so REFERENCE=1 is *DLOAD T / R0 on every skin face, to round-off.
+   have): p0 = T / R0 at every node, so REFERENCE=1 is *DLOAD T / R0 on every skin face, to round-off. An
+   ellipse under a FOURIER tension profile: the applied pressure is p0 of the nodal tensions by hand, and at
+   alpha = 0.4 (CPE3) 0.6 T/r of the deformed contour + 0.4 p0, to round-off.
 2. The leg-like slice (orchestrator.meshing, CPE6 and CPE3, non-circular skin): the engine's laplace_pressure
    at alpha = 1 is p0 by hand to round-off; the displacements are those of *DLOAD with each face's mean p0
    (one constant pressure per face, where the engine interpolates p0 along it) to the discretisation (below
@@ -65,8 +67,9 @@ def _face_node_ids(elements: np.ndarray, element: int, face: int) -> list[int]:
     return [int(e[a]), int(e[b])] if elements.shape[1] == 3 else [int(e[a]), int(e[3 + face - 1]), int(e[b])]
 
 
-def reference_pressures(nodes: np.ndarray, elements: np.ndarray, faces, tension: float) -> np.ndarray:
-    """p0 at every node of the faces (0 elsewhere), for a uniform tension."""
+def reference_pressures(nodes: np.ndarray, elements: np.ndarray, faces, tension) -> np.ndarray:
+    """p0 at every node of the faces (0 elsewhere); tension: one value, or one per node."""
+    tension = np.broadcast_to(np.asarray(tension, dtype=float), (len(nodes),))
     force, normal, length = np.zeros((len(nodes), 2)), np.zeros((len(nodes), 2)), np.zeros(len(nodes))
     for element, face in faces:
         ids = _face_node_ids(elements, element, face)
@@ -76,7 +79,8 @@ def reference_pressures(nodes: np.ndarray, elements: np.ndarray, faces, tension:
             N, dN = _edge_shape(n, s)
             dx = dN @ X
             t = dx / np.hypot(*dx)
-            f -= weight * tension * np.outer(dN, t)  # -integral (T N_a)' t, T constant
+            T, dT = N @ tension[ids], dN @ tension[ids]
+            f -= weight * np.outer(dT * N + T * dN, t)  # -integral (T N_a)' t
             w += weight * N * np.hypot(*dx)
             nw += weight * np.outer(N, [dx[1], -dx[0]])
         for corner in (0, n - 1):
@@ -137,6 +141,37 @@ def test_circle_reference_is_follower_pressure_t_over_r0(tmp_path, order):
     outer = mesh.nsets["OUTER"]
     assert np.abs(pressure[outer] - T / R0).max() < 1e-12 * T / R0
     assert np.all(pressure[np.setdiff1d(np.arange(len(mesh.nodes)), outer)] == 0.0)
+
+
+@pytest.mark.parametrize("order", [1, 2], ids=["CPE3", "CPE6"])
+def test_ellipse_reference_pressure_with_profile_is_hand_computed(tmp_path, order):
+    """A FOURIER tension profile about the origin on an ellipse (quadratic arcs with CPE6): the applied pressure at
+    alpha = 1 is p0 of the nodal tensions T (1 + a1 cos theta + b2 sin 2 theta), by hand; at alpha = 0.4 (CPE3) it
+    is 0.6 T/r + 0.4 p0, T/r the deformed-contour law's -(F . n) / L at the run's own deformed positions (on
+    straight faces the same sum as p0's, F_a = T_a (t+ - t-))."""
+    mesh = ring(3, 48 if order == 1 else 24, order, outer=(2.4, 1.6))
+    T, a1, b2 = 1.0, 0.3, -0.2
+    text = deck(mesh, LAW, fixed=[("INNER", 1, 2)], laplace=[("OUTER", T)], static=RING_STATIC)
+    text = text.replace(f"TENSION={fmt(T)}", f"TENSION={fmt(T)}, PROFILE=GARMENT")
+    text = text.replace("*STEP", f"*TENSION PROFILE, NAME=GARMENT, TYPE=FOURIER, CX=0, CY=0\n1, {a1}, 0\n2, 0, {b2}\n*STEP", 1)
+    theta = np.arctan2(mesh.nodes[:, 1], mesh.nodes[:, 0])
+    tension = T * (1 + a1 * np.cos(theta) + b2 * np.sin(2 * theta))
+    p0 = reference_pressures(deck_positions(text, len(mesh.nodes)), mesh.elems, mesh.surfaces["OUTER"], tension)
+    outer = mesh.nsets["OUTER"]
+    reference = run_engine(with_reference(text, 1), tmp_path, "reference")
+    converged(reference)
+    applied = EngineResults(reference.outdir).point_field("laplace_pressure")[outer]
+    assert np.abs(applied - p0[outer]).max() < 1e-12 * p0[outer].max()
+    assert p0[outer].max() > 1.5 * p0[outer].min()  # the profile and the ellipse both show
+    if order == 1:
+        mixed = run_engine(with_reference(text, 0.4), tmp_path, "mixed")
+        converged(mixed)
+        x = deck_positions(text, len(mesh.nodes)) + mixed.u()
+        deformed = reference_pressures(x, mesh.elems, mesh.surfaces["OUTER"], tension)
+        applied = EngineResults(mixed.outdir).point_field("laplace_pressure")[outer]
+        expected = 0.6 * deformed[outer] + 0.4 * p0[outer]
+        assert np.abs(applied - expected).max() < 1e-12 * expected.max()
+        assert np.abs(deformed[outer] - p0[outer]).max() > 1e-3 * p0[outer].max()
 
 
 # ----------------------------------------------------------------------------------------

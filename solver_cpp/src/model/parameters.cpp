@@ -96,7 +96,7 @@ SensitivityParameter laplace_tension(const Model& model, const DataLine& line) {
 // REFERENCE, <surface>: the share alpha of the reference-contour law in the last step's *LAPLACE PRESSURE
 // there (0 where the keyword does not give it). The load (1 - alpha) f_deformed + alpha f_reference is affine
 // in alpha, dR/dalpha = -(f_reference - f_deformed) at fixed u: the score of the reference law. The setter
-// takes any value (the difference of (3) in sensitivity.hpp evaluates alpha + |alpha| or 1 + 0).
+// takes any value: (3) of sensitivity.hpp evaluates the load at 2 alpha, or at 1 where alpha = 0.
 SensitivityParameter laplace_reference(const Model& model, const DataLine& line) {
   const int surface = laplace_surface(model, line, "REFERENCE", "REFERENCE share");
   SensitivityParameter p;

@@ -187,8 +187,9 @@ private:
   // The garment's load of every face of the Laplace-loaded surfaces: (element, face) -> its two shares.
   std::map<std::pair<int, int>, LaplaceFace> laplace_faces(const LoadState& state,
                                                            const std::vector<TensionProfile>& profiles) const;
-  // The reference contour's nodal pressures p0_a = -(F0_a . n0_a) / L0_a of one surface whose faces carry the
-  // nodal tensions `tensions` (same order as `faces`), returned per face at its nodes (analysis_loads.cpp).
+  // The reference contour's nodal pressures p0 of one surface whose faces carry the nodal tensions `tensions`
+  // (same order as `faces`): -(F0 . n0) / L0 at the face corners, F0 the membrane load on the reference
+  // contour, linear along each face; returned per face at its nodes (analysis_loads.cpp says why).
   std::vector<Eigen::VectorXd> reference_pressures(const std::vector<Face>& faces,
                                                    const std::vector<Eigen::VectorXd>& tensions) const;
   FaceLoad unloaded_face(const std::pair<int, int>& key) const;  // element and face nodes, no load yet
