@@ -107,7 +107,9 @@ class StepEffects:
     rigid_motions: (node set, u_x mm, u_y mm, angle degrees), `*RIGID MOTION` of a bone;
     fourier_profile: (k, a_k, b_k) of the garment tension factor 1 + sum a_k cos k theta + b_k sin k theta
     (`*TENSION PROFILE, TYPE=FOURIER`);
-    sensitivities: data lines of `*SENSITIVITY` (du/dtheta of the converged state, engine-computed).
+    sensitivities: data lines of `*SENSITIVITY` (du/dtheta of the converged state, engine-computed);
+    reference_share: alpha, the share of the garment's pressure taken from the curvature of the unloaded contour
+    (`*LAPLACE PRESSURE, REFERENCE=alpha`; 0 is Laplace's law on the deformed contour).
     """
 
     volume_changes: tuple[tuple[str, float], ...] = ()
@@ -115,6 +117,7 @@ class StepEffects:
     rigid_motions: tuple[tuple[str, float, float, float], ...] = ()
     fourier_profile: tuple[tuple[int, float, float], ...] = ()
     sensitivities: tuple[str, ...] = ()
+    reference_share: float = 0.0
 
 
 def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tension_N_per_mm: float, *,
@@ -136,6 +139,9 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
     for elset, dv in effects.volume_changes:
         if not float(dv) > -1.0:
             raise DeckError(f"the volume change of {elset} must be > -1 (a relative change), got {dv!r}")
+    if not 0.0 <= float(effects.reference_share) <= 1.0:
+        raise DeckError(f"the share of the pressure from the unloaded contour must lie in [0, 1], got "
+                        f"{effects.reference_share!r}")
     profile = [(f"{a:.10g}", f"{f:.10g}") for a, f in tension_profile] if tension_profile else []
     return render("leg_laplace.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
                   tension=f"{tension_N_per_mm:.10g}", tension_profile=profile,
@@ -143,7 +149,8 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
                   volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.volume_changes],
                   axial_stretch=None if effects.axial_stretch is None else f"{float(effects.axial_stretch):.10g}",
                   rigid_motions=[(nset, numbers((ux, uy, angle))) for nset, ux, uy, angle in effects.rigid_motions],
-                  sensitivities=list(effects.sensitivities), static=numbers(static), max_increments=max_increments)
+                  sensitivities=list(effects.sensitivities), static=numbers(static), max_increments=max_increments,
+                  reference_share=f"{float(effects.reference_share):.10g}" if effects.reference_share else None)
 
 
 def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_faces: Sequence[tuple[int, int]], *,

@@ -17,6 +17,7 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | stiffening      | C20_fat, C20_muscle             | *HYPERELASTIC, AVRIL third constant |
 | out_of_plane    | eps_z                           | *AXIAL STRETCH                      |
 | heterogeneity   | h_<mode>_<fat, muscle>          | one *MATERIAL per group             |
+| unloaded_curvature | alpha_unloaded               | *LAPLACE PRESSURE, REFERENCE=alpha  |
 
 Beyond the catalog, three effects act on the material groups of `orchestrator.heterogeneity` (every tissue cut
 by sector and depth, one material each): `patch:<groups>` (dlnC10_patch: C10 times exp(dlnC10_patch) in those
@@ -46,6 +47,7 @@ MUSCLE_SET = "MUSCLE"
 COMPARTMENT_PREFIX = "COMPARTMENT"
 SECOND_BONE = "BONE2"
 PROFILE_NAME = "GARMENT"
+SKIN_SURFACE = "SKIN"
 
 
 class EffectError(ValueError):
@@ -86,6 +88,7 @@ class LegDeckState:
     axial_stretch: float | None = None
     rigid_motions: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     fourier_profile: dict[int, tuple[float, float]] = field(default_factory=dict)
+    reference_share: float = 0.0   # the share of the garment's pressure taken from the unloaded contour
     sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     c10_factor: dict[str, float] = field(default_factory=dict)   # sensitivity line -> C10 / C10_muscle (compartments)
     groups: list = field(default_factory=list)                   # heterogeneity.Group of the model, [] if none
@@ -152,6 +155,11 @@ def _apply_tension_profile(state: LegDeckState, values: dict[str, float]) -> Non
     state.fourier_profile[1] = (values["a1"], values["b1"])
     _add_sensitivity(state, "a1", f"PROFILE, {PROFILE_NAME}, A1", 1.0)
     _add_sensitivity(state, "b1", f"PROFILE, {PROFILE_NAME}, B1", 1.0)
+
+
+def _apply_unloaded_curvature(state: LegDeckState, values: dict[str, float]) -> None:
+    state.reference_share = values["alpha_unloaded"]
+    _add_sensitivity(state, "alpha_unloaded", f"REFERENCE, {SKIN_SURFACE}", 1.0)
 
 
 def _apply_bone_motion(state: LegDeckState, values: dict[str, float]) -> None:
@@ -306,6 +314,14 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            _fixed(EffectParameter("a1", "1", -0.6, 0.6, 0.05, "cos theta amplitude of the tension factor"),
                   EffectParameter("b1", "1", -0.6, 0.6, 0.05, "sin theta amplitude of the tension factor")),
            _apply_tension_profile),
+    Effect("unloaded_curvature", "the garment's pressure from the curvature of the unloaded leg, T kappa0",
+           "Laplace's law presses with the curvature of the deformed skin (Avril et al. eq. 1); a garment designer "
+           "computes the pressure from the unloaded leg instead (p = T kappa0, the pressure a pressure sensor "
+           "calibrated on the bare leg reads), and so may the model behind the data. Where the garment flattens the "
+           "leg the two differ: a residual that follows the change of the skin's curvature.",
+           _fixed(EffectParameter("alpha_unloaded", "1", 0.0, 1.0, 0.1,
+                                  "share of the pressure taken from the unloaded contour's curvature")),
+           _apply_unloaded_curvature),
     Effect("bone_motion", "rigid motion of the fibula relative to the tibia instead of clamping",
            "The bones are not welded together: the interosseous membrane lets the fibula move under load, which "
            "drags the deep tissue with it: a residual that is largest around the second bone.",

@@ -388,7 +388,7 @@ class LegModel:
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,
                               tuple((n, *m) for n, m in state.rigid_motions.items()),
                               tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
-                              tuple(lines))
+                              tuple(lines), state.reference_share)
         stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
         materials = {elset: deck_material(state.laws[elset], c, stiffening) for elset, c in state.constants.items()}
         if self.band is not None:

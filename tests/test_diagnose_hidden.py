@@ -36,6 +36,8 @@ HIDDEN = {
     "bone_motion": dict(values={"ux_BONE2": 0.2, "uy_BONE2": -0.15}, wrong="drainage"),
     "stiffening": dict(values={"C20_fat": 3000.0, "C20_muscle": 6000.0}, wrong="drainage"),
     "out_of_plane": dict(values={"eps_z": 0.05}, wrong="bone_motion"),
+    # the garment's pressure taken from the unloaded leg's curvature, as another program's calf cases were made
+    "unloaded_curvature": dict(values={"alpha_unloaded": 1.0}, wrong="drainage"),
     # a fibular motion mimics a third of the lateral compartment's signature, so the wrong effect is drainage
     "compartments": dict(values={"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
                          wrong="drainage", labels="compartments"),
