@@ -61,6 +61,7 @@ from pathlib import Path
 import numpy as np
 
 from orchestrator.imaging.dic import correlate, spline_gradient
+from orchestrator.imaging.prefilter import Prefilter
 from orchestrator.imaging.windows import WindowOperators
 
 AMPLITUDE_PX = 0.5
@@ -178,6 +179,9 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     centres = np.column_stack([np.full(len(columns), crest), columns])
     began = time.perf_counter()
     result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window)
+    # the noise as the windows' residuals show it (what `calfit measure` calibrates its covariance with)
+    edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px))
+    result = result.calibrated(edges.edge_variance_px2, edges.residual_over_noise / Prefilter().residual_share(window))
     seconds_dic = time.perf_counter() - began
     began = time.perf_counter()
     seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field)[:, 1]
@@ -321,7 +325,7 @@ def main() -> None:
     deformed = deformed[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
     rows, cols = np.mgrid[0:reference.shape[0], 0:reference.shape[1]]
     field = np.stack([np.zeros(reference.shape), commanded_v(cols, rows + row0)])   # (u_x, u_y), px = mm here
-    gradients = spline_gradient(reference)
+    gradients = spline_gradient(Prefilter()(reference))   # the windows' operators read the prefiltered reference
     floor_sigma = float(np.sqrt(0.5 * (noise_floor(reference) ** 2 + noise_floor(deformed) ** 2)))
     print(f"Star images {reference.shape[1]} px wide, rows {row0}-{row0 + reference.shape[0] - 1} kept; windows "
           f"{', '.join(map(str, args.windows))} px every {args.step} px along row {CREST_ROW}")

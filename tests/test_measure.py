@@ -19,8 +19,10 @@ from orchestrator.cli import main
 from orchestrator.imaging.dic import correlate, estimate_noise_sigma, grid_centres
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.imaging.windows import WindowOperators
-from orchestrator.measure import FILES, normalised_median_outliers
-from orchestrator.phantom import CalfPhantom, bone_clamped_compression, make_loaded_image, render_unloaded
+from orchestrator.measure import FILES, measure_dic, normalised_median_outliers
+from orchestrator.phantom import CalfPhantom, MRIPhantom, bone_clamped_compression, make_loaded_image, render_unloaded
+from orchestrator.regions import LegFrame
+from orchestrator.verification import band_errors, errors_against
 from orchestrator.phantom.case import write_case
 
 SHIFT_MM = (0.047, -0.033)       # a sub-pixel translation of the tissue: 0.13 and 0.09 pixel
@@ -62,6 +64,30 @@ def test_the_predicted_covariance_matches_the_errors_of_overlapping_windows(phan
     # the overlaps are in it: without them the errors of neighbours would look independent
     neighbours = np.abs(covariance[0, 2:]).max() / covariance[0, 0]
     assert neighbours > 0.1
+
+
+def test_the_calibrated_error_model_holds_on_partial_volume_images():
+    """The second phantom (`MRIPhantom`: box-averaged partial volume, sharp skin, fat septa, muscle texture as fine
+    as a pixel, which its own noise estimate partly takes for noise) with the tissue moved by a sub-pixel
+    translation: `measure_dic`, its error model calibrated on the windows' residuals, whitened by the full
+    covariance, per band. Measured: all 0.99; fat within 5 mm of the skin 1.17, other fat 1.11, muscle 0.98 (the
+    images' noise taken as 0.68 of their own estimate); uncalibrated, the muscle read 0.60."""
+    phantom = MRIPhantom.at_resolution(0.36)
+    unloaded = render_unloaded(phantom, noise_seed=0)
+    loaded = make_loaded_image(phantom, lambda x, y: (np.full_like(x, SHIFT_MM[0]), np.full_like(y, SHIFT_MM[1])),
+                               noise_seed=5)
+    labels = phantom.labels()
+    measured, _, summary = measure_dic(unloaded, loaded, labels, phantom.pixel_size_mm,
+                                       RigidMotion(0.0, (0.0, 0.0), (75.0, 75.0)))
+    field = np.stack([np.full(unloaded.shape, SHIFT_MM[0]), np.full(unloaded.shape, SHIFT_MM[1])])
+    rows, overall = band_errors(measured, errors_against(measured, None, field),
+                                LegFrame.from_labels(labels, phantom.pixel_size_mm))
+    print(f"{summary['kept']} of {summary['windows']} windows, noise x{summary['noise_scale']:.2f}, all {overall:.2f}; "
+          + "; ".join(f"{row.band} {row.chi2_per_value:.2f}" for row in rows))
+    assert summary["kept"] > 0.75 * summary["windows"]
+    assert summary["noise_scale"] < 0.9        # the residuals found less noise than the images' own estimate
+    assert 0.8 < overall < 1.25
+    assert all(row.count > 20 and 0.7 < row.chi2_per_value < 1.4 for row in rows)
 
 
 def wavy(x, y):
