@@ -55,7 +55,8 @@ MAX_UNCERTAINTY_PX = 0.25
 MEDIAN_THRESHOLD = 2.0
 MEDIAN_EPSILON_PX = 0.1
 MEDIAN_NEIGHBOURS = 8
-RESIDUAL_ALPHA = 1e-3   # a window's residual beyond what the error model allows at this level is not trusted
+RESIDUAL_ALPHA = 1e-3   # a window's residual beyond what the error model allows at this level raises its own noise
+MAX_RESIDUAL_EXCESS = 3.0   # and beyond this many times the model the window is not trusted
 PRIOR_SMOOTHING = 1e-3      # thin-plate smoothing of the first pass (it only has to bend the windows, not fit noise)
 VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
 KINDS = ("grid", "skin", "fascia", "vessel")
@@ -275,9 +276,9 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     # the error of the images' edges, calibrated on the residuals of the windows that matched (`prefilter`)
     edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence))
     noise_scale = edges.residual_over_noise / prefilter.residual_share(window_px)
-    result = result.calibrated(edges.edge_variance_px2, noise_scale)
-    unpredicted = residual_outliers(result, edges, prefilter)
-    status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, unpredicted)
+    excess = residual_excess(result, edges, prefilter)
+    result = result.calibrated(edges.edge_variance_px2, noise_scale, excess)
+    status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, excess > MAX_RESIDUAL_EXCESS)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
     kept = status == KEPT
@@ -297,6 +298,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "edge_variance_px2": edges.edge_variance_px2,
                "residual_over_noise": edges.residual_over_noise, "noise_scale": noise_scale,
+               "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
                "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},
                "noise_sigma": list(result.noise_sigma), "noise_sigma_estimated": list(first.noise_sigma),
@@ -308,22 +310,24 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     return measurements, table, summary
 
 
-def residual_outliers(result, edges, prefilter: Prefilter) -> np.ndarray:
-    """Windows whose match leaves more residual than the error model predicts for them (`imaging.prefilter`): a
-    chi^2 test at RESIDUAL_ALPHA on the window's independent values (its pixels over those one prefiltered value
-    spreads over). A sliding interface, a vessel that fills or a failed match shows here; its error could not be
-    predicted from the images' noise and edges."""
+def residual_excess(result, edges, prefilter: Prefilter) -> np.ndarray:
+    """(N,) each window's squared residual over what the pooled error model predicts for it (`imaging.prefilter`)
+    where a chi^2 test at RESIDUAL_ALPHA on the window's independent values (its pixels over those one prefiltered
+    value spreads over) finds it larger, 1 elsewhere. A sliding interface, a vessel that fills, a texture aliased
+    more than elsewhere shows here: the window's own noise is then taken that much larger (as the residual
+    variance of a least-squares fit estimates it), and beyond MAX_RESIDUAL_EXCESS the match itself is in doubt."""
     kappa = edges.residual_over_noise
-    outliers = np.zeros(len(result.confidence), bool)
+    excess = np.ones(len(result.confidence))
     if not np.isfinite(kappa) or kappa <= 0:
-        return outliers
+        return excess
     for k, window in enumerate(result.edge_residuals):
         if window.count == 0:
             continue
         independent = window.count / prefilter.correlated_pixels
-        bound = stats.chi2.ppf(1.0 - RESIDUAL_ALPHA, independent) / independent
-        outliers[k] = window.residual_ratio(edges.edge_variance_px2, kappa) > bound
-    return outliers
+        ratio = window.residual_ratio(edges.edge_variance_px2, kappa)
+        if ratio > stats.chi2.ppf(1.0 - RESIDUAL_ALPHA, independent) / independent:
+            excess[k] = ratio
+    return excess
 
 
 def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: float,
@@ -337,7 +341,7 @@ def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: f
     uncertain = correlated & ~low & ~(result.uncertainty_px <= max_uncertainty_px)
     status[uncertain] = f"uncertain (> {max_uncertainty_px:g} px)"
     if unpredicted is not None:
-        status[(status == KEPT) & unpredicted] = "residual above its error model"
+        status[(status == KEPT) & unpredicted] = f"residual over {MAX_RESIDUAL_EXCESS:g} x its error model"
     candidates = status == KEPT
     outliers = normalised_median_outliers(result.position_mm, result.displacement_px, candidates, radius_mm=3.0 * step_mm)
     status[outliers & candidates] = f"median test (> {MEDIAN_THRESHOLD:g})"

@@ -142,19 +142,22 @@ class DICResult:
     edge_covariance_mm2: np.ndarray | None = None   # (N, 2, 2) the covariance's part per unit s_edge^2 (px^2)
     edge_variance_px2: float = 0.0                  # s_edge^2 already in covariance_mm2 (`calibrated`)
 
-    def calibrated(self, edge_variance_px2: float, noise_scale: float = 1.0) -> "DICResult":
+    def calibrated(self, edge_variance_px2: float, noise_scale: float = 1.0,
+                   window_excess: np.ndarray | None = None) -> "DICResult":
         """The same windows with their error model calibrated on the images (`prefilter`, module text): the error of
         the edges' position added to their covariance, and the noise's part (and the intensity variance) scaled by
-        noise_scale, what the windows' residuals say of the noise the images' own estimate gave."""
+        noise_scale, what the windows' residuals say of the noise the images' own estimate gave, and by each
+        window's own `window_excess` (N,) where its residual exceeds even that."""
         if self.edge_variance_px2 != 0.0:
             raise ValueError("these windows' error model is calibrated already")
-        covariance = noise_scale * self.covariance_mm2 + edge_variance_px2 * self.edge_covariance_mm2
+        scale = noise_scale * (np.ones(len(self.confidence)) if window_excess is None else np.asarray(window_excess, float))
+        covariance = scale[:, None, None] * self.covariance_mm2 + edge_variance_px2 * self.edge_covariance_mm2
         dy, dx = self.pixel_size_mm
         to_px = np.diag([1.0 / dx, 1.0 / dy])
         uncertainty, anisotropy = _spread(np.where(np.isfinite(covariance), to_px @ np.nan_to_num(covariance, posinf=0.0)
                                                    @ to_px, np.inf))
         return replace(self, covariance_mm2=covariance, uncertainty_px=uncertainty, anisotropy=anisotropy,
-                       intensity_variance=noise_scale * self.intensity_variance,
+                       intensity_variance=scale * self.intensity_variance,
                        noise_sigma=tuple(float(np.sqrt(noise_scale) * s) for s in self.noise_sigma),
                        edge_variance_px2=float(edge_variance_px2))
 
