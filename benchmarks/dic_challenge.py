@@ -178,10 +178,10 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     columns = np.arange(window // 2, width - window // 2 + 1, step)
     centres = np.column_stack([np.full(len(columns), crest), columns])
     began = time.perf_counter()
+    # one pass, no prior: the windows' own covariance under the images' noise, not calibrated on their residuals,
+    # which here hold the misfit of an affine window to periods shorter than a few windows (`calfit measure` deforms
+    # its windows by a first pass's field before it calibrates)
     result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window)
-    # the noise as the windows' residuals show it (what `calfit measure` calibrates its covariance with)
-    edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px))
-    result = result.calibrated(edges.edge_variance_px2, edges.residual_over_noise / Prefilter().residual_share(window))
     seconds_dic = time.perf_counter() - began
     began = time.perf_counter()
     seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field)[:, 1]

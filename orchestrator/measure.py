@@ -45,7 +45,7 @@ from .imaging.dic import correlate, grid_centres, roi_centres
 from .imaging.frame import RigidMotion, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
-from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter
+from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, typical_noise_ratio
 from .imaging.windows import WindowOperators
 
 WINDOW_CHOICES = (16, 32, 64)
@@ -275,8 +275,11 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                        prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter)
     # the error of the images' edges, calibrated on the residuals of the windows that matched (`prefilter`)
     edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence))
-    noise_scale = edges.residual_over_noise / prefilter.residual_share(window_px)
-    excess = residual_excess(result, edges, prefilter)
+    matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence)
+    residual_noise = typical_noise_ratio([result.edge_residuals[k] for k in np.flatnonzero(matched)],
+                                         edges.edge_variance_px2, prefilter)
+    noise_scale = residual_noise / prefilter.residual_share(window_px)
+    excess = residual_excess(result, edges.edge_variance_px2, residual_noise, prefilter)
     result = result.calibrated(edges.edge_variance_px2, noise_scale, excess)
     status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, excess > MAX_RESIDUAL_EXCESS)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
@@ -297,7 +300,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                                     edges.edge_variance_px2)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "edge_variance_px2": edges.edge_variance_px2,
-               "residual_over_noise": edges.residual_over_noise, "noise_scale": noise_scale,
+               "residual_over_noise": residual_noise, "noise_scale": noise_scale,
                "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
                "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},
@@ -310,21 +313,21 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     return measurements, table, summary
 
 
-def residual_excess(result, edges, prefilter: Prefilter) -> np.ndarray:
-    """(N,) each window's squared residual over what the pooled error model predicts for it (`imaging.prefilter`)
-    where a chi^2 test at RESIDUAL_ALPHA on the window's independent values (its pixels over those one prefiltered
-    value spreads over) finds it larger, 1 elsewhere. A sliding interface, a vessel that fills, a texture aliased
-    more than elsewhere shows here: the window's own noise is then taken that much larger (as the residual
-    variance of a least-squares fit estimates it), and beyond MAX_RESIDUAL_EXCESS the match itself is in doubt."""
-    kappa = edges.residual_over_noise
+def residual_excess(result, edge_variance_px2: float, residual_noise: float, prefilter: Prefilter) -> np.ndarray:
+    """(N,) each window's squared residual over what the calibrated error model predicts for it (`imaging.prefilter`:
+    the edges' part and the typical noise ratio of the windows' residuals) where a chi^2 test at RESIDUAL_ALPHA on the
+    window's independent values (its pixels over those one prefiltered value spreads over) finds it larger, 1
+    elsewhere. A sliding interface, a vessel that fills, a texture aliased more than elsewhere shows here: the
+    window's own noise is then taken that much larger (as the residual variance of a least-squares fit estimates
+    it), and beyond MAX_RESIDUAL_EXCESS the match itself is in doubt."""
     excess = np.ones(len(result.confidence))
-    if not np.isfinite(kappa) or kappa <= 0:
+    if not np.isfinite(residual_noise) or residual_noise <= 0:
         return excess
     for k, window in enumerate(result.edge_residuals):
         if window.count == 0:
             continue
         independent = window.count / prefilter.correlated_pixels
-        ratio = window.residual_ratio(edges.edge_variance_px2, kappa)
+        ratio = window.residual_ratio(edge_variance_px2, residual_noise)
         if ratio > stats.chi2.ppf(1.0 - RESIDUAL_ALPHA, independent) / independent:
             excess[k] = ratio
     return excess

@@ -211,3 +211,20 @@ class EdgeResiduals:
         if self.count == 0:
             return float("nan")
         return (self.y - self.edge_variance_px2 * self.z) / self.count
+
+
+def typical_noise_ratio(windows, edge_variance_px2: float, prefilter: Prefilter) -> float:
+    """What the windows' residuals say of the images' noise, over what their own estimate gave (the edges' part
+    taken out): the median over the windows of each one's ratio, so that the few whose motion the affine shape does
+    not follow (a sliding interface, a period shorter than the window) do not raise everyone's noise; corrected
+    for the median of chi^2 over the windows' independent values. The intercept of the pooled line
+    (`EdgeResiduals.residual_over_noise`) is the same number where every window fits."""
+    ratios, independent = [], []
+    for window in windows:
+        if window.count > 0:
+            ratios.append(window.residual_ratio(edge_variance_px2, 1.0))
+            independent.append(window.count / prefilter.correlated_pixels)
+    if not ratios:
+        return float("nan")
+    dof = float(np.median(independent))
+    return float(np.median(ratios) / (1.0 - 2.0 / (9.0 * dof)) ** 3)
