@@ -20,11 +20,27 @@ a finer matrix of the same leg segments the same):
    a disk of `bone_opening_mm` (1 mm: it drops the fascia, septa and vessels stuck to a bone, not the bone, a
    solid region at least 8 mm across), and its pieces of plausible area (`min_bone_area_mm2` to
    `max_bone_area_mm2`) are the bones. A marrow as dark as the cortex is part of the dark mask itself;
-4. muscle is the largest component of the non-bright, non-bone leg opened by
-   a disk of `skin_opening_mm` (which cuts the thin skin ring away from it),
-   grown back inside the non-bright mask, small holes (veins) filled;
-5. fat is the rest of the leg: skin and superficial veins count as fat, as in
+4. muscle (`find_muscle`) is what lies beyond the bright fat. The subcutaneous fat is crossed by fibrous septa,
+   thin dark lines (0.3-0.6 mm) from the skin to the deep fascia, itself a dark line along the muscle, and the
+   muscle holds streaks of fat, thin bright lines, some of which run out to the fascia: neither is the interface.
+   Bright is told from the rest on the image smoothed as little as for the bones (`bone_smoothing_mm`, less than
+   a septum is wide: at `smoothing_mm` septa 1 mm apart merged into a grey patch that passed for muscle, and a
+   streak merged with the fat across the fascia). The non-bright leg is opened, together with the bones (which
+   keep the thin muscle between a bone and the fascia), by a disk of `skin_opening_mm`: the skin ring and the
+   septa, thinner than the disk, come off the muscle. The muscle is the largest piece of what is left deeper than
+   `min_muscle_depth_mm` under the leg's outline (the skin covers the muscle: where the fat under it is too thin
+   and septate to show bright, as over the tibia at 0.6 mm pixels, skin, septa and muscle are one non-bright
+   piece), holes (veins, streaks) filled. Then every soft-tissue pixel takes the tissue that fills most of the
+   soft tissue in the disk of `interface_disk_mm` around it: a line crossing the interface narrower than about
+   pi/4 of that radius (a septum, a cluster of septa, a streak with the notch the opening cut round it where it
+   meets the fascia) joins the tissue it crosses into, while a smooth interface stays where it is. (On the second
+   phantom at 0.36 mm, septa grown back into the muscle put the meshed interface 0.5 mm outside the true one on
+   average, RMS 0.9 mm with spikes up to 4 mm; now +0.05 mm, RMS 0.1 mm, at most 0.6 mm);
+5. fat is the rest of the leg: skin, septa and superficial veins count as fat, as in
    the first paper's model (section 2.2.4).
+
+The label boundary is a threshold, off the image's edge by a fraction of a pixel; the mesh
+(`meshing.labels.EdgeMap`) puts the fat/muscle interface where the bright fat ends on the image itself.
 
 Labels: 0 background, 1 fat, 2 muscle, 3 bone.
 
@@ -39,7 +55,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, signal
 from skimage import filters, morphology
 
 from .case import FIRST_COMPARTMENT
@@ -63,7 +79,8 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
 
 
 def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothing_mm: float = 0.36,
-               bone_smoothing_mm: float = 0.2, skin_opening_mm: float = 0.8, min_bone_area_mm2: float = 40.0,
+               bone_smoothing_mm: float = 0.2, skin_opening_mm: float = 0.8, min_muscle_depth_mm: float = 1.5,
+               interface_disk_mm: float = 3.0, min_bone_area_mm2: float = 40.0,
                max_vein_hole_mm2: float = 30.0) -> np.ndarray:
     """Label map (uint8) of a T1 slice: 0 background, 1 fat (with skin), 2 muscle, 3 bone."""
     image = np.asarray(image, dtype=float)
@@ -77,24 +94,45 @@ def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothi
     if leg.sum() * pixel_area < 100.0:
         raise ImagingError("no leg found in the image: it has no large region brighter than the background")
 
-    bone = find_bones(ndimage.gaussian_filter(image, bone_smoothing_mm / min(pixel_size_mm)), leg, dark_level,
-                      pixel_size_mm, min_bone_area_mm2=min_bone_area_mm2)
+    sharp = ndimage.gaussian_filter(image, bone_smoothing_mm / min(pixel_size_mm))
+    bone = find_bones(sharp, leg, dark_level, pixel_size_mm, min_bone_area_mm2=min_bone_area_mm2)
     if not bone.any():
         raise ImagingError(f"no bone found: no dark ring inside the leg encloses {min_bone_area_mm2} mm^2")
 
-    not_bright = leg & (smooth <= bright_level) & ~bone
-    radius = max(1, int(round(skin_opening_mm / min(pixel_size_mm))))
-    core = largest_component(ndimage.binary_opening(not_bright, structure=morphology.disk(radius)))
-    muscle = not_bright & ndimage.binary_dilation(core, structure=morphology.disk(radius + 1))
-    muscle = largest_component(muscle)
-    max_hole = max(1, int(max_vein_hole_mm2 / pixel_area))
-    muscle = morphology.remove_small_holes(muscle | bone, max_size=max_hole) & ~bone
+    muscle = find_muscle(leg & (sharp > bright_level), leg, bone, pixel_size_mm, skin_opening_mm=skin_opening_mm,
+                         min_depth_mm=min_muscle_depth_mm, interface_disk_mm=interface_disk_mm,
+                         max_hole_mm2=max_vein_hole_mm2)
 
     labels = np.zeros(image.shape, dtype=np.uint8)
     labels[leg] = FAT
     labels[muscle] = MUSCLE
     labels[bone] = BONE
     return labels
+
+
+def find_muscle(bright: np.ndarray, leg: np.ndarray, bone: np.ndarray, pixel_size_mm, *, skin_opening_mm: float = 0.8,
+                min_depth_mm: float = 1.5, interface_disk_mm: float = 3.0, max_hole_mm2: float = 30.0) -> np.ndarray:
+    """Mask of the muscle in the leg: what lies beyond the bright fat (`bright`: fat, fatty marrow, streaks of fat),
+    with the septa on the fat's side and the streaks on the muscle's (see the module text, step 4)."""
+    max_hole = max(1, int(max_hole_mm2 / (pixel_size_mm[0] * pixel_size_mm[1])))
+    not_bright = leg & ~bright & ~bone
+    muscle = _opening_mm(not_bright | bone, skin_opening_mm, pixel_size_mm) & not_bright
+    muscle &= ndimage.distance_transform_edt(leg, sampling=pixel_size_mm) > min_depth_mm
+    muscle = morphology.remove_small_holes(largest_component(muscle) | bone, max_size=max_hole) & ~bone
+    soft = leg & ~bone
+    muscle = largest_component(_majority(muscle, soft, interface_disk_mm, pixel_size_mm))
+    return morphology.remove_small_holes(muscle | bone, max_size=max_hole) & ~bone
+
+
+def _majority(mask: np.ndarray, within: np.ndarray, radius_mm: float, pixel_size_mm) -> np.ndarray:
+    """Pixels of `within` where `mask` covers more than half of `within` in the disk of radius_mm around them."""
+    half_rows, half_cols = (int(np.ceil(radius_mm / size)) for size in pixel_size_mm)
+    rows, cols = np.mgrid[-half_rows:half_rows + 1, -half_cols:half_cols + 1]
+    disk = (np.hypot(rows * pixel_size_mm[0], cols * pixel_size_mm[1]) <= radius_mm).astype(float)
+    # pixel counts: whole numbers once the transform's round-off is rounded away, so that a tie is a tie
+    covered = np.rint(signal.fftconvolve((mask & within).astype(float), disk, mode="same"))
+    total = np.rint(signal.fftconvolve(within.astype(float), disk, mode="same"))
+    return within & (2.0 * covered > total)
 
 
 def find_bones(image: np.ndarray, leg: np.ndarray, dark_level: float, pixel_size_mm, *, min_cortex_mm: float = 0.5,

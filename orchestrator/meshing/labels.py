@@ -18,7 +18,8 @@ Method.
    the curves meet at the shared pixel corner (marching squares on each mask
    separately would leave a gap there). Curves are smoothed with a Gaussian of
    `smoothing_pixels` samples, junction end points fixed. With the image the labels
-   come from, each interface is moved onto the image's edge (`EdgeMap`).
+   come from, each interface is moved onto the image's edge (`EdgeMap`), the fat/muscle
+   interface to where the bright fat ends.
    The skin (the closed interface with the background) is then low-pass filtered at
    the wavelength `skin_cutoff_mm` (`curves.lowpass_closed`, which does not shrink it),
    because the garment presses it by Laplace's law, p = T kappa, and curvature
@@ -78,9 +79,10 @@ def mesh_from_labels(
     curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
     if image is not None:
         edges = EdgeMap(image, (row_mm, col_mm))
+        fat_sides = [fat_side(c, regions, (row_mm, col_mm)) for c in curves]
         for _ in range(SNAP_PASSES):
-            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels), c.closed, c.sides)
-                      if is_edge(c.sides) else c for c in curves]
+            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels, bright_side=side), c.closed, c.sides)
+                      if is_edge(c.sides) else c for c, side in zip(curves, fat_sides)]
     curves = [Curve(lowpass_closed(c.points, skin_cutoff_mm), True, c.sides) if c.closed and c.sides[0] == 0 else c
               for c in curves]
     if interface_offsets is not None:
@@ -101,6 +103,16 @@ def is_edge(sides) -> bool:
     return not (low in muscle and high in muscle)
 
 
+def fat_side(curve: Curve, regions: np.ndarray, pixel_size: tuple[float, float]) -> int:
+    """+1 (-1) when `curve` is an interface between fat and muscle (or a compartment) with the fat to the left
+    (right) of its direction, 0 for any other interface."""
+    low, high = sorted(int(v) for v in curve.sides)
+    if low != 1 or not is_tissue(high) or high == 1:
+        return 0
+    probe = curve.points + 0.5 * min(pixel_size) * unit_normals(curve.points, curve.closed)
+    return 1 if np.mean(_lookup(regions, pixel_size, probe) == 1) >= 0.5 else -1
+
+
 class EdgeMap:
     """Sub-pixel edges of an image, to place the interface curves of its labels on them.
 
@@ -111,7 +123,19 @@ class EdgeMap:
     step blurred by a symmetric point-spread function is where the gradient magnitude peaks, whatever the two
     levels. `snap` moves every interior vertex of a curve along its normal to the sub-pixel maximum of the
     gradient magnitude (image smoothed over one pixel) within `max_move_pixels`, where that maximum stands out
-    of the image noise, then smooths the curve again."""
+    of the image noise, then smooths the curve again.
+
+    The fat/muscle interface is where the bright fat ends (`snap` with `bright_side`), and what lies beside it is
+    not a step. The deep fascia is a dark line on the muscle's side (0.5 mm): the image rises again beyond it, and
+    the blurred rise pulls the gradient's peak into the fat (by 0.07 mm at 0.36 mm pixels and 0.15 mm at 0.6 mm on
+    a box-blurred profile fat | 0.5 mm dark line | muscle of the phantoms' grey levels). The fat's septa are dark
+    lines across the interface, whose sides are strong edges along it. So the edge is found as the peak of the
+    image's fall along the normal from the fat's side (the directional derivative, which the septa's sides and the
+    fascia's inner edge do not feed), then placed where the image crosses the half level between its brightest
+    value within a pixel on the fat's side of that peak and its darkest within a pixel on the other side (on the
+    same profile: 0.01 mm at 0.36 mm pixels, 0.07 mm at 0.6 mm, where the line no longer fills a pixel). Meshed
+    from the phantoms' true labels, the interface moved from +0.12 to +0.06 mm (second phantom, 0.36 mm pixels;
+    0.19 to 0.13 mm at 0.6 mm) and from +0.09 to +0.07 mm (first phantom), positive outside the muscle."""
 
     STEP = 0.25
 
@@ -121,21 +145,30 @@ class EdgeMap:
         self.max_move = max_move_pixels
         self.move_smoothing_samples = move_smoothing_samples
         image = np.asarray(image, float)
+        self.image, self.smoothing_px = image, smoothing_px
+        self._directional = None
         self.gradient = ndimage.gaussian_gradient_magnitude(image, smoothing_px)
         noise = ndimage.gaussian_gradient_magnitude(image - ndimage.gaussian_filter(image, smoothing_px), smoothing_px)
         self.significant = 4.0 * float(np.median(noise))
 
-    def snap(self, points: np.ndarray, closed: bool, sigma: float) -> np.ndarray:
+    def snap(self, points: np.ndarray, closed: bool, sigma: float, bright_side: int = 0) -> np.ndarray:
+        """The curve moved onto the image's edge. bright_side: 0, the gradient magnitude's peak; +1 (-1), the end
+        of a bright tissue lying to the left (right) of the curve (the class text)."""
         if len(points) < 5:
             return points
         row_mm, col_mm = self.pixel_size
         normal = unit_normals(points, closed)
+        if bright_side:
+            normal = -bright_side * normal      # from the bright tissue into the dark one
         offsets = np.arange(-self.max_move - self.STEP, self.max_move + 1.5 * self.STEP, self.STEP)
         pixel = np.sqrt(row_mm * col_mm)
         samples = points[:, None, :] + offsets[None, :, None] * pixel * normal[:, None, :]   # (k, m, 2) mm
         rows, cols = samples[..., 1] / row_mm - 0.5, samples[..., 0] / col_mm - 0.5
-        profile = ndimage.map_coordinates(self.gradient, [rows.ravel(), cols.ravel()], order=3,
-                                          mode="nearest").reshape(rows.shape)
+        if bright_side:
+            profile = self._fall(rows, cols, normal)
+        else:
+            profile = ndimage.map_coordinates(self.gradient, [rows.ravel(), cols.ravel()], order=3,
+                                              mode="nearest").reshape(rows.shape)
         peak = np.argmax(profile, axis=1)
         index = np.arange(len(points))
         interior = (peak > 0) & (peak < len(offsets) - 1)
@@ -144,8 +177,12 @@ class EdgeMap:
         centre = profile[index, peak]
         curvature = left - 2 * centre + right
         refine = np.where(interior & (curvature < 0), 0.5 * (left - right) / np.where(curvature < 0, curvature, -1.0), 0.0)
-        move = np.clip(offsets[peak] + refine * self.STEP, -self.max_move, self.max_move)
-        move[~interior | (centre < self.significant)] = 0.0
+        edge = offsets[peak] + refine * self.STEP
+        found = interior & (centre >= self.significant)
+        if bright_side:
+            edge = self._half_level(points, normal, edge, found)
+        move = np.clip(edge, -self.max_move, self.max_move)
+        move[~found] = 0.0
         # the bias of a threshold is smooth along an interface, the peak of one noisy profile is not: the moves are
         # averaged along the curve, so that snapping corrects the one without adding the other as curvature
         move = gaussian_filter1d(move, self.move_smoothing_samples, mode="wrap" if closed else "nearest")
@@ -153,6 +190,45 @@ class EdgeMap:
             move[0] = move[-1] = 0.0
         moved = points + (move * pixel)[:, None] * normal
         return smooth_points(moved, closed, sigma)
+
+    def _fall(self, rows: np.ndarray, cols: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """How fast the image (smoothed over smoothing_px) falls along `normal` (one per row of samples) at the
+        samples (pixel coordinates), per pixel, as the gradient magnitude is."""
+        row_mm, col_mm = self.pixel_size
+        if self._directional is None:
+            self._directional = tuple(ndimage.gaussian_filter(self.image, self.smoothing_px, order=order)
+                                      for order in ((1, 0), (0, 1)))
+        along_rows, along_cols = (ndimage.map_coordinates(d, [rows.ravel(), cols.ravel()], order=3,
+                                                          mode="nearest").reshape(rows.shape)
+                                  for d in self._directional)
+        pixel = np.sqrt(row_mm * col_mm)
+        return -pixel * (along_cols * normal[:, None, 0] / col_mm + along_rows * normal[:, None, 1] / row_mm)
+
+    def _half_level(self, points: np.ndarray, normal: np.ndarray, edge: np.ndarray, found: np.ndarray,
+                    step: float = 0.05) -> np.ndarray:
+        """The edges (offsets along `normal`, pixels) moved to where the image crosses the half level between its
+        brightest value within a pixel before the edge and its darkest within a pixel after it (the crossing next
+        to the darkest value: a septum on the bright side is not the edge); unchanged where there is no such
+        crossing."""
+        row_mm, col_mm = self.pixel_size
+        pixel = np.sqrt(row_mm * col_mm)
+        offsets = np.arange(-1.0, 1.0 + 0.5 * step, step)
+        middle = int(np.argmin(np.abs(offsets)))
+        at = points[:, None, :] + (edge[:, None] + offsets[None, :])[..., None] * pixel * normal[:, None, :]
+        rows, cols = at[..., 1] / row_mm - 0.5, at[..., 0] / col_mm - 0.5
+        profile = ndimage.map_coordinates(self.image, [rows.ravel(), cols.ravel()], order=1,
+                                          mode="nearest").reshape(rows.shape)
+        placed = edge.copy()
+        for k in np.flatnonzero(found):
+            values = profile[k]
+            bright = int(np.argmax(values[:middle + 1]))
+            dark = middle + int(np.argmin(values[middle:]))
+            level = 0.5 * (values[bright] + values[dark])
+            last = bright + int(np.flatnonzero(values[bright:dark + 1] >= level)[-1])
+            if last >= dark or values[last] <= values[last + 1]:
+                continue
+            placed[k] = edge[k] + offsets[last] + step * (values[last] - level) / (values[last] - values[last + 1])
+        return placed
 
 
 def interface_shift(labels: np.ndarray, pixel_size_mm: Sequence[float], interface: str, distance_mm: float,
