@@ -45,7 +45,7 @@ from .imaging.dic import correlate, grid_centres, roi_centres
 from .imaging.frame import RigidMotion, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
-from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, typical_noise_ratio
+from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model, residual_bound
 from .imaging.windows import WindowOperators
 
 WINDOW_CHOICES = (16, 32, 64)
@@ -56,7 +56,7 @@ MEDIAN_THRESHOLD = 2.0
 MEDIAN_EPSILON_PX = 0.1
 MEDIAN_NEIGHBOURS = 8
 RESIDUAL_ALPHA = 1e-3   # a window's residual beyond what the error model allows at this level raises its own noise
-MAX_RESIDUAL_EXCESS = 3.0   # and beyond this many times the model the window is not trusted
+MAX_RESIDUAL_EXCESS = 5.0   # and beyond this many times the model the window is not trusted (a failed match)
 PRIOR_SMOOTHING = 1e-3      # thin-plate smoothing of the first pass (it only has to bend the windows, not fit noise)
 VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
 KINDS = ("grid", "skin", "fascia", "vessel")
@@ -273,14 +273,14 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     prior = prior_field(first.position_mm[trusted], first.displacement_mm[trusted], unloaded.shape, pixel_size_mm)
     result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion,
                        prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter)
-    # the error of the images' edges, calibrated on the residuals of the windows that matched (`prefilter`)
-    edges = result.pooled_edge_residuals(np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence))
+    # the error model calibrated on the residuals of the windows that matched (`prefilter`): the edges' error of
+    # position, and the noise the images hold
     matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence)
-    residual_noise = typical_noise_ratio([result.edge_residuals[k] for k in np.flatnonzero(matched)],
-                                         edges.edge_variance_px2, prefilter)
+    edge_variance, residual_noise = fit_error_model([result.edge_residuals[k] for k in np.flatnonzero(matched)],
+                                                    prefilter, RESIDUAL_ALPHA)
     noise_scale = residual_noise / prefilter.residual_share(window_px)
-    excess = residual_excess(result, edges.edge_variance_px2, residual_noise, prefilter)
-    result = result.calibrated(edges.edge_variance_px2, noise_scale, excess)
+    excess = residual_excess(result, edge_variance, residual_noise, prefilter)
+    result = result.calibrated(edge_variance, noise_scale, excess)
     status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, excess > MAX_RESIDUAL_EXCESS)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
@@ -297,9 +297,9 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
-                                    edges.edge_variance_px2)
+                                    edge_variance)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
-               "prefilter_px": prefilter_px, "edge_variance_px2": edges.edge_variance_px2,
+               "prefilter_px": prefilter_px, "edge_variance_px2": edge_variance,
                "residual_over_noise": residual_noise, "noise_scale": noise_scale,
                "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
@@ -326,9 +326,8 @@ def residual_excess(result, edge_variance_px2: float, residual_noise: float, pre
     for k, window in enumerate(result.edge_residuals):
         if window.count == 0:
             continue
-        independent = window.count / prefilter.correlated_pixels
         ratio = window.residual_ratio(edge_variance_px2, residual_noise)
-        if ratio > stats.chi2.ppf(1.0 - RESIDUAL_ALPHA, independent) / independent:
+        if ratio > residual_bound(window, prefilter, RESIDUAL_ALPHA):
             excess[k] = ratio
     return excess
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from scipy import ndimage, special
+from scipy import ndimage, special, stats
 
 PREFILTER_SIGMA_PX = 1.0
 TRUNCATE = 4.0   # the kernel's half-width in standard deviations (scipy's default)
@@ -89,11 +89,6 @@ class Prefilter:
         for axis in (-2, -1):
             padded = ndimage.correlate1d(padded, self._kernel, axis=axis, mode="constant")
         return padded
-
-    @cached_property
-    def noise_gain(self) -> float:
-        """sum G^2: the variance of a prefiltered pixel of unit white noise."""
-        return float(np.sum(self._kernel ** 2) ** 2)
 
     @cached_property
     def derivative_noise_gain(self) -> float:
@@ -213,18 +208,29 @@ class EdgeResiduals:
         return (self.y - self.edge_variance_px2 * self.z) / self.count
 
 
-def typical_noise_ratio(windows, edge_variance_px2: float, prefilter: Prefilter) -> float:
-    """What the windows' residuals say of the images' noise, over what their own estimate gave (the edges' part
-    taken out): the median over the windows of each one's ratio, so that the few whose motion the affine shape does
-    not follow (a sliding interface, a period shorter than the window) do not raise everyone's noise; corrected
-    for the median of chi^2 over the windows' independent values. The intercept of the pooled line
-    (`EdgeResiduals.residual_over_noise`) is the same number where every window fits."""
-    ratios, independent = [], []
-    for window in windows:
-        if window.count > 0:
-            ratios.append(window.residual_ratio(edge_variance_px2, 1.0))
-            independent.append(window.count / prefilter.correlated_pixels)
-    if not ratios:
-        return float("nan")
-    dof = float(np.median(independent))
-    return float(np.median(ratios) / (1.0 - 2.0 / (9.0 * dof)) ** 3)
+def residual_bound(window: EdgeResiduals, prefilter: Prefilter, alpha: float) -> float:
+    """The largest squared residual, over what the error model predicts, that a window's independent values (its
+    pixels over those one prefiltered value spreads over) reach with probability 1 - alpha under the model (chi^2)."""
+    independent = window.count / prefilter.correlated_pixels
+    return float(stats.chi2.ppf(1.0 - alpha, independent) / independent)
+
+
+def fit_error_model(windows, prefilter: Prefilter, alpha: float, rounds: int = 2) -> tuple[float, float]:
+    """(s_edge^2 px^2, kappa): the pooled line through the windows' residuals (`EdgeResiduals`), fitted again without
+    the windows whose own residual the line does not predict (chi^2 at alpha): those whose motion the affine shape
+    does not follow (a sliding interface, a period shorter than the window) would otherwise raise everyone's
+    noise."""
+    windows = [window for window in windows if window.count > 0]
+    trusted = windows
+    for _ in range(rounds + 1):
+        pooled = EdgeResiduals()
+        for window in trusted:
+            pooled += window
+        edge_variance, kappa = pooled.edge_variance_px2, pooled.residual_over_noise
+        if not (np.isfinite(kappa) and kappa > 0):
+            break
+        fitting = [w for w in windows if w.residual_ratio(edge_variance, kappa) <= residual_bound(w, prefilter, alpha)]
+        if len(fitting) == len(trusted) or len(fitting) < 10:
+            break
+        trusted = fitting
+    return edge_variance, kappa
