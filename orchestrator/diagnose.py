@@ -39,7 +39,7 @@ largest share of the squared residual.
 Locate. When the misfit is above the floor, every place a local stiffness change may take is scored the
 same way, as a one-parameter effect: the material groups of `heterogeneity` (15-degree sectors, depth bands),
 contiguous in one tissue kind over 1 to 6 sectors (up to 90 degrees) and a run of bands, its column the sum of
-its groups' dr/dln C10 (the `local` probe, one engine run). The best places that share no group are reported
+its groups' dr/dln E (E every modulus of the group, the `local` probe, one engine run). The best places that share no group are reported
 (tissue, sector, depth, area; Bonferroni over the N places tried), and the best is refitted (`patch:...`). Its
 BIC counts the choice of the place among N, 2 ln N on top of its parameter's ln n (a prior 1/N on each place).
 It explains when it reaches EXPLAINED_FACTOR x the floor with a BIC below the baseline's; when a catalog
@@ -129,7 +129,7 @@ class PatchScore:
     statistic: float
     p_value: float                    # Bonferroni over the candidates tried
     predicted_misfit: float
-    predicted_ratio: float            # C10 in the patch / C10 of the tissue, linearized
+    predicted_ratio: float            # stiffness in the patch / stiffness of the tissue, linearized
     significant: bool = False
     places_tried: int = 1             # candidates scored: the choice of this one costs 2 ln N on BIC
 
@@ -395,7 +395,7 @@ def locate(r: np.ndarray, J: np.ndarray, local: np.ndarray, groups: Sequence[Gro
            chi2_to_misfit: float, deff: float, misfit: float, alpha: float = ALPHA,
            keep: int = PATCHES_KEPT) -> list[PatchScore]:
     """Score every candidate patch (`heterogeneity.patch_candidates`) as a one-parameter effect whose column is
-    the sum of its groups' dr/dlnC10 (module text); the best `keep` places that share no group, best first."""
+    the sum of its groups' dr/dlnE (module text); the best `keep` places that share no group, best first."""
     Q, _ = np.linalg.qr(J)
     r_perp = r - Q @ (Q.T @ r)
     local_perp = local - Q @ (Q.T @ local)
@@ -546,10 +546,10 @@ def weigh_local(diagnosis: Diagnosis, patch: PatchScore, before: Refit, after: R
     catalog effect explained the residual, the local change is its rival: if the local change wins on that BIC,
     the catalog no longer explains (`explained` false) and the verdict says so. Updates the diagnosis' verdict;
     returns the local refit's summary (diagnosis.json "local")."""
-    ratio = float(np.exp(after.theta[after.parameters.index("dlnC10_patch")]))
+    ratio = float(np.exp(after.theta[after.parameters.index("dlnE_patch")]))
     bic = after.bic + 2.0 * np.log(max(patch.places_tried, 1))
     explains = after.misfit_over_floor <= EXPLAINED_FACTOR and bic < before.bic
-    numbers = (f"C10 x{ratio:.2f} there, {patch.area_cm2:.1f} cm2; refitted, the misfit is {after.misfit_over_floor:.2f} "
+    numbers = (f"stiffness x{ratio:.2f} there, {patch.area_cm2:.1f} cm2; refitted, the misfit is {after.misfit_over_floor:.2f} "
                f"x the floor, BIC {bic:.1f} with the choice of place counted, against {before.bic:.1f}")
     rival = None
     if diagnosis.explained:
@@ -591,10 +591,10 @@ def ranking_lines(diagnosis: Diagnosis) -> list[str]:
     for name, reason in diagnosis.not_ranked.items():
         lines.append(f"     {name:<17} not ranked: {reason}")
     if diagnosis.patches:
-        lines.append("places for a local stiffness change (score, predicted misfit, C10 ratio, linearized):")
+        lines.append("places for a local stiffness change (score, predicted misfit, stiffness ratio, linearized):")
         lines += [f"  {k}. {p.place}, {p.area_cm2:.1f} cm2: statistic {p.statistic:.1f}, p = {p.p_value:.2g} over "
                   f"{p.places_tried} places, {p.predicted_misfit / diagnosis.noise_floor:.2f} x the floor, "
-                  f"C10 x{p.predicted_ratio:.2f}{'' if p.significant else ' (not significant)'}"
+                  f"stiffness x{p.predicted_ratio:.2f}{'' if p.significant else ' (not significant)'}"
                   for k, p in enumerate(diagnosis.patches, 1)]
     lines.append(diagnosis.verdict)
     return lines

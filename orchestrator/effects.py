@@ -20,11 +20,11 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | unloaded_curvature | alpha_unloaded               | *LAPLACE PRESSURE, REFERENCE=alpha  |
 
 Beyond the catalog, three effects act on the material groups of `orchestrator.heterogeneity` (every tissue cut
-by sector and depth, one material each): `patch:<groups>` (dlnC10_patch: C10 times exp(dlnC10_patch) in those
-groups, the local stiffness change the diagnosis proposes where the catalog explains nothing),
-`region:<fat|muscle>:<start deg>:<end deg>` (dlnC10: the same in an angular sector, cut on any mesh: how a
-phantom with a stiff patch is made) and `local` (dlnC10_<group> of every group: the diagnosis' probe of where
-a stiffness change would reduce the residual).
+by sector and depth, one material each): `patch:<groups>` (dlnE_patch: every modulus of the law, C10 and
+Kv alike, times exp(dlnE_patch) in those groups, the local stiffness change the diagnosis proposes where the
+catalog explains nothing), `region:<fat|muscle>:<start deg>:<end deg>` (dlnE: the same in an angular sector,
+cut on any mesh: how a phantom with a stiff patch is made) and `local` (dlnE_<group> of every group: the
+diagnosis' probe of where a stiffness change would reduce the residual).
 
 `friction` and `bridging` are not in the Laplace-law deck (`Effect.laplace_model` is False): they need the
 explicit garment band (`templates/leg_garment.inp.j2`, penalty contact, friction). The diagnosis of a Laplace-law
@@ -93,7 +93,7 @@ class LegDeckState:
     c10_factor: dict[str, float] = field(default_factory=dict)   # sensitivity line -> C10 / C10_muscle (compartments)
     groups: list = field(default_factory=list)                   # heterogeneity.Group of the model, [] if none
     c10_log_factor: dict[str, float] = field(default_factory=dict)   # group -> ln(C10_group / C10_tissue)
-    group_sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)  # parameter -> (group, dlnC10/dp)
+    group_sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)  # parameter -> (group, dln(factor)/dp)
 
 
 @dataclass(frozen=True)
@@ -185,7 +185,7 @@ HETEROGENEITY_BOUND = 1.5   # |c_m| <= 1.5: C10 within a factor e^1.5 = 4.5 of t
 
 def _heterogeneity_parameters(element_sets, node_sets):
     return tuple(EffectParameter(f"h_{mode}_{kind}", "1", -HETEROGENEITY_BOUND, HETEROGENEITY_BOUND, 0.25,
-                                 f"{mode} mode of ln C10 in the {kind}")
+                                 f"{mode} mode of the ln stiffness in the {kind}")
                  for kind in KINDS for mode in (FAT_MODES if kind == "fat" else MODES))
 
 
@@ -208,16 +208,16 @@ def _needs_groups(element_sets, node_sets):
 
 def _apply_local(state: LegDeckState, values: dict[str, float]) -> None:
     for name, value in values.items():
-        _add_log_factor(state, name, name[len("dlnC10_"):], 1.0, value)
+        _add_log_factor(state, name, name[len("dlnE_"):], 1.0, value)
 
 
 def patch_effect(name: str) -> Effect:
-    """C10 times exp(dlnC10_patch) in the groups of `name` (patch:G1+G2+...)."""
+    """Every modulus times exp(dlnE_patch) in the groups of `name` (patch:G1+G2+...)."""
     members = patch_groups(name)
 
     def apply(state: LegDeckState, values: dict[str, float]) -> None:
         for group in members:
-            _add_log_factor(state, "dlnC10_patch", group, 1.0, values["dlnC10_patch"])
+            _add_log_factor(state, "dlnE_patch", group, 1.0, values["dlnE_patch"])
 
     def requirement(element_sets, node_sets):
         missing = sorted(set(members) - set(element_sets))
@@ -225,12 +225,12 @@ def patch_effect(name: str) -> Effect:
 
     return Effect(name, "stiffness change in a patch of material groups",
                   "A region of one tissue stiffer or softer than the rest (scar, oedema, a muscle unlike its neighbours).",
-                  _fixed(EffectParameter("dlnC10_patch", "1", -2.5, 2.5, 0.25, "ln of the patch's C10 ratio")),
+                  _fixed(EffectParameter("dlnE_patch", "1", -2.5, 2.5, 0.25, "ln of the patch's stiffness ratio")),
                   apply, requirement=requirement)
 
 
 def region_effect(name: str) -> Effect:
-    """C10 times exp(dlnC10) in an angular sector of one tissue (`heterogeneity.region_groups`)."""
+    """Every modulus times exp(dlnE) in an angular sector of one tissue (`heterogeneity.region_groups`)."""
     try:
         parse_region(name)
     except ValueError as error:
@@ -239,38 +239,62 @@ def region_effect(name: str) -> Effect:
     def apply(state: LegDeckState, values: dict[str, float]) -> None:
         for group in state.groups:
             if group.region == name:
-                _add_log_factor(state, "dlnC10", group.name, 1.0, values["dlnC10"])
+                _add_log_factor(state, "dlnE", group.name, 1.0, values["dlnE"])
 
     return Effect(name, "stiffness change in an angular sector of one tissue",
                   "A stiff or soft patch of tissue, wherever the mesh's elements lie (phantoms with physics outside the catalog).",
-                  _fixed(EffectParameter("dlnC10", "1", -2.5, 2.5, 0.25, "ln of the region's C10 ratio")), apply,
+                  _fixed(EffectParameter("dlnE", "1", -2.5, 2.5, 0.25, "ln of the region's stiffness ratio")), apply,
                   requirement=_needs_groups)
 
 
+def _modulus_lines(group: str, law, constants_MPa: dict[str, float], dln_factor: float) -> list[tuple[str, float]]:
+    """The *SENSITIVITY lines of a group's moduli for a parameter p that multiplies all of them by exp(p)."""
+    lines = []
+    for constant, value in constants_MPa.items():
+        if value == 0.0:
+            continue
+        if constant != "Kv":
+            lines.append((f"MATERIAL, {group}, {constant}", value * dln_factor))
+        elif law.law == "avril":
+            lines.append((f"MATERIAL, {group}, KV", value * dln_factor))
+        else:
+            lines.append((f"MATERIAL, {group}, D1", -dln_factor / value))
+    return lines
+
+
 def split_into_groups(state: LegDeckState) -> None:
-    """Give every group its tissue's constants with C10 times exp(its log factor), and rewrite the sensitivity
-    lines of a tissue's constants into the lines of its groups (dC10_group/dC10_tissue = the group's factor)."""
+    """Give every group its tissue's constants times exp(its log factor), and rewrite the sensitivity lines of a
+    tissue's constants into the lines of its groups (dk_group/dk_tissue = the group's factor for every modulus k).
+
+    The factor scales the whole strain energy, C10 and Kv alike, so that a stiffer or softer region keeps its
+    tissue's Poisson ratio, nu = (3 Kv - 2 C10) / (6 Kv + 2 C10) at small strain (bulk modulus 2 Kv, shear 2 C10).
+    A factor on C10 alone would make a region three times stiffer more compressible (the muscle's nu from 0.42 to
+    0.29 at C10 x3 with Table 2's constants) and one over 9 auxetic: not tissue."""
     members: dict[str, list] = {}
     for group in state.groups:
         members.setdefault(group.tissue_set, []).append(group)
+    group_tissue = {g.name: g.tissue_set for g in state.groups}
     factor = {g.name: float(np.exp(state.c10_log_factor.get(g.name, 0.0))) for g in state.groups}
-    constants = {g.name: {**state.constants[g.tissue_set], "C10": state.constants[g.tissue_set]["C10"] * factor[g.name]}
-                 for g in state.groups}
+    # every modulus (C10, C01, C20, C30 and Kv) times the factor: the strain energy scales, Poisson's ratio stays
+    constants = {g.name: {k: v * factor[g.name] for k, v in state.constants[g.tissue_set].items()} for g in state.groups}
     material_line = re.compile(r"MATERIAL, (\S+), (\S+)$")
     for parameter, lines in state.sensitivity.items():
         rewritten = []
         for line, weight in lines:
             match = material_line.match(line)
             if match and match.group(1) in members:
+                # the deck's D1 = 1 / Kv scales by 1 / factor, every modulus by factor
                 rewritten += [(f"MATERIAL, {g.name}, {match.group(2)}",
-                               weight * (factor[g.name] if match.group(2) == "C10" else 1.0)) for g in members[match.group(1)]]
+                               weight * (1.0 / factor[g.name] if match.group(2) == "D1" else factor[g.name]))
+                              for g in members[match.group(1)]]
             else:
                 rewritten.append((line, weight))
         state.sensitivity[parameter] = rewritten
     for parameter, entries in state.group_sensitivity.items():
-        # du/dp = sum_g dC10_g/dp du/dC10_g, dC10_g/dp = C10_g dlnC10_g/dp
-        state.sensitivity[parameter] = [(f"MATERIAL, {group}, C10", constants[group]["C10"] * weight)
-                                        for group, weight in entries if weight != 0.0]
+        # du/dp = sum_g sum_k dk_g/dp du/dk_g, dk_g/dp = k_g dln(factor_g)/dp for every modulus k (-D1_g for D1)
+        state.sensitivity[parameter] = [line for group, weight in entries if weight != 0.0
+                                        for line in _modulus_lines(group, state.laws[group_tissue[group]],
+                                                                   constants[group], weight)]
     state.laws = {g.name: state.laws[g.tissue_set] for g in state.groups}
     state.constants = constants
 
@@ -339,17 +363,18 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            "a uniform axial strain eps_z changes the in-plane area at no cost, a dilatation everywhere.",
            _fixed(EffectParameter("eps_z", "1", -0.2, 0.2, 0.01, "axial strain lambda_z - 1")),
            _apply_out_of_plane),
-    Effect("heterogeneity", "C10 varying smoothly around the leg and with depth, in fat and in muscle",
+    Effect("heterogeneity", "stiffness varying smoothly around the leg and with depth, in fat and in muscle",
            "Muscle groups differ in stiffness (the compartments), and fat is thicker and looser at the back; a "
-           "segmentation into fat and muscle holds none of it: ln C10 = ln C10_tissue + sum_m c_m phi_m with the modes "
+           "segmentation into fat and muscle holds none of it: every modulus (C10, Kv) of a tissue times "
+           "exp(sum_m c_m phi_m) with the modes "
            "cos, sin of the angle and of twice it, and depth through the muscle, on material groups cut by sector and "
            "depth. Needs no compartment labels.",
            _heterogeneity_parameters, _apply_heterogeneity),
 )}
-LOCAL_PROBE = Effect("local", "a separate C10 factor in every material group (diagnosis probe, not fitted)",
+LOCAL_PROBE = Effect("local", "a separate stiffness factor in every material group (diagnosis probe, not fitted)",
                      "Where a local stiffness change would reduce the residual.",
                      lambda element_sets, node_sets: tuple(
-                         EffectParameter(f"dlnC10_{name}", "1", -2.5, 2.5, 0.25, f"ln C10 factor of {name}")
+                         EffectParameter(f"dlnE_{name}", "1", -2.5, 2.5, 0.25, f"ln stiffness factor of {name}")
                          for name in element_sets if is_group(name)),
                      _apply_local, requirement=_needs_groups)
 

@@ -5,7 +5,7 @@ segmentation into fat, muscle and bone knows none of it. Here every tissue eleme
 COMPARTMENTk) is cut into groups by where its elements lie: `SECTORS` angular sectors of 15 degrees about the
 leg's centre (display angles, as `regions` names them) and depth bands (the fat in one, the muscle in
 `MUSCLE_BANDS` bands of equal element count by distance to the skin). Each group gets its own material: the
-tissue's constants with C10 multiplied by
+tissue's constants, every modulus (C10 and Kv alike: a stiffer region keeps its tissue's Poisson ratio) multiplied by
 
     exp( sum_m c_m phi_m(group) + sum_patches p [group in patch] + ln r [group in a region] ),
 

@@ -115,7 +115,7 @@ def test_heterogeneity_sensitivities_are_the_central_differences_of_the_engine(t
     results = solve(theta, "centre")
     sensitivity, lines = results.sensitivities(), model.sensitivity_map(theta)
     step = 1e-4
-    for name in ("h_cos1_fat", "h_sin2_muscle", "h_depth_muscle", "C10_muscle"):
+    for name in ("h_cos1_fat", "h_sin2_muscle", "h_depth_muscle", "C10_muscle", "Kv_fat"):
         j = model.space.names.index(name)
         h = step * (theta[j] if j < 4 else 1.0)
         up, down = list(theta), list(theta)
@@ -169,7 +169,7 @@ def _patch_draws(seed: int):
 @pytest.mark.parametrize("kind, ratio, start, width", _patch_draws(2026))
 def test_a_stiff_patch_is_outside_the_catalog_and_located(tmp_path, kind, ratio, start, width):
     region = f"region:{kind}:{start:.0f}:{(start + width) % 360:.0f}"
-    _, result = diagnosed(tmp_path, {region: {"dlnC10": float(np.log(ratio))}}, None)
+    _, result = diagnosed(tmp_path, {region: {"dlnE": float(np.log(ratio))}}, None)
     if result["lack_of_fit_p"] >= 0.01:
         # under the noise: nothing to locate, and the diagnosis says so
         assert "fits to the noise floor" in result["verdict"] and result["local"] is None
