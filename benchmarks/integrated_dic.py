@@ -18,7 +18,11 @@ For each case, on one prepared run folder (the same segmentation, bone alignment
 - I-DIC's grey-level residual variance over the predicted image noise variance per band (`verification.band_masks`:
   fat within 5 mm of the skin, other fat, muscle; plus the 3-pixel air band outside the skin), at the converged
   fit and at the true field (the nuisances fitted in both);
-- wall time and engine runs of each (the run folder's preparation, shared, timed apart).
+- each fit's linearised 1-sigma of the parameters (% of the value): the windows' (J^T J)^-1 of their whitened residual,
+  I-DIC's sandwich for its correlated (prefiltered) pixels (`IntegratedDIC.parameter_covariance`); neither inflated
+  by a misfit above its floor;
+- wall time and engine runs of each (the run folder's preparation, shared, timed apart; the windows' time holds
+  their measurement, two fits and the skin's uncertainty).
 """
 
 from __future__ import annotations
@@ -33,12 +37,14 @@ from pathlib import Path
 import numpy as np
 
 from orchestrator.forward import LEG_PARAMETERS, MeshInterpolator
+from orchestrator.identify import residual_jacobian
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.imaging.integrated import IntegratedDIC, identify_integrated
 from orchestrator.meshing.mesh import Mesh
 from orchestrator.phantom import CalfPhantom, MRIPhantom
 from orchestrator.phantom.truths import random_truth
 from orchestrator.pipeline import DEFAULT_MESH, run_identify
+from orchestrator.runner import Evaluator
 from orchestrator.study import make_phantom_case, prepare_run
 
 FOREIGN = Path("/work/shared/foreign-cases")
@@ -80,6 +86,20 @@ def phantom_case(renderer: str, scratch: Path, seed: int = 1):
     return case, truth, [], true_at, None
 
 
+def windows_sigma(setup, run: Path, effects, theta) -> list[float]:
+    """The windows' linearised standard deviations at their fit, (J^T J)^-1 of their whitened residual (overlaps and
+    the skin's uncertainty in its covariance), the evaluation replayed from the run's log."""
+    model = setup.model_with(effects, sensitivities=True)
+    objective = setup.objective_of(setup.level_measurements("dic"))
+    with Evaluator(setup.at_every_level(model), objective, run, progress=False) as evaluator:
+        record = evaluator(theta)
+        launched = evaluator.launched
+    jacobian = residual_jacobian(model, record, theta)
+    if launched:
+        print(f"  (the windows' fit point was not in the log: {launched} engine run for its Jacobian)")
+    return np.sqrt(np.diagonal(np.linalg.inv(jacobian.T @ jacobian))).tolist()
+
+
 def percent(theta, truth) -> str:
     return " ".join(f"{100 * (t - v) / v:+6.1f}" for t, v in zip(theta[:len(truth)], truth))
 
@@ -95,6 +115,7 @@ def run_case(title: str, case: Path, truth, effects, true_at, cold_start, scratc
     windows_s = time.perf_counter() - began
     rows = {"windows": {"theta": windows["best"]["theta"], "over_floor": windows["misfit_over_floor"],
                         "wall_s": windows_s, "runs": windows["engine_runs_total"],
+                        "sigma": windows_sigma(setup, run, effects, windows["best"]["theta"]),
                         "note": windows["data"]["description"]}}
     model = setup.model_with(effects)
     cold = model.start(cold_start.tolist() if cold_start is not None else None)
@@ -104,17 +125,19 @@ def run_case(title: str, case: Path, truth, effects, true_at, cold_start, scratc
                                                       effects=effects, start=start)
         rows[label] = {"theta": fit.theta, "over_floor": summary["misfit_over_floor"], "wall_s": summary["wall_time_s"],
                        "runs": fit.engine_runs, "iterations": fit.iterations, "start": start,
+                       "sigma": summary["standard_deviation"],
                        "note": f"{summary['pixels']} pixels; {fit.message}; nuisances "
                                + ", ".join(f"{k} {v:.2g}" for k, v in summary["nuisance"].items())}
         if label == "I-DIC from windows":
             best_fit = fit
     print(f"prepared run folder (segmentation, bone alignment, {len(setup.mesh.elements)} elements) in "
           f"{prepare_s:.1f} s; parameters {', '.join(model.space.names)}")
-    print(f"{'method':<20s} {'error vs truth % (' + ', '.join(LEG_PARAMETERS) + ')':<58s} {'effects':<14s} "
-          f"{'misfit/floor':>12s} {'wall s':>7s} {'runs':>5s}")
+    print(f"{'method':<20s} {'error vs truth %':<29s} {'1-sigma %':<29s} {'effects':<14s} "
+          f"{'misfit/floor':>12s} {'wall s':>7s} {'runs':>5s}   ({', '.join(LEG_PARAMETERS)})")
     for label, row in rows.items():
         extra = " ".join(f"{v:.3g}" for v in row["theta"][len(truth):])
-        print(f"{label:<20s} {percent(row['theta'], truth):<58s} {extra:<14s} {row['over_floor']:12.3f} "
+        sigma = " ".join(f"{100 * s / t:6.2f}" for s, t in zip(row["sigma"][:len(truth)], row["theta"]))
+        print(f"{label:<20s} {percent(row['theta'], truth):<29s} {sigma:<29s} {extra:<14s} {row['over_floor']:12.3f} "
               f"{row['wall_s']:7.1f} {row['runs']:5d}")
     for label, row in rows.items():
         print(f"  {label}: {row['note']}")
