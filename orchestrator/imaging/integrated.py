@@ -280,8 +280,9 @@ class IntegratedDIC:
         whitened) Jacobian J (n x p): the sandwich H^-1 J^T S J H^-1, H = J^T J, with S the covariance of the
         whitened residual. Its pixels are not independent: r_w = w G * (e_1 - e_0), e the raw noise of variance
         (s_0^2 + s_1^2) rho, so J^T S J = sum_y (s_0^2 + s_1^2) rho(y) (G * wJ)(y) (G * wJ)(y)^T (G symmetric; both
-        images' noise taken on I0's grid). (J^T J)^-1 alone, as if the pixels were independent, would be ~3.5 x too
-        narrow in standard deviation with the 1-pixel prefilter."""
+        images' noise taken on I0's grid). (J^T J)^-1 alone, as if the pixels were independent, is 2.7 x too narrow in
+        standard deviation with the 1-pixel prefilter on the phantom of tests/test_integrated_dic.py, where this
+        sandwich matched the spread of 40 noise draws within 20 %."""
         jacobian = np.asarray(jacobian, float)
         spread = []
         for column in jacobian.T:
