@@ -9,7 +9,12 @@ a finer matrix of the same leg segments the same):
 1. three-class Otsu thresholds (`skimage.filters.threshold_multiotsu`) split
    dark (air, cortex, flowing blood, fascia), intermediate (muscle, skin) and
    bright (fat, fatty marrow) grey levels;
-2. the leg is the largest non-dark component with its holes filled;
+2. the leg is the largest non-dark component, closed by a disk of `skin_closing_mm` (3 mm) and its holes filled:
+   a superficial vein lies under the skin but is as dark as the air, and where it touches the skin's edge it cut a
+   notch into the outline (another program's control case, a 3.6 mm vein: Laplace's law pressed the notch's
+   curvature, and the fit ended at 4.8 x the floor against 1.0 x with that program's own labels). The saphenous
+   veins are 3-5 mm across, and the closing fills notches up to 6 mm wide; the calf's outline has no concavity
+   that tight, and a garment bridges one anyway;
 3. bones (`find_bones`) are cortex plus marrow, whatever the marrow's grey level: on the image smoothed less
    (`bone_smoothing_mm`: a Gaussian of 0.36 mm lifts the middle of a 1 mm cortex above the dark threshold at
    0.6 mm pixels, and its ring opens), a region of the leg enclosed by the dark mask is marrow when its rim is a
@@ -81,7 +86,7 @@ def largest_component(mask: np.ndarray) -> np.ndarray:
 def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothing_mm: float = 0.36,
                bone_smoothing_mm: float = 0.2, skin_opening_mm: float = 0.8, min_muscle_depth_mm: float = 1.5,
                interface_disk_mm: float = 3.0, min_bone_area_mm2: float = 40.0,
-               max_vein_hole_mm2: float = 30.0) -> np.ndarray:
+               max_vein_hole_mm2: float = 30.0, skin_closing_mm: float = 3.0) -> np.ndarray:
     """Label map (uint8) of a T1 slice: 0 background, 1 fat (with skin), 2 muscle, 3 bone."""
     image = np.asarray(image, dtype=float)
     pixel_area = pixel_size_mm[0] * pixel_size_mm[1]
@@ -90,7 +95,8 @@ def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothi
     smooth = ndimage.gaussian_filter(image, scale_px)
     dark_level, bright_level = filters.threshold_multiotsu(smooth, classes=3)
 
-    leg = ndimage.binary_fill_holes(largest_component(smooth > dark_level))
+    leg = _bridge_notches(ndimage.binary_fill_holes(largest_component(smooth > dark_level)), skin_closing_mm,
+                          pixel_size_mm)
     if leg.sum() * pixel_area < 100.0:
         raise ImagingError("no leg found in the image: it has no large region brighter than the background")
 
@@ -163,6 +169,34 @@ def find_bones(image: np.ndarray, leg: np.ndarray, dark_level: float, pixel_size
     plausible = (areas >= min_bone_area_mm2) & (areas <= max_bone_area_mm2)
     plausible[0] = False
     return plausible[pieces]
+
+
+def _bridge_notches(leg: np.ndarray, radius_mm: float, pixel_size_mm) -> np.ndarray:
+    """The leg with every notch narrower than 2 radius_mm in its outline filled (a closing), and the outline across
+    it straight: the closing alone leaves a concave arc of radius_mm there (0.6 mm deep across a 3.6 mm vein), whose
+    curvature Laplace's law turns into a pull. Within radius_mm of each filled notch the leg takes its convex hull,
+    the chord between the notch's lips, 0.03 mm inside a calf's outline of 55 mm radius over 3.6 mm."""
+    closed = _closing_mm(leg, radius_mm, pixel_size_mm)
+    notches, count = ndimage.label(closed & ~leg)
+    margin = int(np.ceil(2.0 * radius_mm / min(pixel_size_mm))) + 1
+    for index, box in enumerate(ndimage.find_objects(notches), start=1):
+        rows = slice(max(box[0].start - margin, 0), min(box[0].stop + margin, leg.shape[0]))
+        cols = slice(max(box[1].start - margin, 0), min(box[1].stop + margin, leg.shape[1]))
+        near = ndimage.distance_transform_edt(notches[rows, cols] != index, sampling=pixel_size_mm) <= radius_mm
+        closed[rows, cols] |= morphology.convex_hull_image(closed[rows, cols]) & near
+    return closed
+
+
+def _closing_mm(mask: np.ndarray, radius_mm: float, pixel_size_mm) -> np.ndarray:
+    """Closing by a Euclidean disk of radius_mm, holes filled; the image is padded so that a leg touching its border
+    is not closed against it."""
+    if radius_mm <= 0:
+        return mask
+    pad = int(np.ceil(radius_mm / min(pixel_size_mm))) + 1
+    padded = np.pad(mask, pad)
+    grown = ndimage.distance_transform_edt(~padded, sampling=pixel_size_mm) <= radius_mm
+    closed = ~(ndimage.distance_transform_edt(grown, sampling=pixel_size_mm) <= radius_mm)
+    return ndimage.binary_fill_holes(closed | padded)[pad:-pad, pad:-pad]
 
 
 def _opening_mm(mask: np.ndarray, radius_mm: float, pixel_size_mm) -> np.ndarray:
