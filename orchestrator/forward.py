@@ -382,7 +382,8 @@ class LegModel:
         state = self.deck_state(theta)
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
         lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
-        lines = (lines if self.engine_sensitivities else []) + [line for line in extra_sensitivities if line not in lines]
+        own = lines if self.engine_sensitivities else []
+        lines = own + [line for line in extra_sensitivities if line not in own]
         if any(line.startswith("PROFILE") for line in extra_sensitivities) and not self.tension_profile:
             state.fourier_profile.setdefault(1, (0.0, 0.0))
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,

@@ -144,6 +144,20 @@ def test_effects_follow_laws_of_any_size(leg_mesh):
     assert _material_block(deck, "MUSCLE") == ("*HYPERELASTIC, AVRIL", pytest.approx([11e-3, 0.06, 0.3]))
 
 
+def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg_mesh):
+    """The skin's uncertainty asks the engine for du/da_k, du/db_k of the garment's profile on top of a model's
+    own lines. A model fitting the tension profile (a1, b1) without the engine's sensitivities lost A1 and B1 from
+    its deck, and `calfit identify --effects tension_profile` stopped with KeyError 'PROFILE:GARMENT:A1'."""
+    from orchestrator.geometry_uncertainty import profile_lines, skin_pressure_sensitivities
+
+    model = LegModel(leg_mesh, 0.16, effects=("tension_profile",), engine_sensitivities=False)
+    theta = [4.5, 11.2, 106.0, 69.5, 0.2, -0.1]
+    assert all(line in model.deck(theta, extra_sensitivities=profile_lines(2)) for line in profile_lines(2))
+    found = skin_pressure_sensitivities(model, theta, 2)
+    assert sorted(found) == sorted(profile_lines(2))
+    assert all(np.abs(du).max() > 1e-3 for du in found.values())
+
+
 class _SumOnlyEvaluator:
     """A stand-in for the engine's evaluator: residuals g (C10_fat + C01_fat - 2.4) + h (C10_muscle - 0.9) and a
     jitter of 1e-4 that changes with theta, as a differenced run under friction has (its Newton tolerance)."""
