@@ -5,7 +5,7 @@ garment of twice the tension (the second paper's socks of 20 and 40 mmHg), adds 
 
 A phantom calf is made by the engine at a truth drawn log-uniformly in physiological ranges (each parameter at
 least 15 % off Avril et al.'s Table 2 central values, where the fits start), on the phantom's own geometry
-(8,000 CPE6: not the fit's 1,000 CPE6 meshed from the segmentation of I0), with image noise and a rigid scanner
+(8,000 CPE6: not the fit's 2,000 CPE6 meshed from the segmentation of I0), with image noise and a rigid scanner
 motion, under 0.16 N/mm and under the second tension (its own image noise, the same motion). The case with the
 two loaded images ([[garment.levels]]) and the same case without the second are identified from the images
 alone (DIC, Levenberg-Marquardt from Table 2, the skin's uncertainty) and drawn by the noise Monte-Carlo.

@@ -1,6 +1,6 @@
 """Diagnosis on data with a hidden effect, from the images only (issues 6 and 12): the case is made by the
 engine with an effect of the catalog switched on, on a finer mesh of the phantom's own geometry (8,000 CPE6)
-than the fit (1,000 CPE6 of calfit's segmentation of I0), with image noise and a rigid scanner motion; the case
+than the fit (2,000 CPE6 of calfit's segmentation of I0), with image noise and a rigid scanner motion; the case
 folder holds the two images and case.toml only (no labels beyond what calfit segments, no points.csv). The
 displacements are measured by DIC, the baseline model (Avril et al.: C10 and Kv of fat and muscle) is
 identified by Levenberg-Marquardt, then diagnosed.

@@ -3,7 +3,7 @@
 Each case is made by the engine from a random truth within physiological ranges (drawn log-uniformly, every
 parameter at least 15 % away from Avril et al.'s Table 2 central values, where the fit starts), on the
 phantom's own geometry (8,000 CPE6), rendered by either of the two phantoms (`renderers`); the case folder holds the two images and case.toml only, with image noise
-and a rigid scanner motion. calfit segments I0, measures the displacements by DIC, fits 1,000 CPE6 by
+and a rigid scanner motion. calfit segments I0, measures the displacements by DIC, fits 2,000 CPE6 by
 Levenberg-Marquardt and draws the noise Monte-Carlo. Every truth must lie in its parameter's 95 % interval,
 and every parameter the interval calls identifiable must be within 10 % of its truth.
 

@@ -35,6 +35,7 @@ def test_blocks_keep_the_image_frame():
     assert abs(coarse_labels.sum() * 0.15 ** 2 / (np.pi * 144.0) - 1.0) < 0.005
 
 
+@pytest.mark.slow
 def test_a_1024_matrix_is_measured_over_blocks_like_a_clinical_one(tmp_path):
     size = 1024
     pixel = FIELD_OF_VIEW_MM / size

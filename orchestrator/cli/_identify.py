@@ -7,7 +7,7 @@
 
 From the two images alone: the loaded image is aligned on the bones, the displacements are measured by DIC
 (`calfit measure`, run here when the run folder has none; --data points takes points.csv instead, which is the
-default when the case has one), I0 is segmented and meshed (1,000 CPE6 by default), and the four parameters
+default when the case has one), I0 is segmented and meshed (2,000 CPE6 by default), and the four parameters
 (C10 and Kv of fat and muscle, kPa) are fitted by Levenberg-Marquardt with the engine's sensitivities, the
 residual weighted by the DIC covariance. The uncertainty of the model's skin is then estimated at that point
 and the fit repeated with it in the weights (--skin-uncertainty sets it, mm RMS; default 0.05 pixel).
