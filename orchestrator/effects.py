@@ -92,7 +92,7 @@ class LegDeckState:
     sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     c10_factor: dict[str, float] = field(default_factory=dict)   # sensitivity line -> C10 / C10_muscle (compartments)
     groups: list = field(default_factory=list)                   # heterogeneity.Group of the model, [] if none
-    c10_log_factor: dict[str, float] = field(default_factory=dict)   # group -> ln(C10_group / C10_tissue)
+    stiffness_log_factor: dict[str, float] = field(default_factory=dict)   # group -> ln(modulus_group / modulus_tissue)
     group_sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)  # parameter -> (group, dln(factor)/dp)
 
 
@@ -180,7 +180,7 @@ def _apply_out_of_plane(state: LegDeckState, values: dict[str, float]) -> None:
     _add_sensitivity(state, "eps_z", "AXIAL STRETCH", 1.0)
 
 
-HETEROGENEITY_BOUND = 1.5   # |c_m| <= 1.5: C10 within a factor e^1.5 = 4.5 of the tissue's across the leg
+HETEROGENEITY_BOUND = 1.5   # |c_m| <= 1.5: stiffness within a factor e^1.5 = 4.5 of the tissue's across the leg
 
 
 def _heterogeneity_parameters(element_sets, node_sets):
@@ -190,7 +190,7 @@ def _heterogeneity_parameters(element_sets, node_sets):
 
 
 def _add_log_factor(state: LegDeckState, parameter: str, group: str, weight: float, value: float) -> None:
-    state.c10_log_factor[group] = state.c10_log_factor.get(group, 0.0) + weight * value
+    state.stiffness_log_factor[group] = state.stiffness_log_factor.get(group, 0.0) + weight * value
     state.group_sensitivity.setdefault(parameter, []).append((group, weight))
 
 
@@ -274,7 +274,7 @@ def split_into_groups(state: LegDeckState) -> None:
     for group in state.groups:
         members.setdefault(group.tissue_set, []).append(group)
     group_tissue = {g.name: g.tissue_set for g in state.groups}
-    factor = {g.name: float(np.exp(state.c10_log_factor.get(g.name, 0.0))) for g in state.groups}
+    factor = {g.name: float(np.exp(state.stiffness_log_factor.get(g.name, 0.0))) for g in state.groups}
     # every modulus (C10, C01, C20, C30 and Kv) times the factor: the strain energy scales, Poisson's ratio stays
     constants = {g.name: {k: v * factor[g.name] for k, v in state.constants[g.tissue_set].items()} for g in state.groups}
     material_line = re.compile(r"MATERIAL, (\S+), (\S+)$")
