@@ -136,7 +136,8 @@ def diagnosed(folder: Path, effects, labels):
     return load_run(folder / "run"), run_diagnose(folder / "run", workers=2, progress=False)
 
 
-@pytest.mark.parametrize("labels", ["truth", pytest.param(None, marks=pytest.mark.slow)])
+@pytest.mark.slow   # 43 s; the fast suite keeps the compartments found at the septa and the control's diagnosis
+@pytest.mark.parametrize("labels", ["truth", None])
 def test_two_compartments_with_ordinary_labels_are_found_and_explained(tmp_path, labels):
     """Superficial posterior compartment twice as stiff as the others; the labels hold fat, muscle and bone
     ("truth": the user's segmentation) or nothing (None: calfit segments I0)."""

@@ -43,7 +43,7 @@ HIDDEN = {
                          wrong="drainage", labels="compartments"),
 }
 # every hidden-effect case is slow (the drainage one took 106 s of the fast suite); the fast suite keeps the control
-# here and the compartments found at the septa and explained (`test_diagnose_heterogeneity`)
+# here and the compartments found at the septa (`test_diagnose_heterogeneity`)
 
 
 def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
