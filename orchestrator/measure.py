@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage, sparse, stats
+from scipy import ndimage, sparse
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 

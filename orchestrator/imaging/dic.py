@@ -99,6 +99,7 @@ SPLINE_DERIVATIVE_NOISE_GAIN = Prefilter(0.0).derivative_noise_gain
 # s^2 passes with variance 36 s^2
 _NOISE_MASK = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
 _MAD_TO_SIGMA = 1.4826
+SPLINE_STEP_PX = 1e-3   # the cubic spline differentiated by a central difference of this step (pixels)
 
 
 def estimate_noise_sigma(image: np.ndarray, mask: np.ndarray | None = None, smoothing_px: float = 2.0) -> float:
@@ -160,13 +161,6 @@ class DICResult:
                        intensity_variance=scale * self.intensity_variance,
                        noise_sigma=tuple(float(np.sqrt(noise_scale) * s) for s in self.noise_sigma),
                        edge_variance_px2=float(edge_variance_px2))
-
-    def pooled_edge_residuals(self, windows: np.ndarray | None = None) -> EdgeResiduals:
-        """The edge statistics of the given windows (boolean mask or indices; default all) pooled."""
-        pooled = EdgeResiduals()
-        for k in np.arange(len(self.confidence))[windows if windows is not None else slice(None)]:
-            pooled += self.edge_residuals[k]
-        return pooled
 
     def reliable(self, min_confidence: float = 0.9, max_uncertainty_px: float = 0.05, max_anisotropy: float = 3.0) -> np.ndarray:
         """Windows with a good match (ZNCC), a small predicted uncertainty, and texture in both directions
@@ -302,13 +296,18 @@ def _spread(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return uncertainty, anisotropy
 
 
-def spline_gradient(image: np.ndarray, step: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+def spline_gradient(image: np.ndarray, step: float = SPLINE_STEP_PX) -> tuple[np.ndarray, np.ndarray]:
     """(d/drow, d/dcolumn) at the pixels of the cubic-spline interpolant of the image, the interpolant used for
     the deformed image: Gauss-Newton then converges to the exact minimum even on sharp band-limited edges,
     where central differences are too inaccurate and stall it."""
-    coefficients = ndimage.spline_filter(np.asarray(image, float), order=3)
     rows, cols = np.indices(image.shape, dtype=float)
+    return spline_derivatives(ndimage.spline_filter(np.asarray(image, float), order=3), rows, cols, step)
 
+
+def spline_derivatives(coefficients: np.ndarray, rows: np.ndarray, cols: np.ndarray,
+                       step: float = SPLINE_STEP_PX) -> tuple[np.ndarray, np.ndarray]:
+    """(d/drow, d/dcolumn) of the cubic spline of these coefficients (`ndimage.spline_filter`, order 3) at the
+    points (rows, cols), by a central difference of `step` pixels of the spline itself."""
     def at(r, c):
         return ndimage.map_coordinates(coefficients, [r, c], order=3, prefilter=False, mode="nearest")
 

@@ -60,7 +60,6 @@ from .segment import BONE
 AIR_BAND_PX = 3               # pixels of air outside the skin of I0 kept in the region
 NUISANCE_ITERATIONS = 8       # at most this many Gauss-Newton steps on the nuisances per evaluation
 NUISANCE_TOLERANCE = 1e-9     # stop when the step changes the squared residual by less than this share
-SPLINE_STEP_PX = 1e-3         # the spline's derivative by a central difference of this step (as `dic.spline_gradient`)
 RIGID = ("t_x_mm", "t_y_mm", "omega_rad")
 NUISANCE_NAMES = {"scanner": RIGID + ("gain", "c_x", "c_y", "c_xx", "c_xy", "c_yy"),
                   "affine": RIGID + ("b_0", "b_x", "b_y"), "none": RIGID}
@@ -128,9 +127,7 @@ class IntegratedDIC:
         self._whiten = 1.0 / np.sqrt(self.variance)
         self.reference_variance = float(np.mean(self.variance))
         # pixels one independent value of a prefiltered image spreads over: 1 / sum G^2 (sum G = 1)
-        delta = np.zeros((4 * self.prefilter.radius + 1,) * 2)
-        delta[delta.shape[0] // 2, delta.shape[1] // 2] = 1.0
-        self.correlated_pixels = float(1.0 / np.sum(self.prefilter(delta) ** 2))
+        self.correlated_pixels = 1.0 / self.prefilter.noise_gain
         self._extent = max(float(np.ptp(self.positions_mm[:, 0])), float(np.ptp(self.positions_mm[:, 1])), 1e-9) / 2
         if brightness not in BRIGHTNESS:
             raise ValueError(f"the I-DIC brightness model is one of {BRIGHTNESS}, not {brightness!r}")
@@ -159,17 +156,14 @@ class IntegratedDIC:
     def _sample(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """I1 (prefiltered, cubic spline) at z = M(points), its gradient with respect to the points (per mm, in the
         unloaded frame: the gradient in the loaded image turned back by M's rotation), and z (mm)."""
+        from .dic import spline_derivatives
+
         x, y = self.motion.apply(points_mm[:, 0], points_mm[:, 1])
         rows, cols = mm_to_index(x, y, self.pixel_size_mm)
-        h = SPLINE_STEP_PX
-
-        def at(r, c):
-            return ndimage.map_coordinates(self._spline, [r, c], order=3, prefilter=False, mode="nearest")
-
-        value = at(rows, cols)
+        value = ndimage.map_coordinates(self._spline, [rows, cols], order=3, prefilter=False, mode="nearest")
+        d_rows, d_cols = spline_derivatives(self._spline, rows, cols)
         dy, dx = self.pixel_size_mm
-        gradient = np.column_stack([(at(rows, cols + h) - at(rows, cols - h)) / (2 * h * dx),
-                                    (at(rows + h, cols) - at(rows - h, cols)) / (2 * h * dy)])
+        gradient = np.column_stack([d_cols / dx, d_rows / dy])
         # d/dp I1(M p) = R^T grad I1, row-wise: grad @ R
         return value, gradient @ self.motion.rotation, np.column_stack([x, y])
 

@@ -91,6 +91,12 @@ class Prefilter:
         return padded
 
     @cached_property
+    def noise_gain(self) -> float:
+        """sum G^2: the variance of a prefiltered pixel of unit white noise (1 / the pixels one independent value
+        of a prefiltered image spreads over, as an area)."""
+        return float(np.sum(self._kernel ** 2) ** 2)
+
+    @cached_property
     def derivative_noise_gain(self) -> float:
         """Variance of the cubic-spline derivative, along one axis, of prefiltered unit white noise: the gradient
         noise that the reference's Gauss-Newton matrix mistakes for texture (`dic.denoised_hessian`)."""

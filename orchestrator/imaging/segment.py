@@ -177,7 +177,7 @@ def _bridge_notches(leg: np.ndarray, radius_mm: float, pixel_size_mm) -> np.ndar
     curvature Laplace's law turns into a pull. Within radius_mm of each filled notch the leg takes its convex hull,
     the chord between the notch's lips, 0.03 mm inside a calf's outline of 55 mm radius over 3.6 mm."""
     closed = _closing_mm(leg, radius_mm, pixel_size_mm)
-    notches, count = ndimage.label(closed & ~leg)
+    notches, _ = ndimage.label(closed & ~leg)
     margin = int(np.ceil(2.0 * radius_mm / min(pixel_size_mm))) + 1
     for index, box in enumerate(ndimage.find_objects(notches), start=1):
         rows = slice(max(box[0].start - margin, 0), min(box[0].stop + margin, leg.shape[0]))
