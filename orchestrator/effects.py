@@ -42,6 +42,7 @@ import numpy as np
 
 from .decks import KPA_PER_MPA
 from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
+from .materials import engine_constant
 
 MUSCLE_SET = "MUSCLE"
 COMPARTMENT_PREFIX = "COMPARTMENT"
@@ -248,17 +249,13 @@ def region_effect(name: str) -> Effect:
 
 
 def _modulus_lines(group: str, law, constants_MPa: dict[str, float], dln_factor: float) -> list[tuple[str, float]]:
-    """The *SENSITIVITY lines of a group's moduli for a parameter p that multiplies all of them by exp(p)."""
+    """The *SENSITIVITY lines of a group's moduli for a parameter p that multiplies all of them by exp(p): each
+    modulus k moves by dk/dp = k dln_factor (kPa), through the deck's constant `materials.engine_constant` names."""
     lines = []
     for constant, value in constants_MPa.items():
-        if value == 0.0:
-            continue
-        if constant != "Kv":
-            lines.append((f"MATERIAL, {group}, {constant}", value * dln_factor))
-        elif law.law == "avril":
-            lines.append((f"MATERIAL, {group}, KV", value * dln_factor))
-        else:
-            lines.append((f"MATERIAL, {group}, D1", -dln_factor / value))
+        if value != 0.0:
+            name, per_kPa = engine_constant(law, constant, constants_MPa)
+            lines.append((f"MATERIAL, {group}, {name}", per_kPa * value * KPA_PER_MPA * dln_factor))
     return lines
 
 

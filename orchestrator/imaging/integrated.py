@@ -127,7 +127,7 @@ class IntegratedDIC:
         self._whiten = 1.0 / np.sqrt(self.variance)
         self.reference_variance = float(np.mean(self.variance))
         # pixels one independent value of a prefiltered image spreads over: 1 / sum G^2 (sum G = 1)
-        self.correlated_pixels = 1.0 / self.prefilter.noise_gain
+        self.pixels_per_value = 1.0 / self.prefilter.noise_gain
         self._extent = max(float(np.ptp(self.positions_mm[:, 0])), float(np.ptp(self.positions_mm[:, 1])), 1e-9) / 2
         if brightness not in BRIGHTNESS:
             raise ValueError(f"the I-DIC brightness model is one of {BRIGHTNESS}, not {brightness!r}")
@@ -246,9 +246,9 @@ class IntegratedDIC:
 
     def noise_floor(self, n_parameters: int) -> float:
         """The expected misfit of a correct model: each fitted parameter (and nuisance) takes at most one
-        independent value, `correlated_pixels` prefiltered pixels' worth (module text)."""
+        independent value, `pixels_per_value` prefiltered pixels' worth (module text)."""
         n = self.n_residuals
-        return float(self.reference_variance * (n - (n_parameters + self.nuisance_dof) * self.correlated_pixels) / n)
+        return float(self.reference_variance * (n - (n_parameters + self.nuisance_dof) * self.pixels_per_value) / n)
 
     def jacobian_columns(self, g: np.ndarray, basis: np.ndarray, nodal_du: np.ndarray) -> np.ndarray:
         """dr/dtheta for one nodal sensitivity du/dtheta: the whitened g . W du projected off the nuisances."""
