@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .digits import with_uncertainty
 from .results import MMHG_PER_KPA
 
 import matplotlib
@@ -246,7 +247,8 @@ def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmar
                     landmark_values: dict[str, tuple[float, float]]) -> Path:
     """Hydrostatic pressure -tr(sigma)/3 in the soft tissues at the central parameters (Avril et al. Fig. 5):
     colour bar in kPa with mmHg beside it, the landmarks numbered and named with their mean +- standard deviation
-    over the Monte-Carlo draws."""
+    (`landmark_values`: the parameters' draws and the tension's uncertainty together, `report.pressure_spreads`),
+    to the digits that deviation allows."""
     figure, ax = plt.subplots(figsize=(8.6, 7.2))
     finite = pressure_kPa[np.isfinite(pressure_kPa)]
     low, high = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
@@ -265,11 +267,13 @@ def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmar
     named = {}
     for name, position in landmarks.items():
         mean, std = landmark_values.get(name, (np.nan, np.nan))
-        named[f"{name}: {mean:.2f} +- {std:.2f} kPa ({mean * MMHG_PER_KPA:.1f} +- {std * MMHG_PER_KPA:.1f} mmHg)"] = position
+        named[f"{name}: {with_uncertainty(mean, std, 'kPa')} "
+              f"({with_uncertainty(mean * MMHG_PER_KPA, std * MMHG_PER_KPA, 'mmHg')})"] = position
     _landmark_markers(ax, named)
     _zoom_to(ax, np.isfinite(pressure_kPa), pixel_size_mm)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8, frameon=False)
-    ax.set_title("hydrostatic pressure at the central parameters; landmarks: mean +- std over the draws", fontsize=9)
+    ax.set_title("hydrostatic pressure at the central parameters; landmarks: mean +- std (parameters and tension)",
+                 fontsize=9)
     return _save(figure, path)
 
 

@@ -484,7 +484,12 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
 
 @dataclass
 class PressureStatistics:
-    """Landmark pressures (kPa) over draws in the intervals (Table 3) and with the tension +-10 % (Table 4)."""
+    """Landmark pressures (kPa) over draws in the intervals (Table 3) and with the tension +-10 % (Table 4).
+
+    std_kPa is the parameters' share alone. The tension's uncertainty (tension_rel, one standard deviation) moves the
+    pressure by tension_std_kPa = (plus - minus) / 2, the central difference of Table 4; total_std_kPa adds the two
+    in quadrature (independent sources): the spread a designer quotes. On the phantom leg the parameters give
+    0.001-0.004 kPa and the tension 0.25 kPa."""
 
     landmarks: list[str]
     draws: int
@@ -499,11 +504,22 @@ class PressureStatistics:
     minus_kPa: list[float]
     plus_deviation_percent: list[float]
     minus_deviation_percent: list[float]
+    tension_std_kPa: list[float]
+    total_std_kPa: list[float]
     samples_kPa: list[list[float]]
     wall_time_s: float
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def pressure_spreads(pressures: dict) -> tuple[list[float], list[float], list[float]]:
+    """(parameters' std, tension's std, both in quadrature) of each landmark's pressure, kPa
+    (`PressureStatistics`; computed from Table 4 for a pressures.json written before they were kept)."""
+    parameters = np.asarray(pressures["std_kPa"], float)
+    tension = np.asarray(pressures.get("tension_std_kPa")
+                         or np.abs(np.subtract(pressures["plus_kPa"], pressures["minus_kPa"])) / 2.0, float)
+    return parameters.tolist(), tension.tolist(), np.hypot(parameters, tension).tolist()
 
 
 def _pressures(records: list[dict], names: Sequence[str]) -> np.ndarray:
@@ -527,8 +543,9 @@ def pressure_uncertainty(evaluator: Evaluator, landmarks: Sequence[str], lower: 
         raise RuntimeError("the pressure study failed: " + "; ".join(rec["message"] for rec in failed[:3]))
     base, plus, minus = (_pressures([rec], landmarks)[0] for rec in table4)
     mean, std = samples.mean(axis=0), samples.std(axis=0, ddof=1) if len(samples) > 1 else np.zeros(len(landmarks))
+    tension_std = np.abs(plus - minus) / 2.0
     return PressureStatistics(list(landmarks), draws, len(failed), mean.tolist(), std.tolist(),
                               (100 * std / np.abs(mean)).tolist(), base.tolist(), tension, tension_rel, plus.tolist(),
                               minus.tolist(), (100 * (plus - base) / np.abs(base)).tolist(),
-                              (100 * (base - minus) / np.abs(base)).tolist(), samples.tolist(),
-                              time.perf_counter() - began)
+                              (100 * (base - minus) / np.abs(base)).tolist(), tension_std.tolist(),
+                              np.hypot(std, tension_std).tolist(), samples.tolist(), time.perf_counter() - began)

@@ -26,9 +26,10 @@ from dataclasses import asdict
 
 from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, residual_maps, settle_ties, weigh_local,
                        summarize_fit)
+from .digits import rounded, with_uncertainty
 from .figures import diagnosis_figure
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
-                       pressure_uncertainty, table1_starts)
+                       pressure_spreads, pressure_uncertainty, table1_starts)
 from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
                                    discard_without_columns, geometry_columns, geometry_covariance)
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
@@ -39,6 +40,7 @@ from .imaging.prefilter import PREFILTER_SIGMA_PX
 from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
 from .levels import AtTension
 from .runlock import holds_run_folder
+from .results import MMHG_PER_KPA
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
 
@@ -428,11 +430,21 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
 
 
 def pressure_summary(result: dict) -> list[str]:
-    """Human lines of Table 3 and Table 4, then those of every more garment level."""
-    lines = [f"{'landmark':<18} {'mean kPa':>9} {'std':>6} {'CV %':>6} | {'T':>6} {'T+10%':>7} {'T-10%':>7}"]
-    for k, name in enumerate(result["landmarks"]):
-        lines.append(f"{name:<18} {result['mean_kPa'][k]:9.2f} {result['std_kPa'][k]:6.2f} {result['cv_percent'][k]:6.1f} | "
-                     f"{result['central_kPa'][k]:6.2f} {result['plus_kPa'][k]:7.2f} {result['minus_kPa'][k]:7.2f}")
+    """Human lines: each landmark's pressure with its whole spread, then the parameters' share (Table 3) and the
+    tension's (Table 4), each number to the digits its uncertainty allows (`digits`); then every more garment
+    level."""
+    rel = f"{100 * result['tension_rel']:g} %"
+    lines = [f"{'landmark':<18} {'pressure (kPa)':>16} {'(mmHg)':>12} | {'parameters':>10} {'tension ' + rel:>14} | "
+             f"{'T+' + rel:>8} {'T-' + rel:>8}"]
+    for name, mean, parameters, tension, total, plus, minus in zip(result["landmarks"], result["mean_kPa"],
+                                                                   *pressure_spreads(result), result["plus_kPa"],
+                                                                   result["minus_kPa"]):
+        lines.append(f"{name:<18} {with_uncertainty(mean, total):>16} "
+                     f"{with_uncertainty(mean * MMHG_PER_KPA, total * MMHG_PER_KPA):>12} | "
+                     f"{rounded(parameters, parameters):>10} {rounded(tension, tension):>14} | "
+                     f"{rounded(plus, total):>8} {rounded(minus, total):>8}")
+    lines.append("pressure: mean over the parameters' draws +- both spreads in quadrature; parameters: std over the "
+                 f"draws (Table 3); tension: the pressure's change for +-{rel} of it, one standard deviation (Table 4)")
     for level in result.get("levels", []):
         lines.append(f"garment level {level['level']}: {level['image']} at {level['tension_N_per_mm']:g} N/mm")
         lines += pressure_summary(level)

@@ -35,7 +35,9 @@ import numpy as np
 from . import figures
 from .decks import template_dir
 from .diagnose import ALPHA, EXPLAINED_FACTOR, model_label
+from .digits import rounded
 from .forward import MeshInterpolator, field_on_pixels
+from .identify import pressure_spreads
 from .imaging.segment import BONE
 from .imaging.warp import warp_image
 from .measure import FILES as MEASURE_FILES
@@ -57,8 +59,12 @@ def contour_distances(setup, nodal: np.ndarray):
     return mismatch.mismatch(field), field
 
 
-def _table(table_id: str, title: str, header: list[str], rows: list[list], note: str = "") -> dict:
-    return {"id": table_id, "title": title, "header": header, "rows": rows, "note": note}
+def _table(table_id: str, title: str, header: list[str], rows: list[list], note: str = "",
+           uncertainties: list[list] | None = None) -> dict:
+    """A table; `uncertainties`, the shape of `rows`, gives the uncertainty that sets each number's digits (None:
+    four significant digits)."""
+    return {"id": table_id, "title": title, "header": header, "rows": rows, "note": note,
+            "uncertainties": uncertainties}
 
 
 def _figure(file: str, caption: str) -> dict:
@@ -95,13 +101,13 @@ def _strict_json(value):
     return value
 
 
-def format_cell(value) -> str:
-    """How a table cell shows a value: numbers to 4 significant digits, the rest as text (the test of the page
-    reads the numbers back with this precision)."""
+def format_cell(value, uncertainty: float | None = None) -> str:
+    """How a table cell shows a value: a number to the digits its uncertainty allows (`digits`; 4 significant
+    digits without one), the rest as text (the test of the page reads the numbers back with this precision)."""
     if isinstance(value, bool) or value is None:
         return {True: "yes", False: "no", None: "-"}[value]
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return rounded(value, uncertainty)
     return str(value)
 
 
@@ -181,12 +187,18 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
     """The top of the page: pressures at the landmarks, parameters with their intervals, the verdict."""
     tables = []
     if pressures:
+        parameters, tension, total = pressure_spreads(pressures)
+        rows, uncertainties = [], []
+        for name, mean, p, t, s in zip(pressures["landmarks"], pressures["mean_kPa"], parameters, tension, total):
+            rows.append([name, mean, s, mean * MMHG_PER_KPA, s * MMHG_PER_KPA, p, t])
+            uncertainties.append([None, s, s, s * MMHG_PER_KPA, s * MMHG_PER_KPA, p, t])
         tables.append(_table("answers_pressures", "Pressure transmitted by the garment at the landmarks",
-                             ["landmark", "mean (kPa)", "std (kPa)", "mean (mmHg)", "std (mmHg)"],
-                             [[name, mean, std, mean * MMHG_PER_KPA, std * MMHG_PER_KPA] for name, mean, std in
-                              zip(pressures["landmarks"], pressures["mean_kPa"], pressures["std_kPa"])],
-                             "Hydrostatic pressure -tr(sigma)/3: mean and standard deviation over parameter draws "
-                             "within their intervals (Table 3); the garment tension's uncertainty is in Table 4."))
+                             ["landmark", "mean (kPa)", "std (kPa)", "mean (mmHg)", "std (mmHg)",
+                              "std from the parameters (kPa)", "std from the tension (kPa)"], rows,
+                             "Hydrostatic pressure -tr(sigma)/3: mean over parameter draws within their intervals; "
+                             "std of the parameters' draws (Table 3) and of the garment tension's uncertainty "
+                             f"(+-{100 * pressures['tension_rel']:g} % as one standard deviation, Table 4), added in "
+                             "quadrature. Each number has the digits its uncertainty allows.", uncertainties))
     names, theta = identification["parameters"], identification["best"]["theta"]
     unit_of = identification.get("unit_of") or ["kPa"] * len(names)
     rows = []
@@ -198,8 +210,10 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
             rows.append([name, theta[k], montecarlo["lower"][k], montecarlo["upper"][k], unit_of[k], verdict])
         else:
             rows.append([name, theta[k], None, None, unit_of[k], "no interval yet: calfit montecarlo"])
+    spread = _interval_sigmas(montecarlo, len(names))
     tables.append(_table("answers_parameters", "Identified parameters",
-                         ["parameter", "identified", "interval low", "interval high", "unit", "verdict"], rows))
+                         ["parameter", "identified", "interval low", "interval high", "unit", "verdict"], rows,
+                         uncertainties=[[None, u, u, u, None, None] for u in spread]))
     if diagnosis:
         verdict = f"Diagnosis: {diagnosis['verdict']}."
     elif "misfit_over_floor" in identification:
@@ -208,6 +222,14 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
     else:
         verdict = "Run calfit diagnose to see where the model fails and what it lacks."
     return {"tables": tables, "verdict": verdict}
+
+
+def _interval_sigmas(montecarlo: dict | None, count: int) -> list[float | None]:
+    """Each parameter's standard uncertainty as its interval gives it, the interval's width over 4 (a 95 % interval
+    spans about 4 standard deviations): what sets its digits in the tables."""
+    if not montecarlo:
+        return [None] * count
+    return [(high - low) / 4.0 for low, high in zip(montecarlo["lower"], montecarlo["upper"])]
 
 
 def _images_section(setup, staging: Path) -> dict:
@@ -299,7 +321,12 @@ def _montecarlo_section(identification: dict, montecarlo: dict, truth: dict | No
     paragraphs = [] if poorly else ["Every parameter is identifiable."]
     figures.intervals_figure(staging / "intervals.png", names, unit_of, theta, montecarlo["lower"],
                              montecarlo["upper"], poorly, title, truth)
-    table2 = _table("table2", title, [""] + [f"{n} ({u})" for n, u in zip(names, unit_of)], rows)
+    spread = _interval_sigmas(montecarlo, len(names))
+    uncertainties = [[None] + ([w for w in row[1:]] if row[0] == "half width (%)" else
+                               [u if isinstance(v, float) else None for v, u in zip(row[1:], spread)])
+                     for row in rows]
+    table2 = _table("table2", title, [""] + [f"{n} ({u})" for n, u in zip(names, unit_of)], rows,
+                    uncertainties=uncertainties)
     return _section("montecarlo", "Uncertainty of the parameters", paragraphs=paragraphs, alerts=alerts,
                     tables=[table2], figures_=[_figure("intervals.png", "Parameter intervals as error bars, "
                                                                         "each in its unit.")])
@@ -313,24 +340,30 @@ def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -
     pressure_kPa = (weights @ pressure).reshape(case.shape) * 1e3   # engine stresses: MPa
     soft = (setup.labels_unloaded > 0) & (setup.labels_unloaded != BONE)
     pressure_kPa[~soft] = np.nan
-    values = {name: (pressures["mean_kPa"][k], pressures["std_kPa"][k]) for k, name in enumerate(pressures["landmarks"])}
+    parameters, tension, total = pressure_spreads(pressures)
+    values = {name: (pressures["mean_kPa"][k], total[k]) for k, name in enumerate(pressures["landmarks"])}
     figures.pressure_figure(staging / "pressure.png", pressure_kPa, px,
                             {name: case.landmarks[name] for name in pressures["landmarks"]}, values)
     table3 = _table("table3", f"Table 3: landmark pressures over {pressures['draws']} draws in the intervals "
                               f"({pressures['failed']} failed)",
                     ["landmark", "mean (kPa)", "mean (mmHg)", "std (kPa)", "std (mmHg)", "CV (%)"],
                     [[n, m, m * MMHG_PER_KPA, s, s * MMHG_PER_KPA, c] for n, m, s, c in
-                     zip(pressures["landmarks"], pressures["mean_kPa"], pressures["std_kPa"], pressures["cv_percent"])])
+                     zip(pressures["landmarks"], pressures["mean_kPa"], parameters, pressures["cv_percent"])],
+                    uncertainties=[[None, s, s * MMHG_PER_KPA, s, s * MMHG_PER_KPA, c] for s, c in
+                                   zip(parameters, pressures["cv_percent"])])
     table4 = _table("table4", f"Table 4: garment tension +-{100 * pressures['tension_rel']:.0f} %",
                     ["landmark", "pressure (kPa)", "T +10 % (kPa)", "deviation (%)", "T -10 % (kPa)", "deviation (%)"],
                     [[n, b, p, dp, m, dm] for n, b, p, dp, m, dm in
                      zip(pressures["landmarks"], pressures["central_kPa"], pressures["plus_kPa"],
                          pressures["plus_deviation_percent"], pressures["minus_kPa"],
-                         pressures["minus_deviation_percent"])])
+                         pressures["minus_deviation_percent"])],
+                    # the model's pressure at given parameters and tension: known to the parameters' spread
+                    uncertainties=[[None, s, s, 100 * s / abs(b), s, 100 * s / abs(b)]
+                                   for s, b in zip(parameters, pressures["central_kPa"])])
     return _section("pressures", "Pressure transmitted to the tissues", tables=[table3, table4],
                     figures_=[_figure("pressure.png", "Hydrostatic pressure -tr(sigma)/3 at the central parameters "
                                                       "(Avril et al. Fig. 5), the landmarks named with their mean "
-                                                      "+- std.")])
+                                                      "+- std (the parameters' and the tension's).")])
 
 
 def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Path) -> dict:

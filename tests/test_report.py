@@ -15,6 +15,7 @@ from conftest import copy_run
 
 from orchestrator import figures
 from orchestrator.pipeline import run_diagnose, run_montecarlo, run_pressures
+from orchestrator.digits import decimals
 from orchestrator.report import format_cell, write_report
 from orchestrator.results import MMHG_PER_KPA
 from orchestrator.study import PARAMETERS_FILE, read_json
@@ -109,11 +110,15 @@ def test_every_table_of_the_json_is_on_the_page_cell_by_cell(reported):
         shown = page.tables[table["id"]]
         assert shown["caption"].strip() == table["title"]
         assert shown["header"] == table["header"]
-        assert shown["rows"] == [[format_cell(v) for v in row] for row in table["rows"]], table["id"]
-        for row, values in zip(shown["rows"], table["rows"]):     # the printed numbers are the JSON's, to 4 digits
-            for text, value in zip(row, values):
-                if isinstance(value, float):
-                    assert float(text) == pytest.approx(value, rel=5e-4, abs=1e-300)
+        uncertainties = table["uncertainties"] or [[None] * len(row) for row in table["rows"]]
+        assert shown["rows"] == [[format_cell(v, u) for v, u in zip(row, us)]
+                                 for row, us in zip(table["rows"], uncertainties)], table["id"]
+        for row, values, us in zip(shown["rows"], table["rows"], uncertainties):
+            for text, value, u in zip(row, values, us):
+                if isinstance(value, float):   # the JSON's number, to 4 digits or to its uncertainty's place
+                    place = decimals(u)
+                    tolerance = dict(rel=5e-4, abs=1e-300) if place is None else dict(abs=0.5 * 10.0 ** -place + 1e-12)
+                    assert float(text) == pytest.approx(value, **tolerance)
 
 
 def test_every_figure_is_on_the_page_and_a_png(reported):
@@ -133,9 +138,14 @@ def test_the_top_of_the_page_answers_pressure_in_mmhg_and_the_verdict(reported):
     pressures = read_json(page_path.parent.parent / "pressures.json", "")
     rows = {row[0]: row for row in report["answers"]["tables"][0]["rows"]}
     for k, name in enumerate(pressures["landmarks"]):
-        _, mean, std, mean_mmhg, std_mmhg = rows[name]
-        assert mean == pressures["mean_kPa"][k] and std == pressures["std_kPa"][k]
+        _, mean, std, mean_mmhg, std_mmhg, of_parameters, of_tension = rows[name]
+        assert mean == pressures["mean_kPa"][k] and of_parameters == pressures["std_kPa"][k]
+        # the headline spread holds the tension's uncertainty (Table 4), not the parameters' alone
+        assert of_tension == pytest.approx(abs(pressures["plus_kPa"][k] - pressures["minus_kPa"][k]) / 2)
+        assert std == pytest.approx(np.hypot(of_parameters, of_tension)) and std > 5 * of_parameters
         assert mean_mmhg == pytest.approx(mean * MMHG_PER_KPA) and std_mmhg == pytest.approx(std * MMHG_PER_KPA)
+        shown = page.tables["answers_pressures"]["rows"][list(rows).index(name)]
+        assert len(shown[2].split(".")[-1]) <= 3    # e.g. 0.25 kPa, not 0.0009352
     diagnosis = read_json(page_path.parent.parent / "diagnosis.json", "")
     assert report["answers"]["verdict"] == f"Diagnosis: {diagnosis['verdict']}."
     text = page_path.read_text(encoding="utf-8")

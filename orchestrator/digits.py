@@ -1,0 +1,47 @@
+"""Numbers shown with the digits their uncertainty allows.
+
+A value is printed to the decimal place of its uncertainty's second significant digit, and the uncertainty with
+two significant digits (JCGM 100:2008, the GUM, sec. 7.2.6: "it usually suffices to quote u_c and U to at most two
+significant digits", and the estimate rounded to be consistent with them). A pressure of 2.509159 kPa known to
+0.2568 kPa reads 2.51 +- 0.26 kPa, not 2.509 +- 0.0009166. Without a usable uncertainty (none, zero, not finite)
+a value keeps FALLBACK_SIGNIFICANT significant digits.
+"""
+
+from __future__ import annotations
+
+import math
+
+UNCERTAINTY_SIGNIFICANT = 2
+FALLBACK_SIGNIFICANT = 4
+
+
+def decimals(uncertainty: float | None) -> int | None:
+    """The decimal place (digits after the point; negative: tens, hundreds...) of the uncertainty's last
+    significant digit, or None when the uncertainty cannot set one."""
+    if uncertainty is None or not math.isfinite(uncertainty) or uncertainty <= 0.0:
+        return None
+    exponent = math.floor(math.log10(uncertainty))
+    place = UNCERTAINTY_SIGNIFICANT - 1 - exponent
+    if round(uncertainty, place) >= 10.0 ** (exponent + 1):     # 0.0996 rounds up to 0.10: one place fewer
+        place -= 1
+    return place
+
+
+def rounded(value: float, uncertainty: float | None) -> str:
+    """The value as text, to the place its uncertainty allows (module text)."""
+    if not math.isfinite(value):
+        return str(value)
+    place = decimals(uncertainty)
+    if place is None:
+        return f"{value:.{FALLBACK_SIGNIFICANT}g}"
+    if place <= 0:
+        return f"{round(value, place):.0f}"
+    return f"{value:.{place}f}"
+
+
+def with_uncertainty(value: float, uncertainty: float | None, unit: str = "") -> str:
+    """'value +- uncertainty unit', both to the uncertainty's place (module text)."""
+    text = rounded(value, uncertainty)
+    if decimals(uncertainty) is not None:
+        text += f" +- {rounded(uncertainty, uncertainty)}"
+    return f"{text} {unit}".rstrip()
