@@ -43,9 +43,8 @@ import numpy as np
 from .decks import KPA_PER_MPA
 from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
 from .materials import engine_constant
+from .meshing.mesh import compartment_sets, muscle_sets
 
-MUSCLE_SET = "MUSCLE"
-COMPARTMENT_PREFIX = "COMPARTMENT"
 SECOND_BONE = "BONE2"
 PROFILE_NAME = "GARMENT"
 SKIN_SURFACE = "SKIN"
@@ -53,15 +52,6 @@ SKIN_SURFACE = "SKIN"
 
 class EffectError(ValueError):
     """An unknown effect, or one that the mesh of the run cannot carry."""
-
-
-def muscle_sets(element_sets: Sequence[str]) -> list[str]:
-    """The element sets that hold muscle: MUSCLE and every COMPARTMENTk (labels >= 4)."""
-    return [name for name in element_sets if name == MUSCLE_SET or name.startswith(COMPARTMENT_PREFIX)]
-
-
-def compartment_sets(element_sets: Sequence[str]) -> list[str]:
-    return sorted(name for name in element_sets if name.startswith(COMPARTMENT_PREFIX))
 
 
 @dataclass(frozen=True)

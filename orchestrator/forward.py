@@ -34,6 +34,7 @@ from .materials import (AVRIL, AVRIL_START_KPA, CONSTANT_ORDER, HIGHER_ORDER_SCA
                         MaterialError, TissueLaw, deck_material, default_bounds, default_start, engine_constant,
                         sum_only_pairs, tissue_name, tissue_set)
 from .meshing import Mesh
+from .meshing.mesh import muscle_sets
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
 # Avril et al. Table 2, central values (kPa), in LEG_PARAMETERS order: the phantom's default truth and the fits' usual
@@ -253,8 +254,6 @@ class LegModel:
 
     def _set_laws(self, element_sets: list[str]) -> None:
         """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""
-        from .effects import muscle_sets
-
         given = dict(self.tissues or {})
         laws = {"fat": given.pop("fat", AVRIL), "muscle": given.pop("muscle", AVRIL)}
         for tissue in sorted(given):

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .meshing.garment import polygon_centroid
+from .meshing.mesh import muscle_sets
 from .regions import display_angle_deg
 
 SECTORS = 24
@@ -199,8 +200,6 @@ def is_group(element_set: str) -> bool:
 def groups_for(mesh, effect_names) -> list[Group]:
     """The groups a model with these effects (fitted and fixed) needs: the regions' when the truth has regions,
     the mesh groups when an effect works on them (heterogeneity, patches, the diagnosis' local probe), else none."""
-    from .effects import muscle_sets
-
     names = list(effect_names)
     regions = {n: parse_region(n) for n in names if n.startswith(REGION_PREFIX)}
     grouped = [n for n in names if n in GROUPED_EFFECTS or n.startswith(PATCH_PREFIX)]

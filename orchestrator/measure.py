@@ -47,6 +47,7 @@ from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
 from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model, residual_bound
 from .imaging.windows import WindowOperators
+from .runfiles import write_json
 
 WINDOW_CHOICES = (16, 32, 64)
 DEFAULT_WINDOW_PX = 32
@@ -418,7 +419,6 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
     """The table, the arrays, the summary and the picture (of garment level `level`, `level_files`), each written
     to a temporary name then renamed."""
     from .figures import dic_vectors_figure
-    from .study import write_json
 
     run_dir = Path(run_dir)
     files = level_files(level)

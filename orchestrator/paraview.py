@@ -60,7 +60,8 @@ from .meshing.mesh import tissue_name
 from .results import MMHG_PER_KPA
 from .results import EngineResults
 from .runlock import holds_run_folder
-from .study import RunFolderError, load_run, read_json
+from .runfiles import RunFolderError, read_json
+from .study import load_run
 
 OUTPUT_FOLDER = "paraview"
 COLLECTION_NAME = "model.pvd"

@@ -42,7 +42,8 @@ from .levels import AtTension
 from .runlock import holds_run_folder
 from .results import MMHG_PER_KPA
 from .runner import LOG_NAME, EvaluationLog, Evaluator
-from .study import SETUP_JSON, RunSetup, load_run, prepare_run, read_json, write_json
+from .runfiles import read_json, write_json
+from .study import SETUP_JSON, RunSetup, load_run, prepare_run
 
 OBJECTIVES = ("contour", "displacement")
 OBJECTIVE_ALIASES = {"mismatch": "contour"}   # the name runs written before the images-first path used

@@ -45,7 +45,8 @@ from .objectives import leg_rows
 from .pipeline import floor_sentence, identified_data, sum_only_lines
 from .results import MMHG_PER_KPA
 from .runlock import holds_run_folder
-from .study import load_run, read_json
+from .runfiles import read_json
+from .study import load_run
 
 REPORT_TEMPLATE = "report.html.j2"
 REPORT_JSON = "report.json"

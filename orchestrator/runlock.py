@@ -21,7 +21,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .study import RunFolderError
+from .runfiles import RunFolderError
 
 LOCK_NAME = ".calfit.lock"
 _held: dict[str, list] = {}   # folder -> [open lock file, depth]: a lock is one per process by nature

@@ -51,6 +51,7 @@ from .measure import Measurements, dic_measurements, points_measurements, read_w
 from .figures import compartments_figure
 from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure, leg_rows
 from .regions import LegFrame
+from .runfiles import RunFolderError, read_json, write_json
 
 SETUP_ARRAYS = "setup.npz"
 COMPARTMENTS_FIGURE = "compartments.png"
@@ -58,27 +59,6 @@ SETUP_JSON = "setup.json"
 PARAMETERS_FILE = "parameters.json"
 DATA_SOURCES = ("auto", "dic", "points")
 TRUTH_SUPERSAMPLING = 4
-
-
-class RunFolderError(ValueError):
-    """A run folder is missing a file that an earlier command writes."""
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(text, encoding="utf-8")
-    temporary.replace(path)
-
-
-def write_json(path: Path, data: dict) -> None:
-    _atomic_write_text(Path(path), json.dumps(data, indent=2) + "\n")
-
-
-def read_json(path: Path, made_by: str) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise RunFolderError(f"{path} does not exist: run `{made_by}` first")
-    return json.loads(path.read_text(encoding="utf-8"))
 
 
 def _mesh_arrays(mesh: Mesh) -> dict[str, np.ndarray]:

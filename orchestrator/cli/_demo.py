@@ -34,7 +34,8 @@ from ..pipeline import (fit_summary, intervals_summary, pressure_summary, run_di
 from ..report import write_report
 from ..results import EngineResults
 from ..runner import run_engine
-from ..study import PARAMETERS_FILE, make_phantom_case, read_json
+from ..runfiles import read_json
+from ..study import PARAMETERS_FILE, make_phantom_case
 from ._common import add_output_arguments, honours_quiet, notice, show_progress
 from ._measure import summary_lines
 from ._solve import describe

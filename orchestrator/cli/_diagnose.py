@@ -24,7 +24,7 @@ import argparse
 from ..diagnose import ALPHA, Diagnosis, Refit, comparison_lines, ranking_lines
 from ..effects import EffectError, describe, parse_effects
 from ..pipeline import run_diagnose
-from ..study import RunFolderError
+from ..runfiles import RunFolderError
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "rank the physical effects missing from an identified model, refit with one"

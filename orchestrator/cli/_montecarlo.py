@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 
 from ..pipeline import intervals_summary, run_montecarlo
-from ..study import RunFolderError
+from ..runfiles import RunFolderError
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "parameter intervals by Monte-Carlo: over the measurement noise, or below a misfit threshold (Table 2)"

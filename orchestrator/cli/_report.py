@@ -12,7 +12,8 @@ import argparse
 from pathlib import Path
 
 from ..report import write_report
-from ..study import PARAMETERS_FILE, RunFolderError, read_json
+from ..runfiles import RunFolderError, read_json
+from ..study import PARAMETERS_FILE
 from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write the run's HTML report with its figures and tables"

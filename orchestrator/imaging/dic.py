@@ -82,7 +82,7 @@ from skimage.feature import match_template
 from .case import DisplacementPoints
 from .frame import RigidMotion, index_to_mm
 from .mismatch import FAT, MUSCLE, contour_pixels, tissue_mask
-from .prefilter import EdgeResiduals, Prefilter, edge_strength, rician_variance_ratio
+from .prefilter import EdgeResiduals, Prefilter, rician_variance_ratio
 
 SEARCH_FACTOR = 4
 GAUSS_NEWTON_ITERATIONS = 20
@@ -302,6 +302,13 @@ def spline_gradient(image: np.ndarray, step: float = SPLINE_STEP_PX) -> tuple[np
     where central differences are too inaccurate and stall it."""
     rows, cols = np.indices(image.shape, dtype=float)
     return spline_derivatives(ndimage.spline_filter(np.asarray(image, float), order=3), rows, cols, step)
+
+
+def edge_strength(reference: np.ndarray) -> np.ndarray:
+    """|grad I|^2 of the raw reference (intensity^2 per px^2, cubic-spline gradient): where an error of position
+    becomes an error of intensity (`prefilter`)."""
+    grad_rows, grad_cols = spline_gradient(reference)
+    return grad_rows ** 2 + grad_cols ** 2
 
 
 def spline_derivatives(coefficients: np.ndarray, rows: np.ndarray, cols: np.ndarray,

@@ -151,15 +151,6 @@ def rician_variance_ratio(image: np.ndarray, noise_sigma: float, smoothing_px: f
     return np.interp(local_mean, _RICIAN_MEAN, _RICIAN_VARIANCE, right=1.0)
 
 
-def edge_strength(reference: np.ndarray) -> np.ndarray:
-    """|grad I|^2 of the raw reference (intensity^2 per px^2, cubic-spline gradient): where an error of position
-    becomes an error of intensity."""
-    from .dic import spline_gradient
-
-    grad_rows, grad_cols = spline_gradient(reference)
-    return grad_rows ** 2 + grad_cols ** 2
-
-
 @dataclass
 class EdgeResiduals:
     """Sufficient statistics, pooled over converged windows, of the least-squares line through their residuals,

@@ -34,8 +34,8 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .dic import denoised_hessian, spline_gradient, zero_normalised_steepest_descent
-from .prefilter import Prefilter, edge_strength, rician_variance_ratio
+from .dic import denoised_hessian, edge_strength, spline_gradient, zero_normalised_steepest_descent
+from .prefilter import Prefilter, rician_variance_ratio
 
 
 class WindowOperators:

@@ -20,14 +20,13 @@ second derivative at J = 1 when D1 = 1/Kv, i.e. the same initial bulk modulus
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Mapping, Sequence
 
-import jinja2
 import numpy as np
 from skimage.measure import points_in_poly
 
+from ..decks import render
 from .curves import Curve, SpacingRules
 from .mesh import Mesh
 from .triangulate import BONE_KEY_OFFSET, mesh_curves
@@ -210,7 +209,8 @@ def leg_slice_deck(
         if laplace_tension is not None
         else f"follower pressure {pressure:.6g} MPa on the skin"
     )
-    text = _template().render(
+    text = render(
+        "leg_slice.inp.j2",
         seed=seed,
         n_elements=len(mesh.elements),
         element_type=mesh.element_type,
@@ -227,9 +227,3 @@ def leg_slice_deck(
     )
     path.write_text(text)
     return mesh
-
-
-def _template() -> jinja2.Template:
-    source = resources.files("orchestrator.meshing").joinpath("templates/leg_slice.inp.j2").read_text()
-    environment = jinja2.Environment(undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
-    return environment.from_string(source)

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import Sequence, TextIO
 
 import numpy as np
 
@@ -34,15 +34,29 @@ FACE_CORNERS = np.array([[0, 1], [1, 2], [2, 0]])  # face k (1-based) joins thes
 FACE_MIDSIDE = np.array([3, 4, 5])  # T6 mid-side node of face k
 
 
+FAT_SET = "FAT"
+MUSCLE_SET = "MUSCLE"
+COMPARTMENT_PREFIX = "COMPARTMENT"
+
+
 def tissue_name(region_id: int) -> str:
     """Element-set name of a tissue label (1 fat, 2 muscle, >= 4 compartments)."""
     if region_id == 1:
-        return "FAT"
+        return FAT_SET
     if region_id == 2:
-        return "MUSCLE"
+        return MUSCLE_SET
     if region_id >= 4:
-        return f"COMPARTMENT{region_id}"
+        return f"{COMPARTMENT_PREFIX}{region_id}"
     raise ValueError(f"label {region_id} is not a soft tissue (1 fat, 2 muscle, >= 4 compartments)")
+
+
+def muscle_sets(element_sets: Sequence[str]) -> list[str]:
+    """The element sets that hold muscle: MUSCLE and every COMPARTMENTk (labels >= 4)."""
+    return [name for name in element_sets if name == MUSCLE_SET or name.startswith(COMPARTMENT_PREFIX)]
+
+
+def compartment_sets(element_sets: Sequence[str]) -> list[str]:
+    return sorted(name for name in element_sets if name.startswith(COMPARTMENT_PREFIX))
 
 
 def signed_areas(nodes: np.ndarray, elements: np.ndarray) -> np.ndarray:

@@ -1,0 +1,35 @@
+"""The run folder's JSON files: written whole or not at all, read with a sentence that names the command which
+writes them.
+
+A file is written to a hidden temporary beside it and renamed over it (`Path.replace`, atomic on POSIX), so a
+command stopped mid-write leaves the previous version, never half a file. This module sits below every room of
+the pipeline (measure, study, identify, diagnose) so that each writes its results without importing another.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+class RunFolderError(ValueError):
+    """A run folder is missing a file that an earlier command writes."""
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(text, encoding="utf-8")
+    temporary.replace(path)
+
+
+def write_json(path: Path, data: dict) -> None:
+    atomic_write_text(Path(path), json.dumps(data, indent=2) + "\n")
+
+
+def read_json(path: Path, made_by: str) -> dict:
+    """The JSON file at `path`; RunFolderError naming `made_by`, the command that writes it, when it is missing."""
+    path = Path(path)
+    if not path.is_file():
+        raise RunFolderError(f"{path} does not exist: run `{made_by}` first")
+    return json.loads(path.read_text(encoding="utf-8"))
