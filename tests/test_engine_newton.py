@@ -164,3 +164,47 @@ def test_results_do_not_depend_on_the_machines_load(tmp_path):
     assert quiet.summary["linear_solves"] == busy.summary["linear_solves"]
     assert quiet.summary["linear_solves"]["reused"] > 0  # the choice this guards was made
     assert np.array_equal(quiet.table, busy.table)
+
+
+def _leg_follower_deck() -> str:
+    from pathlib import Path
+
+    return (Path(__file__).resolve().parent / "ccx_reference" / "leg_follower_cpe6.inp").read_text()
+
+
+def test_the_thread_count_changes_no_digit(tmp_path):
+    """The element loops compute each element on its own and gather them in a fixed order, and the BLAS under
+    CHOLMOD runs on one thread (a threaded dgemm changed the displacements by 5e-15 mm between 1 and 2 threads):
+    the default thread count can follow the machine's load without moving a digit."""
+    one = run_engine(_leg_follower_deck(), tmp_path / "one", extra_args=("--threads", "1"))
+    three = run_engine(_leg_follower_deck(), tmp_path / "three", extra_args=("--threads", "3"))
+    assert one.returncode == three.returncode == 0, one.stderr + three.stderr
+    assert (one.summary["threads"], three.summary["threads"]) == (1, 3)
+    assert np.array_equal(one.table, three.table)
+
+
+def test_the_default_leaves_the_cores_that_other_programs_use(tmp_path, monkeypatch):
+    """Without --threads, calfit-fe takes the cores other programs leave idle when it starts (two threads beside
+    another engine on a 2-core machine ran 2.4x slower than one, 14x beside two: benchmarks/threads.py); the
+    caller's OMP_NUM_THREADS and --threads win."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    cores = len(os.sched_getaffinity(0))
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(cores)]
+    try:
+        time.sleep(0.5)     # the burners running before the engine looks
+        crowded = run_engine(_leg_follower_deck(), tmp_path / "crowded")
+        asked = run_engine(_leg_follower_deck(), tmp_path / "asked", extra_args=("--threads", "2"))
+        monkeypatch.setenv("OMP_NUM_THREADS", "3")
+        told = run_engine(_leg_follower_deck(), tmp_path / "told")
+    finally:
+        for burner in burners:
+            burner.kill()
+            burner.wait()
+    assert crowded.returncode == asked.returncode == told.returncode == 0
+    assert crowded.summary["threads"] == 1
+    assert asked.summary["threads"] == 2 and told.summary["threads"] == 3
