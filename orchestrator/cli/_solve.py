@@ -22,7 +22,8 @@ HELP = "run the FE engine on one deck and summarize the result"
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("deck", help="input deck (.inp)")
     parser.add_argument("-o", "--out", help="output folder (default: DECK without .inp, plus .out)")
-    parser.add_argument("--threads", type=int, default=None, help="engine threads (default: OMP_NUM_THREADS, else the cores other programs leave idle)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="engine threads (default: OMP_NUM_THREADS, else the cores other programs leave idle)")
     parser.add_argument("--timeout", type=float, default=3600.0, help="seconds before the run is stopped")
     add_output_arguments(parser, json_help="print the engine's summary.json on stdout")
 
