@@ -323,7 +323,7 @@ def _montecarlo_section(identification: dict, montecarlo: dict, truth: dict | No
     figures.intervals_figure(staging / "intervals.png", names, unit_of, theta, montecarlo["lower"],
                              montecarlo["upper"], poorly, title, truth)
     spread = _interval_sigmas(montecarlo, len(names))
-    uncertainties = [[None] + ([w for w in row[1:]] if row[0] == "half width (%)" else
+    uncertainties = [[None] + (list(row[1:]) if row[0] == "half width (%)" else
                                [u if isinstance(v, float) else None for v, u in zip(row[1:], spread)])
                      for row in rows]
     table2 = _table("table2", title, [""] + [f"{n} ({u})" for n, u in zip(names, unit_of)], rows,
@@ -341,7 +341,7 @@ def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -
     pressure_kPa = (weights @ pressure).reshape(case.shape) * 1e3   # engine stresses: MPa
     soft = (setup.labels_unloaded > 0) & (setup.labels_unloaded != BONE)
     pressure_kPa[~soft] = np.nan
-    parameters, tension, total = pressure_spreads(pressures)
+    parameters, _, total = pressure_spreads(pressures)
     values = {name: (pressures["mean_kPa"][k], total[k]) for k, name in enumerate(pressures["landmarks"])}
     figures.pressure_figure(staging / "pressure.png", pressure_kPa, px,
                             {name: case.landmarks[name] for name in pressures["landmarks"]}, values)

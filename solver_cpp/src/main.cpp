@@ -109,9 +109,9 @@ int others_runnable() {
 
 // The default thread count: OMP_NUM_THREADS when the caller set it, else the CPUs of this process that other
 // programs leave idle now (sampled three times 2 ms apart, the fewest busy counted: a passing burst is ignored, a
-// busy program is seen every time), at least 1. Two threads on a 2-core machine busy with another engine ran 2x
-// slower than one (issue 30); the element loops give the same bytes on any count, so the choice changes the time
-// of a run, not its digits.
+// busy program is seen every time), at least 1. Two threads on a 2-core machine beside one busy program ran 2.4x
+// slower than one thread, beside two 14x (benchmarks/threads.py); the element loops give the same bytes on any
+// count, so the choice changes the time of a run, not its digits.
 int default_threads() {
   if (const char* given = std::getenv("OMP_NUM_THREADS")) {
     const int n = std::atoi(given);
