@@ -137,7 +137,8 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                  n_elements: int | None = None, order: int | None = None, effects: Sequence[str] = (),
                  engine_sensitivities: bool = True,
                  skin_sigma_mm: float | None = None, skin_uncertainty: bool = True, workers: int = 1,
-                 scheduler: str | None = None, timeout_s: float = 120.0, progress: bool = True) -> dict:
+                 scheduler: str | None = None, timeout_s: float = 120.0, progress: bool = True,
+                 verbose: bool = False) -> dict:
     """Prepare (or reload) the run folder and identify; returns and writes identification.json.
     data: "points" (points.csv), "dic" (measured from the images, now if the run folder has no measurements yet,
     with `window_px`) or "auto" (points.csv when the case has one); effects: catalog effects whose parameters are
@@ -166,7 +167,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
 
     def fit_from(points, scorer, stage):
         with Evaluator(setup.at_every_level(setup.model), scorer, run_dir, workers=workers, scheduler=scheduler,
-                       timeout_s=timeout_s, progress=progress, label=stage) as evaluator:
+                       timeout_s=timeout_s, progress=progress, verbose=verbose, label=stage) as evaluator:
             found = ([levenberg_marquardt(evaluator, s) for s in points] if method == "lm"
                      else multistart(evaluator, points))
         return found, min(found, key=lambda fit: fit.cost)
@@ -285,7 +286,7 @@ def identified_data(identification: dict) -> str:
 @holds_run_folder()
 def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, threshold: float | None = None,
                    threshold_factor: float = 1.5, seed: int = 0, workers: int = 1, scheduler: str | None = None,
-                   timeout_s: float = 120.0, progress: bool = True) -> dict:
+                   timeout_s: float = 120.0, progress: bool = True, verbose: bool = False) -> dict:
     """Parameter intervals of an identified run, written to montecarlo.json. method: "noise" (refits to data sets
     drawn from the measurements' covariance, `identify.noise_monte_carlo`; the default with measured
     displacements), "threshold" (Avril et al.'s acceptance below a misfit threshold, `identify.monte_carlo`; the
@@ -305,7 +306,7 @@ def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, t
     objective = _objective(setup, objective_name, identified_data(identification))
     best = identification["best"]
     with Evaluator(setup.at_every_level(setup.model), objective, run_dir, workers=workers, scheduler=scheduler,
-                   timeout_s=timeout_s, progress=progress, label="montecarlo") as evaluator:
+                   timeout_s=timeout_s, progress=progress, verbose=verbose, label="montecarlo") as evaluator:
         if method == "noise":
             result = noise_monte_carlo(evaluator, best["theta"], draws=draws or NOISE_DRAWS, seed=seed,
                                        nuisance_dof=objective.nuisance_dof).as_dict()
@@ -320,14 +321,14 @@ def run_montecarlo(run_dir, *, method: str = "auto", draws: int | None = None, t
 
 @holds_run_folder()
 def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, scheduler: str | None = None,
-                  timeout_s: float = 120.0, progress: bool = True) -> dict:
+                  timeout_s: float = 120.0, progress: bool = True, verbose: bool = False) -> dict:
     run_dir = Path(run_dir)
     setup = load_run(run_dir)
     montecarlo = read_json(run_dir / "montecarlo.json", "calfit montecarlo RUN_DIR")
     objective = setup.pressure_objective()
     # the pressure objective's cost is the largest landmark pressure, not a misfit: kept off the progress line
     with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                   progress=progress, label="pressures", cost_is_misfit=False) as evaluator:
+                   progress=progress, verbose=verbose, label="pressures", cost_is_misfit=False) as evaluator:
         stats = pressure_uncertainty(evaluator, objective.names, montecarlo["lower"], montecarlo["upper"],
                                      montecarlo["central"], setup.case.tension_N_per_mm, draws=draws,
                                      tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
@@ -336,7 +337,7 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
     for level in setup.case.levels:
         # the same draws in the intervals, the same landmarks, under this level's garment
         with Evaluator(AtTension(setup.model, level.tension_N_per_mm), objective, run_dir, workers=workers,
-                       scheduler=scheduler, timeout_s=timeout_s, progress=progress,
+                       scheduler=scheduler, timeout_s=timeout_s, progress=progress, verbose=verbose,
                        label=f"pressures, garment level {level.number}", cost_is_misfit=False) as evaluator:
             level_stats = pressure_uncertainty(evaluator, objective.names, montecarlo["lower"], montecarlo["upper"],
                                                montecarlo["central"], level.tension_N_per_mm, draws=draws,
@@ -351,7 +352,7 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
 @holds_run_folder()
 def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
                  engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
-                 timeout_s: float = 120.0, progress: bool = True) -> dict:
+                 timeout_s: float = 120.0, progress: bool = True, verbose: bool = False) -> dict:
     """Diagnose the identified model of a run; refit with `refit_effects`: "auto" (the best-ranked effect when it
     is significant, with those the score cannot tell from it), "none", effect names, or "auto" and names.
     Writes and returns diagnosis.json."""
@@ -379,7 +380,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         stage = ("diagnose" if not added else f"diagnose + {', '.join(added)}" if len(added) <= 2
                  else "diagnose, ranking the candidate effects")
         return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                         progress=progress, label=stage)
+                         progress=progress, verbose=verbose, label=stage)
 
     theta = identification["best"]["theta"]
     frame = setup.frame()

@@ -4,9 +4,11 @@ Exit codes (solver_cpp/README.md): 0 converged, 2 bad deck (raised as DeckReject
 with the engine's `FILE:LINE: message`), 3 not converged (an outcome, not an error:
 the last converged state is on disk and optimizers carry on), 4 or a signal (raised as
 EngineFailed). Every launch has a timeout (EngineFailed when it expires; the process
-is killed) and list arguments, never a shell. With `echo`, the engine's progress lines
-are copied to stderr while they are captured (a tee with a deadline: subprocess-tee
-cannot time a process out, so it is not used here).
+is killed) and list arguments, never a shell. The engine's own log (its progress lines and
+errors, as they come) is written line by line into OUTDIR/engine.log, so that a run stopped
+midway keeps what it said; with `echo` the lines are copied to stderr too (a tee with a
+deadline: subprocess-tee cannot time a process out, so it is not used here). `calfit solve`
+and the pipeline's commands with --verbose echo them.
 """
 
 from __future__ import annotations
@@ -59,12 +61,18 @@ class EngineOutcome:
     stderr: str
 
 
-def _tee(stream, sink: list[str], echo: bool) -> None:
+ENGINE_LOG = "engine.log"
+
+
+def _tee(stream, sink: list[str], echo: bool, log, lock: threading.Lock) -> None:
     for line in stream:
         sink.append(line)
-        if echo:
-            sys.stderr.write(line)
-            sys.stderr.flush()
+        with lock:
+            log.write(line)
+            log.flush()
+            if echo:
+                sys.stderr.write(line)
+                sys.stderr.flush()
 
 
 def run_engine(
@@ -81,15 +89,16 @@ def run_engine(
     command = [str(find_engine()), str(deck), "-o", str(outdir)]
     if threads:
         command += ["--threads", str(threads)]
-    if not echo:
-        command.append("--quiet")
     start = time.perf_counter()
     out: list[str] = []
     err: list[str] = []
-    with subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
+    outdir.mkdir(parents=True, exist_ok=True)
+    lock = threading.Lock()
+    with open(outdir / ENGINE_LOG, "w", encoding="utf-8") as log, \
+            subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as process:
         readers = [
-            threading.Thread(target=_tee, args=(process.stdout, out, echo), daemon=True),
-            threading.Thread(target=_tee, args=(process.stderr, err, echo), daemon=True),
+            threading.Thread(target=_tee, args=(process.stdout, out, echo, log, lock), daemon=True),
+            threading.Thread(target=_tee, args=(process.stderr, err, echo, log, lock), daemon=True),
         ]
         for reader in readers:
             reader.start()
@@ -239,6 +248,7 @@ class EngineTask:
     timeout_s: float
     threads: int
     keep_job: bool = False
+    echo: bool = False     # the engine's log lines on the worker's stderr as they come (--verbose)
 
 
 def _scratch_folder(preferred: str) -> Path:
@@ -316,7 +326,7 @@ def _run_deck(folder: Path, mesh: Path, text: str, task: EngineTask) -> EngineOu
         os.symlink(Path(mesh).resolve(), link)  # a relative target would resolve from the job folder
     deck = folder / "deck.inp"
     deck.write_text(text)
-    return run_engine(deck, folder / "out", threads=task.threads, timeout_s=task.timeout_s)
+    return run_engine(deck, folder / "out", threads=task.threads, timeout_s=task.timeout_s, echo=task.echo)
 
 
 def _level_prefix(level: int, count: int, levels: bool) -> str:
@@ -510,11 +520,12 @@ class Evaluator:
     (1 = in this process); scheduler: a Dask distributed address (then workers is ignored).
     `launched` counts the engine runs of this session (not those replayed from the log).
     progress: show the stage's progress line on stderr (`Progress`), named `label`; cost_is_misfit: the
-    objective's cost is a misfit, shown best and last on that line (not for the pressure study's)."""
+    objective's cost is a misfit, shown best and last on that line (not for the pressure study's); verbose: every
+    engine's own log on stderr as it runs (each job folder keeps it in out/engine.log while it lives: keep_jobs)."""
 
     def __init__(self, model, objective, run_dir: str | Path, *, workers: int = 1, scheduler: str | None = None,
                  timeout_s: float = 120.0, threads: int = 1, progress: bool = True, keep_jobs: bool = False,
-                 label: str = "evaluations", cost_is_misfit: bool = True):
+                 label: str = "evaluations", cost_is_misfit: bool = True, verbose: bool = False):
         if hasattr(model, "decks") and not hasattr(objective, "level_outputs"):
             raise ValueError("the model fits several garment levels jointly, and the objective "
                              f"{getattr(objective, 'name', type(objective).__name__)} scores one image: use "
@@ -525,7 +536,7 @@ class Evaluator:
         self.log = EvaluationLog(self.run_dir / LOG_NAME)
         self.workers, self.scheduler = max(1, int(workers)), scheduler
         self.timeout_s, self.threads, self.progress, self.keep_jobs = timeout_s, threads, progress, keep_jobs
-        self.label, self.cost_is_misfit = label, cost_is_misfit
+        self.label, self.cost_is_misfit, self.verbose = label, cost_is_misfit, verbose
         self.launched = 0
         self.replayed = 0
         self._display: Progress | None = None   # one for the evaluator's whole stage, not one per batch
@@ -578,7 +589,7 @@ class Evaluator:
         joined = LEVEL_SEPARATOR.join(text) if isinstance(text, tuple) else text
         key = deck_key(joined, self.model.mesh_sha, self.objective.fingerprint)
         return EngineTask(key, theta, options, tag, text, self.model.mesh_text, self.model.mesh_sha,
-                          str(self.run_dir / "jobs"), self.timeout_s, self.threads, self.keep_jobs)
+                          str(self.run_dir / "jobs"), self.timeout_s, self.threads, self.keep_jobs, self.verbose)
 
     def evaluate(self, thetas: Sequence[Sequence[float]], *, options: dict | None = None, tag: str = "",
                  label: str | None = None) -> list[dict]:

@@ -15,7 +15,7 @@ import pytest
 from orchestrator.cli import main
 from orchestrator.meshing import leg_slice_deck
 from orchestrator.results import EngineResults
-from orchestrator.runner import DeckRejected, EngineFailed, run_engine
+from orchestrator.runner import ENGINE_LOG, DeckRejected, EngineFailed, run_engine
 
 
 @pytest.fixture(scope="module")
@@ -29,6 +29,7 @@ def leg_deck(tmp_path_factory):
 def test_runner_returns_converged_outcome_and_results(leg_deck, tmp_path):
     outcome = run_engine(leg_deck, tmp_path / "out")
     assert outcome.converged and outcome.returncode == 0
+    assert (tmp_path / "out" / ENGINE_LOG).read_text() == outcome.stdout and "converged in" in outcome.stdout
     results = EngineResults(outcome.outdir)
     assert results.summary["status"] == "converged"
     u = results.displacement()
@@ -57,6 +58,8 @@ def test_runner_timeout_stops_the_engine(leg_deck, tmp_path):
     deck.write_text(text)
     with pytest.raises(EngineFailed, match="timeout"):
         run_engine(deck, tmp_path / "out", timeout_s=0.5)
+    # the engine's log of the stopped run is kept, as far as it went
+    assert "iterations, residual" in (tmp_path / "out" / ENGINE_LOG).read_text()
 
 
 def test_calfit_solve_json_prints_one_object(leg_deck, tmp_path, capsys):

@@ -141,3 +141,22 @@ def test_relative_run_folder_works_from_any_working_directory(leg_model, tmp_pat
     with Evaluator(leg_model, skin_objective(leg_model), Path("relative-run"), progress=False) as evaluator:
         record = evaluator(TABLE2_CENTRAL_KPA)
     assert record["status"] == OK, record["message"]
+
+
+def test_verbose_streams_every_engine_log_and_each_job_keeps_it(leg_model, tmp_path, capfd):
+    """--verbose: the engine's own lines (increments, Newton residuals) reach stderr as each run goes, from the
+    worker processes too; each job folder holds them in out/engine.log (kept here with keep_jobs)."""
+    with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "run", workers=2, progress=False,
+                   verbose=True, keep_jobs=True) as evaluator:
+        records = evaluator.evaluate([TABLE2_CENTRAL_KPA, [5.0, 12.0, 100.0, 70.0]])
+    assert all(record["status"] == OK for record in records)
+    streamed = capfd.readouterr().err
+    logs = sorted((tmp_path / "run" / "jobs").glob("*/out/engine.log"))
+    assert len(logs) == 2
+    for log in logs:
+        text = log.read_text()
+        assert "iterations, residual" in text and "converged in" in text
+        assert all(line in streamed for line in text.splitlines() if line.startswith("step "))
+    with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "quiet", progress=False) as evaluator:
+        assert evaluator.evaluate([TABLE2_CENTRAL_KPA])[0]["status"] == OK
+    assert "iterations, residual" not in capfd.readouterr().err     # not without --verbose

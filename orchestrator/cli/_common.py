@@ -1,6 +1,6 @@
-"""Options and output shared by the commands: parallel evaluation (--workers, --scheduler, --timeout), --json
-(one JSON object on stdout, nothing else there; progress and logs on stderr) and --quiet (nothing on stderr but
-errors; stdout unchanged)."""
+"""Options and output shared by the commands: parallel evaluation (--workers, --scheduler, --timeout, --verbose:
+the engines' own logs), --json (one JSON object on stdout, nothing else there; progress and logs on stderr) and
+--quiet (nothing on stderr but errors; stdout unchanged)."""
 
 from __future__ import annotations
 
@@ -30,13 +30,15 @@ def add_parallel_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="Dask distributed scheduler (e.g. tcp://host:8786): evaluate there instead of locally")
     parser.add_argument("--timeout", type=float, default=120.0, help="seconds before one engine run is stopped")
+    parser.add_argument("--verbose", action="store_true",
+                        help="every engine run's own log on stderr as it runs (Newton residuals, increments)")
     add_output_arguments(parser)
 
 
 def parallel_options(args: argparse.Namespace) -> dict:
     """The evaluation options of the pipeline's stages, progress line included (off with --quiet)."""
     return {"workers": args.workers, "scheduler": args.scheduler, "timeout_s": args.timeout,
-            "progress": show_progress(args)}
+            "progress": show_progress(args), "verbose": args.verbose and show_progress(args)}
 
 
 def show_progress(args: argparse.Namespace) -> bool:
