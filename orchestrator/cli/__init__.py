@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import argparse
 
-from . import _demo, _diagnose, _identify, _measure, _montecarlo, _paraview, _phantom, _pressures, _report, _solve
+from . import (_demo, _diagnose, _identify, _measure, _montecarlo, _paraview, _phantom, _pressures, _report, _solve,
+               _study)
 
 COMMANDS = {
     "demo": _demo,
@@ -21,6 +22,7 @@ COMMANDS = {
     "diagnose": _diagnose,
     "report": _report,
     "paraview": _paraview,
+    "study": _study,
 }
 
 

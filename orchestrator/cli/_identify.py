@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="initial values of the laws' free constants in kPa, in the order of the fit's parameter "
                              "names (C10_fat C10_muscle Kv_fat Kv_muscle for the first paper's law; default: case.toml's "
                              "start, else Avril et al. Table 2 central values)")
-    parser.add_argument("--elements", type=int, help="elements of the identification mesh (default 1000; 400 with "
+    parser.add_argument("--elements", type=int, help="elements of the identification mesh (default 2000; 400 with "
                                                      "--objective contour)")
     parser.add_argument("--order", type=int, choices=(1, 2),
                         help="1: CPE3; 2: CPE6 (default; 1 with --objective contour, as in Avril et al.)")

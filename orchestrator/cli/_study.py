@@ -1,0 +1,56 @@
+"""A cohort of cases through the whole pipeline on a Dask cluster.
+
+    calfit study STUDY --out DIR [--workers N] [--scheduler ADDRESS] [--elements N] [--draws N]
+                 [--pressure-draws N] [--stages identify,montecarlo,pressures,diagnose] [--timeout S]
+                 [--json] [--quiet]
+
+STUDY is a folder of case folders. Each case is measured, identified, given its intervals, its landmark
+pressures (when case.toml names landmarks) and its diagnosis, as one task on dask.distributed: a LocalCluster of
+--workers processes on this machine, or the cluster whose scheduler is at --scheduler (its workers must see
+STUDY and DIR at the same paths). DIR/cases/<case>/ is each case's run folder; DIR/study.csv (and study.parquet
+with pyarrow) has one row per case, rewritten as each finishes; DIR/study.json sums it up. Run the same command
+again after an interruption: the cases done are skipped, the others resume where they stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from ..cohort import STAGES, CaseOptions, run_study
+from ..runfiles import RunFolderError
+from ._common import add_output_arguments, emit, fail, honours_quiet, notice
+
+HELP = "a cohort of cases through the whole pipeline on a Dask cluster, one table row per case"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("study", help="folder of case folders (each with case.toml and its images)")
+    parser.add_argument("--out", required=True, help="study folder (created; reused to resume)")
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                        help="cases in parallel on this machine, one engine each (default: 2 or the core count)")
+    parser.add_argument("--scheduler", metavar="ADDRESS",
+                        help="Dask distributed scheduler (e.g. tcp://host:8786): run the cases there")
+    parser.add_argument("--elements", type=int, help="elements of each identification mesh (default 2000)")
+    parser.add_argument("--draws", type=int, help="noise Monte-Carlo draws per case (default 200)")
+    parser.add_argument("--pressure-draws", type=int, default=30,
+                        help="parameter draws of each case's pressure study (default 30, as the paper)")
+    parser.add_argument("--stages", default=",".join(STAGES),
+                        help="comma-separated stages of each case: identify,montecarlo and any of pressures,diagnose "
+                             "(default: all four)")
+    parser.add_argument("--timeout", type=float, default=120.0, help="seconds before one engine run is stopped")
+    add_output_arguments(parser)
+
+
+@honours_quiet
+def run(args: argparse.Namespace) -> int:
+    try:
+        options = CaseOptions(n_elements=args.elements, draws=args.draws, pressure_draws=args.pressure_draws,
+                              timeout_s=args.timeout, stages=tuple(s.strip() for s in args.stages.split(",")))
+        summary = run_study(args.study, args.out, options, workers=args.workers, scheduler=args.scheduler,
+                            report=lambda line: notice(args, line))
+    except (RunFolderError, ValueError, OSError) as error:
+        return fail(str(error))
+    emit(args, summary, [f"{summary['done']} of {summary['cases']} cases done; failed: "
+                         f"{', '.join(summary['failed']) or 'none'}; table: {args.out}/{summary['table']}"])
+    return 0 if not summary["failed"] else 1
