@@ -26,7 +26,7 @@ Its columns are:
 - the misfit over its noise floor, and the diagnosis' verdict and whether the catalog explains the residual;
 - each landmark's pressure and its standard deviation (pressure_<landmark>_kPa, ..._std_kPa);
 - the case's wall time.
-DIR/study.json sums it up: cases done and failed, the wall time, the cases per hour.
+DIR/study.json sums it up: cases done and failed, the wall time, the cases per hour, each worker's peak memory.
 """
 
 from __future__ import annotations
@@ -161,19 +161,30 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
                     _write_table(out, cases, rows)
                     detail = row.get("verdict", "") if row["status"] == DONE else row["error"]
                     say(f"[{finished}/{len(todo)}] {row['case']}: {row['status']} in {row['wall_s']:.0f} s; {detail}")
+                memory = client.run(_peak_rss_mib)
         finally:
             if cluster is not None:
                 cluster.close()
+    else:
+        memory = {}
     wall = time.perf_counter() - began
     done = sum(1 for row in rows.values() if row and row["status"] == DONE)
     summary = {"study": str(Path(study).resolve()), "cases": len(cases), "done": done,
                "failed": sorted(name for name, row in rows.items() if row and row["status"] == FAILED),
                "ran_now": len(todo), "wall_s": wall, "workers": None if scheduler else workers,
                "scheduler": scheduler, "cases_per_hour": 3600.0 * len(todo) / wall if todo else None,
+               "worker_peak_rss_mib": memory,
                "table": TABLE_CSV, "parquet": TABLE_PARQUET if (out / TABLE_PARQUET).is_file() else None}
     write_json(out / SUMMARY_JSON, summary)
     say(f"{done} of {len(cases)} cases done, {len(summary['failed'])} failed; {wall:.0f} s; table in {out / TABLE_CSV}")
     return summary
+
+
+def _peak_rss_mib() -> float:
+    """The peak resident memory of this process (a Dask worker), MiB."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _finished_row(out: Path, name: str) -> dict | None:
