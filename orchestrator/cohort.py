@@ -18,7 +18,7 @@ on the next run; the others go on.
 
 The table, one row per case, is rewritten as each case finishes:
 - DIR/study.csv, each number with the digits its uncertainty allows (`digits`): a parameter by its 95 %
-  interval's width / 4, a pressure by its spread with the garment tension's;
+  interval (`digits.interval_uncertainty`), a pressure by its spread with the garment tension's;
 - DIR/study.parquet, full precision, when pyarrow is installed (`pip install calfit[study]`).
 Its columns are:
 - case, status (done or failed), error;
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .digits import rounded
+from .digits import interval_uncertainty, rounded
 from .identify import pressure_spreads
 from .pipeline import run_diagnose, run_identify, run_montecarlo, run_pressures
 from .runfiles import RunFolderError, atomic_write_text, read_json, write_json
@@ -201,11 +201,11 @@ def _columns(rows: list[dict]) -> list[str]:
 
 
 def _uncertainty(column: str, row: dict) -> float | None:
-    """What sets a number's digits in the CSV: a parameter's interval width / 4 (a 95 % interval spans about 4
-    standard deviations), a pressure's spread; None (4 significant digits) for the rest."""
+    """What sets a number's digits in the CSV: a parameter's interval (`digits.interval_uncertainty`), a pressure's
+    spread; None (4 significant digits) for the rest."""
     for name in (column, column.removesuffix("_low"), column.removesuffix("_high")):
         if f"{name}_low" in row and f"{name}_high" in row:
-            return abs(row[f"{name}_high"] - row[f"{name}_low"]) / 4.0
+            return interval_uncertainty(row[f"{name}_low"], row[f"{name}_high"])
     if column.startswith("pressure_"):   # pressure_<landmark>_kPa and its own spread, pressure_<landmark>_std_kPa
         return row.get(column.replace("_std_kPa", "_kPa").replace("_kPa", "_std_kPa"))
     return None

@@ -27,6 +27,12 @@ def decimals(uncertainty: float | None) -> int | None:
     return place
 
 
+def interval_uncertainty(low: float, high: float) -> float:
+    """The standard uncertainty a 95 % interval implies for the digits of its numbers: its width over 4 (it spans
+    about 4 standard deviations of a normal estimate)."""
+    return abs(high - low) / 4.0
+
+
 def rounded(value: float, uncertainty: float | None) -> str:
     """The value as text, to the place its uncertainty allows (module text)."""
     if not math.isfinite(value):

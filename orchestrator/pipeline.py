@@ -26,7 +26,7 @@ from dataclasses import asdict
 
 from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, residual_maps, settle_ties, weigh_local,
                        summarize_fit)
-from .digits import rounded, with_uncertainty
+from .digits import interval_uncertainty, rounded, with_uncertainty
 from .figures import diagnosis_figure
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_spreads, pressure_uncertainty, table1_starts)
@@ -463,7 +463,9 @@ def intervals_summary(result: dict) -> list[str]:
                     (", ON A BOUND" if name in result["on_bound"] else ""))
         else:
             flag = "POOR" if name in result["poorly_identified"] else "good"
-        lines.append(f"{name:<12} {result['lower'][k]:8.2f} {result['upper'][k]:8.2f} {result['central'][k]:8.2f}  {flag}")
+        spread = interval_uncertainty(result["lower"][k], result["upper"][k])
+        lower, upper, central = (rounded(result[key][k], spread) for key in ("lower", "upper", "central"))
+        lines.append(f"{name:<12} {lower:>8} {upper:>8} {central:>8}  {flag}")
     if noise:
         lines.append(f"{100 * result['confidence']:.0f} % intervals from {result['draws'] - result['failed']} refitted "
                      f"noise draws" + (f", noise variance inflated x{result['inflation']:.2f} (misfit above its floor)"

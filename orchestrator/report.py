@@ -35,7 +35,7 @@ import numpy as np
 from . import figures
 from .decks import template_dir
 from .diagnose import ALPHA, EXPLAINED_FACTOR, model_label
-from .digits import rounded
+from .digits import interval_uncertainty, rounded
 from .forward import MeshInterpolator, field_on_pixels
 from .identify import pressure_spreads
 from .imaging.segment import BONE
@@ -226,11 +226,11 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
 
 
 def _interval_sigmas(montecarlo: dict | None, count: int) -> list[float | None]:
-    """Each parameter's standard uncertainty as its interval gives it, the interval's width over 4 (a 95 % interval
-    spans about 4 standard deviations): what sets its digits in the tables."""
+    """Each parameter's standard uncertainty as its interval gives it (`digits.interval_uncertainty`): what sets its
+    digits in the tables."""
     if not montecarlo:
         return [None] * count
-    return [(high - low) / 4.0 for low, high in zip(montecarlo["lower"], montecarlo["upper"])]
+    return [interval_uncertainty(low, high) for low, high in zip(montecarlo["lower"], montecarlo["upper"])]
 
 
 def _images_section(setup, staging: Path) -> dict:
