@@ -87,19 +87,20 @@ def run_case(case_dir: str, run_dir: str, options: CaseOptions) -> dict:
     began = time.perf_counter()
     case_dir, run_dir = Path(case_dir), Path(run_dir)
     row: dict = {"case": case_dir.name, "status": DONE, "error": ""}
-    stages = {"workers": 1, "timeout_s": options.timeout_s, "progress": False}
+    # one engine at a time in this worker, on one thread (module text)
+    evaluation = {"workers": 1, "timeout_s": options.timeout_s, "progress": False}
     try:
-        identification = run_identify(case_dir, run_dir, n_elements=options.n_elements, **stages)
-        montecarlo = run_montecarlo(run_dir, draws=options.draws, **stages)
+        identification = run_identify(case_dir, run_dir, n_elements=options.n_elements, **evaluation)
+        montecarlo = run_montecarlo(run_dir, draws=options.draws, **evaluation)
         row.update(_parameters(identification, montecarlo))
         if "pressures" in options.stages:
             try:
-                row.update(_pressures(run_pressures(run_dir, draws=options.pressure_draws, **stages)))
+                row.update(_pressures(run_pressures(run_dir, draws=options.pressure_draws, **evaluation)))
             except RunFolderError:   # no [landmarks] in case.toml: no pressure asked for
                 pass
         if "diagnose" in options.stages:
             try:
-                diagnosis = run_diagnose(run_dir, **stages)
+                diagnosis = run_diagnose(run_dir, **evaluation)
                 row.update(verdict=diagnosis["verdict"], explained=bool(diagnosis["explained"]))
             except ValueError as refused:   # a model the diagnosis does not take yet (explicit garment, levels)
                 row.update(verdict=f"not diagnosed: {refused}", explained=None)
