@@ -38,10 +38,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from .digits import interval_uncertainty, rounded
+import numpy as np
+
+from .diagnose import ALPHA
+from .digits import rounded
 from .identify import pressure_spreads
 from .pipeline import run_diagnose, run_identify, run_montecarlo, run_pressures
 from .runfiles import RunFolderError, atomic_write_text, read_json, write_json
+from .study_report import cell_uncertainty, write_study_report
+from .volume_study import SLICES_JSON, is_volume_case, slice_volume_case
 
 ROW_FILE = "row.json"
 TABLE_CSV, TABLE_PARQUET, SUMMARY_JSON = "study.csv", "study.parquet", "study.json"
@@ -81,18 +86,20 @@ def study_cases(study: Path) -> list[Path]:
     return cases
 
 
-def run_case(case_dir: str, run_dir: str, options: CaseOptions) -> dict:
-    """One case through the pipeline (module text), in a Dask worker; its row of the study table. A failure of the
-    case is its row (status failed, the error), never an exception: the other cases go on."""
+def run_case(case_dir: str, run_dir: str, options: CaseOptions, extra: dict | None = None) -> dict:
+    """One case through the pipeline (module text), in a Dask worker; its row of the study table, which starts
+    with `extra` (a slice's height and tension). A failure of the case is its row (status failed, the error),
+    never an exception: the other cases go on."""
     began = time.perf_counter()
     case_dir, run_dir = Path(case_dir), Path(run_dir)
-    row: dict = {"case": case_dir.name, "status": DONE, "error": ""}
+    row: dict = {"case": case_dir.name, "status": DONE, "error": "", **(extra or {})}
     # one engine at a time in this worker, on one thread (module text)
     evaluation = {"workers": 1, "timeout_s": options.timeout_s, "progress": False}
     try:
         identification = run_identify(case_dir, run_dir, n_elements=options.n_elements, **evaluation)
         montecarlo = run_montecarlo(run_dir, draws=options.draws, **evaluation)
         row.update(_parameters(identification, montecarlo))
+        row.update(_interface_pressure(run_dir))
         if "pressures" in options.stages:
             try:
                 row.update(_pressures(run_pressures(run_dir, draws=options.pressure_draws, **evaluation)))
@@ -101,7 +108,8 @@ def run_case(case_dir: str, run_dir: str, options: CaseOptions) -> dict:
         if "diagnose" in options.stages:
             try:
                 diagnosis = run_diagnose(run_dir, **evaluation)
-                row.update(verdict=diagnosis["verdict"], explained=bool(diagnosis["explained"]))
+                row.update(verdict=diagnosis["verdict"], explained=bool(diagnosis["explained"]),
+                           lack_of_fit=bool(diagnosis["lack_of_fit_p"] < ALPHA))
             except ValueError as refused:   # a model the diagnosis does not take yet (explicit garment, levels)
                 row.update(verdict=f"not diagnosed: {refused}", explained=None)
     except Exception as error:   # noqa: BLE001 - one case's failure is its row; the study goes on
@@ -119,6 +127,19 @@ def _parameters(identification: dict, montecarlo: dict) -> dict:
         values[f"{name}_low"], values[f"{name}_high"] = montecarlo["lower"][k], montecarlo["upper"][k]
         values[f"{name}_identifiable"] = name not in montecarlo["poorly_identified"]
     return values
+
+
+def _interface_pressure(run_dir: Path) -> dict:
+    """The garment's mean pressure on the skin by Laplace's law, 2 pi T / perimeter (the mean of T / r around the
+    leg, since the curvature integrates to 2 pi; Avril et al. eq. 1): the figure the compression standards give
+    at the heights B to D, with the tension's uncertainty as its spread."""
+    from .geometry_uncertainty import skin_perimeter_mm
+    from .study import load_run
+
+    setup = load_run(run_dir)
+    pressure_kPa = 2.0 * np.pi * setup.case.tension_N_per_mm / skin_perimeter_mm(setup.mesh) * 1000.0
+    return {"interface_pressure_kPa": pressure_kPa,
+            "interface_pressure_std_kPa": pressure_kPa * setup.case.tension_rel_uncertainty}
 
 
 def _pressures(pressures: dict) -> dict:
@@ -139,12 +160,19 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
         raise RunFolderError("calfit study runs its cases on dask.distributed, which is not installed: "
                              "pip install 'calfit[study]'") from None
     began = time.perf_counter()
-    cases = study_cases(Path(study))
+    say = report or (lambda line: None)
     out = Path(out)
+    volume = None
+    if is_volume_case(study):
+        slices, volume = slice_volume_case(study, out, say)
+        cases = [piece.folder for piece in slices]
+        extras = {piece.folder.name: {"height_mm": piece.height_mm, "tension_N_per_mm": piece.tension_N_per_mm}
+                  for piece in slices}
+    else:
+        cases, extras = study_cases(Path(study)), {}
     (out / "cases").mkdir(parents=True, exist_ok=True)
     rows = {case.name: _finished_row(out, case.name) for case in cases}
     todo = [case for case in cases if rows[case.name] is None]
-    say = report or (lambda line: None)
     say(f"study of {len(cases)} cases: {len(cases) - len(todo)} done before, {len(todo)} to run on "
         + (f"the cluster at {scheduler}" if scheduler else f"{workers} local worker(s)"))
     _write_table(out, cases, rows)
@@ -154,7 +182,8 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
         try:
             with Client(scheduler or cluster, timeout=30, set_as_default=False) as client:
                 futures = [client.submit(run_case, str(case), str(out / "cases" / case.name), options,
-                                         key=f"calfit-case-{case.name}", pure=False, retries=CASE_RETRIES)
+                                         extras.get(case.name), key=f"calfit-case-{case.name}", pure=False,
+                                         retries=CASE_RETRIES)
                            for case in todo]
                 for finished, future in enumerate(as_completed(futures, loop=client.loop), start=1):
                     row = future.result()
@@ -168,6 +197,7 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
                 cluster.close()
     else:
         memory = {}
+    page = write_study_report(out, [rows[case.name] for case in cases if rows[case.name] is not None], volume)
     wall = time.perf_counter() - began
     done = sum(1 for row in rows.values() if row and row["status"] == DONE)
     summary = {"study": str(Path(study).resolve()), "cases": len(cases), "done": done,
@@ -175,7 +205,8 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
                "ran_now": len(todo), "wall_s": wall, "workers": None if scheduler else workers,
                "scheduler": scheduler, "cases_per_hour": 3600.0 * len(todo) / wall if todo else None,
                "worker_peak_rss_mib": memory,
-               "table": TABLE_CSV, "parquet": TABLE_PARQUET if (out / TABLE_PARQUET).is_file() else None}
+               "table": TABLE_CSV, "parquet": TABLE_PARQUET if (out / TABLE_PARQUET).is_file() else None,
+               "report": str(page.relative_to(out)), "volume_slices": SLICES_JSON if volume is not None else None}
     write_json(out / SUMMARY_JSON, summary)
     say(f"{done} of {len(cases)} cases done, {len(summary['failed'])} failed; {wall:.0f} s; table in {out / TABLE_CSV}")
     return summary
@@ -201,24 +232,13 @@ def _columns(rows: list[dict]) -> list[str]:
     return columns
 
 
-def _uncertainty(column: str, row: dict) -> float | None:
-    """What sets a number's digits in the CSV: a parameter's interval (`digits.interval_uncertainty`), a pressure's
-    spread; None (4 significant digits) for the rest."""
-    for name in (column, column.removesuffix("_low"), column.removesuffix("_high")):
-        if f"{name}_low" in row and f"{name}_high" in row:
-            return interval_uncertainty(row[f"{name}_low"], row[f"{name}_high"])
-    if column.startswith("pressure_"):   # pressure_<landmark>_kPa and its own spread, pressure_<landmark>_std_kPa
-        return row.get(column.replace("_std_kPa", "_kPa").replace("_kPa", "_std_kPa"))
-    return None
-
-
 def _cell(column: str, row: dict) -> str:
     value = row.get(column)
     if value is None:
         return ""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         return str(value)
-    return rounded(float(value), _uncertainty(column, row))
+    return rounded(float(value), cell_uncertainty(column, row))
 
 
 def _write_table(out: Path, cases: list[Path], rows: dict[str, dict | None]) -> None:

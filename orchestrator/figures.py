@@ -413,3 +413,67 @@ def intervals_figure(path: Path, names: list[str], units: list[str], identified,
     figure.suptitle(title, fontsize=9)
     figure.tight_layout()
     return _save(figure, path)
+
+
+# ----------------------------------------------------------------------------- the study report's figures
+
+
+def save_figure(figure, path: Path) -> Path:
+    """Write a figure of the study report (PNG, the report's resolution) and free it."""
+    return _save(figure, path)
+
+
+def study_profile_figure(heights_mm, panels, named_heights: dict[str, float], kind: str, *, mmhg: bool = False,
+                         reference: float | None = None):
+    """Quantities along the leg, one panel each: panels are (label, values, low, high, unit) by height, low/high
+    the band (None: no band). The named heights of the compression standard (B, B1, C, D) are dashed lines."""
+    from .results import MMHG_PER_KPA
+
+    heights = np.asarray(heights_mm, float)
+    columns = min(len(panels), 2)
+    rows = int(np.ceil(len(panels) / columns))
+    figure, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.0 * rows), squeeze=False,
+                                constrained_layout=True)
+    for ax, (label, values, low, high, unit) in zip(axes.ravel(), panels):
+        if low is not None and high is not None:
+            ax.fill_between(heights, np.asarray(low, float), np.asarray(high, float), color="#5b8db8", alpha=0.3,
+                            linewidth=0, label="95 % band" if kind != "pressure" else "+- 2 std")
+        ax.plot(heights, np.asarray(values, float), "o-", color="#1f4e79", markersize=4, label=label)
+        if reference is not None:
+            ax.axhline(reference, color="0.3", linestyle=":", linewidth=1)
+        for name, height in named_heights.items():
+            ax.axvline(height, color="0.5", linestyle="--", linewidth=0.8)
+            ax.annotate(name, (height, 1.0), xycoords=("data", "axes fraction"), xytext=(2, -10),
+                        textcoords="offset points", fontsize=8, color="0.3")
+        ax.set_xlabel("height along the leg (mm)")
+        ax.set_ylabel(f"{label if kind == 'parameter' else kind} ({unit})" if unit else label)
+        ax.set_title(label, fontsize=10)
+        if mmhg:
+            ax.secondary_yaxis("right", functions=(lambda p: p * MMHG_PER_KPA, lambda p: p / MMHG_PER_KPA)
+                               ).set_ylabel("mmHg")
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    return figure
+
+
+def study_distribution_figure(panels):
+    """Each parameter over the cases: panels are (name, case names, values, low, high); a dot and its 95 % interval
+    per case, the median as a line."""
+    columns = min(len(panels), 2)
+    rows = int(np.ceil(len(panels) / columns))
+    count = len(panels[0][1]) if panels else 0
+    figure, axes = plt.subplots(rows, columns, figsize=(max(5.2, 0.35 * count + 2) * columns, 3.0 * rows),
+                                squeeze=False, constrained_layout=True)
+    for ax, (name, cases, values, low, high) in zip(axes.ravel(), panels):
+        values, low, high = (np.asarray(v, float) for v in (values, low, high))
+        positions = np.arange(len(cases))
+        ax.errorbar(positions, values, yerr=[values - low, high - values], fmt="o", color="#1f4e79", capsize=2,
+                    markersize=4)
+        ax.axhline(float(np.median(values)), color="#c0392b", linewidth=1, label="median")
+        ax.set_xticks(positions, cases, rotation=60, ha="right", fontsize=7)
+        ax.set_ylabel(f"{name} (kPa)")
+        ax.set_title(name, fontsize=10)
+        ax.legend(fontsize=8, loc="best")
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    return figure

@@ -272,6 +272,9 @@ def _read_toml(path: Path) -> dict:
         settings = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CaseError(path, f"is not valid TOML ({exc})", "fix the syntax (tables in [brackets], key = value)") from exc
+    if "study" in settings:
+        raise CaseError(path, "is a volume case ([study]: slices to cut at several heights), not one slice",
+                        f"run `calfit study {path.parent} --out STUDY_DIR`, which cuts it into slice cases")
     for table, value in settings.items():
         if table not in _TOML_SCHEMA:
             raise CaseError(path, f"has an unknown table or key '{table}'", f"use only the tables {', '.join(f'[{t}]' for t in _TOML_SCHEMA)}")
@@ -503,10 +506,13 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
                       tension_rel_uncertainty: float = DEFAULT_TENSION_REL_UNCERTAINTY,
                       labels: np.ndarray | None = None, points: DisplacementPoints | None = None,
                       landmarks: dict[str, tuple[float, float]] | None = None, levels: tuple[GarmentLevel, ...] = (),
-                      overwrite: bool = False) -> Path:
+                      images_as: str = "png", model_toml: str = "", overwrite: bool = False) -> Path:
     """Write a complete case folder atomically (temporary sibling, then rename). Returns the folder.
 
-    Float images are scaled by one common factor to 16-bit PNG; uint8/uint16 images are written as they are.
+    images_as "png": float images are scaled by one common factor to 16-bit PNG; uint8/uint16 images are written
+    as they are. "npy": the two images are written as they are (float, NaN kept: a slice resampled from a volume
+    has no value outside the other session's field of view). model_toml: the text of [model] tables, appended to
+    case.toml as it is (the model a volume case gives all its slices).
     levels: more loaded images under other tensions, each written as its `path` (a .png file name) with its
     [[garment.levels]] table, and its points as `points_path` (a file name) when it has points.
     """
@@ -520,18 +526,24 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
         raise ValueError("every garment level's image must have the shape of the unloaded image")
     if any(Path(level.path).suffix.lower() != ".png" or Path(level.path).name != str(level.path) for level in levels):
         raise ValueError("a garment level is written as a .png file name of the case folder")
+    if images_as not in ("png", "npy") or (images_as == "npy" and levels):
+        raise ValueError("images_as is 'png', or 'npy' for a case without garment levels")
     images = [unloaded, loaded, *level_images]
-    if unloaded.dtype in (np.uint8, np.uint16) and all(image.dtype == unloaded.dtype for image in images):
+    if images_as == "npy" or (unloaded.dtype in (np.uint8, np.uint16) and all(image.dtype == unloaded.dtype for image in images)):
         pngs = images
     else:   # one common scale, so that every level's grey levels compare with I0's
         pngs, _ = to_uint16([np.asarray(image, float) for image in images])
     folder.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
-        (staging / "case.toml").write_text(_case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {},
-                                                      levels), encoding="utf-8")
-        write_png16(staging / "unloaded.png", pngs[0])
-        write_png16(staging / "loaded.png", pngs[1])
+        text = _case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {}, levels)
+        (staging / "case.toml").write_text(text + ("\n" + model_toml.strip() + "\n" if model_toml.strip() else ""),
+                                           encoding="utf-8")
+        for role, image in (("unloaded", pngs[0]), ("loaded", pngs[1])):
+            if images_as == "npy":
+                np.save(staging / f"{role}.npy", np.asarray(image))
+            else:
+                write_png16(staging / f"{role}.png", image)
         for level, png in zip(levels, pngs[2:]):
             write_png16(staging / Path(level.path).name, png)
             if level.points is not None:

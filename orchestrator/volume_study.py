@@ -1,0 +1,348 @@
+"""A volume case cut into slice cases, the first step of `calfit study VOLUME_CASE --out DIR`.
+
+A volume case is a case folder whose unloaded and loaded images are each a 3D volume (a DICOM series folder
+`unloaded/`, `loaded/`, or `unloaded.nii[.gz]`, `loaded.nii[.gz]`), with a [study] table in case.toml:
+
+    [study]
+    heights_mm = [204.0, 212.0]         # slice positions along the normal to study (or every_mm = 8.0)
+    compression_heights_mm = { B = 204.0, B1 = 236.0, C = 284.0, D = 300.0 }   # optional, named in the report
+
+    [garment]
+    tension_N_per_mm = { heights_mm = [196.0, 300.0], values = [0.20, 0.14] }  # or one number for all heights
+
+    [landmarks]
+    deep_veins = [[54.3, 61.2, 196.0], [54.0, 60.9, 300.0]]   # a line along the leg: x, y (slice frame), height
+
+A height is the position along the slices' normal (`imaging.volume.Volume.slice_positions_mm`), the number that
+`[images] slice_position_mm` gives for a single slice. Cutting, in `slice_volume_case`:
+1. both volumes are read and the loaded one is aligned rigidly on the bones in 3D (`imaging.align3d`): between
+   the sessions the leg slides along its axis, turns and tilts;
+2. each height takes the unloaded slice nearest it (within half a slice spacing; an unloaded slice is never
+   resampled, so I0 keeps its texture), and the loaded volume is resampled on that slice's pixels through the
+   motion (`align3d.resample_on_slice`): the two images of the slice case see the same tissue;
+3. the slice case gets the tension at its height (linear in the table; a height outside the table is refused),
+   the landmarks at its height (each line interpolated linearly; a single point [x, y, z] belongs to the slice
+   within half a spacing of z) and the volume case's [model] tables, and is written, whole or not at all, to
+   DIR/slices/<name>-z<height>mm/ (`imaging.case.write_case_folder`, images as .npy with NaN where the loaded
+   session has no voxel).
+DIR/slices.json records the slices, their heights, the motion and the named heights; it is written last, so a
+study stopped while cutting cuts again, and one stopped later reuses the slices.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .imaging.case import DEFAULT_TENSION_REL_UNCERTAINTY, write_case_folder
+from .imaging.case import _model_choice as check_model_table
+from .imaging.errors import CaseError
+from .runfiles import RunFolderError, read_json, write_json
+
+SLICES_JSON = "slices.json"
+SLICES_FOLDER = "slices"
+VOLUME_SCHEMA = {
+    "case": {"name", "pixel_size_mm"},
+    "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
+    "study": {"heights_mm", "every_mm", "compression_heights_mm"},
+    "landmarks": None,
+    "model": None,
+}
+PIXEL_SIZE_RTOL = 0.01
+
+
+@dataclass(frozen=True)
+class VolumeCase:
+    """What case.toml of a volume case says (module text), checked; the volumes are read by `slice_volume_case`."""
+
+    folder: Path
+    name: str
+    unloaded: Path
+    loaded: Path
+    pixel_size_mm: tuple[float, float] | None
+    heights_mm: tuple[float, ...] | None      # None: every_mm
+    every_mm: float | None
+    compression_heights_mm: dict[str, float]
+    tension_heights_mm: tuple[float, ...]      # one entry: the same tension at every height
+    tension_values: tuple[float, ...]
+    tension_rel_uncertainty: float
+    landmarks: dict[str, np.ndarray]           # name -> (n, 3) points x, y, height, by increasing height
+    model_toml: str
+
+    def tension_at(self, height_mm: float) -> float:
+        """The garment tension at a height (linear between the table's heights)."""
+        if len(self.tension_values) == 1:
+            return self.tension_values[0]
+        low, high = self.tension_heights_mm[0], self.tension_heights_mm[-1]
+        if not low - 1e-6 <= height_mm <= high + 1e-6:
+            raise CaseError(self.folder / "case.toml", f"[garment] tension_N_per_mm gives the tension from {low:g} to "
+                            f"{high:g} mm, not at the slice at {height_mm:g} mm",
+                            "extend its heights_mm and values to every studied height")
+        return float(np.interp(height_mm, self.tension_heights_mm, self.tension_values))
+
+    def landmarks_at(self, height_mm: float, half_spacing_mm: float) -> dict[str, tuple[float, float]]:
+        """The landmarks of the slice at this height: each line interpolated in it, each point within half a slice
+        spacing of it; the others are not in this slice."""
+        found = {}
+        for name, points in self.landmarks.items():
+            heights = points[:, 2]
+            if heights[0] - half_spacing_mm <= height_mm <= heights[-1] + half_spacing_mm:
+                x = float(np.interp(height_mm, heights, points[:, 0]))
+                y = float(np.interp(height_mm, heights, points[:, 1]))
+                found[name] = (x, y)
+        return found
+
+
+@dataclass(frozen=True)
+class SliceCase:
+    """A slice case cut from a volume case."""
+
+    folder: Path
+    height_mm: float
+    slice_index: int
+    tension_N_per_mm: float
+
+    def as_dict(self) -> dict:
+        return {"folder": self.folder.name, "height_mm": self.height_mm, "slice_index": self.slice_index,
+                "tension_N_per_mm": self.tension_N_per_mm}
+
+
+def is_volume_case(folder: str | Path) -> bool:
+    """A folder whose case.toml has a [study] table."""
+    path = Path(folder) / "case.toml"
+    if not path.is_file():
+        return False
+    try:
+        return "study" in tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return False
+
+
+def read_volume_case(folder: str | Path) -> VolumeCase:
+    """Read and check case.toml of a volume case and find its two volumes; CaseError naming the file and the fix."""
+    folder = Path(folder)
+    path = folder / "case.toml"
+    text = path.read_text(encoding="utf-8")
+    try:
+        settings = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise CaseError(path, f"is not valid TOML ({exc})", "fix the syntax (tables in [brackets], key = value)") from exc
+    for table, value in settings.items():
+        if table not in VOLUME_SCHEMA or not isinstance(value, dict):
+            raise CaseError(path, f"has an unknown table or key '{table}'",
+                            f"a volume case has only the tables {', '.join(f'[{t}]' for t in VOLUME_SCHEMA)}")
+        allowed = VOLUME_SCHEMA[table]
+        unknown = sorted(set(value) - allowed) if allowed is not None else []
+        if unknown:
+            raise CaseError(path, f"[{table}] has an unknown key '{unknown[0]}'", f"use only {', '.join(sorted(allowed))}")
+    study = settings["study"]
+    heights = study.get("heights_mm")
+    every = study.get("every_mm")
+    if (heights is None) == (every is None):
+        raise CaseError(path, "[study] needs one of heights_mm and every_mm",
+                        "write heights_mm = [h1, h2, ...] (slice positions in mm) or every_mm = <spacing in mm>")
+    if heights is not None:
+        if not isinstance(heights, list) or not heights or not all(_is_number(h) for h in heights):
+            raise CaseError(path, f"[study] heights_mm = {heights!r} is not a list of numbers",
+                            "write heights_mm = [204.0, 212.0] (mm along the slice normal)")
+        heights = tuple(sorted(float(h) for h in heights))
+    elif not (_is_number(every) and every > 0):
+        raise CaseError(path, f"[study] every_mm = {every!r} is not a positive number", "write every_mm = 10.0")
+    named = study.get("compression_heights_mm", {})
+    if not isinstance(named, dict) or not all(_is_number(h) for h in named.values()):
+        raise CaseError(path, "[study] compression_heights_mm is not a table of heights",
+                        "write compression_heights_mm = { B = 120.0, C = 280.0 } (mm)")
+    garment = settings.get("garment")
+    if garment is None or "tension_N_per_mm" not in garment:
+        raise CaseError(path, "has no [garment] tension_N_per_mm",
+                        "add it under [garment]: a number, or { heights_mm = [...], values = [...] } along the leg")
+    tension_heights, tension_values = _tension_table(path, garment["tension_N_per_mm"])
+    rel = garment.get("tension_rel_uncertainty", DEFAULT_TENSION_REL_UNCERTAINTY)
+    if not (_is_number(rel) and rel >= 0):
+        raise CaseError(path, f"[garment] tension_rel_uncertainty = {rel!r} is not a non-negative number",
+                        "give it as a number (0.10 is 10 %)")
+    case_table = settings.get("case", {})
+    name = case_table.get("name", folder.name)
+    if not isinstance(name, str) or not name.strip():
+        raise CaseError(path, "[case] name is not a non-empty string", 'write name = "volunteer-01" under [case]')
+    pixel_size = case_table.get("pixel_size_mm")
+    if pixel_size is not None and not (isinstance(pixel_size, list) and len(pixel_size) == 2
+                                       and all(_is_number(v) and v > 0 for v in pixel_size)):
+        raise CaseError(path, f"[case] pixel_size_mm = {pixel_size!r} is not two positive numbers",
+                        "write pixel_size_mm = [row_mm, column_mm], or leave it to the volumes' headers")
+    check_model_table(path, settings.get("model", {}))
+    return VolumeCase(folder=folder, name=name, unloaded=_volume_path(folder, "unloaded"),
+                      loaded=_volume_path(folder, "loaded"),
+                      pixel_size_mm=tuple(map(float, pixel_size)) if pixel_size else None,
+                      heights_mm=heights, every_mm=float(every) if every is not None else None,
+                      compression_heights_mm={str(k): float(v) for k, v in named.items()},
+                      tension_heights_mm=tension_heights, tension_values=tension_values,
+                      tension_rel_uncertainty=float(rel),
+                      landmarks=_landmark_lines(path, settings.get("landmarks", {})), model_toml=_model_tables(text))
+
+
+def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple[list[SliceCase], dict]:
+    """Cut the volume case into slice cases under out/slices (module text); returns them, by height, and the record
+    written to out/slices.json. A record already there is reused when it was cut at the same heights."""
+    from .imaging.align3d import align_volumes_on_bones, resample_on_slice
+    from .imaging.volume import read_volume
+
+    say = report or (lambda line: None)
+    case = read_volume_case(folder)
+    out = Path(out)
+    record_path = out / SLICES_JSON
+    unloaded = read_volume(case.unloaded)
+    positions = unloaded.slice_positions_mm
+    chosen = _chosen_slices(case, positions, unloaded.slice_spacing_mm)
+    slices = [SliceCase(out / SLICES_FOLDER / _slice_name(case.name, positions[k]), float(positions[k]), int(k),
+                        case.tension_at(float(positions[k]))) for k in chosen]
+    if record_path.is_file():
+        record = read_json(record_path, "calfit study")
+        if [s["folder"] for s in record["slices"]] == [s.folder.name for s in slices]:
+            say(f"{len(slices)} slices cut before, reused from {out / SLICES_FOLDER}")
+            return slices, record
+        raise RunFolderError(f"{out} holds slices cut at other heights ({record_path}); give the study another --out")
+    _check_pixel_size(case, unloaded)
+    loaded = read_volume(case.loaded)
+    if loaded.shape[:2] != unloaded.shape[:2] or not np.allclose(loaded.pixel_size_mm, unloaded.pixel_size_mm,
+                                                                rtol=PIXEL_SIZE_RTOL):
+        raise CaseError(case.loaded, f"has {loaded.shape[0]}x{loaded.shape[1]} pixels of {_pair(loaded.pixel_size_mm)} mm "
+                        f"but {case.unloaded.name} has {unloaded.shape[0]}x{unloaded.shape[1]} of "
+                        f"{_pair(unloaded.pixel_size_mm)} mm", "acquire both sessions with the same matrix and field of view")
+    say(f"volumes: {unloaded.shape[2]} unloaded slices at {positions[0]:.1f}-{positions[-1]:.1f} mm every "
+        f"{unloaded.slice_spacing_mm:.2g} mm, {loaded.shape[2]} loaded; aligning the loaded volume on the bones")
+    alignment = align_volumes_on_bones(unloaded, loaded)
+    motion = alignment.motion
+    say(f"the leg moved between the sessions by {motion.angle_deg:.2f} deg and "
+        f"({', '.join(f'{t:.2f}' for t in motion.translation_mm)}) mm")
+    half = 0.5 * unloaded.slice_spacing_mm
+    for piece in slices:   # a slice left by a run stopped before slices.json is cut again, whole (overwrite)
+        write_case_folder(piece.folder, name=piece.folder.name, unloaded=unloaded.slice_image(piece.slice_index),
+                          loaded=resample_on_slice(loaded, unloaded, piece.slice_index, motion),
+                          pixel_size_mm=unloaded.pixel_size_mm, tension_N_per_mm=piece.tension_N_per_mm,
+                          tension_rel_uncertainty=case.tension_rel_uncertainty,
+                          landmarks=case.landmarks_at(piece.height_mm, half), images_as="npy",
+                          model_toml=case.model_toml, overwrite=True)
+    record = {"volume_case": str(case.folder.resolve()), "name": case.name,
+              "slices": [piece.as_dict() for piece in slices],
+              "slice_spacing_mm": unloaded.slice_spacing_mm, "pixel_size_mm": list(unloaded.pixel_size_mm),
+              "compression_heights_mm": case.compression_heights_mm,
+              "tension_rel_uncertainty": case.tension_rel_uncertainty,
+              "motion": motion.as_dict(), "alignment": _alignment_record(alignment)}
+    write_json(record_path, record)
+    say(f"cut {len(slices)} slices into {out / SLICES_FOLDER}")
+    return slices, record
+
+
+def _chosen_slices(case: VolumeCase, positions: np.ndarray, spacing: float) -> list[int]:
+    """The unloaded slice of each studied height (module text)."""
+    path = case.folder / "case.toml"
+    if case.every_mm is not None:
+        if case.every_mm < spacing * (1 - 1e-6):
+            raise CaseError(path, f"[study] every_mm = {case.every_mm:g} is finer than the slices ({spacing:.3g} mm apart)",
+                            f"give every_mm >= {spacing:.3g}")
+        wanted = np.arange(positions[0], positions[-1] + 1e-6, case.every_mm)
+    else:
+        wanted = np.asarray(case.heights_mm)
+    chosen = []
+    for height in wanted:
+        k = int(np.argmin(np.abs(positions - height)))
+        if abs(positions[k] - height) > 0.5 * spacing + 1e-6:
+            raise CaseError(path, f"[study] height {height:g} mm has no unloaded slice within half a spacing "
+                            f"(slices at {positions[0]:.1f}-{positions[-1]:.1f} mm every {spacing:.3g} mm)",
+                            "choose heights inside the unloaded volume")
+        if k in chosen:
+            raise CaseError(path, f"[study] heights {height:g} mm and another fall on the same slice at "
+                            f"{positions[k]:.1f} mm", f"give heights at least {spacing:.3g} mm apart")
+        chosen.append(k)
+    return chosen
+
+
+def _slice_name(name: str, height_mm: float) -> str:
+    return f"{re.sub(r'[^A-Za-z0-9_.-]+', '-', name)}-z{height_mm:.1f}mm"
+
+
+def _volume_path(folder: Path, role: str) -> Path:
+    for candidate in (folder / role, folder / f"{role}.nii.gz", folder / f"{role}.nii"):
+        if candidate.exists():
+            return candidate
+    raise CaseError(folder, f"has no {role} volume",
+                    f"put the {role} session in {role}/ (a DICOM series) or {role}.nii.gz (a 3D NIfTI)")
+
+
+def _tension_table(path: Path, value) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    if _is_number(value) and value > 0:
+        return (math.nan,), (float(value),)
+    fix = "write tension_N_per_mm = 0.16, or { heights_mm = [196.0, 300.0], values = [0.20, 0.14] } along the leg"
+    if not isinstance(value, dict) or set(value) != {"heights_mm", "values"}:
+        raise CaseError(path, f"[garment] tension_N_per_mm = {value!r} is neither a number nor a table of heights and values", fix)
+    heights, values = value["heights_mm"], value["values"]
+    if (not isinstance(heights, list) or not isinstance(values, list) or len(heights) != len(values) or len(heights) < 2
+            or not all(_is_number(h) for h in heights) or not all(_is_number(v) and v > 0 for v in values)):
+        raise CaseError(path, "[garment] tension_N_per_mm's heights_mm and values are not two lists of numbers of the "
+                        "same length (at least 2, tensions positive)", fix)
+    order = np.argsort(heights)
+    heights = tuple(float(heights[i]) for i in order)
+    if any(b - a <= 0 for a, b in zip(heights, heights[1:])):
+        raise CaseError(path, "[garment] tension_N_per_mm gives two tensions at one height", "keep one value per height")
+    return heights, tuple(float(values[i]) for i in order)
+
+
+def _landmark_lines(path: Path, table: dict) -> dict[str, np.ndarray]:
+    lines = {}
+    for name, value in table.items():
+        points = [value] if isinstance(value, list) and value and not isinstance(value[0], list) else value
+        if (not isinstance(points, list) or not points
+                or not all(isinstance(p, list) and len(p) == 3 and all(_is_number(v) for v in p) for p in points)):
+            raise CaseError(path, f"landmark '{name}' = {value!r} is neither a point [x, y, height] nor a line of them",
+                            f"write {name} = [x_mm, y_mm, height_mm] or {name} = [[x, y, h1], [x, y, h2], ...]")
+        array = np.array(points, float)
+        array = array[np.argsort(array[:, 2])]
+        if np.any(np.diff(array[:, 2]) <= 0):
+            raise CaseError(path, f"landmark '{name}' has two points at one height", "keep one point per height")
+        lines[name] = array
+    return lines
+
+
+def _model_tables(text: str) -> str:
+    """The lines of case.toml's [model] and [model.<tissue>] tables, as they are (they go to every slice case)."""
+    kept, inside = [], False
+    for line in text.splitlines():
+        header = re.match(r"\s*\[\[?\s*([A-Za-z0-9_.\"-]+)\s*\]\]?", line)
+        if header:
+            inside = header.group(1).split(".")[0] == "model"
+        if inside:
+            kept.append(line)
+    return "\n".join(kept)
+
+
+def _check_pixel_size(case: VolumeCase, unloaded) -> None:
+    if case.pixel_size_mm is not None and not np.allclose(case.pixel_size_mm, unloaded.pixel_size_mm, rtol=PIXEL_SIZE_RTOL):
+        raise CaseError(case.folder / "case.toml", f"[case] pixel_size_mm = {list(case.pixel_size_mm)} disagrees with "
+                        f"the {_pair(unloaded.pixel_size_mm)} mm of {case.unloaded.name}'s header",
+                        "remove pixel_size_mm (the header's is used) or correct it")
+
+
+def _alignment_record(alignment) -> dict:
+    values = {}
+    for key, value in vars(alignment).items():
+        if key == "motion":
+            continue
+        if isinstance(value, (int, float, str, bool)) or value is None:
+            values[key] = value
+        elif isinstance(value, (list, tuple, np.ndarray)):
+            values[key] = np.asarray(value).tolist()
+    return values
+
+
+def _pair(values) -> str:
+    return f"{float(values[0]):.3g} x {float(values[1]):.3g}"
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
