@@ -1,0 +1,105 @@
+"""A volume case's case.toml (orchestrator/volume_study.py): heights, the tension along the leg, landmark lines,
+the [model] tables passed to every slice, and the errors that name the fix."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from orchestrator.imaging.case import read_case
+from orchestrator.imaging.errors import CaseError
+from orchestrator.volume_study import _chosen_slices, is_volume_case, read_volume_case
+
+TOML = """\
+[case]
+name = "leg 7"
+
+[garment]
+tension_N_per_mm = { heights_mm = [300.0, 196.0], values = [0.14, 0.20] }
+tension_rel_uncertainty = 0.08
+
+[study]
+heights_mm = [212.0, 204.0]
+compression_heights_mm = { B = 204.0, C = 284.0 }
+
+[landmarks]
+deep_veins = [[54.0, 61.0, 196.0], [50.0, 65.0, 300.0]]
+tibia_crest = [40.0, 20.0, 212.5]
+
+[model]
+element = "CPE6"
+[model.fat]
+law = "neo_hooke"
+"""
+
+
+def _volume_case(folder, text=TOML, volumes=("unloaded.nii.gz", "loaded.nii.gz")):
+    folder.mkdir(exist_ok=True)
+    (folder / "case.toml").write_text(text)
+    for name in volumes:
+        (folder / name).write_bytes(b"")
+    return folder
+
+
+def test_reads_heights_tension_profile_and_landmark_lines(tmp_path):
+    case = read_volume_case(_volume_case(tmp_path / "leg"))
+    assert is_volume_case(case.folder)
+    assert case.name == "leg 7" and case.heights_mm == (204.0, 212.0)
+    assert case.tension_at(196.0) == pytest.approx(0.20) and case.tension_at(248.0) == pytest.approx(0.17)
+    assert case.tension_rel_uncertainty == 0.08
+    with pytest.raises(CaseError, match="extend its heights_mm"):
+        case.tension_at(310.0)
+    at_248 = case.landmarks_at(248.0, half_spacing_mm=4.0)
+    assert at_248 == {"deep_veins": pytest.approx((52.0, 63.0))}
+    assert set(case.landmarks_at(212.0, half_spacing_mm=4.0)) == {"deep_veins", "tibia_crest"}
+    model = tomllib.loads(case.model_toml)["model"]
+    assert model == {"element": "CPE6", "fat": {"law": "neo_hooke"}}
+    assert case.compression_heights_mm == {"B": 204.0, "C": 284.0}
+
+
+def test_a_volume_case_given_to_identify_points_to_study(tmp_path):
+    folder = _volume_case(tmp_path / "leg")
+    with pytest.raises(CaseError, match="calfit study"):
+        read_case(folder)
+
+
+@pytest.mark.parametrize("change, message", [
+    ("heights_mm = [212.0, 204.0]", "one of heights_mm and every_mm"),
+    ("tension_N_per_mm = { heights_mm = [300.0, 196.0], values = [0.14, 0.20] }", "tension_N_per_mm"),
+    ('deep_veins = [[54.0, 61.0, 196.0], [50.0, 65.0, 300.0]]', "landmark 'deep_veins'"),
+    ('element = "CPE6"', "element"),
+])
+def test_errors_name_the_key_and_the_fix(tmp_path, change, message):
+    replacement = {"heights_mm = [212.0, 204.0]": "",
+                   "tension_N_per_mm = { heights_mm = [300.0, 196.0], values = [0.14, 0.20] }":
+                       "tension_N_per_mm = { heights_mm = [300.0], values = [0.14] }",
+                   'deep_veins = [[54.0, 61.0, 196.0], [50.0, 65.0, 300.0]]': 'deep_veins = [[54.0, 61.0]]',
+                   'element = "CPE6"': 'element = "Q4"'}[change]
+    folder = _volume_case(tmp_path / "leg", TOML.replace(change, replacement))
+    with pytest.raises(CaseError, match=message) as error:
+        read_volume_case(folder)
+    assert "case.toml" in str(error.value)
+
+
+def test_a_missing_volume_names_both_forms(tmp_path):
+    folder = _volume_case(tmp_path / "leg", volumes=("unloaded.nii.gz",))
+    with pytest.raises(CaseError, match=r"loaded/ \(a DICOM series\) or loaded.nii.gz"):
+        read_volume_case(folder)
+
+
+def test_heights_snap_to_the_nearest_slice_within_half_a_spacing(tmp_path):
+    case = read_volume_case(_volume_case(tmp_path / "leg"))
+    positions = np.arange(196.0, 301.0, 8.0)
+    assert _chosen_slices(case, positions, 8.0) == [1, 2]
+    off = read_volume_case(_volume_case(tmp_path / "off", TOML.replace("[212.0, 204.0]", "[212.0, 320.0]")))
+    with pytest.raises(CaseError, match="no unloaded slice within half a spacing"):
+        _chosen_slices(off, positions, 8.0)
+    every = read_volume_case(_volume_case(tmp_path / "every", TOML.replace("heights_mm = [212.0, 204.0]",
+                                                                           "every_mm = 16.0")))
+    assert _chosen_slices(every, positions, 8.0) == [0, 2, 4, 6, 8, 10, 12]
+    fine = read_volume_case(_volume_case(tmp_path / "fine", TOML.replace("heights_mm = [212.0, 204.0]",
+                                                                         "every_mm = 4.0")))
+    with pytest.raises(CaseError, match="finer than the slices"):
+        _chosen_slices(fine, positions, 8.0)
