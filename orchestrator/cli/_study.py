@@ -4,12 +4,18 @@
                  [--pressure-draws N] [--stages identify,montecarlo,pressures,diagnose] [--timeout S]
                  [--json] [--quiet]
 
-STUDY is a folder of case folders. Each case is measured, identified, given its intervals, its landmark
-pressures (when case.toml names landmarks) and its diagnosis, as one task on dask.distributed: a LocalCluster of
---workers processes on this machine, or the cluster whose scheduler is at --scheduler (its workers must see
-STUDY and DIR at the same paths). DIR/cases/<case>/ is each case's run folder; DIR/study.csv (and study.parquet
-with pyarrow) has one row per case, rewritten as each finishes; DIR/study.json sums it up. Run the same command
-again after an interruption: the cases done are skipped, the others resume where they stopped.
+STUDY is a folder of case folders (a cohort), or a volume case: a case folder whose unloaded and loaded images
+are 3D volumes (DICOM series or 3D NIfTI) and whose case.toml has a [study] table of heights; it is cut into
+one slice case per height first (DIR/slices/, DIR/slices.json: the loaded volume aligned on the bones in 3D).
+
+Each case is measured, identified, given its intervals, its landmark pressures (when case.toml names landmarks)
+and its diagnosis, as one task on dask.distributed: a LocalCluster of --workers processes on this machine, or
+the cluster whose scheduler is at --scheduler (its workers must see STUDY and DIR at the same paths).
+DIR/cases/<case>/ is each case's run folder; DIR/study.csv (and study.parquet with pyarrow) has one row per
+case, rewritten as each finishes; DIR/study.json sums it up and DIR/report/index.html shows it (profiles along
+the leg and the pressure at the heights B to D for a volume, the distributions, the cases whose model fails).
+Run the same command again after an interruption: the cases done are skipped, the others resume where they
+stopped.
 """
 
 from __future__ import annotations
@@ -25,7 +31,8 @@ HELP = "a cohort of cases through the whole pipeline on a Dask cluster, one tabl
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("study", help="folder of case folders (each with case.toml and its images)")
+    parser.add_argument("study", help="folder of case folders (each with case.toml and its images), or a volume "
+                                      "case (3D volumes and a [study] table of heights)")
     parser.add_argument("--out", required=True, help="study folder (created; reused to resume)")
     parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
                         help="cases in parallel on this machine, one engine each (default: 2 or the core count)")
@@ -52,5 +59,6 @@ def run(args: argparse.Namespace) -> int:
     except (RunFolderError, ValueError, OSError) as error:
         return fail(str(error))
     emit(args, summary, [f"{summary['done']} of {summary['cases']} cases done; failed: "
-                         f"{', '.join(summary['failed']) or 'none'}; table: {args.out}/{summary['table']}"])
+                         f"{', '.join(summary['failed']) or 'none'}; table: {args.out}/{summary['table']}; "
+                         f"report: {args.out}/{summary['report']}"])
     return 0 if not summary["failed"] else 1

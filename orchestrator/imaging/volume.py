@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from .errors import CaseError
+
 
 @dataclass(frozen=True)
 class Volume:
@@ -143,3 +145,130 @@ def write_nifti_volume(path: str | Path, voxels: np.ndarray, affine: np.ndarray)
     nibabel.save(nibabel.Nifti1Image(np.asarray(voxels, np.float32), np.asarray(affine, float)), staging)
     staging.replace(path)
     return path
+
+
+# ----------------------------------------------------------------- reading a volume
+
+MAX_GAP_DEVIATION = 0.10        # a gap more than 10 % from the median: a slice missing, or two stacks in one folder
+MAX_IN_PLANE_DRIFT_PIXELS = 0.5  # a slice's corner off the line of the others by more than this: not one stack
+_MEDICAL_EXTRA = "install them with pip install 'calfit[medical]'"
+_VOLUME_FIX = "give a folder holding one DICOM series (one file per slice) or a 3D NIfTI file (.nii or .nii.gz)"
+
+
+def read_volume(path: Path) -> Volume:
+    """Read the volume of one session: a folder holding a DICOM series, or a .nii/.nii.gz file of a 3D array.
+
+    DICOM: the headers are checked and the slices ordered by `dicom_series.read_series` (by increasing position
+    along the normal n = row x column direction cosines); each slice's pixels are rescaled by RescaleSlope and
+    RescaleIntercept. The affine is built from ImageOrientationPatient (its first triplet, the row direction
+    cosines, is the direction of increasing column; its second, the column direction cosines, that of increasing
+    row), PixelSpacing (row spacing, column spacing), the ImagePositionPatient of the first slice and the slice
+    step, the mean step between consecutive positions (last minus first over the count of gaps). Refused, each by a
+    `CaseError` naming the folder: slices without positions, a single slice, gaps more than 10 % from their median,
+    slices whose positions do not lie on one line (two stacks side by side).
+
+    NIfTI: axis 0 = rows, axis 1 = columns, axis 2 = slices, as `write_nifti_volume` writes it; the file's affine is
+    used as it is (nibabel's: the sform, else the qform), whichever way its slice axis points (`Volume.normal`
+    points towards increasing slice index). A 2D or 4D array, or a single slice, is refused.
+
+    NaN voxels (a reslicing's outside) are kept as NaN. pydicom and nibabel are the optional `medical` extra.
+    """
+    from ._formats import file_suffix
+
+    path = Path(path)
+    if path.is_dir():
+        return _read_dicom_volume(path)
+    if not path.exists():
+        raise CaseError(path, "does not exist", _VOLUME_FIX)
+    if file_suffix(path) in (".nii", ".nii.gz"):
+        return _read_nifti_volume(path)
+    raise CaseError(path, f"is a '{file_suffix(path) or path.name}' file, not a volume", _VOLUME_FIX)
+
+
+def _import_medical(module: str, path: Path):
+    """pydicom or nibabel, or a CaseError saying how to install them."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise CaseError(path, f"cannot be read without {module}, which is not installed", _MEDICAL_EXTRA) from None
+
+
+def _read_dicom_volume(folder: Path) -> Volume:
+    from ._formats import _read_dicom
+    from .dicom_series import _mm, read_series
+
+    _import_medical("pydicom", folder)
+    series = read_series(folder)
+    count = len(series.slices)
+    if series.positions_mm is None:
+        raise CaseError(folder, f"is a series of {series.describe()}, so its slices cannot be placed in space",
+                        "export the series with its ImagePositionPatient and ImageOrientationPatient (every scanner "
+                        "writes them; an anonymiser may have removed them)")
+    if count < 2:
+        raise CaseError(folder, f"is a series of {series.describe()}, not a volume",
+                        "export every slice of the acquisition into the folder (a volume study needs several heights), "
+                        "or make it a single-slice case")
+    positions, spacing = series.positions_mm, series.spacing_mm
+    gaps = np.diff(positions)
+    worst = int(np.argmax(np.abs(gaps - spacing)))
+    if abs(gaps[worst] - spacing) > MAX_GAP_DEVIATION * spacing:
+        names = series.slices[worst].path.name, series.slices[worst + 1].path.name
+        raise CaseError(folder, f"has uneven slice gaps, {gaps.min():.2f} to {gaps.max():.2f} mm along the normal: "
+                        f"{gaps[worst]:.2f} mm between {names[0]} at {_mm(positions[worst])} mm and {names[1]} at "
+                        f"{_mm(positions[worst + 1])} mm, against a median gap of {spacing:.2f} mm",
+                        "export the whole acquisition, one stack of evenly spaced slices (a slice is missing, "
+                        "or two stacks share the folder)")
+    first = series.first
+    if first.pixel_spacing_mm is None:
+        raise CaseError(folder, "is a series without PixelSpacing, so its pixels have no size",
+                        "export the series from the scanner again, with its PixelSpacing")
+    row_spacing, column_spacing = first.pixel_spacing_mm
+    corners = np.array([s.position_patient_mm for s in series.slices])
+    step = (corners[-1] - corners[0]) / (count - 1)
+    drift = corners - (corners[0] + np.arange(count)[:, None] * step)
+    drift -= np.outer(drift @ first.normal, first.normal)        # along the normal, the gaps were checked above
+    if np.linalg.norm(drift, axis=1).max() > MAX_IN_PLANE_DRIFT_PIXELS * min(row_spacing, column_spacing):
+        offender = series.slices[int(np.argmax(np.linalg.norm(drift, axis=1)))].path.name
+        raise CaseError(folder, f"has slices shifted in their plane ({offender} lies "
+                        f"{np.linalg.norm(drift, axis=1).max():.2f} mm off the line of the others' ImagePositionPatient)",
+                        "export one stack of slices, all with the same field of view")
+
+    voxels = np.empty((first.rows, first.columns, count))
+    for k, header in enumerate(series.slices):
+        pixels, _ = _read_dicom(header.path)      # rescale slope and intercept applied
+        pixels = np.squeeze(np.asarray(pixels, float))
+        if pixels.shape != (first.rows, first.columns):
+            raise CaseError(header.path, f"holds pixels of shape {pixels.shape} where its header says "
+                            f"{first.rows}x{first.columns}", "export the series from the scanner again, one grey slice per file")
+        voxels[:, :, k] = pixels
+    affine = np.eye(4)
+    affine[:3, 0] = first.directions[1] * row_spacing       # one row down: along the column direction cosines
+    affine[:3, 1] = first.directions[0] * column_spacing    # one column right: along the row direction cosines
+    affine[:3, 2] = step
+    affine[:3, 3] = corners[0]
+    return Volume(voxels, affine, folder)
+
+
+def _read_nifti_volume(path: Path) -> Volume:
+    from ._formats import _failed
+
+    nibabel = _import_medical("nibabel", path)
+    try:
+        image = nibabel.load(path)
+        voxels = np.asarray(image.dataobj, dtype=float)     # scl_slope and scl_inter applied
+        affine = np.asarray(image.affine, dtype=float)
+    except Exception as exc:   # any decoder failure is a bad file
+        raise _failed(path, "NIfTI", exc) from exc
+    if voxels.ndim != 3:
+        raise CaseError(path, f"holds an array of shape {voxels.shape}, not a 3D volume (rows, columns, slices)",
+                        "save the volume of one session as a 3D NIfTI (not a single slice, nor a 4D series)")
+    if voxels.shape[2] < 2:
+        raise CaseError(path, f"holds a single slice ({voxels.shape[0]}x{voxels.shape[1]}x1), not a volume",
+                        "save every slice of the acquisition in the file (a volume study needs several heights), "
+                        "or make it a single-slice case")
+    if not np.all(np.isfinite(affine)) or abs(np.linalg.det(affine[:3, :3])) < 1e-9:
+        raise CaseError(path, "has an affine that does not place its voxels in space (singular or not finite)",
+                        "save the file with the affine of its acquisition (the sform or qform of the converter)")
+    return Volume(voxels, affine, path)
