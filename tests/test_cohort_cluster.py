@@ -1,6 +1,7 @@
-"""`calfit study` on a real Dask cluster, started as a user starts one (`dask scheduler`, `dask worker`): the same
-table as on a LocalCluster, and a worker killed mid-study loses no case and repeats no engine run (slow: about
-two minutes)."""
+"""`calfit study` on a real Dask cluster, started as a user starts one (`dask scheduler`, `dask worker`): a cohort
+of 8 phantom cases with different truths, 4 of them with a hidden effect, gives the same table as on a
+LocalCluster, each hidden effect is named by its case's diagnosis, and a worker killed mid-study loses no case
+and repeats no engine run (slow)."""
 
 from __future__ import annotations
 
@@ -24,8 +25,10 @@ from orchestrator.study import make_phantom_case
 
 pytestmark = pytest.mark.slow
 
-OPTIONS = CaseOptions(n_elements=400, draws=20, stages=("identify", "montecarlo"))
-SEEDS = (7, 8, 9, 10)
+OPTIONS = CaseOptions(n_elements=400, draws=20, stages=("identify", "montecarlo", "diagnose"))
+SEEDS = (7, 8, 9, 10, 11, 12, 13, 14)
+HIDDEN = {11: {"drainage": {"dv_muscle": -0.05}}, 12: {"tension_profile": {"a1": 0.08, "b1": -0.05}},
+          13: {"bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15}}, 14: {"out_of_plane": {"eps_z": 0.05}}}
 DASK = str(Path(sys.executable).with_name("dask"))
 
 
@@ -53,9 +56,13 @@ def test_a_real_cluster_gives_the_local_table_and_a_killed_worker_loses_nothing(
     study = tmp_path / "study"
     for seed in SEEDS:
         make_phantom_case(study / f"leg-{seed}", theta_kPa=random_truth(seed), n_elements=2000,
-                          noise_seeds=(seed, seed + 1))
+                          noise_seeds=(seed, seed + 1), effects=HIDDEN.get(seed), points_spacing_mm=None)
     local = run_study(study, tmp_path / "local", OPTIONS, workers=2)
     assert local["done"] == len(SEEDS)
+    table = _rows(tmp_path / "local")
+    for seed, effect in HIDDEN.items():
+        assert table[f"leg-{seed}"]["explained"] == "True", table[f"leg-{seed}"]["verdict"]
+        assert next(iter(effect)) in table[f"leg-{seed}"]["verdict"], table[f"leg-{seed}"]["verdict"]
 
     address = f"tcp://127.0.0.1:{_free_port()}"
     started = [subprocess.Popen([DASK, "scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1],
