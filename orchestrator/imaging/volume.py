@@ -9,6 +9,9 @@ Each slice of the unloaded volume is a 2D image whose frame is the one of every 
 x = (column + 0.5) * column spacing, y = (row + 0.5) * row spacing, in mm. `slice_points_mm` gives the patient
 points of those pixels; `index_of_points` the continuous voxel index of patient points.
 
+`read_volume` reads the volume of one session: a folder holding a DICOM series (the headers checked and ordered by
+`dicom_series.read_series`) or a 3D NIfTI file, as `write_nifti_volume` writes it.
+
 `RigidMotion3D` maps a point of the unloaded session (patient mm) to the point of the loaded session where the
 same bone point is: p -> R (p - centre) + centre + translation, R given by a rotation vector in degrees (axis
 times angle). It is the 3D counterpart of `imaging.frame.RigidMotion`.
@@ -151,7 +154,7 @@ def write_nifti_volume(path: str | Path, voxels: np.ndarray, affine: np.ndarray)
 
 MAX_GAP_DEVIATION = 0.10        # a gap more than 10 % from the median: a slice missing, or two stacks in one folder
 MAX_IN_PLANE_DRIFT_PIXELS = 0.5  # a slice's corner off the line of the others by more than this: not one stack
-_MEDICAL_EXTRA = "install them with pip install 'calfit[medical]'"
+_MEDICAL_EXTRA = "install the medical extra: pip install 'calfit[medical]'"
 _VOLUME_FIX = "give a folder holding one DICOM series (one file per slice) or a 3D NIfTI file (.nii or .nii.gz)"
 
 
@@ -229,10 +232,11 @@ def _read_dicom_volume(folder: Path) -> Volume:
     step = (corners[-1] - corners[0]) / (count - 1)
     drift = corners - (corners[0] + np.arange(count)[:, None] * step)
     drift -= np.outer(drift @ first.normal, first.normal)        # along the normal, the gaps were checked above
-    if np.linalg.norm(drift, axis=1).max() > MAX_IN_PLANE_DRIFT_PIXELS * min(row_spacing, column_spacing):
-        offender = series.slices[int(np.argmax(np.linalg.norm(drift, axis=1)))].path.name
-        raise CaseError(folder, f"has slices shifted in their plane ({offender} lies "
-                        f"{np.linalg.norm(drift, axis=1).max():.2f} mm off the line of the others' ImagePositionPatient)",
+    drift_mm = np.linalg.norm(drift, axis=1)
+    if drift_mm.max() > MAX_IN_PLANE_DRIFT_PIXELS * min(row_spacing, column_spacing):
+        offender = series.slices[int(np.argmax(drift_mm))].path.name
+        raise CaseError(folder, f"has slices shifted in their plane ({offender} lies {drift_mm.max():.2f} mm off the "
+                        "line through the others' ImagePositionPatient)",
                         "export one stack of slices, all with the same field of view")
 
     voxels = np.empty((first.rows, first.columns, count))
@@ -241,7 +245,8 @@ def _read_dicom_volume(folder: Path) -> Volume:
         pixels = np.squeeze(np.asarray(pixels, float))
         if pixels.shape != (first.rows, first.columns):
             raise CaseError(header.path, f"holds pixels of shape {pixels.shape} where its header says "
-                            f"{first.rows}x{first.columns}", "export the series from the scanner again, one grey slice per file")
+                            f"{first.rows}x{first.columns}",
+                            "export the series from the scanner again, one grey slice per file")
         voxels[:, :, k] = pixels
     affine = np.eye(4)
     affine[:3, 0] = first.directions[1] * row_spacing       # one row down: along the column direction cosines
