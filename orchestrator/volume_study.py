@@ -176,8 +176,13 @@ def read_volume_case(folder: str | Path) -> VolumeCase:
         raise CaseError(path, f"[case] pixel_size_mm = {pixel_size!r} is not two positive numbers",
                         "write pixel_size_mm = [row_mm, column_mm], or leave it to the volumes' headers")
     check_model_table(path, settings.get("model", {}))
-    return VolumeCase(folder=folder, name=name, unloaded=_volume_path(folder, "unloaded"),
-                      loaded=_volume_path(folder, "loaded"),
+    unloaded, loaded = _volume_path(folder, "unloaded"), _volume_path(folder, "loaded")
+    if unloaded.is_dir() != loaded.is_dir():
+        # A DICOM affine is in the patient's LPS frame, a NIfTI one usually in RAS: mixed, the two sessions' frames
+        # would differ by a half turn that the alignment on the bones would have to find.
+        raise CaseError(folder, f"holds the sessions in two formats ({unloaded.name} and {loaded.name})",
+                        "export both as DICOM series or both as NIfTI volumes")
+    return VolumeCase(folder=folder, name=name, unloaded=unloaded, loaded=loaded,
                       pixel_size_mm=tuple(map(float, pixel_size)) if pixel_size else None,
                       heights_mm=heights, every_mm=float(every) if every is not None else None,
                       compression_heights_mm={str(k): float(v) for k, v in named.items()},

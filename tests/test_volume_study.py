@@ -89,6 +89,13 @@ def test_a_missing_volume_names_both_forms(tmp_path):
         read_volume_case(folder)
 
 
+def test_sessions_in_two_formats_are_refused(tmp_path):
+    folder = _volume_case(tmp_path / "leg", volumes=("unloaded.nii.gz",))
+    (folder / "loaded").mkdir()
+    with pytest.raises(CaseError, match="two formats"):
+        read_volume_case(folder)
+
+
 def test_heights_snap_to_the_nearest_slice_within_half_a_spacing(tmp_path):
     case = read_volume_case(_volume_case(tmp_path / "leg"))
     positions = np.arange(196.0, 301.0, 8.0)
@@ -103,3 +110,46 @@ def test_heights_snap_to_the_nearest_slice_within_half_a_spacing(tmp_path):
                                                                          "every_mm = 4.0")))
     with pytest.raises(CaseError, match="finer than the slices"):
         _chosen_slices(fine, positions, 8.0)
+
+
+def test_a_volume_is_cut_into_slice_cases_that_see_the_same_tissue(tmp_path):
+    """Two sessions of the analytic leg of test_volume (the loaded one moved in 3D) cut at two heights: each slice
+    case reads as a case, with its tension, its landmarks, the model, and a loaded slice whose bones superpose the
+    unloaded ones; a second run reuses the slices, and other heights in the same folder are refused."""
+    from test_volume import TRUTH, _render
+
+    from orchestrator.imaging.segment import BONE, segment_t1
+    from orchestrator.imaging.volume import RigidMotion3D, write_nifti_volume
+    from orchestrator.runfiles import RunFolderError
+    from orchestrator.volume_study import slice_volume_case
+
+    unloaded, loaded = _render(seed=0), _render(TRUTH, seed=1)
+    heights = unloaded.slice_positions_mm[[4, 6]]
+    folder = tmp_path / "leg"
+    text = (TOML.replace("heights_mm = [212.0, 204.0]", f"heights_mm = [{heights[0]}, {heights[1]}]")
+            .replace("[300.0, 196.0]", "[0.0, 44.0]")
+            .replace("[[54.0, 61.0, 196.0], [50.0, 65.0, 300.0]]", "[[40.0, 50.0, 0.0], [44.0, 50.0, 44.0]]"))
+    _volume_case(folder, text, volumes=())
+    write_nifti_volume(folder / "unloaded.nii.gz", unloaded.voxels, unloaded.affine)
+    write_nifti_volume(folder / "loaded.nii.gz", loaded.voxels, loaded.affine)
+    lines = []
+    slices, record = slice_volume_case(folder, tmp_path / "study", lines.append)
+    assert [s.slice_index for s in slices] == [4, 6]
+    probes = unloaded.slice_points_mm(5)[:, ::30, ::30].reshape(3, -1)
+    found = RigidMotion3D.from_dict(record["motion"]).apply(probes)
+    assert np.abs(found - TRUTH.apply(probes)).max() < 0.3
+    for piece in slices:
+        case = read_case(piece.folder)
+        expected = np.interp(piece.height_mm, [0.0, 44.0], [0.14, 0.20])
+        assert case.tension_N_per_mm == pytest.approx(expected)
+        assert case.landmarks["deep_veins"] == pytest.approx((40.0 + piece.height_mm / 11.0, 50.0))
+        assert case.model.element == "CPE6"
+        bones = segment_t1(case.unloaded, case.pixel_size_mm) == BONE
+        finite = np.isfinite(case.loaded)
+        correlation = np.corrcoef(case.unloaded[bones & finite], case.loaded[bones & finite])[0, 1]
+        assert correlation > 0.9, correlation
+    again, _ = slice_volume_case(folder, tmp_path / "study", lines.append)
+    assert [s.folder for s in again] == [s.folder for s in slices] and "reused" in lines[-1]
+    (folder / "case.toml").write_text(text.replace(f"{heights[1]}]", f"{unloaded.slice_positions_mm[8]}]"))
+    with pytest.raises(RunFolderError, match="other heights"):
+        slice_volume_case(folder, tmp_path / "study")
