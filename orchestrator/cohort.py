@@ -1,7 +1,8 @@
 """A cohort of cases through the whole pipeline on a Dask cluster: `calfit study STUDY --out DIR`.
 
 STUDY is a folder of case folders, each a case as `calfit identify` takes it (case.toml and its images, perhaps
-labels.png or points.csv). Each case is one task on `dask.distributed`: a LocalCluster of `workers` processes of
+labels.png or points.csv), or a volume case, which `volume_study` first cuts into slice cases under DIR/slices/
+(their rows then start with the slice's height and tension). Each case is one task on `dask.distributed`: a LocalCluster of `workers` processes of
 one thread on this machine by default, or an existing cluster (`scheduler`, whose workers must see STUDY and DIR
 at the same paths). A task runs the case's stages one after the other in its worker: identify (measuring the
 images first), montecarlo, pressures (when case.toml names landmarks) and diagnose (when the model is the Laplace
@@ -23,10 +24,13 @@ The table, one row per case, is rewritten as each case finishes:
 Its columns are:
 - case, status (done or failed), error;
 - each parameter with its interval (<name>, <name>_low, <name>_high) and whether it is identifiable;
-- the misfit over its noise floor, and the diagnosis' verdict and whether the catalog explains the residual;
-- each landmark's pressure and its standard deviation (pressure_<landmark>_kPa, ..._std_kPa);
+- the misfit over its noise floor, and the diagnosis' verdict, whether it finds a lack of fit and whether the
+  catalog explains the residual;
+- the garment's mean pressure on the skin (interface_pressure_kPa, 2 pi T / perimeter) and each landmark's
+  pressure, each with its standard deviation (pressure_<landmark>_kPa, ..._std_kPa);
 - the case's wall time.
 DIR/study.json sums it up: cases done and failed, the wall time, the cases per hour, each worker's peak memory.
+DIR/report/index.html is the study report (`study_report`), rewritten at the end of each run.
 """
 
 from __future__ import annotations
