@@ -2,9 +2,9 @@
 
 STUDY is a folder of case folders, each a case as `calfit identify` takes it (case.toml and its images, perhaps
 labels.png or points.csv), or a volume case, which `volume_study` first cuts into slice cases under DIR/slices/
-(their rows then start with the slice's height and tension). Each case is one task on `dask.distributed`: a LocalCluster of `workers` processes of
-one thread on this machine by default, or an existing cluster (`scheduler`, whose workers must see STUDY and DIR
-at the same paths). A task runs the case's stages one after the other in its worker: identify (measuring the
+(their rows then start with the slice's height and tension). Each case is one task on `dask.distributed`: a
+LocalCluster of `workers` processes of one thread on this machine by default, or an existing cluster
+(`scheduler`, whose workers must see STUDY and DIR at the same paths). A task runs the case's stages one after the other in its worker: identify (measuring the
 images first), montecarlo, pressures (when case.toml names landmarks) and diagnose (when the model is the Laplace
 law's with one loaded image). Inside a task the engine runs one deck at a time on one thread, so that engines
 never outnumber a worker's cores: the cohort's parallelism is its cases.
