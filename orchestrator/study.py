@@ -43,6 +43,7 @@ from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
 from .materials import law_notes
 from .meshing import Mesh, mesh_from_labels
+from .phantom.mesh import truth_mesh
 from .geometry_uncertainty import level_file as geometry_level_file
 from .geometry_uncertainty import read_columns as read_geometry_columns
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
@@ -58,7 +59,6 @@ COMPARTMENTS_FIGURE = "compartments.png"
 SETUP_JSON = "setup.json"
 PARAMETERS_FILE = "parameters.json"
 DATA_SOURCES = ("auto", "dic", "points")
-TRUTH_SUPERSAMPLING = 4
 
 
 def _mesh_arrays(mesh: Mesh) -> dict[str, np.ndarray]:
@@ -393,20 +393,6 @@ def load_run(run_dir: str | Path) -> RunSetup:
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
                     case_model(mesh, case), info.get("compartments", {"source": "none"}),
                     info.get("missing_fraction", {}), level_motions, levels_aligned, segmentation_warnings)
-
-
-def truth_mesh(phantom, *, compartments: bool = False, n_elements: int = 2000, order: int = 2,
-               supersampling: int = TRUTH_SUPERSAMPLING) -> Mesh:
-    """The mesh of a phantom's own geometry: its labels sampled `supersampling` times finer than the image, so
-    that the truth's interfaces are the phantom's shapes, not the staircase of the image's pixels (whose
-    aliasing puts 0.015 mm bumps into the skin at 3-20 mm wavelengths, more than the images' own skin error)."""
-    from .imaging.frame import pixel_centres_mm
-
-    dy, dx = phantom.pixel_size_mm
-    fine_size = (dy / supersampling, dx / supersampling)
-    fine_shape = (phantom.image_shape[0] * supersampling, phantom.image_shape[1] * supersampling)
-    labels = phantom.geometry.labels_at(*pixel_centres_mm(fine_shape, fine_size), compartments=compartments)
-    return mesh_from_labels(labels, fine_size, n_elements=n_elements, order=order)
 
 
 def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None, *,

@@ -155,6 +155,13 @@ def loaded_labels(phantom: Phantom, displacement, rigid: RigidMotion | None = No
 def material_points(x_scanner, y_scanner, displacement_fn: DisplacementFn, rigid: RigidMotion | None = None):
     """Material points X whose deformed and moved position is the scanner point y: solve X + u(X) = rigid^-1(y)."""
     x, y = (x_scanner, y_scanner) if rigid is None else rigid.inverse().apply(x_scanner, y_scanner)
+    return undeform(x, y, lambda X, Y, active: displacement_fn(X, Y))
+
+
+def undeform(x, y, displacement):
+    """The material points X with X + u(X) = x (mm), by fixed point. displacement(X, Y, active) gives u at the points
+    still iterating, `active` their mask in x's shape (for a field that also depends on per-point data, such as the
+    height of `phantom.volume`)."""
     x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
     X, Y = x.copy(), y.copy()
     active = np.ones(x.shape, bool)   # iterate only the points not yet converged
@@ -162,7 +169,7 @@ def material_points(x_scanner, y_scanner, displacement_fn: DisplacementFn, rigid
         # X <- X + w (x - u(X) - X): plain (w = 1) first; then damped, which also converges where a
         # compressive gradient (grad u < -1, e.g. across a bone hole's interpolated field) makes it oscillate
         damping = 1.0 if iteration < FIXED_POINT_PLAIN_ITERATIONS else 0.5
-        ux, uy = displacement_fn(X[active], Y[active])
+        ux, uy = displacement(X[active], Y[active], active)
         step_x, step_y = x[active] - ux - X[active], y[active] - uy - Y[active]
         change = np.maximum(np.abs(step_x), np.abs(step_y))
         if not np.all(change < FIXED_POINT_DIVERGED_MM):

@@ -55,14 +55,13 @@ from ..imaging._formats import write_png16
 from ..imaging.case import replace_folder
 from ..imaging.frame import mm_to_index, pixel_centres_mm
 from ..imaging.volume import RigidMotion3D, volume_affine, write_nifti_volume
-from ..meshing import Mesh, mesh_from_labels
+from ..meshing import Mesh
 from .appearance import T1Contrast, TextureField, add_rician_noise, bias_field
 from .geometry import LANDMARK_NAMES, CalfGeometry, CalfShape
-from .render import (FIXED_POINT_DIVERGED_MM, FIXED_POINT_MAX_ITERATIONS, FIXED_POINT_PLAIN_ITERATIONS,
-                     FIXED_POINT_TOLERANCE_MM, CalfPhantom, _keep_pixel_bandwidth, render_unloaded)
+from .mesh import truth_mesh
+from .render import CalfPhantom, _keep_pixel_bandwidth, render_unloaded, undeform
 
 DEFAULT_HEIGHTS_MM = tuple(196.0 + 8.0 * k for k in range(14))
-TRUTH_SUPERSAMPLING = 4          # as study.TRUTH_SUPERSAMPLING: the truth mesh follows the shapes, not the pixels
 LEG_MARGIN_MM = 2.0              # the skin must stay this far inside the field of view in both sessions
 COMPRESSION_POINTS = ("B", "B1", "C", "D")
 
@@ -192,17 +191,6 @@ class PhantomLeg:
         return phantom
 
 
-def truth_mesh(phantom: CalfPhantom, n_elements: int = 2000) -> Mesh:
-    """T6 mesh of a slice's exact geometry, its labels sampled 4 times finer than the pixels: `study.truth_mesh`,
-    not imported from there because study imports this package (no import circle if the package exports this
-    module)."""
-    dy, dx = phantom.pixel_size_mm
-    fine_size = (dy / TRUTH_SUPERSAMPLING, dx / TRUTH_SUPERSAMPLING)
-    fine_shape = (phantom.image_shape[0] * TRUTH_SUPERSAMPLING, phantom.image_shape[1] * TRUTH_SUPERSAMPLING)
-    labels = phantom.geometry.labels_at(*pixel_centres_mm(fine_shape, fine_size))
-    return mesh_from_labels(labels, fine_size, n_elements=n_elements, order=2)
-
-
 def solve_slice(phantom: CalfPhantom, theta_kPa: Sequence[float], tension_N_per_mm: float,
                 n_elements: int = 2000) -> tuple[np.ndarray, Mesh]:
     """The plane-strain displacement (2, H, W) mm of the slice at theta_kPa under the garment, on the slice's
@@ -211,7 +199,7 @@ def solve_slice(phantom: CalfPhantom, theta_kPa: Sequence[float], tension_N_per_
     from ..results import EngineResults
     from ..runner import run_engine
 
-    mesh = truth_mesh(phantom, n_elements)
+    mesh = truth_mesh(phantom, n_elements=n_elements)
     model = LegModel(mesh, tension_N_per_mm)
     with tempfile.TemporaryDirectory(prefix="calfit-volume-phantom-") as scratch:
         write_mesh_include(model, Path(scratch))
@@ -286,26 +274,10 @@ class LoadedSession:
 
     def material_points(self, x, y, slice_index: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Material points (X, Y) and height index of the loaded scanner points at slice-frame (x, y) of loaded
-        slice `slice_index`: X + u(X, z) = p, by `render.material_points`' fixed point (plain, then damped)."""
+        slice `slice_index`: X + u(X, z) = p, by `render.undeform`'s fixed point."""
         px, py, height_index = self.unloaded_points(x, y, slice_index)
-        X, Y = px.copy(), py.copy()
-        active = np.ones(px.shape, bool)
-        for iteration in range(FIXED_POINT_MAX_ITERATIONS):
-            damping = 1.0 if iteration < FIXED_POINT_PLAIN_ITERATIONS else 0.5
-            ux, uy = self.displacement(X[active], Y[active], height_index[active])
-            step_x, step_y = px[active] - ux - X[active], py[active] - uy - Y[active]
-            change = np.maximum(np.abs(step_x), np.abs(step_y))
-            if not np.all(change < FIXED_POINT_DIVERGED_MM):
-                break
-            X[active] += damping * step_x
-            Y[active] += damping * step_y
-            still = np.zeros_like(active)
-            still[active] = change >= FIXED_POINT_TOLERANCE_MM
-            active = still
-            if not active.any():
-                return X, Y, height_index
-        raise ValueError("x = X + u(X, z) could not be inverted (the fixed point did not converge); the displacement "
-                         "folds the tissue or varies too fast")
+        X, Y = undeform(px, py, lambda X, Y, active: self.displacement(X, Y, height_index[active]))
+        return X, Y, height_index
 
     def intensity_at(self, X, Y, height_index, edge_mm: float = 0.0) -> np.ndarray:
         """Noise- and bias-free grey level of material points at continuous height index: the two bracketing
