@@ -104,23 +104,17 @@ def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> di
 
 def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
     """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
-    from .forward import LegModel, write_mesh_include
+    from .forward import LegModel
     from .meshing import mesh_from_labels
-    from .results import EngineResults
-    from .runner import run_engine
+    from .runner import solve_once
 
     mesh = mesh_from_labels(setup.labels_unloaded, setup.case.pixel_size_mm, n_elements=len(setup.mesh.elements),
                             order=setup.mesh.order, image=setup.case.unloaded, interface_offsets=offsets)
     model = LegModel(mesh, tension_N_per_mm, effects=tuple(effects), tissues=setup.model.tissues,
                      hybrid=setup.model.hybrid)
-    with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:
-        write_mesh_include(model, Path(scratch))
-        deck = Path(scratch) / "deck.inp"
-        deck.write_text(model.deck(theta))
-        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
-        if not outcome.converged:
-            raise RuntimeError(f"the engine did not converge on a shifted interface at {list(theta)}")
-        return measurements.observation(mesh) @ EngineResults(outcome.outdir).displacement().ravel()
+    displacement = solve_once(model, model.deck(theta),
+                              f"the engine did not converge on a shifted interface at {list(theta)}")
+    return measurements.observation(mesh) @ displacement.ravel()
 
 
 def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Sequence[str] = (),

@@ -75,6 +75,22 @@ def _tee(stream, sink: list[str], echo: bool, log, lock: threading.Lock) -> None
                 sys.stderr.flush()
 
 
+def solve_once(model, deck_text: str, failure: str) -> np.ndarray:
+    """One engine run of a model's deck text in a scratch folder, the model's mesh include written beside it: the
+    displacement of every node of the deck. RuntimeError(failure) when the engine does not converge (a phantom's
+    truth or a one-off solve, not an evaluation of a fit: those go through `Evaluator` and its log)."""
+    from .forward import write_mesh_include
+
+    with tempfile.TemporaryDirectory(prefix="calfit-solve-") as scratch:
+        write_mesh_include(model, Path(scratch))
+        deck = Path(scratch) / "deck.inp"
+        deck.write_text(deck_text)
+        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
+        if not outcome.converged:
+            raise RuntimeError(failure)
+        return EngineResults(outcome.outdir).displacement()
+
+
 def run_engine(
     deck: str | Path,
     outdir: str | Path | None = None,

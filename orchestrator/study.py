@@ -25,7 +25,6 @@ is interpolated on the pixels and the phantom renders the loaded image by invers
 from __future__ import annotations
 
 import json
-import tempfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
@@ -419,8 +418,7 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     the truth's garment, Laplace's law or the explicit band with that friction; tissues, hybrid: the tissues' laws
     (theta_kPa then holds their free constants) and u/p elements (`forward.LegModel`)."""
     from .phantom import CalfPhantom, write_case
-    from .results import EngineResults
-    from .runner import run_engine
+    from .runner import solve_once
 
     effects = {name: dict(values) for name, values in (effects or {}).items()}
     if levels and garment != "laplace":
@@ -429,16 +427,10 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     mesh = truth_mesh(phantom, compartments="compartments" in effects, n_elements=n_elements, order=order)
     model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects, garment=garment, friction_mu=friction_mu,
                      tissues=tissues, hybrid=hybrid)
-    with tempfile.TemporaryDirectory(prefix="calfit-phantom-") as scratch:
-        write_mesh_include(model, Path(scratch))
-        deck = Path(scratch) / "deck.inp"
-        text = model.deck(theta_kPa)
-        deck.write_text(edit_deck(text, mesh) if edit_deck else text)
-        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
-        if not outcome.converged:
-            raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa "
-                               f"with effects {effects}; choose stiffer parameters or a smaller tension")
-        nodal = leg_rows(EngineResults(outcome.outdir).displacement(), len(mesh.nodes))
+    text = model.deck(theta_kPa)
+    nodal = leg_rows(solve_once(model, edit_deck(text, mesh) if edit_deck else text,
+                                f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa with "
+                                f"effects {effects}; choose stiffer parameters or a smaller tension"), len(mesh.nodes))
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     field = field_on_pixels(weights, nodal, phantom.image_shape)
     level_fields = [field_on_pixels(weights, _phantom_level_nodal(model, theta_kPa, tension, edit_deck), phantom.image_shape)
@@ -465,16 +457,9 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
 
 def _phantom_level_nodal(model: LegModel, theta_kPa, tension: float, edit_deck) -> np.ndarray:
     """The truth's nodal displacement under another garment tension (a phantom's more garment level)."""
-    from .results import EngineResults
-    from .runner import run_engine
+    from .runner import solve_once
 
-    with tempfile.TemporaryDirectory(prefix="calfit-phantom-level-") as scratch:
-        write_mesh_include(model, Path(scratch))
-        deck = Path(scratch) / "deck.inp"
-        text = model.deck(theta_kPa, tension_N_per_mm=tension)
-        deck.write_text(edit_deck(text, model.mesh) if edit_deck else text)
-        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
-        if not outcome.converged:
-            raise RuntimeError(f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa under "
-                               f"{tension} N/mm; choose stiffer parameters or a smaller tension")
-        return leg_rows(EngineResults(outcome.outdir).displacement(), len(model.mesh.nodes))
+    text = model.deck(theta_kPa, tension_N_per_mm=tension)
+    return leg_rows(solve_once(model, edit_deck(text, model.mesh) if edit_deck else text,
+                               f"the engine did not converge on the phantom at theta = {list(theta_kPa)} kPa under "
+                               f"{tension} N/mm; choose stiffer parameters or a smaller tension"), len(model.mesh.nodes))

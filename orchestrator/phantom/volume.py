@@ -50,7 +50,7 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from ..forward import LEG_PARAMETERS, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
+from ..forward import LEG_PARAMETERS, LegModel, MeshInterpolator, field_on_pixels
 from ..imaging._formats import write_png16
 from ..imaging.case import replace_folder
 from ..imaging.frame import mm_to_index, pixel_centres_mm
@@ -196,20 +196,14 @@ def solve_slice(phantom: CalfPhantom, theta_kPa: Sequence[float], tension_N_per_
     """The plane-strain displacement (2, H, W) mm of the slice at theta_kPa under the garment, on the slice's
     pixels, with the truth mesh it was solved on."""
     from ..objectives import leg_rows
-    from ..results import EngineResults
-    from ..runner import run_engine
+    from ..runner import solve_once
 
     mesh = truth_mesh(phantom, n_elements=n_elements)
     model = LegModel(mesh, tension_N_per_mm)
-    with tempfile.TemporaryDirectory(prefix="calfit-volume-phantom-") as scratch:
-        write_mesh_include(model, Path(scratch))
-        deck = Path(scratch) / "deck.inp"
-        deck.write_text(model.deck(theta_kPa))
-        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
-        if not outcome.converged:
-            raise RuntimeError(f"the engine did not converge on the phantom slice at theta = {list(theta_kPa)} kPa, "
-                               f"tension {tension_N_per_mm} N/mm; choose stiffer parameters or a smaller tension")
-        nodal = leg_rows(EngineResults(outcome.outdir).displacement(), len(mesh.nodes))
+    nodal = leg_rows(solve_once(model, model.deck(theta_kPa),
+                                f"the engine did not converge on the phantom slice at theta = {list(theta_kPa)} kPa, "
+                                f"tension {tension_N_per_mm} N/mm; choose stiffer parameters or a smaller tension"),
+                     len(mesh.nodes))
     weights = MeshInterpolator(mesh).pixel_weights(phantom.image_shape, phantom.pixel_size_mm)
     return field_on_pixels(weights, nodal, phantom.image_shape), mesh
 
