@@ -229,20 +229,24 @@ def test_dicom_series_that_is_not_an_even_stack_is_refused(tmp_path, heights, ch
 # ----------------------------------------------------------------- sampling through slices
 
 
-def test_resampling_is_cubic_in_plane_linear_between_slices_and_nan_outside():
+@pytest.mark.parametrize("through_plane", ["linear", "keys"])
+def test_resampling_is_cubic_in_plane_and_between_slices_as_asked_and_nan_outside(through_plane):
     """Voxels 0.3 row^2 - 2 column + 5 slice^2: a cubic spline gives the in-plane quadratic exactly (away from the
-    edges), linear interpolation between slices gives the chord of slice^2, not its value."""
+    edges); between slices Keys' cubic convolution gives slice^2 exactly, even next to the last slice (its
+    boundary extrapolation), and linear interpolation its chord."""
     rows, columns, slices = np.indices((40, 44, 6), dtype=float)
     loaded = Volume(0.3 * rows ** 2 - 2 * columns + 5 * slices ** 2, volume_affine((0.5, 0.5), 3.0))
     unloaded = Volume(np.zeros((40, 44, 6)), volume_affine((0.5, 0.5), 3.0))
     # up by half a slice and 0.3 pixels along the rows: slice k of the unloaded volume falls at k + 0.5 of the loaded
     shift = RigidMotion3D(translation_mm=(0.0, 0.15, 1.5))
-    resampled = resample_on_slice(loaded, unloaded, 2, shift)
     row, column = np.indices((40, 44), dtype=float)
-    chord = 5 * (2 ** 2 + 3 ** 2) / 2
     interior = (slice(10, 30), slice(10, 34))
-    np.testing.assert_allclose(resampled[interior], (0.3 * (row + 0.3) ** 2 - 2 * column + chord)[interior], atol=1e-6)
-    assert not np.isnan(resampled).any()          # row 39.3 lies in the last row's pixel, which ends at 39.5
+    for k in (2, 4):
+        resampled = resample_on_slice(loaded, unloaded, k, shift, through_plane)
+        along = 5 * (k ** 2 + (k + 1) ** 2) / 2 if through_plane == "linear" else 5 * (k + 0.5) ** 2
+        np.testing.assert_allclose(resampled[interior], (0.3 * (row + 0.3) ** 2 - 2 * column + along)[interior],
+                                   atol=1e-6)
+        assert not np.isnan(resampled).any()      # row 39.3 lies in the last row's pixel, which ends at 39.5
 
     # beyond the matrix's edge: 0.6 of a column to the right, the last column falls at 43.6, outside
     off = np.isnan(resample_on_slice(loaded, unloaded, 2, RigidMotion3D(translation_mm=(0.3, 0.0, 0.0))))
@@ -253,7 +257,7 @@ def test_resampling_is_cubic_in_plane_linear_between_slices_and_nan_outside():
     np.testing.assert_allclose(last, loaded.slice_image(5), atol=1e-9)
     assert np.isnan(resample_on_slice(loaded, unloaded, 5, RigidMotion3D(translation_mm=(0.0, 0.0, 1.6)))).all()
 
-    # a NaN voxel spoils the samples whose linear interpolation uses it, and no other
+    # a NaN voxel spoils the samples whose interpolation uses it, and no other
     holed = loaded.voxels.copy()
     holed[20, 20, 3] = np.nan
     spoiled = np.isnan(resample_on_slice(Volume(holed, loaded.affine), unloaded, 2, shift))
