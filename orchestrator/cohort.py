@@ -2,7 +2,8 @@
 
 STUDY is a folder of case folders, each a case as `calfit identify` takes it (case.toml and its images, perhaps
 labels.png or points.csv), or a volume case, which `volume_study` first cuts into slice cases under DIR/slices/
-(their rows then start with the slice's height and tension). Each case is one task on `dask.distributed`: a
+(their rows then start with the slice's height, its tension, and how far the skin moves between neighbouring
+slices there: `volume_study.skin_shift_px`, too_coarse beyond a pixel). Each case is one task on `dask.distributed`: a
 LocalCluster of `workers` processes of one thread on this machine by default, or an existing cluster
 (`scheduler`, whose workers must see STUDY and DIR at the same paths). A task runs the case's stages one after the other in its worker: identify (measuring the
 images first), montecarlo, pressures (when case.toml names landmarks) and diagnose (when the model is the Laplace
@@ -170,8 +171,9 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
     if is_volume_case(study):
         slices, volume = slice_volume_case(study, out, say)
         cases = [piece.folder for piece in slices]
-        extras = {piece.folder.name: {"height_mm": piece.height_mm, "tension_N_per_mm": piece.tension_N_per_mm}
-                  for piece in slices}
+        extras = {entry["folder"]: {key: entry[key] for key in ("height_mm", "tension_N_per_mm", "skin_shift_px",
+                                                                 "too_coarse") if key in entry}
+                  for entry in volume["slices"]}
     else:
         cases, extras = study_cases(Path(study)), {}
     (out / "cases").mkdir(parents=True, exist_ok=True)

@@ -11,8 +11,8 @@ Then:
   the misfit over the noise floor, the named heights marked;
 - the distributions over the cases: each parameter's value and interval case by case, and a table of medians
   and ranges;
-- the cases whose model fails: a case that failed to run, or whose diagnosis finds a lack of fit (p < alpha),
-  with its verdict;
+- the cases whose model fails: a case that failed to run, whose diagnosis finds a lack of fit (p < alpha), or a
+  slice of a volume whose skin moves by more than a pixel between the volume's slices (`volume_study`), with why;
 - the whole table (DIR/study.csv) on the page, each number with its digits.
 A study's rows are written as each case finishes; the report is rewritten at the end of every `calfit study` run.
 """
@@ -32,6 +32,7 @@ from .results import MMHG_PER_KPA
 
 REPORT_FOLDER = "report"
 BAND_SIGMAS = 2.0    # the pressure bands: +- 2 standard deviations (about 95 %)
+FITS_FACTOR = 1.2    # without a diagnosis, a case fits when its misfit is within this factor of its noise floor
 
 
 def write_study_report(out: str | Path, rows: list[dict], volume: dict | None = None) -> Path:
@@ -59,7 +60,7 @@ def build_study_report(rows: list[dict], volume: dict | None, figure_dir: Path) 
     done = [row for row in rows if row.get("status") == "done"]
     parameters = parameter_names(done)
     pressures = pressure_names(done)
-    failing = [row for row in rows if row.get("status") != "done" or row.get("lack_of_fit")]
+    failing = [row for row in rows if row.get("status") != "done" or row.get("lack_of_fit") or row.get("too_coarse")]
     sections = []
     if volume is not None and done:
         sections.append(_profiles_section(done, parameters, pressures, volume, figure_dir))
@@ -133,7 +134,8 @@ def _answers(done, rows, failing, pressures, volume) -> dict:
         tables.append(_table("answers_heights", "Pressure at the compression standard's heights", header, table_rows,
                              "Linear between the two studied slices around each height; - where the height is outside "
                              "the studied slices. The spread adds the garment tension's uncertainty.", spreads))
-    fitting = [row for row in done if not row.get("lack_of_fit")]
+    fitting = [row for row in done if not row.get("too_coarse") and (
+        not row["lack_of_fit"] if "lack_of_fit" in row else (row.get("misfit_over_floor") or np.inf) <= FITS_FACTOR)]
     verdict = (f"{len(fitting)} of {len(rows)} fit their model to the noise floor"
                + (f"; the model fails on {len(failing)}: {', '.join(row['case'] for row in failing)}" if failing else "")
                + ".")
@@ -203,12 +205,19 @@ def _failing_section(failing) -> dict:
     if not failing:
         return _section("failing", "Cases whose model fails", ["None: every case ran and fits its model to the noise "
                                                                "floor (no lack of fit in its diagnosis)."])
-    rows = [[row["case"], row.get("status"), row.get("misfit_over_floor"),
-             row.get("verdict") or row.get("error") or "-"] for row in failing]
+    rows = [[row["case"], row.get("status"), row.get("misfit_over_floor"), _why(row)] for row in failing]
     table = _table("failing_cases", "Cases that failed or whose model lacks something",
                    ["case", "status", "misfit / floor", "verdict or error"], rows,
                    "Open a case's run folder (DIR/cases/<case>) and its report (calfit report) to see where.")
     return _section("failing", "Cases whose model fails", tables=[table])
+
+
+def _why(row: dict) -> str:
+    reasons = [row.get("verdict") or row.get("error") or ""]
+    if row.get("too_coarse"):
+        reasons.insert(0, f"the skin moves {row['skin_shift_px']:.1f} px between the volume's slices here: the "
+                          "loaded slice, resampled between them, carries edge errors above the noise")
+    return "; ".join(reason for reason in reasons if reason) or "-"
 
 
 def _table_section(rows, parameters, pressures) -> dict:

@@ -153,3 +153,25 @@ def test_a_volume_is_cut_into_slice_cases_that_see_the_same_tissue(tmp_path):
     (folder / "case.toml").write_text(text.replace(f"{heights[1]}]", f"{unloaded.slice_positions_mm[8]}]"))
     with pytest.raises(RunFolderError, match="other heights"):
         slice_volume_case(folder, tmp_path / "study")
+
+
+def test_the_skin_shift_between_slices_is_measured_in_pixels():
+    """A leg whose outline grows by 1.5 px from one slice to the next (the analytic leg of test_volume, its
+    radius scaled along the leg): the shift read from the segmented slices is that, within a third of a pixel."""
+    from test_volume import _leg
+
+    from orchestrator.imaging.volume import Volume, volume_affine
+    from orchestrator.volume_study import skin_shift_px
+
+    pixel, spacing = 0.8, 4.0
+    affine = volume_affine((pixel, pixel), spacing)
+    grid = Volume(np.zeros((120, 120, 5)), affine)
+    slices = []
+    for k in range(5):
+        x, y, z = grid.slice_points_mm(k)
+        centre = np.array([48.0, 50.0])[:, None, None]
+        scale = 1.0 + 1.5 * pixel * (k - 2) / 40.0     # the leg's radius is about 40 mm
+        points = np.stack([x, y]) - centre
+        slices.append(_leg(*(centre + points / scale), np.full_like(z, 22.0)))
+    volume = Volume(np.stack(slices, axis=2), affine)
+    assert skin_shift_px(volume, 2) == pytest.approx(1.5, abs=0.33)

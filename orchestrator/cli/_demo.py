@@ -15,10 +15,10 @@
 7. `calfit report`: the HTML page; its path is printed last.
 The phantom and every evaluation are kept in DIR, so running the demo again resumes.
 
-`calfit demo --volume` runs the whole calf instead (about 10 minutes): the 3D phantom leg
-(`orchestrator.phantom.volume`: 14 slices 8 mm apart whose outline, fat and bones change with height, the truth
-and the garment's graduated tension varying along the leg, the leg moved in 3D between the sessions) written as
-two NIfTI volumes, then `calfit study` on it: the volumes aligned on the bones, 12 slices cut, each identified
+`calfit demo --volume` runs the whole calf instead (about 15 minutes): the 3D phantom leg
+(`orchestrator.phantom.volume`: 14 slices 3 mm apart around the calf's widest girth, whose outline, fat and bones
+change with height, the truth and the garment's graduated tension varying along the leg, the leg moved in 3D
+between the sessions) written as two NIfTI volumes, then `calfit study` on it: the volumes aligned on the bones, 12 slices cut, each identified
 with its intervals and pressures, and the study report with the profiles along the leg and the pressure at B,
 B1, C and D. The truth's profile is printed beside the identified one.
 
@@ -63,7 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--draws", type=int, default=200, help="Monte-Carlo draws (default 200)")
     parser.add_argument("--leg-slice", action="store_true", help="only solve the analytic leg slice once")
     parser.add_argument("--volume", action="store_true",
-                        help="the whole calf: the 3D phantom leg through calfit study (about 10 minutes)")
+                        help="the whole calf: the 3D phantom leg through calfit study (about 15 minutes)")
     parser.add_argument("--elements", type=int, default=5500, help="--leg-slice: number of elements (default 5500)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="--leg-slice: 1: CPE3, 2: CPE6 (default)")
     parser.add_argument("--tension", type=float, default=0.16, help="garment tension in N/mm (default 0.16, about 20 mmHg)")
@@ -119,14 +119,14 @@ def run_full(args: argparse.Namespace) -> int:
 
 def run_volume(args: argparse.Namespace) -> int:
     from ..cohort import CaseOptions, run_study
-    from ..phantom.volume import write_volume_case
+    from ..phantom.volume import FINE_HEIGHTS_MM, write_volume_case
 
     began = time.perf_counter()
     out = Path(args.out)
     case_dir, truth_dir, study_dir = out / "leg", out / "leg.truth", out / "study"
     if not (case_dir / "case.toml").is_file():
         notice(args, f"[1/2] the 3D phantom leg: two NIfTI volumes and case.toml -> {case_dir} (about 3 minutes)")
-        write_volume_case(case_dir, truth_dir, tension_rel_uncertainty=0.10, overwrite=True)
+        write_volume_case(case_dir, truth_dir, heights_mm=FINE_HEIGHTS_MM, overwrite=True)
     else:
         notice(args, f"[1/2] reusing the 3D phantom leg in {case_dir}")
     notice(args, f"[2/2] calfit study {case_dir} --out {study_dir}")
