@@ -209,7 +209,9 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
                         case.tension_at(float(positions[k]))) for k in chosen]
     if record_path.is_file():
         record = read_json(record_path, "calfit study")
-        if [s["folder"] for s in record["slices"]] == [s.folder.name for s in slices]:
+        if record.get("requested") == [piece.folder.name for piece in slices]:
+            kept = {entry["folder"] for entry in record["slices"]}
+            slices = [piece for piece in slices if piece.folder.name in kept]
             say(f"{len(slices)} slices cut before, reused from {out / SLICES_FOLDER}")
             return slices, record
         raise RunFolderError(f"{out} holds slices cut at other heights ({record_path}); give the study another --out")
@@ -234,17 +236,29 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
             "resampled there, between slices that show different outlines, carry edge errors above the DIC's noise; "
             f"acquire slices closer than {unloaded.slice_spacing_mm:.3g} mm")
     half = 0.5 * unloaded.slice_spacing_mm
-    for piece in slices:   # a slice left by a run stopped before slices.json is cut again, whole (overwrite)
+    requested, left_out = [piece.folder.name for piece in slices], []
+    for piece in list(slices):   # a slice left by a run stopped before slices.json is cut again, whole (overwrite)
+        loaded_slice = resample_on_slice(loaded, unloaded, piece.slice_index, motion)
+        unseen = float(np.mean(~np.isfinite(loaded_slice[leg_mask(unloaded, piece.slice_index)])))
+        if unseen > 0.0:
+            # the leg slid along its axis between the sessions: the loaded volume does not reach this height
+            say(f"warning: the slice at {piece.height_mm:.1f} mm is left out: the loaded volume does not hold "
+                f"{100 * unseen:.0f} % of its leg (the leg slid {motion.translation_mm[2]:+.1f} mm between the sessions)")
+            left_out.append({"height_mm": piece.height_mm, "leg_without_loaded_voxel": unseen})
+            slices.remove(piece)
+            continue
         write_case_folder(piece.folder, name=piece.folder.name, unloaded=unloaded.slice_image(piece.slice_index),
-                          loaded=resample_on_slice(loaded, unloaded, piece.slice_index, motion),
-                          pixel_size_mm=unloaded.pixel_size_mm, tension_N_per_mm=piece.tension_N_per_mm,
-                          tension_rel_uncertainty=case.tension_rel_uncertainty,
+                          loaded=loaded_slice, pixel_size_mm=unloaded.pixel_size_mm,
+                          tension_N_per_mm=piece.tension_N_per_mm, tension_rel_uncertainty=case.tension_rel_uncertainty,
                           landmarks=case.landmarks_at(piece.height_mm, half), images_as="npy",
                           model_toml=case.model_toml, overwrite=True)
+    if not slices:
+        raise CaseError(case.loaded, "does not hold the leg at any studied height once aligned on the bones",
+                        "study heights that both sessions imaged")
     record = {"volume_case": str(case.folder.resolve()), "name": case.name,
               "slices": [{**piece.as_dict(), "skin_shift_px": shifts[piece.slice_index],
                           "too_coarse": shifts[piece.slice_index] > MAX_SKIN_SHIFT_PX} for piece in slices],
-              "max_skin_shift_px": MAX_SKIN_SHIFT_PX,
+              "max_skin_shift_px": MAX_SKIN_SHIFT_PX, "requested": requested, "left_out": left_out,
               "slice_spacing_mm": unloaded.slice_spacing_mm, "pixel_size_mm": list(unloaded.pixel_size_mm),
               "compression_heights_mm": case.compression_heights_mm,
               "tension_rel_uncertainty": case.tension_rel_uncertainty,
@@ -262,16 +276,21 @@ def skin_shift_px(volume, k: int) -> float:
     phantom leg with 8 mm slices: misfit 1.35 x the floor at 0.3 px, 1.8 at 1.1 px, 3.4 at 3.8 px)."""
     from scipy import ndimage
 
-    from .imaging.segment import segment_t1
-
     def outline(index: int) -> np.ndarray:
-        leg = segment_t1(volume.slice_image(index), volume.pixel_size_mm) > 0
+        leg = leg_mask(volume, index)
         return leg & ~ndimage.binary_erosion(leg)
 
     here = outline(k)
     distances = [ndimage.distance_transform_edt(~outline(n))[here].mean()
                  for n in (k - 1, k + 1) if 0 <= n < volume.shape[2]]
     return float(max(distances)) if distances else 0.0
+
+
+def leg_mask(volume, k: int) -> np.ndarray:
+    """The leg (every tissue) of slice k, segmented (`imaging.segment.segment_t1`)."""
+    from .imaging.segment import segment_t1
+
+    return segment_t1(volume.slice_image(k), volume.pixel_size_mm) > 0
 
 
 def _chosen_slices(case: VolumeCase, positions: np.ndarray, spacing: float) -> list[int]:

@@ -13,7 +13,7 @@ import pytest
 from scipy import stats
 
 from orchestrator.cohort import CaseOptions, run_study
-from orchestrator.phantom.volume import FINE_HEIGHTS_MM, LegProfile, PhantomLeg, write_volume_case
+from orchestrator.phantom.volume import FINE_HEIGHTS_MM, FINE_STUDIED_MM, LegProfile, PhantomLeg, write_volume_case
 
 pytestmark = pytest.mark.slow
 
@@ -25,7 +25,7 @@ MISS_LEVEL = 1e-3   # the share of studies with exact 95 % intervals that would 
 @pytest.fixture(scope="module")
 def volume_study(tmp_path_factory):
     root = tmp_path_factory.mktemp("volume")
-    case, truth_folder = write_volume_case(root / "leg", heights_mm=FINE_HEIGHTS_MM)
+    case, truth_folder = write_volume_case(root / "leg", heights_mm=FINE_HEIGHTS_MM, studied=FINE_STUDIED_MM)
     summary = run_study(case, root / "study", OPTIONS, workers=2)
     truth = json.loads((truth_folder / "truth.json").read_text())
     rows = {}

@@ -150,9 +150,16 @@ def test_a_volume_is_cut_into_slice_cases_that_see_the_same_tissue(tmp_path):
         assert correlation > 0.9, correlation
     again, _ = slice_volume_case(folder, tmp_path / "study", lines.append)
     assert [s.folder for s in again] == [s.folder for s in slices] and "reused" in lines[-1]
-    (folder / "case.toml").write_text(text.replace(f"{heights[1]}]", f"{unloaded.slice_positions_mm[8]}]"))
+    (folder / "case.toml").write_text(text.replace(f"{heights[1]}]", f"{unloaded.slice_positions_mm[11]}]"))
     with pytest.raises(RunFolderError, match="other heights"):
         slice_volume_case(folder, tmp_path / "study")
+    # the top slice: the leg slid 5 mm up between the sessions, so the loaded volume does not reach it
+    lines.clear()
+    slices, record = slice_volume_case(folder, tmp_path / "study-top", lines.append)
+    assert [s.slice_index for s in slices] == [4] and record["left_out"][0]["height_mm"] == pytest.approx(44.0)
+    assert any("left out" in line for line in lines)
+    again, _ = slice_volume_case(folder, tmp_path / "study-top")
+    assert [s.slice_index for s in again] == [4]
 
 
 def test_the_skin_shift_between_slices_is_measured_in_pixels():

@@ -119,14 +119,15 @@ def run_full(args: argparse.Namespace) -> int:
 
 def run_volume(args: argparse.Namespace) -> int:
     from ..cohort import CaseOptions, run_study
-    from ..phantom.volume import FINE_HEIGHTS_MM, write_volume_case
+    from ..phantom.volume import FINE_HEIGHTS_MM, FINE_STUDIED_MM, write_volume_case
 
     began = time.perf_counter()
     out = Path(args.out)
     case_dir, truth_dir, study_dir = out / "leg", out / "leg.truth", out / "study"
     if not (case_dir / "case.toml").is_file():
         notice(args, f"[1/2] the 3D phantom leg: two NIfTI volumes and case.toml -> {case_dir} (about 3 minutes)")
-        write_volume_case(case_dir, truth_dir, heights_mm=FINE_HEIGHTS_MM, overwrite=True)
+        write_volume_case(case_dir, truth_dir, heights_mm=FINE_HEIGHTS_MM, studied=FINE_STUDIED_MM,
+                          overwrite=True)
     else:
         notice(args, f"[1/2] reusing the 3D phantom leg in {case_dir}")
     notice(args, f"[2/2] calfit study {case_dir} --out {study_dir}")
