@@ -186,24 +186,15 @@ class _SliceStack:
 
 def _through_plane_weights(k: int, t: np.ndarray, count: int, kind: str) -> list[tuple[int, np.ndarray]]:
     """(slice, weight) pairs of points at fraction t between slices k and k + 1 (module text). With "keys" the
-    four slices k - 1 .. k + 2 take part; a slice beyond the first or the last is extrapolated from the three
-    nearest, s_-1 = 3 s_0 - 3 s_1 + s_2 (Keys' boundary condition, which keeps the kernel exact for quadratics)."""
+    four slices k - 1 .. k + 2 take part; between the first two slices or the last two, where one of them is
+    missing, linear (Keys' boundary condition extrapolates a slice, 3 s_0 - 3 s_1 + s_2: exact for a quadratic, but
+    on an image it multiplies the noise by 4.4 and repeats every edge three times; a study's slice there measured
+    3.3 x its noise floor against 1.2 beside it)."""
     if kind not in ("linear", "keys"):
         raise ValueError(f"through_plane is 'linear' or 'keys', not {kind!r}")
-    if kind == "linear" or count < 3:
+    if kind == "linear" or k < 1 or k + 2 > count - 1:
         return [(k, 1.0 - t), (min(k + 1, count - 1), t)]
-    weights: dict[int, np.ndarray] = {}
-    for offset, distance in ((-1, 1.0 + t), (0, t), (1, 1.0 - t), (2, 2.0 - t)):
-        plane, share = k + offset, _keys_kernel(distance)
-        if plane < 0:
-            stand_in = ((0, 3.0), (1, -3.0), (2, 1.0))
-        elif plane > count - 1:
-            stand_in = ((count - 1, 3.0), (count - 2, -3.0), (count - 3, 1.0))
-        else:
-            stand_in = ((plane, 1.0),)
-        for real, factor in stand_in:
-            weights[real] = weights.get(real, 0.0) + factor * share
-    return list(weights.items())
+    return [(k + offset, _keys_kernel(distance)) for offset, distance in ((-1, 1.0 + t), (0, t), (1, 1.0 - t), (2, 2.0 - t))]
 
 
 def _keys_kernel(distance: np.ndarray, a: float = -0.5) -> np.ndarray:
