@@ -16,7 +16,7 @@
 The phantom and every evaluation are kept in DIR, so running the demo again resumes.
 
 `calfit demo --volume` runs the whole calf instead (about 15 minutes): the 3D phantom leg
-(`orchestrator.phantom.volume`: 14 slices 3 mm apart around the calf's widest girth, whose outline, fat and bones
+(`orchestrator.phantom.volume`: 15 slices 3 mm apart around the calf's widest girth, whose outline, fat and bones
 change with height, the truth and the garment's graduated tension varying along the leg, the leg moved in 3D
 between the sessions) written as two NIfTI volumes, then `calfit study` on it: the volumes aligned on the bones, 12 slices cut, each identified
 with its intervals and pressures, and the study report with the profiles along the leg and the pressure at B,

@@ -150,10 +150,11 @@ class _SliceStack:
             self._planes[k] = coefficients, (missing.astype(float) if missing.any() else None)
         return self._planes[k]
 
-    def sample(self, index: np.ndarray, *, nan_outside: bool, through_plane: str = "linear") -> np.ndarray:
+    def sample(self, index: np.ndarray, *, nan_outside: bool, through_plane: str = "linear",
+               beyond_slices: float = 0.5) -> np.ndarray:
         """Values at continuous indices (3, ...). nan_outside: NaN beyond the matrix (more than half a pixel from
-        its edge pixels' centres), beyond the first or last slice by more than half a slice, and where a NaN voxel
-        takes part; otherwise the edge values continue outside, so that a cost stays continuous. through_plane:
+        its edge pixels' centres), beyond the first or last slice by more than `beyond_slices` of a slice, and where
+        a NaN voxel takes part; otherwise the edge values continue outside, so that a cost stays continuous. through_plane:
         "linear" between the two slices around the point, or "keys", the cubic convolution of Keys (IEEE Trans.
         ASSP 29, 1981, a = -1/2) over four slices, exact for a quadratic course along the leg."""
         shape = np.shape(index)[1:]
@@ -178,8 +179,8 @@ class _SliceStack:
                     missing[at[used]] += np.abs(share[used]) * ndimage.map_coordinates(
                         plane_missing, coordinates[:, used], order=1, mode="nearest")
         if nan_outside:
-            outside = ((rows != rows_in) | (columns != columns_in) | (slices < -0.5) | (slices > self.count - 0.5)
-                       | (missing > 0.0))
+            outside = ((rows != rows_in) | (columns != columns_in) | (slices < -beyond_slices)
+                       | (slices > self.count - 1 + beyond_slices) | (missing > 0.0))
             values[outside] = np.nan
         return values.reshape(shape)
 
@@ -208,8 +209,9 @@ def resample_on_slice(loaded: Volume, unloaded: Volume, k: int, motion: RigidMot
                       through_plane: str = "keys") -> np.ndarray:
     """The loaded volume seen on the pixels of the unloaded volume's slice k: loaded(motion.apply(point)) at each
     pixel's patient point, cubic in-plane and, by default, Keys' cubic convolution between slices, NaN where the
-    point falls outside the loaded volume (outside its matrix, or beyond its first or last slice by more than half a
-    slice spacing) or on a NaN voxel. Shape: the unloaded slice's.
+    point falls outside the loaded volume (outside its matrix, or beyond its first or last slice) or on a NaN
+    voxel. Shape: the unloaded slice's. Beyond the last slice nothing stands in for the tissue: the last slice is
+    another tissue plane (a study's slice that took it up to half a spacing beyond measured 3.3 x its floor).
 
     Why not linear between slices, as the alignment samples: the skin's course along the leg is curved (the calf's
     girth has a maximum), and a linear blend of two slices 8 mm apart puts the skin on the chord, inside the leg. On
@@ -218,7 +220,7 @@ def resample_on_slice(loaded: Volume, unloaded: Volume, k: int, motion: RigidMot
     if not 0 <= k < unloaded.shape[2]:
         raise IndexError(f"slice {k} of a volume of {unloaded.shape[2]} slices")
     index = loaded.index_of_points(motion.apply(unloaded.slice_points_mm(k)))
-    return _SliceStack(loaded.voxels).sample(index, nan_outside=True, through_plane=through_plane)
+    return _SliceStack(loaded.voxels).sample(index, nan_outside=True, through_plane=through_plane, beyond_slices=0.0)
 
 
 # ----------------------------------------------------------------- bones of a volume

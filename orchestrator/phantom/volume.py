@@ -66,8 +66,8 @@ DEFAULT_HEIGHTS_MM = tuple(196.0 + 8.0 * k for k in range(14))
 # Slices close enough for the DIC: from one slice to the next the skin moves by less than a pixel (0.1-0.7 px here,
 # where it moves 1-4 px between the default's slices 8 mm apart below 270 mm), so that a loaded slice resampled
 # between slices is one tissue plane (`volume_study.skin_shift_px`). What the demo and the volume study test use.
-FINE_HEIGHTS_MM = tuple(250.0 + 3.0 * k for k in range(14))
-FINE_STUDIED_MM = FINE_HEIGHTS_MM[2:]   # those the loaded session holds after DEFAULT_MOTION's slide of 6 mm
+FINE_HEIGHTS_MM = tuple(247.0 + 3.0 * k for k in range(15))
+FINE_STUDIED_MM = FINE_HEIGHTS_MM[3:]   # the 12 that the loaded session holds after DEFAULT_MOTION's slide of 6 mm
 LEG_MARGIN_MM = 2.0              # the skin must stay this far inside the field of view in both sessions
 COMPRESSION_POINTS = ("B", "B1", "C", "D")
 
