@@ -19,8 +19,12 @@ A height is the position along the slices' normal (`imaging.volume.Volume.slice_
    the sessions the leg slides along its axis, turns and tilts;
 2. each height takes the unloaded slice nearest it (within half a slice spacing; an unloaded slice is never
    resampled, so I0 keeps its texture), and the loaded volume is resampled on that slice's pixels through the
-   motion (`align3d.resample_on_slice`): the two images of the slice case see the same tissue;
-3. the slice case gets the tension at its height (linear in the table; a height outside the table is refused),
+   motion (`align3d.resample_on_slice`, Keys' cubic convolution between slices): the two images of the slice case
+   see the same tissue;
+3. the skin's shift between neighbouring unloaded slices is measured (`skin_shift_px`): beyond a pixel the
+   resampled loaded slice blends two outlines, and the slice is flagged too_coarse; a height that the loaded
+   volume does not hold (the leg slid along its axis) is left out, with a warning;
+4. the slice case gets the tension at its height (linear in the table; a height outside the table is refused),
    the landmarks at its height (each line interpolated linearly; a single point [x, y, z] belongs to the slice
    within half a spacing of z) and the volume case's [model] tables, and is written, whole or not at all, to
    DIR/slices/<name>-z<height>mm/ (`imaging.case.write_case_folder`, images as .npy with NaN where the loaded
@@ -226,9 +230,10 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
         f"{unloaded.slice_spacing_mm:.2g} mm, {loaded.shape[2]} loaded; aligning the loaded volume on the bones")
     alignment = align_volumes_on_bones(unloaded, loaded)
     motion = alignment.motion
-    say(f"the leg moved between the sessions by {motion.angle_deg:.2f} deg and "
-        f"({', '.join(f'{t:.2f}' for t in motion.translation_mm)}) mm")
-    shifts = {piece.slice_index: skin_shift_px(unloaded, piece.slice_index) for piece in slices}
+    say(f"the leg moved between the sessions: turned {alignment.turn_deg:.2f} deg, tilted {alignment.tilt_deg:.2f} deg, "
+        f"slid {alignment.slide_mm:+.2f} mm along the leg")
+    masks: dict[int, np.ndarray] = {}
+    shifts = {piece.slice_index: skin_shift_px(unloaded, piece.slice_index, masks) for piece in slices}
     coarse = [piece for piece in slices if shifts[piece.slice_index] > MAX_SKIN_SHIFT_PX]
     if coarse:
         say(f"warning: the skin moves by {max(shifts.values()):.1f} px between neighbouring slices (more than "
@@ -239,11 +244,11 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
     requested, left_out = [piece.folder.name for piece in slices], []
     for piece in list(slices):   # a slice left by a run stopped before slices.json is cut again, whole (overwrite)
         loaded_slice = resample_on_slice(loaded, unloaded, piece.slice_index, motion)
-        unseen = float(np.mean(~np.isfinite(loaded_slice[leg_mask(unloaded, piece.slice_index)])))
+        unseen = float(np.mean(~np.isfinite(loaded_slice[leg_mask(unloaded, piece.slice_index, masks)])))
         if unseen > 0.0:
             # the leg slid along its axis between the sessions: the loaded volume does not reach this height
             say(f"warning: the slice at {piece.height_mm:.1f} mm is left out: the loaded volume does not hold "
-                f"{100 * unseen:.0f} % of its leg (the leg slid {motion.translation_mm[2]:+.1f} mm between the sessions)")
+                f"{100 * unseen:.0f} % of its leg (the leg slid {alignment.slide_mm:+.1f} mm between the sessions)")
             left_out.append({"height_mm": piece.height_mm, "leg_without_loaded_voxel": unseen})
             slices.remove(piece)
             continue
@@ -268,7 +273,7 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
     return slices, record
 
 
-def skin_shift_px(volume, k: int) -> float:
+def skin_shift_px(volume, k: int, masks: dict | None = None) -> float:
     """How far the skin of slice k lies from its neighbours' (pixels, the mean over its outline, the larger of the
     two neighbours): what a loaded slice resampled between slices there blends. The loaded volume is resampled
     between its slices (`align3d.resample_on_slice`); where the outline moves by more than a pixel from one slice to
@@ -277,7 +282,7 @@ def skin_shift_px(volume, k: int) -> float:
     from scipy import ndimage
 
     def outline(index: int) -> np.ndarray:
-        leg = leg_mask(volume, index)
+        leg = leg_mask(volume, index, masks)
         return leg & ~ndimage.binary_erosion(leg)
 
     here = outline(k)
@@ -286,11 +291,14 @@ def skin_shift_px(volume, k: int) -> float:
     return float(max(distances)) if distances else 0.0
 
 
-def leg_mask(volume, k: int) -> np.ndarray:
-    """The leg (every tissue) of slice k, segmented (`imaging.segment.segment_t1`)."""
+def leg_mask(volume, k: int, masks: dict | None = None) -> np.ndarray:
+    """The leg (every tissue) of slice k, segmented (`imaging.segment.segment_t1`); kept in `masks` when given."""
     from .imaging.segment import segment_t1
 
-    return segment_t1(volume.slice_image(k), volume.pixel_size_mm) > 0
+    masks = {} if masks is None else masks
+    if k not in masks:
+        masks[k] = segment_t1(volume.slice_image(k), volume.pixel_size_mm) > 0
+    return masks[k]
 
 
 def _chosen_slices(case: VolumeCase, positions: np.ndarray, spacing: float) -> list[int]:
