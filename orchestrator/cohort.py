@@ -3,10 +3,10 @@
 STUDY is a folder of case folders, each a case as `calfit identify` takes it (case.toml and its images, perhaps
 labels.png or points.csv), or a volume case, which `volume_study` first cuts into slice cases under DIR/slices/
 (their rows then start with the slice's height, its tension, and how far the skin moves between neighbouring
-slices there: `volume_study.skin_shift_px`, too_coarse beyond a pixel). Each case is one task on `dask.distributed`: a
-LocalCluster of `workers` processes of one thread on this machine by default, or an existing cluster
-(`scheduler`, whose workers must see STUDY and DIR at the same paths). A task runs the case's stages one after the other in its worker: identify (measuring the
-images first), montecarlo, pressures (when case.toml names landmarks) and diagnose (when the model is the Laplace
+slices there: `volume_study.skin_shift_px`, too_coarse beyond a pixel). Each case is one task on
+`dask.distributed`: a LocalCluster of `workers` processes of one thread on this machine by default, or an
+existing cluster (`scheduler`, whose workers must see STUDY and DIR at the same paths). A task runs the case's
+stages one after the other in its worker: identify (measuring the images first), montecarlo, pressures (when case.toml names landmarks) and diagnose (when the model is the Laplace
 law's with one loaded image). Inside a task the engine runs one deck at a time on one thread, so that engines
 never outnumber a worker's cores: the cohort's parallelism is its cases.
 
@@ -135,9 +135,11 @@ def _parameters(identification: dict, montecarlo: dict) -> dict:
 
 
 def _interface_pressure(run_dir: Path) -> dict:
-    """The garment's mean pressure on the skin by Laplace's law, 2 pi T / perimeter (the mean of T / r around the
-    leg, since the curvature integrates to 2 pi; Avril et al. eq. 1): the figure the compression standards give
-    at the heights B to D, with the tension's uncertainty as its spread."""
+    """The garment's mean pressure on the skin by Laplace's law, p = T / r (Avril et al. eq. 1), averaged around
+    the leg: 2 pi T / perimeter, since the curvature integrates to 2 pi. The figure the compression standards give
+    at the heights B to D, with the tension's uncertainty as its spread. The perimeter is the meshed skin of I0;
+    the compressed skin's is shorter by the garment's compression (under 1 % on the phantoms), which this leaves
+    out."""
     from .geometry_uncertainty import skin_perimeter_mm
     from .study import load_run
 
