@@ -38,6 +38,7 @@ from .diagnose import ALPHA, EXPLAINED_FACTOR, model_label
 from .digits import interval_uncertainty, rounded
 from .forward import MeshInterpolator, field_on_pixels
 from .identify import pressure_spreads
+from .imaging.case import replace_folder
 from .imaging.segment import BONE
 from .imaging.warp import warp_image
 from .measure import FILES as MEASURE_FILES
@@ -142,11 +143,7 @@ def write_report(run_dir: str | Path, truth: dict | None = None) -> Path:
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    if final.exists():
-        old = Path(tempfile.mkdtemp(prefix=".report.old.", dir=run_dir))
-        final.rename(old / "report")
-        shutil.rmtree(old, ignore_errors=True)
-    staging.rename(final)
+    replace_folder(staging, final)
     return final / "index.html"
 
 

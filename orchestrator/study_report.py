@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .digits import interval_uncertainty
+from .imaging.case import replace_folder
 from .report import _figure, _section, _strict_json, _table, render_page
 from .results import MMHG_PER_KPA
 
@@ -48,11 +49,7 @@ def write_study_report(out: str | Path, rows: list[dict], volume: dict | None = 
         shutil.rmtree(staging, ignore_errors=True)
         raise
     final = out / REPORT_FOLDER
-    if final.exists():
-        old = Path(tempfile.mkdtemp(prefix=".report.old.", dir=out))
-        final.rename(old / REPORT_FOLDER)
-        shutil.rmtree(old, ignore_errors=True)
-    staging.rename(final)
+    replace_folder(staging, final)
     return final / "index.html"
 
 
