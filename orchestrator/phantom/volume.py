@@ -242,6 +242,7 @@ class LoadedSession:
     # (w (1 - w) |d2r/dz2| h^2 falls as the step squared). None: blend the solved slices.
     leg: "PhantomLeg | None" = None
     geometry_step_mm: float = 0.5
+    _slices: dict = field(default_factory=dict, init=False, repr=False)   # the leg's slices made so far, by step
 
     def __post_init__(self):
         self.fe_heights_mm = np.asarray(self.fe_heights_mm, float)
@@ -307,10 +308,9 @@ class LoadedSession:
         """The phantom k steps above the lowest solved height (made once)."""
         if self.leg is None:
             return self.phantoms[k]
-        cache = self.__dict__.setdefault("_slices", {})
-        if k not in cache:
-            cache[k] = self.leg.slice_phantom(float(self.fe_heights_mm[0] + k * step))
-        return cache[k]
+        if k not in self._slices:
+            self._slices[k] = self.leg.slice_phantom(float(self.fe_heights_mm[0] + k * step))
+        return self._slices[k]
 
     def render(self, slice_index: int, noise_seed: int | None) -> np.ndarray:
         """Loaded slice `slice_index`: the fine samples' material intensity, the pixel grid's k-space, the
