@@ -12,7 +12,7 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | drainage        | dv_muscle                       | *VOLUME CHANGE, ELSET=<muscle>      |
 | friction        | mu                              | explicit garment (*FRICTION)        |
 | bridging        | (switch)                        | explicit garment (*CONTACT PAIR)    |
-| tension_profile | a1, b1                          | *TENSION PROFILE, TYPE=FOURIER      |
+| tension_profile | a1, b1, a2, b2                  | *TENSION PROFILE, TYPE=FOURIER      |
 | bone_motion     | ux_BONE2, uy_BONE2              | *RIGID MOTION, NSET=BONE2           |
 | stiffening      | C20_fat, C20_muscle             | *HYPERELASTIC, AVRIL third constant |
 | out_of_plane    | eps_z                           | *AXIAL STRETCH                      |
@@ -142,10 +142,15 @@ def _apply_drainage(state: LegDeckState, values: dict[str, float]) -> None:
         _add_sensitivity(state, "dv_muscle", f"VOLUME CHANGE, {elset}", 1.0)
 
 
+TENSION_HARMONICS = (1, 2)
+
+
 def _apply_tension_profile(state: LegDeckState, values: dict[str, float]) -> None:
-    state.fourier_profile[1] = (values["a1"], values["b1"])
-    _add_sensitivity(state, "a1", f"PROFILE, {PROFILE_NAME}, A1", 1.0)
-    _add_sensitivity(state, "b1", f"PROFILE, {PROFILE_NAME}, B1", 1.0)
+    # a harmonic a phantom's hidden profile leaves out is at zero
+    for k in TENSION_HARMONICS:
+        state.fourier_profile[k] = (values.get(f"a{k}", 0.0), values.get(f"b{k}", 0.0))
+        for name in (f"a{k}", f"b{k}"):
+            _add_sensitivity(state, name, f"PROFILE, {PROFILE_NAME}, {name.upper()}", 1.0)
 
 
 def _apply_unloaded_curvature(state: LegDeckState, values: dict[str, float]) -> None:
@@ -319,11 +324,17 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            "Over concave skin (between the tibia's crest and the calf) a real garment lifts off; Laplace's law pulls "
            "there (p = T/r < 0 is clipped, not bridged).",
            _fixed(), None, laplace_model=False),
-    Effect("tension_profile", "garment tension varying around the leg (first harmonic)",
+    Effect("tension_profile", "garment tension varying around the leg (first two harmonics)",
            "Seams, a knit that is stretched unevenly or friction make the tension T vary around the leg: "
-           "T(theta) = T (1 + a1 cos theta + b1 sin theta); the leg is pushed towards the side of low tension.",
+           "T(theta) = T (1 + a1 cos theta + b1 sin theta + a2 cos 2theta + b2 sin 2theta), theta about the skin's "
+           "centroid; the leg is pushed towards the side of low tension. The second harmonic is there because "
+           "nothing fixes the centre of a real profile: a first harmonic of amplitude a about a point d from the "
+           "centroid is, seen from the centroid, the same harmonic plus a second of amplitude a d / (2 r) (and a "
+           "change of the mean tension as large, inside the tension's own uncertainty).",
            _fixed(EffectParameter("a1", "1", -0.6, 0.6, 0.05, "cos theta amplitude of the tension factor"),
-                  EffectParameter("b1", "1", -0.6, 0.6, 0.05, "sin theta amplitude of the tension factor")),
+                  EffectParameter("b1", "1", -0.6, 0.6, 0.05, "sin theta amplitude of the tension factor"),
+                  EffectParameter("a2", "1", -0.6, 0.6, 0.05, "cos 2theta amplitude of the tension factor"),
+                  EffectParameter("b2", "1", -0.6, 0.6, 0.05, "sin 2theta amplitude of the tension factor")),
            _apply_tension_profile),
     Effect("unloaded_curvature", "the garment's pressure from the curvature of the unloaded leg, T kappa0",
            "Laplace's law presses with the curvature of the deformed skin (Avril et al. eq. 1); a garment designer "

@@ -146,12 +146,12 @@ def test_effects_follow_laws_of_any_size(leg_mesh):
 
 def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg_mesh):
     """The skin's uncertainty asks the engine for du/da_k, du/db_k of the garment's profile on top of a model's
-    own lines. A model fitting the tension profile (a1, b1) without the engine's sensitivities lost A1 and B1 from
+    own lines. A model fitting the tension profile (a1 to b2) without the engine's sensitivities lost A1 and B1 from
     its deck, and `calfit identify --effects tension_profile` stopped with KeyError 'PROFILE:GARMENT:A1'."""
     from orchestrator.geometry_uncertainty import profile_lines, skin_pressure_sensitivities
 
     model = LegModel(leg_mesh, 0.16, effects=("tension_profile",), engine_sensitivities=False)
-    theta = [4.5, 11.2, 106.0, 69.5, 0.2, -0.1]
+    theta = [4.5, 11.2, 106.0, 69.5, 0.2, -0.1, 0.05, 0.02]
     assert all(line in model.deck(theta, extra_sensitivities=profile_lines(2)) for line in profile_lines(2))
     found = skin_pressure_sensitivities(model, theta, 2)
     assert sorted(found) == sorted(profile_lines(2))
