@@ -36,6 +36,11 @@ explains it and points at where the residual is, in words (`regions.LegFrame`): 
 anatomical sector around the leg in degrees and the depth under the skin of the region that holds the
 largest share of the squared residual.
 
+Ties. The linear score cannot choose between effects whose statistics lie within TIE_FRACTION of the best's, nor
+between effects that are each predicted to explain the residual: the best and up to MAX_TIED of those are refitted,
+and the lowest BIC among the refits that converged wins (`settle_ties`). A best effect whose refit failed explains
+nothing: its prediction was not checked.
+
 Locate. When the misfit is above the floor, every place a local stiffness change may take is scored the
 same way, as a one-parameter effect: the material groups of `heterogeneity` (15-degree sectors, depth bands),
 contiguous in one tissue kind over 1 to 6 sectors (up to 90 degrees) and a run of bands, its column the sum of
@@ -72,6 +77,7 @@ from .runner import OK, Evaluator
 ALPHA = 0.01
 REFIT_FTOL = 1e-5            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)
 TIE_FRACTION = 0.1           # statistics within 10 % of the best: the score cannot tell them apart, refits do
+MAX_TIED = 3                 # at most this many effects refitted beside the best
 EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
 MAX_DESIGN_EFFECT = 100.0
 ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
@@ -377,9 +383,14 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     if ranking and ranking[0].significant:
         # effects whose residual signatures the fitted parameters leave nearly alike (e.g. drainage of the muscle
         # and an axial stretch of the whole slice, where the fat is thin): the linear score ranks them by a hair,
-        # so they are refitted, and their misfits decide
+        # so they are refitted, and their misfits decide. So are effects that are each predicted to explain the
+        # residual: near the floor the prediction cannot choose between them (a faint stiffening scored 114
+        # against a friction band's 136, both predicted at 1.4-1.5 x the floor), the refits can.
         top = ranking[0]
-        top.tied_with = [s.effect for s in ranking[1:] if s.significant and s.statistic >= (1 - TIE_FRACTION) * top.statistic]
+        top_explains = top.predicted_misfit <= EXPLAINED_FACTOR * floor
+        top.tied_with = [s.effect for s in ranking[1:] if s.significant and (
+            s.statistic >= (1 - TIE_FRACTION) * top.statistic
+            or top_explains and s.predicted_misfit <= EXPLAINED_FACTOR * floor)][:MAX_TIED]
     explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
     maps = residual_maps(positions_mm, residual_mm, frame)
     patches = []
@@ -445,11 +456,11 @@ def settle_ties(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> None:
         return
     group = [diagnosis.ranking[0].effect] + diagnosis.ranking[0].tied_with
     bic = {f.effects[-1]: f.bic for f in refits if len(f.effects) >= 1 and f.effects[-1] in group}
-    if set(bic) != set(group):
+    if not bic:
         return
     tied = [s for s in diagnosis.ranking if s.effect in group]
     rest = [s for s in diagnosis.ranking if s.effect not in group]
-    tied.sort(key=lambda s: bic[s.effect])
+    tied.sort(key=lambda s: bic.get(s.effect, np.inf))   # an effect whose refit failed cannot win
     for s in tied:
         s.tied_with = [name for name in group if name != s.effect] if s is tied[0] else []
     diagnosis.ranking = tied + rest

@@ -405,7 +405,10 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
     if diagnosis.ranking and diagnosis.ranking[0].effect in refit_failures:
-        diagnosis.verdict += f"; its refit failed ({refit_failures[diagnosis.ranking[0].effect]})"
+        # a prediction the refit could not check is not an explanation
+        diagnosis.explained = False
+        diagnosis.verdict += (f"; but its refit failed ({refit_failures[diagnosis.ranking[0].effect]}), so that is "
+                              "not confirmed")
     unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
     if unexplained and diagnosis.maps.worst_region:
         maps = diagnosis.maps
