@@ -77,7 +77,7 @@ from .runner import OK, Evaluator
 ALPHA = 0.01
 REFIT_FTOL = 1e-5            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)
 TIE_FRACTION = 0.1           # statistics within 10 % of the best: the score cannot tell them apart, refits do
-MAX_TIED = 3                 # at most this many effects refitted beside the best
+MAX_TIED = 3                 # effects predicted to explain are refitted beside the best up to this many ties
 EXPLAINED_FACTOR = 1.5       # predicted misfit within 1.5 x the noise floor: the effect explains the residual
 MAX_DESIGN_EFFECT = 100.0
 ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
@@ -387,10 +387,10 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         # residual: near the floor the prediction cannot choose between them (a faint stiffening scored 114
         # against a friction band's 136, both predicted at 1.4-1.5 x the floor), the refits can.
         top = ranking[0]
-        top_explains = top.predicted_misfit <= EXPLAINED_FACTOR * floor
-        top.tied_with = [s.effect for s in ranking[1:] if s.significant and (
-            s.statistic >= (1 - TIE_FRACTION) * top.statistic
-            or top_explains and s.predicted_misfit <= EXPLAINED_FACTOR * floor)][:MAX_TIED]
+        close = [s.effect for s in ranking[1:] if s.significant and s.statistic >= (1 - TIE_FRACTION) * top.statistic]
+        explaining = [s.effect for s in ranking[1:] if s.significant and s.effect not in close
+                      and max(top.predicted_misfit, s.predicted_misfit) <= EXPLAINED_FACTOR * floor]
+        top.tied_with = close + explaining[:max(0, MAX_TIED - len(close))]
     explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
     maps = residual_maps(positions_mm, residual_mm, frame)
     patches = []
