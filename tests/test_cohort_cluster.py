@@ -62,8 +62,9 @@ def test_a_real_cluster_gives_the_local_table_and_a_killed_worker_loses_nothing(
     local = run_study(study, tmp_path / "local", OPTIONS, workers=2)
     assert local["done"] == len(SEEDS)
     table = _rows(tmp_path / "local")
-    for seed, effect in HIDDEN.items():   # the diagnosis names the hidden effect (on this 400-element mesh the
-        #                                   drainage refit reached 1.51 x the floor, just short of "explained")
+    # the diagnosis names the hidden effect (on this 400-element mesh the drainage refit reached 1.51 x the floor,
+    # just short of "explained")
+    for seed, effect in HIDDEN.items():
         assert next(iter(effect)) in table[f"leg-{seed}"]["verdict"], table[f"leg-{seed}"]["verdict"]
 
     address = f"tcp://127.0.0.1:{_free_port()}"
