@@ -115,7 +115,7 @@ def run_case(case_dir: str, run_dir: str, options: CaseOptions, extra: dict | No
                 diagnosis = run_diagnose(run_dir, **evaluation)
                 row.update(verdict=diagnosis["verdict"], explained=bool(diagnosis["explained"]),
                            lack_of_fit=bool(diagnosis["lack_of_fit_p"] < ALPHA))
-            except ValueError as refused:   # a model the diagnosis does not take yet (explicit garment, levels)
+            except ValueError as refused:   # a model the diagnosis does not take yet (garment levels)
                 row.update(verdict=f"not diagnosed: {refused}", explained=None)
     except Exception as error:   # noqa: BLE001 - one case's failure is its row; the study goes on
         row.update(status=FAILED, error=f"{type(error).__name__}: {error}")

@@ -134,11 +134,7 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
     if tension_profile and effects.fourier_profile:
         raise DeckError("give the garment tension profile either as a table or as Fourier coefficients, not both")
     rows = _material_rows(materials)
-    if effects.axial_stretch is not None:
-        _positive("the axial stretch", [effects.axial_stretch])
-    for elset, dv in effects.volume_changes:
-        if not float(dv) > -1.0:
-            raise DeckError(f"the volume change of {elset} must be > -1 (a relative change), got {dv!r}")
+    _check_tissue_effects(effects)
     if not 0.0 <= float(effects.reference_share) <= 1.0:
         raise DeckError(f"the share of the pressure from the unloaded contour must lie in [0, 1], got "
                         f"{effects.reference_share!r}")
@@ -146,11 +142,24 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
     return render("leg_laplace.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
                   tension=f"{tension_N_per_mm:.10g}", tension_profile=profile,
                   fourier_profile=[(int(k), numbers((a, b))) for k, a, b in effects.fourier_profile],
-                  volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.volume_changes],
-                  axial_stretch=None if effects.axial_stretch is None else f"{float(effects.axial_stretch):.10g}",
-                  rigid_motions=[(nset, numbers((ux, uy, angle))) for nset, ux, uy, angle in effects.rigid_motions],
-                  sensitivities=list(effects.sensitivities), static=numbers(static), max_increments=max_increments,
+                  **_tissue_effect_lines(effects), static=numbers(static), max_increments=max_increments,
                   reference_share=f"{float(effects.reference_share):.10g}" if effects.reference_share else None)
+
+
+def _check_tissue_effects(effects: StepEffects) -> None:
+    if effects.axial_stretch is not None:
+        _positive("the axial stretch", [effects.axial_stretch])
+    for elset, dv in effects.volume_changes:
+        if not float(dv) > -1.0:
+            raise DeckError(f"the volume change of {elset} must be > -1 (a relative change), got {dv!r}")
+
+
+def _tissue_effect_lines(effects: StepEffects) -> dict:
+    """The template variables of the step keywords that act on the tissues and bones, and of *SENSITIVITY."""
+    return dict(volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.volume_changes],
+                axial_stretch=None if effects.axial_stretch is None else f"{float(effects.axial_stretch):.10g}",
+                rigid_motions=[(nset, numbers((ux, uy, angle))) for nset, ux, uy, angle in effects.rigid_motions],
+                sensitivities=list(effects.sensitivities))
 
 
 def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_faces: Sequence[tuple[int, int]], *,
@@ -187,7 +196,7 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                      penalty: float = GARMENT_PENALTY_MPA_PER_MM, stick_slope: float = GARMENT_STICK_SLOPE_MPA_PER_MM,
                      inflate_static: Sequence[float] = INFLATE_STATIC, let_go_static: Sequence[float] = LET_GO_STATIC,
                      release_static: Sequence[float] = RELEASE_STATIC, max_increments: int = 200,
-                     description: str = "") -> str:
+                     effects: StepEffects = StepEffects(), description: str = "") -> str:
     """The leg slice under the explicit garment band of the second paper (Bouten and Drapier sec. 2.5,
     Fig. 2), `orchestrator.meshing.garment_band(leg)`, put on in four steps (module docstring of
     orchestrator.meshing.garment): 1, every band node drawn onto the inflated circle, the holding
@@ -196,10 +205,17 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
     `stick_slope`, 0 = frictionless) and the pressure released; 4, the two pins that the wrapped band
     makes statically indeterminate released. GARMENT_STEPS names the steps of the inflated and the
     released states. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
+    effects: the effect catalog's keywords on the tissues and bones (volume changes, axial stretch, rigid motions)
+    act in step 4, once the band is on (`orchestrator.effects`), and its *SENSITIVITY lines; a tension profile or
+    the unloaded curvature belong to Laplace's law and are refused.
     The mesh include (mesh.inp) is `band.include_text(leg)`."""
     _positive("the penalty slope and stick slope", [penalty, stick_slope])
     if friction_mu < 0.0:
         raise DeckError(f"the friction coefficient must be >= 0, got {friction_mu!r}")
+    if effects.fourier_profile or effects.reference_share:
+        raise DeckError("a garment tension profile and the unloaded curvature are Laplace's law's (p = T / r): the "
+                        "explicit band carries neither")
+    _check_tissue_effects(effects)
     rows = _material_rows(materials)
     return render("leg_garment.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
                   band_constants=numbers((band.C10, band.D1)), penalty=f"{penalty:.10g}",
@@ -208,7 +224,8 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   inflate_displacements=band.deck_inflation_displacements(leg), pins=band.deck_pins(leg),
                   sliding_pins=band.deck_pins(leg, ("GARMENT_PIN_Y",)), inflate_static=numbers(inflate_static),
                   let_go_static=numbers(let_go_static), settle_static=numbers(SETTLE_STATIC),
-                  release_static=numbers(release_static), max_increments=max_increments)
+                  release_static=numbers(release_static), max_increments=max_increments,
+                  **_tissue_effect_lines(effects))
 
 
 def text_sha256(text: str) -> str:

@@ -23,12 +23,18 @@ pieces of evidence. |g_perp| / |g| tells how much of the effect the fitted param
 (Bonferroni over the m effects tried) and the misfit itself is above the noise floor (chi^2 test).
 
 The garment's effects (friction, bridging) are not in the Laplace-law deck: they replace p = T / r by the explicit
-band (`garment_model`: penalty contact, Bouten and Drapier sec. 2.5). Bridging is a switch s from Laplace's law
-(s = 0) to the frictionless band (s = 1), G = r_band - r (one run of the band at theta); friction is the switch and
-the friction coefficient, G = [r_band - r, dr/dmu] with dr/dmu a forward difference of the band's runs at mu = 0
-and FRICTION_PROBE_MU (no engine sensitivity through friction). Friction's columns nest bridging's, so their
-p-values (2 and 1 degrees of freedom) decide between them. The refit of either identifies the band model (with mu
-free for friction) from the fitted point.
+band (`garment_model`: penalty contact, Bouten and Drapier sec. 2.5, carrying the model's effects on the tissues).
+Bridging is a switch s from Laplace's law (s = 0) to the frictionless band (s = 1), G = r_band - r (one run of the
+band at theta); friction is the switch and the friction coefficient, G = [r_band - r, dr/dmu] with dr/dmu a forward
+difference of the band's runs at mu = 0 and FRICTION_PROBE_MU (no engine sensitivity through friction). Friction's
+columns nest bridging's, so their p-values (2 and 1 degrees of freedom) decide between them. The refit of either
+identifies the band model (with mu free for friction) from the fitted point.
+
+A model of the band itself (the second paper's, `[model] garment = "explicit"`) is diagnosed the same way with the
+effects its deck carries (`effects.Effect.garments`: those of the tissues and bones, written into the band's last
+step), their columns through the frictionless contact from the engine; friction, while the band has none, is the
+column dr/dmu alone. A band with friction gives no engine sensitivity: every column is then a difference of runs,
+and the diagnosis does not locate (the local probe would take a run per material group).
 
 Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
 the noise floor, that effect explains the residual; otherwise the diagnosis says that no catalog effect
@@ -250,17 +256,23 @@ def residual_maps(positions_mm: np.ndarray, residual_mm: np.ndarray, frame: LegF
 # --- the diagnosis ------------------------------------------------------------------------------
 
 def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
-    """Catalog effects that the diagnosis can try on this model, and why the others are not tried. The garment's
-    effects (friction, bridging) are tried on a Laplace-law model without effects: they replace p = T / r by the
-    explicit band (`garment_model`), which carries no other effect yet."""
+    """Catalog effects that the diagnosis can try on this model, and why the others are not tried. On a Laplace-law
+    model the garment's effects (friction, bridging) are tried by switching to the explicit band (`garment_model`),
+    which carries the model's effects on the tissues and bones but not those of Laplace's law itself. On the explicit
+    band, every effect its deck carries is tried (`effects.Effect.garments`), friction too while the band has none."""
     sets, nodes = list(model.mesh.element_sets()), list(model.mesh.node_sets)
+    blockers = laplace_only(model)
     candidates, skipped = [], {}
     for name, item in CATALOG.items():
         if name in model.effects or name in model.fixed_effects:
             continue
-        reason = (item.unavailable(sets, nodes) or model.law_conflict(name) if item.laplace_model else
-                  "it needs the explicit garment band, which carries no catalog effect yet: diagnose the model "
-                  "without effects" if model.effects or model.fixed_effects or model.tension_profile else None)
+        if model.garment == "laplace" and not item.laplace_model:
+            reason = (f"the explicit band it needs cannot carry {', '.join(blockers)}, which belong to Laplace's law"
+                      if blockers else None)
+        elif name == "friction" and model.friction_mu > 0.0:
+            reason = f"the band has friction already (mu = {model.friction_mu:g}, fixed in the model)"
+        else:
+            reason = item.unavailable(sets, nodes, model.garment) or model.law_conflict(name)
         if reason:
             skipped[name] = reason
         else:
@@ -268,30 +280,52 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
     return candidates, skipped
 
 
+def laplace_only(model: LegModel) -> list[str]:
+    """What of a model the explicit band cannot carry: the effects (fitted or fixed) and the tabulated tension
+    profile that change Laplace's law itself."""
+    named = [name for name in tuple(model.effects) + tuple(model.fixed_effects) if "explicit" not in effect(name).garments]
+    return named + (["the tabulated tension profile"] if model.tension_profile else [])
+
+
 def garment_model(model: LegModel, effects: Sequence[str] = ()) -> LegModel:
-    """The model of the garment's effects: the Laplace-law model's mesh, laws, elements and tension with the
-    explicit band (Bouten and Drapier sec. 2.5) instead of p = T / r, frictionless, its friction coefficient fitted
-    (the parameter mu after the laws' constants) when `effects` holds friction."""
-    return replace(model, garment="explicit", friction_mu=0.0, effects=("friction",) if "friction" in effects else (),
-                   fixed_effects={}, tension_profile=None)
+    """The model of the garment's effects: the model's mesh, laws, elements, tension and effects with the explicit
+    band (Bouten and Drapier sec. 2.5) instead of p = T / r, frictionless, its friction coefficient fitted (the
+    parameter mu after the others) when `effects` holds friction. On a model of the band already, the same band."""
+    blockers = laplace_only(model)
+    if blockers:
+        raise ValueError(f"the explicit band cannot carry {', '.join(blockers)}: they belong to Laplace's law")
+    return replace(model, garment="explicit", friction_mu=0.0 if "friction" in effects else model.friction_mu,
+                   effects=tuple(model.effects) + (("friction",) if "friction" in effects else ()))
 
 
 def garment_columns(evaluator_factory, model: LegModel, theta: Sequence[float], r: np.ndarray,
                     names: Sequence[str]) -> tuple[dict[str, np.ndarray], int]:
-    """G of the garment's effects at theta (module text): bridging is a switch s from Laplace's law (s = 0) to the
-    band (s = 1), linearized as r + s (r_band - r); friction adds to it dr/dmu at mu = 0 by a forward difference of
-    step FRICTION_PROBE_MU (friction has no engine sensitivity): its two columns nest bridging's one, so that their
-    p-values decide between them. Returns the columns and the engine runs they took."""
-    with evaluator_factory(garment_model(model)) as evaluator:
-        band = _residuals(evaluator(list(theta)))
-        runs = evaluator.launched
+    """G of the garment's effects at theta (module text). On a Laplace-law model, bridging is a switch s from
+    Laplace's law (s = 0) to the band (s = 1), linearized as r + s (r_band - r); friction adds to it dr/dmu at
+    mu = 0 by a forward difference of step FRICTION_PROBE_MU (friction has no engine sensitivity): its two columns
+    nest bridging's one, so that their p-values decide between them. On the band's model, friction is that
+    difference alone. Returns the columns and the engine runs they took."""
+    runs = 0
+    if model.garment == "explicit":
+        band = r
+    else:
+        with evaluator_factory(garment_model(model)) as evaluator:
+            band = _residuals(evaluator(list(theta)))
+            runs = evaluator.launched
     columns = {"bridging": (band - r)[:, None]}
     if "friction" in names:
         with evaluator_factory(garment_model(model, ("friction",))) as evaluator:
             sliding = _residuals(evaluator(list(theta) + [FRICTION_PROBE_MU]))
             runs += evaluator.launched
-        columns["friction"] = np.column_stack([band - r, (sliding - band) / FRICTION_PROBE_MU])
+        slope = (sliding - band) / FRICTION_PROBE_MU
+        columns["friction"] = slope[:, None] if model.garment == "explicit" else np.column_stack([band - r, slope])
     return {name: columns[name] for name in names}, runs
+
+
+def garment_parameters(model: LegModel, name: str) -> list[str]:
+    """The parameters a garment effect's columns stand for (`garment_columns`)."""
+    switch = [] if model.garment == "explicit" else ["bridging"]
+    return switch + (["mu"] if name == "friction" else [])
 
 
 def _residuals(record: dict) -> np.ndarray:
@@ -327,10 +361,12 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     how regions are named."""
     began = time.perf_counter()
     candidates, skipped = candidate_effects(model)
-    garment_effects = [name for name in candidates if not effect(name).laplace_model]
-    candidates = [name for name in candidates if effect(name).laplace_model]
+    # friction and bridging are not written into a deck state (no sensitivity): the band's own runs give their columns
+    garment_effects = [name for name in candidates if effect(name).apply is None]
+    candidates = [name for name in candidates if effect(name).apply is not None]
     # the local probe's many columns are one back-substitution each with the engine's sensitivities, an engine run
-    # each by finite differences: without the former, the diagnosis does not locate
+    # each by finite differences: without the former (friction gives none), the diagnosis does not locate
+    engine_sensitivities = engine_sensitivities and model.engine_differentiable
     probing = (LOCAL_PROBE.name,) if engine_sensitivities else ()
     probe = replace(model, effects=model.effects + tuple(candidates) + probing, engine_sensitivities=engine_sensitivities)
     probe_sets = list(model.mesh.element_sets()) + [group.name for group in probe.groups]
@@ -373,7 +409,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     for name, G in columns.items():
         score = score_effect(r, J, G, chi2_to_misfit, deff)
         q = G.shape[1]
-        ranking.append(EffectScore(name, ["bridging"] + (["mu"] if q == 2 else []), score["statistic"], q,
+        ranking.append(EffectScore(name, garment_parameters(model, name), score["statistic"], q,
                                    float(stats.chi2.sf(score["statistic"], q)), score["predicted_reduction"],
                                    misfit - score["predicted_reduction"], score["orthogonal_fraction"], score["step"]))
     ranking.sort(key=lambda s: (s.p_value, -s.statistic))
@@ -526,8 +562,10 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
     when the missing effect dragged the baseline fit to a bound or far from the tissue's values.
     Returns the fit and its residual u_model - u_measured (mm) at the points."""
-    garment = [name for name in effects if not effect(name).laplace_model]
-    extended = garment_model(model, garment) if garment else replace(model, effects=model.effects + tuple(effects))
+    garment = [name for name in effects if effect(name).apply is None]
+    others = tuple(name for name in effects if name not in garment)
+    extended = replace(model, effects=model.effects + others)
+    extended = garment_model(extended, garment) if garment else extended
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
     # one-sided difference, and Levenberg-Marquardt may not leave the bound
     extra = [FRICTION_PROBE_MU if name == "mu" else 0.0 for name in extended.space.names[model.space.size:]]

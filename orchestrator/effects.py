@@ -26,10 +26,14 @@ catalog explains nothing), `region:<fat|muscle>:<start deg>:<end deg>` (dlnE: th
 cut on any mesh: how a phantom with a stiff patch is made) and `local` (dlnE_<group> of every group: the
 diagnosis' probe of where a stiffness change would reduce the residual).
 
-`friction` and `bridging` are not in the Laplace-law deck (`Effect.laplace_model` is False): they need the
-explicit garment band (`templates/leg_garment.inp.j2`, penalty contact, friction). The diagnosis of a Laplace-law
-model without effects ranks them with the band's runs (`diagnose.garment_model`); a model with the explicit
-garment may fit `friction` (its coefficient mu) and no other effect yet.
+Which garment model carries an effect (`Effect.garments`). `friction` and `bridging` are not in the Laplace-law
+deck: they need the explicit garment band (`templates/leg_garment.inp.j2`, penalty contact, friction). The
+diagnosis of a Laplace-law model without effects ranks them with the band's runs (`diagnose.garment_model`). The
+explicit band's deck carries every effect of the tissues and bones (compartments, drainage, bone_motion,
+stiffening, out_of_plane, heterogeneity, and the group effects), written into its last step, once the band is on
+the leg: the fluid leaves, the fibula moves and the slice lengthens under the garment, as they do in a real calf.
+It carries `friction` (its coefficient mu) too. `tension_profile` and `unloaded_curvature` change Laplace's law
+itself, and `bridging` is what the band does: none of the three has a meaning on the band.
 """
 
 from __future__ import annotations
@@ -94,7 +98,7 @@ class Effect:
     physics: str       # why it may be missing in a real calf, and what it does to the residual
     parameter_list: Callable[[Sequence[str], Sequence[str]], tuple[EffectParameter, ...]]
     apply: Callable[[LegDeckState, dict[str, float]], None] | None
-    laplace_model: bool = True   # realizable in the Laplace-law leg deck (ranked by the diagnosis)
+    garments: tuple[str, ...] = ("laplace", "explicit")   # the garment models whose deck carries it (module text)
     requirement: Callable[[Sequence[str], Sequence[str]], str | None] = lambda element_sets, node_sets: None
 
     def parameters(self, element_sets: Sequence[str], node_sets: Sequence[str],
@@ -106,11 +110,19 @@ class Effect:
             raise EffectError(f"effect {self.name!r} is not available on this model: {reason}")
         return self.parameter_list(element_sets, node_sets)
 
+    @property
+    def laplace_model(self) -> bool:
+        """Written into the Laplace-law leg deck (otherwise the diagnosis of a Laplace-law model tries it by switching
+        to the explicit band, `diagnose.garment_model`)."""
+        return "laplace" in self.garments
+
     def unavailable(self, element_sets: Sequence[str], node_sets: Sequence[str], garment: str = "laplace") -> str | None:
-        if garment == "laplace" and not self.laplace_model:
-            return "it needs the explicit garment band (templates/leg_garment.inp.j2), not the Laplace-law model"
-        if garment == "explicit" and self.laplace_model:
-            return "it is written into the Laplace-law deck only, not the explicit garment's"
+        if garment not in self.garments:
+            if garment == "laplace":
+                return "it needs the explicit garment band (templates/leg_garment.inp.j2), not the Laplace-law model"
+            if self.name == "bridging":
+                return "the explicit band bridges the skin's concave parts already"
+            return "it changes Laplace's law (p = T / r), which the explicit band does not use"
         return self.requirement(element_sets, node_sets)
 
 
@@ -319,11 +331,12 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
     Effect("friction", "garment-skin Coulomb friction (explicit garment contact)",
            "A garment pulled on holds the skin by friction, so the tangential traction shears the fat; Laplace's law "
            "has no tangential traction at all.",
-           _fixed(EffectParameter("mu", "1", 0.0, 1.0, 0.05, "Coulomb friction coefficient")), None, laplace_model=False),
+           _fixed(EffectParameter("mu", "1", 0.0, 1.0, 0.05, "Coulomb friction coefficient")), None,
+           garments=("explicit",)),
     Effect("bridging", "explicit garment that bridges concave parts of the skin",
            "Over concave skin (between the tibia's crest and the calf) a real garment lifts off; Laplace's law pulls "
            "there (p = T/r < 0 is clipped, not bridged).",
-           _fixed(), None, laplace_model=False),
+           _fixed(), None, garments=()),
     Effect("tension_profile", "garment tension varying around the leg (first two harmonics)",
            "Seams, a knit that is stretched unevenly or friction make the tension T vary around the leg: "
            "T(theta) = T (1 + a1 cos theta + b1 sin theta + a2 cos 2theta + b2 sin 2theta), theta about the skin's "
@@ -335,7 +348,7 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
                   EffectParameter("b1", "1", -0.6, 0.6, 0.05, "sin theta amplitude of the tension factor"),
                   EffectParameter("a2", "1", -0.6, 0.6, 0.05, "cos 2theta amplitude of the tension factor"),
                   EffectParameter("b2", "1", -0.6, 0.6, 0.05, "sin 2theta amplitude of the tension factor")),
-           _apply_tension_profile),
+           _apply_tension_profile, garments=("laplace",)),
     Effect("unloaded_curvature", "the garment's pressure from the curvature of the unloaded leg, T kappa0",
            "Laplace's law presses with the curvature of the deformed skin (Avril et al. eq. 1); a garment designer "
            "computes the pressure from the unloaded leg instead (p = T kappa0, the pressure a pressure sensor "
@@ -343,7 +356,7 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            "leg the two differ: a residual that follows the change of the skin's curvature.",
            _fixed(EffectParameter("alpha_unloaded", "1", 0.0, 1.0, 0.1,
                                   "share of the pressure taken from the unloaded contour's curvature")),
-           _apply_unloaded_curvature),
+           _apply_unloaded_curvature, garments=("laplace",)),
     Effect("bone_motion", "rigid motion of the fibula relative to the tibia instead of clamping",
            "The bones are not welded together: the interosseous membrane lets the fibula move under load, which "
            "drags the deep tissue with it: a residual that is largest around the second bone.",
@@ -407,7 +420,7 @@ def describe() -> list[str]:
     """Human lines: the catalog with parameters."""
     lines = []
     for item in CATALOG.values():
-        where = "" if item.laplace_model else "  [explicit garment]"
+        where = {("laplace", "explicit"): "", ("laplace",): "  [Laplace's law]"}.get(item.garments, "  [explicit garment]")
         lines.append(f"{item.name:<16} {item.adds}{where}")
         lines.append(f"{'':<16} {item.physics}")
     return lines

@@ -191,7 +191,8 @@ class LegModel:
     the leg's in the deck, and the objectives read the leg's rows only. The engine's sensitivities pass through
     frictionless contact; with friction they do not (the stick history), so an explicit garment with friction
     > 0 asks for none, and Levenberg-Marquardt differences runs instead (one run per parameter and iteration).
-    Catalog effects are written into the Laplace deck only: with the explicit garment none is available yet.
+    The explicit band's deck carries the catalog's effects on the tissues and bones, and friction
+    (`effects.Effect.garments`).
 
     tissues: the law of each tissue (`materials.TissueLaw` by tissue name: fat, muscle, compartment<label>; the
     first paper's AVRIL law where none is given); a compartment without its own law shares the muscle's.
@@ -222,10 +223,10 @@ class LegModel:
             raise ValueError(f"garment must be one of {GARMENTS}, got {self.garment!r}")
         if self.friction_mu < 0.0 or (self.friction_mu > 0.0 and self.garment != "explicit"):
             raise ValueError(f"a friction coefficient ({self.friction_mu}) needs garment = 'explicit' and must be >= 0")
-        if self.garment == "explicit" and (set(self.effects) - {"friction"} or self.fixed_effects or self.tension_profile):
-            raise ValueError("catalog effects (--effects) and tension profiles are written into the Laplace-law deck "
-                             "only, and this model fits the explicit garment ([model] garment = \"explicit\" in "
-                             "case.toml): leave the effects out (friction alone may be fitted), or fit Laplace's law")
+        if self.garment == "explicit" and self.tension_profile:
+            raise ValueError("a tabulated tension profile belongs to Laplace's law (p = T / r), and this model fits the "
+                             "explicit garment ([model] garment = \"explicit\" in case.toml): leave the profile out, "
+                             "or fit Laplace's law")
         if "friction" in self.effects and self.friction_mu > 0.0:
             raise ValueError("the friction coefficient is both fixed (friction_mu, [model] friction) and fitted "
                              "(the friction effect): give one")
@@ -248,9 +249,12 @@ class LegModel:
             mesh_text = mesh_text.replace(leg_block, f"*ELEMENT, TYPE={self.mesh.element_type}H, ELSET=EALL", 1)
         self.mesh_text = mesh_text + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
-        # the engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)
-        self.engine_sensitivities = (self.engine_sensitivities and self.friction_mu == 0.0
-                                     and "friction" not in self.effects)
+        self.engine_sensitivities = self.engine_sensitivities and self.engine_differentiable
+
+    @property
+    def engine_differentiable(self) -> bool:
+        """The engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)."""
+        return self.friction_mu == 0.0 and "friction" not in self.effects
 
     def _set_laws(self, element_sets: list[str]) -> None:
         """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""
@@ -396,10 +400,9 @@ class LegModel:
                 raise ValueError("the explicit garment's tension is the band's (LegModel.tension_N_per_mm): make a "
                                  "model with the other tension")
             mu = float(theta[self.space.names.index("mu")]) if "friction" in self.effects else self.friction_mu
-            text = leg_garment_deck(materials, self.band, self.mesh, friction_mu=mu,
+            return leg_garment_deck(materials, self.band, self.mesh, friction_mu=mu, effects=effects,
                                     description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
                                                 f"mu = {mu:g}")
-            return text + ("*SENSITIVITY\n" + "".join(f"{line}\n" for line in lines) if lines else "")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
                                 description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")
 

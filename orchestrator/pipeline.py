@@ -362,10 +362,6 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     if identification["objective"] != "displacement":
         raise ValueError("the diagnosis compares the model with measured displacements (DIC from the images, or "
                          "points.csv): identify with --objective displacement (the default) first")
-    if setup.model.garment != "laplace":
-        raise ValueError(f"the diagnosis ranks the catalog's effects on the Laplace-law model; {setup.case.files['toml']} "
-                         f"fits the explicit garment ([model] garment = \"{setup.model.garment}\"), whose diagnosis is "
-                         "not available yet: identify a copy of the case without that line to diagnose it")
     if setup.case.levels:
         raise ValueError(f"the diagnosis scores the catalog's effects against one loaded image, and "
                          f"{setup.case.files['toml']} has {len(setup.case.levels)} more garment level(s) "

@@ -1,7 +1,7 @@
 """The garment's effects in the diagnosis (issue 13, must-show 3; orchestrator/diagnose.py, "The garment's effects").
 
-- A Laplace-law model without effects gets friction and bridging as candidates (the band's runs give their columns);
-  with a catalog effect fitted they are skipped with the reason. The band model fits friction's coefficient mu as
+- A Laplace-law model gets friction and bridging as candidates (the band's runs give their columns), with its effects
+  on the tissues carried by the band; with an effect of Laplace's law itself fitted they are skipped with the reason. The band model fits friction's coefficient mu as
   its only effect, writes *FRICTION only for mu > 0, differences runs (no engine sensitivity through friction), and
   refuses mu both fixed and fitted.
 - Slow: a phantom made with the frictionless band on a calf with a groove that the band bridges, then one made with
@@ -35,8 +35,12 @@ def leg_mesh():
 def test_garment_effects_are_candidates_of_the_laplace_model_without_effects(leg_mesh):
     candidates, skipped = candidate_effects(LegModel(leg_mesh, 0.16))
     assert {"friction", "bridging"} <= set(candidates)
+    # the band carries the tissues' effects, not those of Laplace's law itself
     candidates, skipped = candidate_effects(LegModel(leg_mesh, 0.16, effects=("drainage",)))
-    assert "friction" not in candidates and "carries no catalog effect" in skipped["friction"]
+    assert {"friction", "bridging"} <= set(candidates)
+    assert garment_model(LegModel(leg_mesh, 0.16, effects=("drainage",)), ("friction",)).space.names[-2:] == ("dv_muscle", "mu")
+    candidates, skipped = candidate_effects(LegModel(leg_mesh, 0.16, effects=("tension_profile",)))
+    assert "friction" not in candidates and "cannot carry tension_profile" in skipped["friction"]
 
 
 def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
@@ -49,8 +53,8 @@ def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
     assert garment_model(laplace).engine_sensitivities and "*SENSITIVITY" in garment_model(laplace).deck(TRUTH_KPA)
     with pytest.raises(ValueError, match="both fixed"):
         LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=("friction",))
-    with pytest.raises(ValueError, match="friction alone may be fitted"):
-        LegModel(leg_mesh, 0.16, garment="explicit", effects=("friction", "drainage"))
+    with pytest.raises(ValueError, match="not available on this model"):
+        LegModel(leg_mesh, 0.16, garment="explicit", effects=("friction", "unloaded_curvature"))
 
 
 def _diagnosed(tmp_path, phantom=None, friction_mu: float = 0.0, fit_elements: int | None = None):

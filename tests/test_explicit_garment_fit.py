@@ -60,8 +60,8 @@ def test_explicit_deck_carries_the_band_and_sensitivities_only_without_friction(
     with_friction = LegModel(fit_mesh, TENSION, garment="explicit", friction_mu=0.3, engine_sensitivities=True)
     assert "*FRICTION" in with_friction.deck(TABLE2_CENTRAL_KPA) and "*SENSITIVITY" not in with_friction.deck(
         TABLE2_CENTRAL_KPA)
-    with pytest.raises(ValueError, match="Laplace-law deck"):
-        LegModel(fit_mesh, TENSION, garment="explicit", effects=("drainage",))
+    with pytest.raises(ValueError, match="Laplace's law"):
+        LegModel(fit_mesh, TENSION, garment="explicit", effects=("tension_profile",))
     with pytest.raises(ValueError, match="needs garment = 'explicit'"):
         LegModel(fit_mesh, TENSION, friction_mu=0.3)
 
