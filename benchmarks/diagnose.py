@@ -1,13 +1,16 @@
-"""Cost of a full diagnosis (issue 6) on the 400-element model: every catalog effect that the Laplace-law
-model can carry is scored, then the best one (and those tied with it) refitted.
+"""Cost of a full diagnosis (issues 6 and 29) on the 400-element model: every catalog effect that the model can
+carry is scored, then the best one (and those tied with it) refitted; with Laplace's law and with the explicit
+garment band (the second paper's, frictionless: the effects act under the band, the engine's sensitivities pass
+through its contact), side by side.
 
-    .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage]
+    .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage] [--garment laplace|explicit|both]
 
-A phantom case is made with a hidden effect (default: 5 % fluid loss of the muscle; its making and the
-baseline identification are not timed), then `pipeline.run_diagnose` runs from an empty evaluation log
-twice: with the engine's sensitivities du/dtheta (`*SENSITIVITY`, one run for the whole ranking) and with
-forward differences (one run per parameter). Prints for each the wall time of the ranking alone and of
-the full diagnosis with its refits (target: under 60 s on 2 cores) and the engine runs each took.
+For each garment model a phantom case is made with it and a hidden effect (default: 5 % fluid loss of the muscle;
+its making and the baseline identification are not timed), then `pipeline.run_diagnose` runs from an empty
+evaluation log twice: with the engine's sensitivities du/dtheta (`*SENSITIVITY`, one run for the whole ranking)
+and with forward differences (one run per parameter). Prints for each the wall time of the ranking alone and of
+the full diagnosis with its refits (target: under 60 s on 2 cores with Laplace's law) and the engine runs each
+took.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from orchestrator.study import make_phantom_case
 
 HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
                  "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05}}
+GARMENTS = ("laplace", "explicit")
 
 
 def _fresh_copy(base: Path, target: Path) -> Path:
@@ -39,30 +43,43 @@ def main() -> None:
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="element order of the fit (default 2)")
     parser.add_argument("--hidden", choices=sorted(HIDDEN_VALUES), default="drainage", help="the hidden effect")
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--garment", choices=GARMENTS + ("both",), default="both",
+                        help="the garment model of the phantom and of the fit (default: both, side by side)")
     args = parser.parse_args()
+    garments = GARMENTS if args.garment == "both" else (args.garment,)
+    if "explicit" in garments and args.hidden == "tension_profile":
+        parser.error("a tension profile is Laplace's law's: the explicit band carries none (--garment laplace)")
     with tempfile.TemporaryDirectory(prefix="calfit-bench-") as scratch:
-        scratch = Path(scratch)
-        print(f"making a phantom case with hidden {args.hidden} {HIDDEN_VALUES[args.hidden]} ...", flush=True)
-        case, _ = make_phantom_case(scratch / "case", effects={args.hidden: HIDDEN_VALUES[args.hidden]},
-                                    rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)), points_sigma_mm=0.05,
-                                    points_spacing_mm=3.0)
-        identified = scratch / "identified"
-        fit = run_identify(case, identified, method="lm", order=args.order, workers=args.workers, progress=False)
-        setup = json.loads((identified / "setup.json").read_text())
-        print(f"baseline identification (not timed): {setup['n_elements']} elements of order {setup['order']}, "
-              f"{fit['best']['engine_runs']} engine runs, misfit {fit['best']['cost']:.4g} mm^2")
-        for label, engine in (("engine sensitivities", True), ("finite differences", False)):
-            for refit in ("none", "auto"):
-                run = _fresh_copy(identified, scratch / f"{label}-{refit}".replace(" ", "-"))
-                before = len(EvaluationLog(run / LOG_NAME))
-                began = time.perf_counter()
-                result = run_diagnose(run, refit_effects=refit, engine_sensitivities=engine, workers=args.workers,
-                                      progress=False)
-                elapsed = time.perf_counter() - began
-                runs = len(EvaluationLog(run / LOG_NAME)) - before
-                what = "ranking only" if refit == "none" else "ranking + refit"
-                print(f"{label:<21} {what:<16} {elapsed:6.1f} s  {runs:4d} engine runs  "
-                      f"best: {result['ranking'][0]['effect']}  verdict: {result['verdict'][:90]}")
+        for garment in garments:
+            _diagnose_timed(Path(scratch) / garment, garment, args)
+
+
+def _diagnose_timed(scratch: Path, garment: str, args) -> None:
+    print(f"\n{garment} garment: making a phantom case with hidden {args.hidden} {HIDDEN_VALUES[args.hidden]} ...",
+          flush=True)
+    case, _ = make_phantom_case(scratch / "case", effects={args.hidden: HIDDEN_VALUES[args.hidden]},
+                                rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)), points_sigma_mm=0.05,
+                                points_spacing_mm=3.0, garment=garment)
+    if garment == "explicit":
+        with open(case / "case.toml", "a") as toml:
+            toml.write('\n[model]\ngarment = "explicit"\n')
+    identified = scratch / "identified"
+    fit = run_identify(case, identified, method="lm", order=args.order, workers=args.workers, progress=False)
+    setup = json.loads((identified / "setup.json").read_text())
+    print(f"baseline identification (not timed): {setup['n_elements']} elements of order {setup['order']}, "
+          f"{fit['best']['engine_runs']} engine runs, misfit {fit['best']['cost']:.4g} mm^2")
+    for label, engine in (("engine sensitivities", True), ("finite differences", False)):
+        for refit in ("none", "auto"):
+            run = _fresh_copy(identified, scratch / f"{label}-{refit}".replace(" ", "-"))
+            before = len(EvaluationLog(run / LOG_NAME))
+            began = time.perf_counter()
+            result = run_diagnose(run, refit_effects=refit, engine_sensitivities=engine, workers=args.workers,
+                                  progress=False)
+            elapsed = time.perf_counter() - began
+            runs = len(EvaluationLog(run / LOG_NAME)) - before
+            what = "ranking only" if refit == "none" else "ranking + refit"
+            print(f"{garment:<9} {label:<21} {what:<16} {elapsed:6.1f} s  {runs:4d} engine runs  "
+                  f"best: {result['ranking'][0]['effect']}  verdict: {result['verdict'][:90]}", flush=True)
 
 
 if __name__ == "__main__":

@@ -32,8 +32,8 @@ identifies the band model (with mu free for friction) from the fitted point.
 
 A model of the band itself (the second paper's, `[model] garment = "explicit"`) is diagnosed the same way with the
 effects its deck carries (`effects.Effect.garments`: those of the tissues and bones, written into the band's last
-step), their columns through the frictionless contact from the engine; friction, while the band has none, is the
-column dr/dmu alone. A band with friction gives no engine sensitivity: every column is then a difference of runs,
+step), their columns through the frictionless contact from the engine; friction is the column dr/dmu alone, at
+the band's own coefficient (0, or the one the model fixed: its refit frees it). A band with friction gives no engine sensitivity: every column is then a difference of runs,
 and the diagnosis does not locate (the local probe would take a run per material group).
 
 Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
@@ -259,7 +259,8 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
     """Catalog effects that the diagnosis can try on this model, and why the others are not tried. On a Laplace-law
     model the garment's effects (friction, bridging) are tried by switching to the explicit band (`garment_model`),
     which carries the model's effects on the tissues and bones but not those of Laplace's law itself. On the explicit
-    band, every effect its deck carries is tried (`effects.Effect.garments`), friction too while the band has none."""
+    band, every effect its deck carries is tried (`effects.Effect.garments`), and friction: switched on, or its fixed
+coefficient freed."""
     sets, nodes = list(model.mesh.element_sets()), list(model.mesh.node_sets)
     blockers = laplace_only(model)
     candidates, skipped = [], {}
@@ -269,8 +270,6 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
         if model.garment == "laplace" and not item.laplace_model:
             reason = (f"the explicit band it needs cannot carry {', '.join(blockers)}, which belong to Laplace's law"
                       if blockers else None)
-        elif name == "friction" and model.friction_mu > 0.0:
-            reason = f"the band has friction already (mu = {model.friction_mu:g}, fixed in the model)"
         else:
             reason = item.unavailable(sets, nodes, model.garment) or model.law_conflict(name)
         if reason:
@@ -304,7 +303,8 @@ def garment_columns(evaluator_factory, model: LegModel, theta: Sequence[float], 
     Laplace's law (s = 0) to the band (s = 1), linearized as r + s (r_band - r); friction adds to it dr/dmu at
     mu = 0 by a forward difference of step FRICTION_PROBE_MU (friction has no engine sensitivity): its two columns
     nest bridging's one, so that their p-values decide between them. On the band's model, friction is that
-    difference alone. Returns the columns and the engine runs they took."""
+    difference alone, from the band's own coefficient (0, or the one the model fixed, which its refit frees).
+    Returns the columns and the engine runs they took."""
     runs = 0
     if model.garment == "explicit":
         band = r
@@ -315,7 +315,7 @@ def garment_columns(evaluator_factory, model: LegModel, theta: Sequence[float], 
     columns = {"bridging": (band - r)[:, None]}
     if "friction" in names:
         with evaluator_factory(garment_model(model, ("friction",))) as evaluator:
-            sliding = _residuals(evaluator(list(theta) + [FRICTION_PROBE_MU]))
+            sliding = _residuals(evaluator(list(theta) + [model.friction_mu + FRICTION_PROBE_MU]))
             runs += evaluator.launched
         slope = (sliding - band) / FRICTION_PROBE_MU
         columns["friction"] = slope[:, None] if model.garment == "explicit" else np.column_stack([band - r, slope])
@@ -568,7 +568,8 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
     extended = garment_model(extended, garment) if garment else extended
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
     # one-sided difference, and Levenberg-Marquardt may not leave the bound
-    extra = [FRICTION_PROBE_MU if name == "mu" else 0.0 for name in extended.space.names[model.space.size:]]
+    extra = [(model.friction_mu or FRICTION_PROBE_MU) if name == "mu" else 0.0
+             for name in extended.space.names[model.space.size:]]
     starts = [list(map(float, theta)) + extra, model.start() + extra]
     with evaluator_factory(extended) as evaluator:
         fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations, ftol=REFIT_FTOL) for start in starts]

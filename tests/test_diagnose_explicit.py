@@ -43,8 +43,11 @@ def test_the_band_is_diagnosed_with_the_effects_its_deck_carries(leg_mesh):
     assert "bridges the skin's concave parts already" in skipped["bridging"]
     for name in ("tension_profile", "unloaded_curvature"):
         assert "Laplace's law" in skipped[name]
-    candidates, skipped = candidate_effects(LegModel(leg_mesh, TENSION, garment="explicit", friction_mu=0.3))
-    assert "friction" not in candidates and "mu = 0.3" in skipped["friction"]
+    # a band with friction: its coefficient, fixed in the model, is freed
+    band = LegModel(leg_mesh, TENSION, garment="explicit", friction_mu=0.3)
+    assert "friction" in candidate_effects(band)[0]
+    freed = garment_model(band, ("friction",))
+    assert freed.space.names[-1] == "mu" and freed.friction_mu == 0.0 and not freed.engine_sensitivities
     # a Laplace-law model with an effect of Laplace's law cannot be switched to the band
     with pytest.raises(ValueError, match="cannot carry tension_profile"):
         garment_model(LegModel(leg_mesh, TENSION, effects=("tension_profile",)))
