@@ -28,7 +28,7 @@ diagnosis' probe of where a stiffness change would reduce the residual).
 
 Which garment model carries an effect (`Effect.garments`). `friction` and `bridging` are not in the Laplace-law
 deck: they need the explicit garment band (`templates/leg_garment.inp.j2`, penalty contact, friction). The
-diagnosis of a Laplace-law model without effects ranks them with the band's runs (`diagnose.garment_model`). The
+diagnosis of a Laplace-law model ranks them with the band's runs (`diagnose.garment_model`). The
 explicit band's deck carries every effect of the tissues and bones (compartments, drainage, bone_motion,
 stiffening, out_of_plane, heterogeneity, and the group effects), written into its last step, once the band is on
 the leg: the fluid leaves, the fibula moves and the slice lengthens under the garment, as they do in a real calf.
