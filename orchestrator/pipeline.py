@@ -160,7 +160,9 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
             # skin uncertainties stored per level without their columns (before the levels' common skin error was
             # kept) cannot be joined: they are estimated again below
             discard_without_columns(run_dir, levels)
-        measured = setup.level_measurements(source)
+        # the first fit weighs the measurement's error alone, whatever skin uncertainty an earlier or interrupted
+        # identification left in the run folder: a resumed run then replays the same fits as an uninterrupted one
+        measured = setup.level_measurements(source, with_geometry=False)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else setup.model.base_start
     start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]

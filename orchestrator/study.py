@@ -182,11 +182,11 @@ class RunSetup:
                                  "(--data dic, the default without points.csv)")
         return data
 
-    def measurements(self, data: str = "auto", level: int = 1) -> Measurements:
+    def measurements(self, data: str = "auto", level: int = 1, with_geometry: bool = True) -> Measurements:
         """The measured displacements of garment level `level` (1: loaded.*, 2, 3, ...: the [[garment.levels]]) the
         fit compares the model with: points.csv (or the level's points file), or the DIC windows that
         `calfit measure` stored in the run folder, with the model's geometry uncertainty when the identification
-        has estimated it (`geometry_uncertainty`)."""
+        has estimated it (`geometry_uncertainty`) and `with_geometry`."""
         if self.data_source(data) == "points":
             if level == 1:
                 return points_measurements(self.case.points)
@@ -207,7 +207,7 @@ class RunSetup:
         measured = dic_measurements(self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm,
                                     summary["noise_sigma"][0], summary.get("prefilter_px", 0.0),
                                     summary.get("edge_variance_px2", 0.0))
-        geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level)
+        geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level) if with_geometry else None
         if geometry is None:
             return measured
         covariance, info = geometry
@@ -224,9 +224,9 @@ class RunSetup:
                                  "levels together")
         return measured.with_model_covariance(covariance, description, *columns)
 
-    def level_measurements(self, data: str = "auto") -> list[Measurements]:
-        """The measurements of every garment level, the first level's first."""
-        return [self.measurements(data, level) for level in range(1, len(self.case.tensions) + 1)]
+    def level_measurements(self, data: str = "auto", with_geometry: bool = True) -> list[Measurements]:
+        """The measurements of every garment level, the first level's first (`measurements`)."""
+        return [self.measurements(data, level, with_geometry) for level in range(1, len(self.case.tensions) + 1)]
 
     def objective_of(self, measured: Sequence[Measurements]):
         """The displacement residual of these measurements, one per garment level: a
