@@ -8,9 +8,9 @@ through its contact), side by side.
 For each garment model a phantom case is made with it and a hidden effect (default: 5 % fluid loss of the muscle;
 its making and the baseline identification are not timed), then `pipeline.run_diagnose` runs from an empty
 evaluation log twice: with the engine's sensitivities du/dtheta (`*SENSITIVITY`, one run for the whole ranking)
-and with forward differences (one run per parameter). Prints for each the wall time of the ranking alone and of
-the full diagnosis with its refits (target: under 60 s on 2 cores with Laplace's law) and the engine runs each
-took.
+and with forward differences (one run per parameter). Prints for each the wall time of the ranking (with
+--refit none, which still refits the best local patch when one is significant) and of the full diagnosis with its
+refits (target: under 60 s on 2 cores with Laplace's law) and the engine runs each took.
 """
 
 from __future__ import annotations
@@ -77,7 +77,8 @@ def _diagnose_timed(scratch: Path, garment: str, args) -> None:
                                   progress=False)
             elapsed = time.perf_counter() - began
             runs = len(EvaluationLog(run / LOG_NAME)) - before
-            what = "ranking only" if refit == "none" else "ranking + refit"
+            # --refit none still refits the best local patch when one is significant (pipeline.run_diagnose)
+            what = "ranking (+ patch)" if refit == "none" else "ranking + refits"
             print(f"{garment:<9} {label:<21} {what:<16} {elapsed:6.1f} s  {runs:4d} engine runs  "
                   f"best: {result['ranking'][0]['effect']}  verdict: {result['verdict'][:90]}", flush=True)
 
