@@ -33,8 +33,9 @@ identifies the band model (with mu free for friction) from the fitted point.
 A model of the band itself (the second paper's, `[model] garment = "explicit"`) is diagnosed the same way with the
 effects its deck carries (`effects.Effect.garments`: those of the tissues and bones, written into the band's last
 step), their columns through the frictionless contact from the engine; friction is the column dr/dmu alone, at
-the band's own coefficient (0, or the one the model fixed: its refit frees it). A band with friction gives no engine sensitivity: every column is then a difference of runs,
-and the diagnosis does not locate (the local probe would take a run per material group).
+the band's own coefficient (0, or the one the model fixed: its refit frees it). A band with friction gives no engine
+sensitivity: every column is then a difference of runs, and the diagnosis does not locate (the local probe would take
+a run per material group).
 
 Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
 the noise floor, that effect explains the residual; otherwise the diagnosis says that no catalog effect
@@ -260,14 +261,14 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
     model the garment's effects (friction, bridging) are tried by switching to the explicit band (`garment_model`),
     which carries the model's effects on the tissues and bones but not those of Laplace's law itself. On the explicit
     band, every effect its deck carries is tried (`effects.Effect.garments`), and friction: switched on, or its fixed
-coefficient freed."""
+    coefficient freed."""
     sets, nodes = list(model.mesh.element_sets()), list(model.mesh.node_sets)
     blockers = laplace_only(model)
     candidates, skipped = [], {}
     for name, item in CATALOG.items():
         if name in model.effects or name in model.fixed_effects:
             continue
-        if model.garment == "laplace" and not item.laplace_model:
+        if model.garment == "laplace" and "laplace" not in item.garments:   # friction, bridging: switch to the band
             reason = (f"the explicit band it needs cannot carry {', '.join(blockers)}, which belong to Laplace's law"
                       if blockers else None)
         else:

@@ -110,12 +110,6 @@ class Effect:
             raise EffectError(f"effect {self.name!r} is not available on this model: {reason}")
         return self.parameter_list(element_sets, node_sets)
 
-    @property
-    def laplace_model(self) -> bool:
-        """Written into the Laplace-law leg deck (otherwise the diagnosis of a Laplace-law model tries it by switching
-        to the explicit band, `diagnose.garment_model`)."""
-        return "laplace" in self.garments
-
     def unavailable(self, element_sets: Sequence[str], node_sets: Sequence[str], garment: str = "laplace") -> str | None:
         if garment not in self.garments:
             if garment == "laplace":
