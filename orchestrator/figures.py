@@ -415,6 +415,67 @@ def intervals_figure(path: Path, names: list[str], units: list[str], identified,
     return _save(figure, path)
 
 
+def band_figure(path: Path, band: dict, direction) -> Path:
+    """The explicit garment band on the leg (pressures.json "band", `garment_state`), against the angle around the
+    leg (display angle, the anatomical direction named above each 45 deg by `direction`): the contact pressure of
+    each skin face in kPa and mmHg, each skin node's contact status as a strip at the bottom, the bridges shaded
+    with their length and gap; the band's hoop force; with friction, the shear and the slip."""
+    profile, faces, stations = band["profile"], band["faces"], band["stations"]
+    order = np.argsort(profile["angle_deg"])
+    angle = np.asarray(profile["angle_deg"])[order]
+    status = np.asarray(profile["status"])[order]
+    friction = band["friction_mu"] > 0
+    rows = 3 if friction else 2
+    figure, axes = plt.subplots(rows, 1, figsize=(9.0, 2.6 * rows + 0.8), sharex=True)
+    ax = axes[0]
+    face_order = np.argsort(faces["angle_deg"])
+    ax.plot(np.asarray(faces["angle_deg"])[face_order], np.asarray(faces["pressure_kPa"])[face_order],
+            color="tab:blue", linewidth=1.2, label="contact pressure (face mean)")
+    strip = ax.get_xaxis_transform()   # x in degrees, y in the axes' height
+    for code, name, colour in ((0, "open: the band bridges", "tab:red"), (1, "sticking", "tab:cyan"),
+                               (2, "slipping" if friction else "in contact, frictionless", "tab:green")):
+        shown = status == code
+        if shown.any():
+            ax.scatter(angle[shown], np.full(shown.sum(), 0.03), transform=strip, marker="|", s=40, color=colour,
+                       label=f"skin node {name}")
+    for bridge in band["bridges"]:
+        low, high = sorted((bridge["start_deg"], bridge["end_deg"]))
+        spans = [(low, high)] if high - low <= 180.0 else [(0.0, low), (high, 360.0)]   # across 0 deg
+        for start, end in spans:
+            ax.axvspan(start, end, color="tab:red", alpha=0.12, linewidth=0)
+        ax.text(0.5 * (low + high) if high - low <= 180.0 else high, 0.5, f"bridge {bridge['length_mm']:.1f} mm,\n"
+                f"gap {bridge['max_gap_mm']:.2f} mm", transform=strip, ha="center", fontsize=7, color="tab:red")
+    ax.set_ylim(bottom=0.0)
+    ax.set_ylabel("contact pressure (kPa)")
+    mmhg = ax.secondary_yaxis("right", functions=(lambda kpa: kpa * MMHG_PER_KPA, lambda mm: mm / MMHG_PER_KPA))
+    mmhg.set_ylabel("(mmHg)")
+    ax.legend(loc="lower right", fontsize=7, ncol=2, bbox_to_anchor=(1.0, 0.06))
+    ax.set_title(f"the garment band on the leg (friction mu = {band['friction_mu']:g}); mean contact pressure "
+                 f"{band['contact_pressure_kPa']['mean']:.3g} kPa", fontsize=9)
+    names = ax.secondary_xaxis("top")
+    ticks = np.arange(0.0, 360.0, 45.0)
+    names.set_xticks(ticks, [direction(t) for t in ticks], fontsize=7)
+    station_order = np.argsort(stations["angle_deg"])
+    tension = np.asarray(stations["hoop_tension_N_per_mm"])[station_order]
+    axes[1].plot(np.asarray(stations["angle_deg"])[station_order], tension, color="tab:purple")
+    mean = float(tension.mean())
+    axes[1].set_ylim(min(tension.min(), 0.98 * mean), max(tension.max(), 1.02 * mean))   # +-2 % at least: not noise
+    axes[1].set_ylabel("band hoop force (N/mm)")
+    if friction:
+        ax = axes[2]
+        ax.plot(np.asarray(faces["angle_deg"])[face_order], np.asarray(faces["shear_kPa"])[face_order],
+                color="tab:orange")
+        ax.set_ylabel("friction shear, face mean (kPa)", color="tab:orange")
+        slip = ax.twinx()
+        slip.plot(angle, np.asarray(profile["slip_mm"])[order], color="tab:brown")
+        slip.set_ylabel("slip since first touch (mm)", color="tab:brown")
+    axes[-1].set_xlabel("angle around the leg (deg, counter-clockwise on the image, 90 at the top)")
+    axes[-1].set_xlim(0.0, 360.0)
+    axes[-1].set_xticks(np.arange(0.0, 361.0, 45.0))
+    figure.tight_layout()
+    return _save(figure, path)
+
+
 # ----------------------------------------------------------------------------- the study report's figures
 
 

@@ -396,15 +396,17 @@ class LegModel:
         stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
         materials = {elset: deck_material(state.laws[elset], c, stiffening) for elset, c in state.constants.items()}
         if self.band is not None:
-            if tension != self.tension_N_per_mm:
-                raise ValueError("the explicit garment's tension is the band's (LegModel.tension_N_per_mm): make a "
-                                 "model with the other tension")
-            mu = float(theta[self.space.names.index("mu")]) if "friction" in self.effects else self.friction_mu
-            return leg_garment_deck(materials, self.band, self.mesh, friction_mu=mu, effects=effects,
+            band = self.band if tension == self.tension_N_per_mm else self.band.at_tension(tension)
+            mu = self.friction_at(theta)
+            return leg_garment_deck(materials, band, self.mesh, friction_mu=mu, effects=effects,
                                     description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
                                                 f"mu = {mu:g}")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
                                 description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")
+
+    def friction_at(self, theta: Sequence[float]) -> float:
+        """The band's friction coefficient at theta: fitted (the friction effect's mu) or fixed."""
+        return float(theta[self.space.names.index("mu")]) if "friction" in self.effects else self.friction_mu
 
     def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]]]:
         """Parameter name -> (engine sensitivity name, factor) pairs: du/dtheta_j = sum factor * du/d(line)."""

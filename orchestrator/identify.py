@@ -42,6 +42,7 @@ MAX_EXPLORED_FACTOR = 2.0      # Monte-Carlo draws within best / 2 .. best * 2
 PROFILE_OFFSETS = np.array([-1.0, -0.5, -0.25, -0.125, 0.125, 0.25, 0.5, 1.0])   # in units of ln(max factor)
 POORLY_IDENTIFIED_RATIO = 1.5  # kept values span more than a factor 1.5 (upper / lower)
 NOISE_DRAWS = 200              # synthetic data sets of the noise Monte-Carlo
+MIN_NOISE_DRAWS = 10           # fewer draws leave the intervals' 2.5 % and 97.5 % quantiles to one or two samples
 IDENTIFIABLE_HALF_WIDTH = 0.10 # a 95 % interval within +-10 % of the value: identifiable
 
 
@@ -417,6 +418,9 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     left out of the refits; a parameter they move is `undetermined`: not identifiable, its interval the whole box.
     Pairs that the model says act only through their sum are among those directions, whatever J says, and their
     sum's interval is reported (`sums`)."""
+    if draws < MIN_NOISE_DRAWS:
+        raise ValueError(f"the noise Monte-Carlo needs at least {MIN_NOISE_DRAWS} draws for its quantiles, not {draws}: "
+                         f"ask for more (--draws {MIN_NOISE_DRAWS} or above)")
     began = time.perf_counter()
     launched0 = evaluator.launched
     space = parameter_space(evaluator)
@@ -454,7 +458,7 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
         residual = np.asarray(rec["outputs"]["residuals"], float) - r_hat - noise[k]
         J_k = _engine_or_fd_jacobian(evaluator, rec, space, x_k)
         samples.append(_from_x(space, x_k + refit_step(J_k, -residual)))
-    if len(samples) < max(10, draws // 2):
+    if len(samples) < max(MIN_NOISE_DRAWS, draws // 2):
         raise RuntimeError(f"the noise Monte-Carlo lost {failed} of {draws} draws to engine failures")
     samples = np.array(samples)
     tail = 50.0 * (1.0 - confidence)

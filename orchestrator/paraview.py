@@ -20,10 +20,19 @@ Point data (values at the mesh nodes; stresses are the engine's nodal averages o
     cauchy_stress_kPa           (6 comp.) Cauchy stress xx, yy, zz, xy, yz, xz in kPa (VTK's symmetric tensor order)
     hydrostatic_pressure_kPa    -tr(sigma)/3 in kPa, from cauchy_stress_kPa (positive in compression)
     hydrostatic_pressure_mmHg   the same in mmHg (1 kPa = 7.50062 mmHg)
+  with the explicit garment ([model] garment = "explicit"), the band's nodes follow the leg's, in the band's
+  natural shape (Warp By Vector puts it on the leg), and
+    contact_pressure_kPa        the skin/band contact pressure, kPa (on the skin and the band's inner surface)
+    contact_shear_kPa           the friction shear, kPa
+    contact_status              on the skin: 0 open (the band bridges or is off), 1 sticking, 2 slipping
+                                (Abaqus's CSTATUS; frictionless contact slips)
+    contact_slip_mm             on the skin: its tangential motion over the band since the first touch, mm
+                                (with friction; 0 without)
 
 Cell data (one value per element):
     tissue                      integer tissue label of the element: 1 fat, 2 muscle, k >= 4 muscle
-                                compartment k (the mesh's element regions; 3 is bone, never meshed)
+                                compartment k (the mesh's element regions; 3 is bone, never meshed), 0 the
+                                explicit garment's band
     cauchy_stress_kPa           (6 comp.) element average of the Cauchy stress, kPa, order as above
     hydrostatic_pressure_kPa    -tr(sigma)/3 of the element average, kPa
     hydrostatic_pressure_mmHg   the same in mmHg
@@ -70,6 +79,7 @@ STEP_NAME = "model-step-{}.vtu"
 STEP_PATTERN = re.compile(r"model-step-(\d+)\.vtu")
 TISSUE_LABEL_PREFIX = "tissue_label_"
 VTK_CELL_TYPES = {3: "triangle", 6: "triangle6"}   # meshio names of VTK_TRIANGLE and VTK_QUADRATIC_TRIANGLE
+GARMENT_LABEL = 0   # the "tissue" of the explicit garment's band cells
 
 
 @holds_run_folder()
@@ -89,6 +99,8 @@ def write_paraview(run_dir: str | Path, out_dir: str | Path | None = None) -> li
     field_data = {name: np.array([value]) for name, value in zip(names, theta)}
     for region in np.unique(setup.mesh.element_regions):
         field_data[TISSUE_LABEL_PREFIX + tissue_name(int(region))] = np.array([int(region)], np.int32)
+    if model.band is not None:
+        field_data[TISSUE_LABEL_PREFIX + "GARMENT"] = np.array([GARMENT_LABEL], np.int32)
     comment = ("calfit identified model of " + str(run_dir.resolve()) + "; units mm, kPa; parameters: "
                + ", ".join(f"{n} = {v!r} {u or '(no unit)'}" for n, v, u in zip(names, theta, units))
                + "; tissue labels: 1 fat, 2 muscle, >= 4 muscle compartment k")
@@ -96,7 +108,7 @@ def write_paraview(run_dir: str | Path, out_dir: str | Path | None = None) -> li
     with tempfile.TemporaryDirectory(prefix="calfit-paraview-") as scratch:
         try:
             results = setup.solve(theta, Path(scratch), model)
-            grids = {int(step["step"]): _step_grid(setup.mesh, results, int(step["step"]))
+            grids = {int(step["step"]): _step_grid(setup.mesh, results, int(step["step"]), model.band)
                      for step in results.summary["steps"]}
         except RuntimeError as error:   # the engine's errors (not found, failed, not converged) are RuntimeErrors
             reason = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
@@ -129,33 +141,49 @@ def write_paraview(run_dir: str | Path, out_dir: str | Path | None = None) -> li
     return [final for _, final in staged]
 
 
-def _step_grid(mesh, results: EngineResults, step: int) -> meshio.Mesh:
-    """The run's reference mesh with the engine's fields of one step, in mm and kPa (see the module text)."""
+def _step_grid(mesh, results: EngineResults, step: int, band=None) -> meshio.Mesh:
+    """The run's reference mesh (and the explicit garment's band in its natural shape, after the leg, as in the
+    deck) with the engine's fields of one step, in mm and kPa (see the module text)."""
     engine = results.mesh(step)
-    elements = np.asarray(mesh.elements)
+    nodes, elements = np.asarray(mesh.nodes), np.asarray(mesh.elements)
+    regions = np.asarray(mesh.element_regions, np.int32)
+    if band is not None:
+        elements = np.vstack([elements, np.asarray(band.elements) + len(nodes)])
+        nodes = np.vstack([nodes, band.nodes])
+        regions = np.concatenate([regions, np.full(len(band.elements), GARMENT_LABEL, np.int32)])
     engine_cells = [block.data for block in engine.cells]
-    if len(engine.points) != len(mesh.nodes) or sum(len(c) for c in engine_cells) != len(elements):
+    if len(engine.points) != len(nodes) or sum(len(c) for c in engine_cells) != len(elements):
         raise RuntimeError(f"the engine's step {step} has {len(engine.points)} nodes and "
-                           f"{sum(len(c) for c in engine_cells)} elements, the run's mesh {len(mesh.nodes)} and "
+                           f"{sum(len(c) for c in engine_cells)} elements, the run's mesh {len(nodes)} and "
                            f"{len(elements)}")
     stress_kPa = np.asarray(engine.point_data["cauchy_stress"], float) * KPA_PER_MPA
     cell_stress_kPa = np.asarray(engine.cell_data["cauchy_stress"][0], float) * KPA_PER_MPA
     pressure_kPa, cell_pressure_kPa = _hydrostatic(stress_kPa), _hydrostatic(cell_stress_kPa)
     # points from the run's mesh, not from the engine's VTU: the deck carries 10 significant digits, and
     # the export should overlay the mesh that setup.npz, the report and the image frame use
-    points = np.column_stack([mesh.nodes, np.zeros(len(mesh.nodes))])
+    points = np.column_stack([nodes, np.zeros(len(nodes))])
+    point_data = {"displacement_mm": np.asarray(engine.point_data["displacement"], float),
+                  "cauchy_stress_kPa": stress_kPa,
+                  "hydrostatic_pressure_kPa": pressure_kPa,
+                  "hydrostatic_pressure_mmHg": pressure_kPa * MMHG_PER_KPA}
+    if band is not None:
+        point_data.update({"contact_pressure_kPa": _point(engine, "contact_pressure") * KPA_PER_MPA,
+                           "contact_shear_kPa": _point(engine, "contact_shear") * KPA_PER_MPA,
+                           "contact_status": _point(engine, "contact_status"),
+                           "contact_slip_mm": _point(engine, "contact_slip")})
     return meshio.Mesh(
         points, [(VTK_CELL_TYPES[elements.shape[1]], elements)],
-        point_data={"displacement_mm": np.asarray(engine.point_data["displacement"], float),
-                    "cauchy_stress_kPa": stress_kPa,
-                    "hydrostatic_pressure_kPa": pressure_kPa,
-                    "hydrostatic_pressure_mmHg": pressure_kPa * MMHG_PER_KPA},
-        cell_data={"tissue": [np.asarray(mesh.element_regions, np.int32)],
+        point_data=point_data,
+        cell_data={"tissue": [regions],
                    "cauchy_stress_kPa": [cell_stress_kPa],
                    "hydrostatic_pressure_kPa": [cell_pressure_kPa],
                    "hydrostatic_pressure_mmHg": [cell_pressure_kPa * MMHG_PER_KPA],
                    "J": [np.asarray(engine.cell_data["J"][0], float).reshape(-1)]},
     )
+
+
+def _point(engine: meshio.Mesh, name: str) -> np.ndarray:
+    return np.asarray(engine.point_data[name], float).reshape(-1)
 
 
 def _hydrostatic(stress: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ its pressures given at every level; its diagnosis is refused (the catalog's scor
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import Sequence
 
@@ -28,6 +29,7 @@ from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, re
                        summarize_fit)
 from .digits import interval_uncertainty, rounded, with_uncertainty
 from .figures import diagnosis_figure
+from .garment_state import band_state
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_spreads, pressure_uncertainty, table1_starts)
 from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
@@ -347,8 +349,19 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
         levels.append({"level": level.number, "image": level.path.name, **level_stats.as_dict()})
     if levels:
         result["levels"] = levels
+    if setup.model.band is not None:
+        result["band"] = _band_on_the_leg(setup, montecarlo["central"])
     write_json(run_dir / "pressures.json", result)
     return result
+
+
+def _band_on_the_leg(setup: RunSetup, theta: Sequence[float]) -> dict:
+    """The explicit band's contact pressure, shear, status and slip around the leg, its bridges and its hoop force at
+    theta, under the case's own garment (`garment_state`; the other levels' bands are not reported)."""
+    with tempfile.TemporaryDirectory(prefix="calfit-band-") as scratch:
+        results = setup.solve(theta, Path(scratch))
+        state = band_state(results, setup.mesh, setup.model.band, setup.frame(), setup.model.friction_at(theta))
+    return {"theta": [float(v) for v in theta], **state.as_dict()}
 
 
 @holds_run_folder()

@@ -358,10 +358,42 @@ def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -
                     # the model's pressure at given parameters and tension: known to the parameters' spread
                     uncertainties=[[None, s, s, 100 * s / abs(b), s, 100 * s / abs(b)]
                                    for s, b in zip(parameters, pressures["central_kPa"])])
-    return _section("pressures", "Pressure transmitted to the tissues", tables=[table3, table4],
-                    figures_=[_figure("pressure.png", "Hydrostatic pressure -tr(sigma)/3 at the central parameters "
-                                                      "(Avril et al. Fig. 5), the landmarks named with their mean "
-                                                      "+- std (the parameters' and the tension's).")])
+    tables, shown = [table3, table4], [_figure("pressure.png", "Hydrostatic pressure -tr(sigma)/3 at the central "
+                                                                "parameters (Avril et al. Fig. 5), the landmarks named "
+                                                                "with their mean +- std (the parameters' and the "
+                                                                "tension's).")]
+    if pressures.get("band"):
+        tables_, figure_ = _band_parts(setup, pressures["band"], staging)
+        tables += tables_
+        shown.append(figure_)
+    return _section("pressures", "Pressure transmitted to the tissues", tables=tables, figures_=shown)
+
+
+def _band_parts(setup, band: dict, staging: Path) -> tuple[list[dict], dict]:
+    """The explicit garment band on the leg at the central parameters: a table and a figure (`garment_state`)."""
+    frame = setup.frame()
+    figures.band_figure(staging / "band.png", band, frame.direction)
+    pressure, tension, share = band["contact_pressure_kPa"], band["hoop_tension_N_per_mm"], band["skin_share"]
+    rows = [["contact pressure, mean over the skin (kPa)", pressure["mean"]],
+            ["contact pressure, largest (kPa)", pressure["max"]],
+            ["band hoop force, mean (N/mm)", tension["mean"]],
+            ["band hoop force, smallest to largest (N/mm)", f"{tension['min']:.4g} to {tension['max']:.4g}"],
+            ["skin in contact, sticking (%)", 100 * share["sticking"]],
+            ["skin in contact, slipping (%)", 100 * share["slipping"]],
+            ["skin under a bridge (%)", 100 * share["open"]],
+            ["largest slip since the first touch (mm)", band["max_slip_mm"] if band["friction_mu"] > 0 else
+             "not tracked (frictionless)"]]
+    rows += [[f"bridge, {b['direction']} ({b['start_deg']:.0f}-{b['end_deg']:.0f} deg)",
+              f"{b['length_mm']:.1f} mm of skin, the band up to {b['max_gap_mm']:.2f} mm off it"]
+             for b in band["bridges"]]
+    table = _table("band", f"The garment band on the leg (friction mu = {band['friction_mu']:g}), at the central "
+                           "parameters", ["", "value"], rows)
+    caption = ("The explicit garment band on the leg at the central parameters: its contact pressure around the "
+               "leg, each skin node coloured by its contact status (open where the band bridges a hollow of the "
+               "skin, shaded), the band's hoop force" + (", the friction shear and the skin's slip over the band "
+                                                         "since it first touched it" if band["friction_mu"] > 0 else "")
+               + ".")
+    return [table], _figure("band.png", caption)
 
 
 def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Path) -> dict:

@@ -8,7 +8,8 @@
   that are not the fit's start, with scanner motion and 0.02 mm of noise on its points, on its own finer mesh, is
   identified back from the case folder by `run_identify` (Levenberg-Marquardt with the engine's sensitivities
   through the contact): misfit at the noise floor, the muscle's constants within 5 %. Its diagnosis, with the
-  effects the band carries, finds nothing significant.
+  effects the band carries, finds nothing significant. Its pressures.json, ParaView files and report show the band
+  (contact pressure, status, slip, bridges, hoop force), whose contact pressure integrates to 2 pi T.
   From the images alone (DIC, slow), the same.
 - element = "CPE6H": the leg is meshed with u/p elements (the band stays a displacement element), and --order
   may not contradict it.
@@ -16,8 +17,10 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import meshio
 import numpy as np
 import pytest
 
@@ -25,8 +28,11 @@ from orchestrator.imaging.case import ModelChoice, read_model_choice
 from orchestrator.imaging.errors import CaseError
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.materials import TissueLaw
-from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.study import make_phantom_case
+from orchestrator.paraview import write_paraview
+from orchestrator.pipeline import run_diagnose, run_identify, run_montecarlo, run_pressures
+from orchestrator.report import write_report
+from orchestrator.runfiles import read_json
+from orchestrator.study import load_run, make_phantom_case
 
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # C10 fat, C10 muscle, Kv fat, Kv muscle; the start is Table 2's (4.5, 11.2, 106, 69.5)
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
@@ -100,8 +106,14 @@ def explicit_case(tmp_path_factory):
     return case
 
 
-def test_explicit_garment_case_is_identified_back(explicit_case, tmp_path):
-    result = run_identify(explicit_case, tmp_path / "run", data="points", progress=False)
+@pytest.fixture(scope="module")
+def explicit_run(explicit_case, tmp_path_factory):
+    run = tmp_path_factory.mktemp("explicit-run") / "run"
+    return run, run_identify(explicit_case, run, data="points", progress=False)
+
+
+def test_explicit_garment_case_is_identified_back(explicit_run):
+    run, result = explicit_run
     best = result["best"]
     error = (np.array(best["theta"]) - TRUTH_KPA) / TRUTH_KPA
     print(f"fit {np.round(best['theta'], 2)} kPa, errors {np.round(100 * error, 1)} %, misfit "
@@ -112,9 +124,43 @@ def test_explicit_garment_case_is_identified_back(explicit_case, tmp_path):
     assert np.all(np.abs(error[[1, 3]]) < 0.05)   # C10 and Kv of muscle
 
     # the band's diagnosis (issue 29): nothing is hidden in this case, so nothing is significant
-    diagnosis = run_diagnose(tmp_path / "run", progress=False)
+    diagnosis = run_diagnose(run, progress=False)
     assert "drainage" in [score["effect"] for score in diagnosis["ranking"]]
     assert not any(score["significant"] for score in diagnosis["ranking"]), diagnosis["verdict"]
+
+
+def test_the_band_is_shown_in_pressures_json_paraview_and_the_report(explicit_run):
+    """Issue 29 item 4: the band's contact pressure, status and slip around the leg, its bridges and hoop force in
+    pressures.json, as point data of the ParaView files (the band's cells after the leg's) and in the report."""
+    run, _ = explicit_run
+    run_montecarlo(run, draws=12, progress=False)
+    pressures = run_pressures(run, draws=4, progress=False)
+    band = pressures["band"]
+    tension = band["hoop_tension_N_per_mm"]["mean"]
+    print(f"band: mean contact pressure {band['contact_pressure_kPa']['mean']:.3f} kPa, T {tension:.4f} N/mm, "
+          f"contact force {band['contact_force_N_per_mm']:.4f} N/mm, skin shares {band['skin_share']}")
+    assert band["friction_mu"] == 0.0 and band["theta"] == pytest.approx(read_json(run / "montecarlo.json", "calfit montecarlo")["central"])
+    assert band["contact_force_N_per_mm"] == pytest.approx(2.0 * np.pi * tension, rel=0.03)   # the band's balance
+    assert band["skin_share"]["slipping"] + band["skin_share"]["open"] == pytest.approx(1.0)
+    assert band["skin_share"]["sticking"] == 0.0 and band["max_slip_mm"] == 0.0      # frictionless
+    assert 0.5 * 0.16 < tension < 0.16 * 1.01                                          # the design tension, yielded
+
+    written = write_paraview(run)
+    grid = meshio.read(run / "paraview" / "model.vtu")
+    setup = load_run(run)
+    n_leg, n_band = len(setup.mesh.nodes), len(setup.model.band.nodes)
+    assert len(grid.points) == n_leg + n_band and len(written) >= 3
+    tissue = np.asarray(grid.cell_data["tissue"][0])
+    assert np.sum(tissue == 0) == len(setup.model.band.elements) and np.all(tissue[:len(setup.mesh.elements)] > 0)
+    skin_pressure = np.asarray(grid.point_data["contact_pressure_kPa"])[setup.mesh.skin_loop]
+    # ParaView shows the identified point, pressures.json the Monte-Carlo's central one: close, not equal
+    assert skin_pressure.max() == pytest.approx(band["contact_pressure_kPa"]["max"], rel=0.01)
+    assert set(np.unique(grid.point_data["contact_status"])) <= {0.0, 2.0}
+
+    page = write_report(run)
+    assert (page.parent / "band.png").is_file()
+    report = json.loads((page.parent / "report.json").read_text())
+    assert any(table["id"] == "band" for section in report["sections"] for table in section["tables"])
 
 
 @pytest.mark.slow

@@ -284,3 +284,15 @@ def test_friction_changes_the_tissue_pressure_map(frictionless, leg, tmp_path):
     assert np.abs(rough.contact_shear).max() > 0.0
     assert 1e-3 < change.mean() < 0.5
     assert change.max() < 2.0
+
+
+def test_the_band_at_another_tension_is_the_same_band_of_a_stiffer_fabric(leg):
+    """`GarmentBand.at_tension`: T (and the inflated ring's holding pressure) scale with C10, the geometry stays."""
+    band = garment_band(leg)
+    stiffer = band.at_tension(1.1 * band.design_tension_N_per_mm)
+    assert band_hoop_tension(stiffer.C10, stiffer.D1, band.design_stretch, band.thickness_mm) == pytest.approx(
+        1.1 * band_hoop_tension(band.C10, band.D1, band.design_stretch, band.thickness_mm), rel=1e-12)
+    assert stiffer.inflation_pressure_MPa == pytest.approx(1.1 * band.inflation_pressure_MPa, rel=1e-12)
+    assert np.array_equal(stiffer.nodes, band.nodes) and np.array_equal(stiffer.inflated_nodes, band.inflated_nodes)
+    with pytest.raises(ValueError, match="> 0 N/mm"):
+        band.at_tension(0.0)

@@ -65,7 +65,7 @@ requires of a master surface.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import brentq, least_squares
@@ -156,6 +156,17 @@ class GarmentBand:
     @property
     def element_type(self) -> str:
         return "CPE3" if self.elements.shape[1] == 3 else "CPE6"
+
+    def at_tension(self, tension_N_per_mm: float) -> "GarmentBand":
+        """The same band (natural shape, mesh, design stretch) made of a fabric that carries `tension_N_per_mm` at
+        the design stretch: C10 scaled by the ratio of tensions (T is linear in C10 at a fixed Poisson ratio,
+        `band_hoop_tension`, D1 going as 1 / C10; the inflated ring's holding pressure with it, its shape not). How a garment tension known to +-10 % (Avril et al. Table 4) is
+        put on the band: the fabric's stiffness is what is uncertain, not the size it was knitted to."""
+        if not tension_N_per_mm > 0.0:
+            raise ValueError(f"a garment tension must be > 0 N/mm, not {tension_N_per_mm}")
+        ratio = tension_N_per_mm / self.design_tension_N_per_mm
+        return replace(self, C10=self.C10 * ratio, D1=self.D1 / ratio, design_tension_N_per_mm=tension_N_per_mm,
+                       inflation_pressure_MPa=self.inflation_pressure_MPa * ratio)
 
     def include_text(self, leg: Mesh) -> str:
         """The leg's mesh include followed by the band: *NODE (NSET=GARMENT_NODES), *ELEMENT

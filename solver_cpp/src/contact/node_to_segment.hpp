@@ -52,6 +52,7 @@ struct ContactHistory {
   double xi = 0;      // master material coordinate on it
   double shear = 0;   // tangential traction t_T (0 while open)
   double gap = 0;     // open gap g_n >= 0 to that point, when not touching
+  double slip = 0;    // the slave's tangential motion over the master since its first touch (signed, length)
 
   bool anchored() const { return segment >= 0; }
 };
@@ -62,6 +63,7 @@ struct ContactPoint {
   int segment = -1;
   double xi = 0, gap = 0, pressure = 0, shear = 0;
   int slip = 0;  // +1 / -1: slipping, the shear returned onto +mu p_N / -mu p_N; 0: sticking or open
+  double tangential_motion = 0;  // with friction: the slave's motion along t over its anchor this increment
 };
 
 // Nodes of the local contact element, in this order: slave, a, b, the node before a
@@ -117,6 +119,7 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
     const V xo = (1.0 - history.xi) * node(5) + history.xi * node(6);
     T slip = dot(xs - xo, t);
     if (!history.touching) slip *= -gap / (history.gap - gap);  // slip since the first touch
+    out.tangential_motion = std::real(slip);
     const T trial = history.shear - law.stick_slope * slip;
     const double limit = law.friction * std::real(pressure);
     if (std::abs(std::real(trial)) > limit) out.slip = std::real(trial) > 0 ? 1 : -1;

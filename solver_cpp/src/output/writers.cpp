@@ -130,6 +130,9 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
   const std::vector<double> contact_pressure(fields.contact_pressure.data(),
                                              fields.contact_pressure.data() + fields.contact_pressure.size());
   const std::vector<double> contact_shear(fields.contact_shear.data(), fields.contact_shear.data() + fields.contact_shear.size());
+  const std::vector<double> contact_status(fields.contact_status.data(),
+                                           fields.contact_status.data() + fields.contact_status.size());
+  const std::vector<double> contact_slip(fields.contact_slip.data(), fields.contact_slip.data() + fields.contact_slip.size());
   std::vector<std::int64_t> connectivity, offsets;
   std::vector<std::uint8_t> types;
   for (std::size_t n = 0; n < n_nodes; ++n) {
@@ -179,6 +182,8 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
     data_array(out, "Float64", "laplace_pressure", 1, laplace);
     data_array(out, "Float64", "contact_pressure", 1, contact_pressure);
     data_array(out, "Float64", "contact_shear", 1, contact_shear);
+    data_array(out, "Float64", "contact_status", 1, contact_status);
+    data_array(out, "Float64", "contact_slip", 1, contact_slip);
     for (const auto& [name, field] : fields.point_vectors) {
       std::vector<double> values;
       values.reserve(3 * n_nodes);

@@ -147,11 +147,15 @@ FieldOutput StaticAnalysis::output() {
   // slave forces they receive over their tributary length.
   out.contact_pressure = Eigen::VectorXd::Zero(n_nodes);
   out.contact_shear = Eigen::VectorXd::Zero(n_nodes);
+  out.contact_status = Eigen::VectorXd::Zero(n_nodes);
+  out.contact_slip = Eigen::VectorXd::Zero(n_nodes);
   for (const ContactState& c : contacts_) {
     Eigen::VectorXd master_normal = Eigen::VectorXd::Zero(n_nodes), master_shear = Eigen::VectorXd::Zero(n_nodes);
     for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
       const ContactPoint& p = c.points[i];
+      out.contact_slip[c.slave_nodes[i]] = c.history[i].slip + p.tangential_motion;
       if (!p.touching) continue;
+      out.contact_status[c.slave_nodes[i]] = (c.law.friction > 0.0 && p.slip == 0) ? 1.0 : 2.0;
       out.contact_pressure[c.slave_nodes[i]] = p.pressure;
       out.contact_shear[c.slave_nodes[i]] = p.shear;
       const double xi = std::clamp(p.xi, 0.0, 1.0), w = c.slave_weight[i];

@@ -136,6 +136,7 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
     const bool friction = c.law.friction > 0.0;
     for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
       c.trial[i] = ContactHistory{};
+      c.trial[i].slip = c.history[i].slip;   // the slip so far outlives an open increment
       c.points[i] = ContactPoint{};
       if (!active && !friction) continue;
       const int slave = c.slave_nodes[i];
@@ -197,12 +198,12 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       if (!active || !point.touching) {
         // Open (or the pair inactive): keep the master point the node faces, for its first touch.
         if (friction && point.gap >= 0.0 && point.xi >= -0.5 && point.xi <= 1.5)
-          c.trial[i] = ContactHistory{false, point.segment, point.xi, 0.0, point.gap};
+          c.trial[i] = ContactHistory{false, point.segment, point.xi, 0.0, point.gap, h.slip};
         if (!active) continue;
       }
       c.points[i] = point;
       if (!point.touching) continue;
-      c.trial[i] = ContactHistory{true, point.segment, point.xi, point.shear};
+      c.trial[i] = ContactHistory{true, point.segment, point.xi, point.shear, 0.0, h.slip + point.tangential_motion};
       ContactElement element;
       for (std::size_t k = 0; k < nodes.size(); ++k) {
         element.dofs.push_back(2 * nodes[k]);
