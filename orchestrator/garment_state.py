@@ -67,7 +67,6 @@ class BandState:
     hoop_tension_N_per_mm: np.ndarray
     friction_mu: float
     bridges: list[Bridge]
-
     weight_mm: np.ndarray            # each node's weight in a line integral along the deformed skin
     order: int                       # of the skin's faces: 1 (corner nodes) or 2 (corner, mid-side, corner)
 
@@ -95,7 +94,7 @@ class BandState:
         in_contact = self.status != OPEN
         return {
             "friction_mu": self.friction_mu,
-            "contact_pressure_kPa": {"mean": float(np.sum(self.weight_mm * self.pressure_kPa) / self.perimeter_mm),
+            "contact_pressure_kPa": {"mean": self.contact_force_N_per_mm * KPA_PER_MPA / self.perimeter_mm,
                                      "max": float(self.pressure_kPa.max()),
                                      "min_in_contact": float(self.pressure_kPa[in_contact].min())
                                      if in_contact.any() else 0.0},

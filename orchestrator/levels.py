@@ -33,8 +33,9 @@ socks.
   independent, before the skin's uncertainty is estimated) the levels' own residuals are concatenated.
 - `AtTension(base, tension)`: the base model whose decks default to another tension (a level's pressures).
 
-The explicit garment (`[model] garment = "explicit"`) is not fitted with levels: its band is meshed at its
-design tension, so each sock would need its own band mesh.
+With the explicit garment (`[model] garment = "explicit"`), each level's band is the case's band made of a fabric
+that carries that level's tension at the same size (`GarmentBand.at_tension`): the socks differ in how hard their
+fabric pulls, the mesh and every level's deck stay one model's.
 """
 
 from __future__ import annotations
@@ -54,11 +55,6 @@ class LevelsModel:
     the others those of its [[garment.levels]]), one deck per level for one theta."""
 
     def __init__(self, base: LegModel, tensions: Sequence[float]):
-        if base.garment != "laplace":
-            raise ValueError("several garment levels ([[garment.levels]] in case.toml) are fitted with Laplace's law "
-                             f"only, and this model fits the {base.garment} garment ([model] garment = "
-                             f"\"{base.garment}\" in case.toml), whose band is meshed at one tension: each sock would "
-                             "need its own band mesh; remove that line or the levels")
         self.tensions = tuple(float(t) for t in tensions)
         if len(self.tensions) < 2:
             raise ValueError(f"a joint fit needs at least two garment levels, got {len(self.tensions)}: fit the "

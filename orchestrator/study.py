@@ -421,8 +421,6 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     from .runner import solve_once
 
     effects = {name: dict(values) for name, values in (effects or {}).items()}
-    if levels and garment != "laplace":
-        raise ValueError("garment levels are made with Laplace's law: the explicit band is meshed at one tension")
     phantom = phantom or CalfPhantom()
     mesh = truth_mesh(phantom, compartments="compartments" in effects, n_elements=n_elements, order=order)
     model = LegModel(mesh, tension_N_per_mm, fixed_effects=effects, garment=garment, friction_mu=friction_mu,

@@ -175,10 +175,6 @@ def read_case(folder: str | os.PathLike) -> Case:
     model = _model_choice(toml_path, settings.get("model", {}))
     levels = tuple(_garment_level(toml_path, folder, number, entry, image, extent)
                    for number, (entry, image) in enumerate(zip(level_tables, level_slices), start=2))
-    if levels and model.garment != "laplace":
-        raise CaseError(toml_path, f"[model] garment = \"{model.garment}\" cannot fit [[garment.levels]]: its band is "
-                        "meshed at one tension, so each sock would need its own band mesh",
-                        "remove that line (Laplace's law fits every level) or the [[garment.levels]] tables")
 
     files = {"toml": toml_path, "unloaded": unloaded.path, "loaded": loaded.path}
     if labels_path:
