@@ -160,8 +160,9 @@ class GarmentBand:
     def at_tension(self, tension_N_per_mm: float) -> "GarmentBand":
         """The same band (natural shape, mesh, design stretch) made of a fabric that carries `tension_N_per_mm` at
         the design stretch: C10 scaled by the ratio of tensions (T is linear in C10 at a fixed Poisson ratio,
-        `band_hoop_tension`, D1 going as 1 / C10; the inflated ring's holding pressure with it, its shape not). How a garment tension known to +-10 % (Avril et al. Table 4) is
-        put on the band: the fabric's stiffness is what is uncertain, not the size it was knitted to."""
+        `band_hoop_tension`, D1 going as 1 / C10; the inflated ring's holding pressure with it, its shape not).
+        How a garment tension known to +-10 % (Avril et al. Table 4), or a second sock, is put on the band: the
+        fabric's stiffness is what differs, not the size it was knitted to."""
         if not tension_N_per_mm > 0.0:
             raise ValueError(f"a garment tension must be > 0 N/mm, not {tension_N_per_mm}")
         ratio = tension_N_per_mm / self.design_tension_N_per_mm
