@@ -69,8 +69,8 @@ def main() -> None:
             displacement = solve_once(model, model.deck(TRUTH_KPA), "the band did not converge on the moved skin")
             return observe @ displacement[:len(mesh.nodes)].ravel()
 
-        print(f"explicit band, {len(mesh.elements)} {mesh.element_type}, R = {radius:.1f} mm, offsets +-{arguments.step} "
-              "mm; per unit offset amplitude:")
+        print(f"explicit band, {len(mesh.elements)} {mesh.element_type}, R = {radius:.1f} mm, offsets "
+              f"+-{arguments.step} mm; per unit offset amplitude:")
         print(f"  {'mode':>5} {'|band| / |Laplace|':>19} {'correlation':>12} {'relative difference':>20}")
         for k in modes:
             for kind, shape in (("A", np.cos), ("B", np.sin)):

@@ -419,8 +419,8 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     Pairs that the model says act only through their sum are among those directions, whatever J says, and their
     sum's interval is reported (`sums`)."""
     if draws < MIN_NOISE_DRAWS:
-        raise ValueError(f"the noise Monte-Carlo needs at least {MIN_NOISE_DRAWS} draws for its quantiles, not {draws}: "
-                         f"ask for more (--draws {MIN_NOISE_DRAWS} or above)")
+        raise ValueError(f"the noise Monte-Carlo needs at least {MIN_NOISE_DRAWS} draws for its quantiles, not "
+                         f"{draws}: ask for more (--draws {MIN_NOISE_DRAWS} or above)")
     began = time.perf_counter()
     launched0 = evaluator.launched
     space = parameter_space(evaluator)

@@ -132,7 +132,8 @@ void write_vtu(const std::string& path, const Model& model, const FieldOutput& f
   const std::vector<double> contact_shear(fields.contact_shear.data(), fields.contact_shear.data() + fields.contact_shear.size());
   const std::vector<double> contact_status(fields.contact_status.data(),
                                            fields.contact_status.data() + fields.contact_status.size());
-  const std::vector<double> contact_slip(fields.contact_slip.data(), fields.contact_slip.data() + fields.contact_slip.size());
+  const std::vector<double> contact_slip(fields.contact_slip.data(),
+                                         fields.contact_slip.data() + fields.contact_slip.size());
   std::vector<std::int64_t> connectivity, offsets;
   std::vector<std::uint8_t> types;
   for (std::size_t n = 0; n < n_nodes; ++n) {
