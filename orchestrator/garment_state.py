@@ -25,7 +25,7 @@ centre, 90 deg at the top of the picture), of the skin nodes' positions in I0.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -46,17 +46,12 @@ class Bridge:
     max_gap_mm: float     # the farthest the band stands off the skin on it
     direction: str        # anatomical direction of its middle (`LegFrame.direction`)
 
-    def as_dict(self) -> dict:
-        return {"start_deg": self.start_deg, "end_deg": self.end_deg, "length_mm": self.length_mm,
-                "max_gap_mm": self.max_gap_mm, "direction": self.direction}
-
 
 @dataclass
 class BandState:
     """The band on the leg at one solved state, skin nodes in the skin loop's order (module text)."""
 
     angle_deg: np.ndarray            # display angle of each skin node in I0
-    arc_mm: np.ndarray               # deformed skin length from the first skin node
     perimeter_mm: float              # deformed skin perimeter
     pressure_kPa: np.ndarray         # p_N >= 0
     shear_kPa: np.ndarray            # t_T on the skin, signed along the band's tangent (the engine's)
@@ -92,6 +87,7 @@ class BandState:
     def as_dict(self) -> dict:
         """The band's summary and its profiles around the leg (pressures.json "band")."""
         in_contact = self.status != OPEN
+        face_angle, face_pressure = self.face_means(self.pressure_kPa)
         return {
             "friction_mu": self.friction_mu,
             "contact_pressure_kPa": {"mean": self.contact_force_N_per_mm * KPA_PER_MPA / self.perimeter_mm,
@@ -104,12 +100,11 @@ class BandState:
             "contact_force_N_per_mm": self.contact_force_N_per_mm,
             "skin_share": {name: self.share(status) for status, name in STATUS_NAMES.items()},
             "max_slip_mm": float(np.abs(self.slip_mm).max()),
-            "bridges": [bridge.as_dict() for bridge in self.bridges],
+            "bridges": [asdict(bridge) for bridge in self.bridges],
             "profile": {"angle_deg": self.angle_deg.tolist(), "pressure_kPa": self.pressure_kPa.tolist(),
                         "shear_kPa": self.shear_kPa.tolist(), "status": self.status.astype(int).tolist(),
                         "slip_mm": self.slip_mm.tolist(), "gap_mm": self.gap_mm.tolist()},
-            "faces": {"angle_deg": self.face_means(self.pressure_kPa)[0].tolist(),
-                      "pressure_kPa": self.face_means(self.pressure_kPa)[1].tolist(),
+            "faces": {"angle_deg": face_angle.tolist(), "pressure_kPa": face_pressure.tolist(),
                       "shear_kPa": self.face_means(self.shear_kPa)[1].tolist()},
             "stations": {"angle_deg": self.station_angle_deg.tolist(),
                          "hoop_tension_N_per_mm": self.hoop_tension_N_per_mm.tolist()},
@@ -139,7 +134,7 @@ def band_state(results, mesh, band, frame: LegFrame, friction_mu: float, step: i
     stations = 0.5 * (inner + np.roll(inner, -1, axis=0))
     # the stations' angles about the same centre, from where they stand on the leg (the band has no I0 position)
     station_angles = frame.angles_deg(stations)
-    return BandState(angles, arc, perimeter, fields["contact_pressure"] * KPA_PER_MPA,
+    return BandState(angles, perimeter, fields["contact_pressure"] * KPA_PER_MPA,
                      fields["contact_shear"] * KPA_PER_MPA, status, fields["contact_slip"], gap, station_angles,
                      tension, float(friction_mu), _bridges(status, angles, arc, perimeter, gap, frame),
                      _skin_weights(segment, mesh.order), int(mesh.order))

@@ -15,7 +15,7 @@ PRESSURE=YES the last step's VTU holds the cell fields `dp/d<name>`.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
@@ -31,6 +31,8 @@ class ResultsError(RuntimeError):
 @dataclass
 class EngineResults:
     outdir: Path
+    # each step's VTU parsed once: a reader of several fields (garment_state reads six) does not parse it again
+    _meshes: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @cached_property
     def summary(self) -> dict:
@@ -58,7 +60,9 @@ class EngineResults:
         import meshio
 
         step = self.n_steps if step is None else step
-        return meshio.read(self.outdir / f"step-{step}.vtu")
+        if step not in self._meshes:
+            self._meshes[step] = meshio.read(self.outdir / f"step-{step}.vtu")
+        return self._meshes[step]
 
     def point_field(self, name: str, step: int | None = None) -> np.ndarray:
         """A point-data array of the step's VTU (e.g. "pressure", MPa), in deck node order."""

@@ -93,7 +93,7 @@ def test_the_band_bridges_the_dent_and_the_bridge_is_found_there(tmp_path):
     leg = dented_leg_mesh(N_ELEMENTS)
     state, _ = solved_band(leg, tmp_path)
     T = state.hoop_tension_N_per_mm
-    print(f"\nbridges {[bridge.as_dict() for bridge in state.bridges]}; contact force "
+    print(f"\nbridges {state.bridges}; contact force "
           f"{state.contact_force_N_per_mm:.4f} N/mm, 2 pi T = {2 * np.pi * T.mean():.4f}")
     assert len(state.bridges) == 1
     bridge = state.bridges[0]
