@@ -4,6 +4,7 @@ garment band (the second paper's, frictionless: the effects act under the band, 
 through its contact), side by side.
 
     .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage] [--garment laplace|explicit|both]
+        [--lines engine-none engine-auto fd-none fd-auto]
 
 For each garment model a phantom case is made with it and a hidden effect (default: 5 % fluid loss of the muscle;
 its making and the baseline identification are not timed), then `pipeline.run_diagnose` runs from an empty
@@ -30,6 +31,8 @@ from orchestrator.study import make_phantom_case
 HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
                  "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05}}
 GARMENTS = ("laplace", "explicit")
+# sensitivities x refit: the engine's or finite differences, the ranking alone ("none") or with its refits ("auto")
+LINES = ("engine-none", "engine-auto", "fd-none", "fd-auto")
 
 
 def _fresh_copy(base: Path, target: Path) -> Path:
@@ -45,6 +48,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--garment", choices=GARMENTS + ("both",), default="both",
                         help="the garment model of the phantom and of the fit (default: both, side by side)")
+    parser.add_argument("--lines", nargs="+", default=list(LINES), choices=LINES,
+                        help="which lines to time (default: all four); e.g. engine-auto alone for the band's refits")
     args = parser.parse_args()
     garments = GARMENTS if args.garment == "both" else (args.garment,)
     if "explicit" in garments and args.hidden == "tension_profile":
@@ -70,6 +75,8 @@ def _diagnose_timed(scratch: Path, garment: str, args) -> None:
           f"{fit['best']['engine_runs']} engine runs, misfit {fit['best']['cost']:.4g} mm^2")
     for label, engine in (("engine sensitivities", True), ("finite differences", False)):
         for refit in ("none", "auto"):
+            if f"{'engine' if engine else 'fd'}-{refit}" not in args.lines:
+                continue
             run = _fresh_copy(identified, scratch / f"{label}-{refit}".replace(" ", "-"))
             before = len(EvaluationLog(run / LOG_NAME))
             began = time.perf_counter()

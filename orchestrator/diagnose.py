@@ -37,6 +37,12 @@ the band's own coefficient (0, or the one the model fixed: its refit frees it). 
 sensitivity: every column is then a difference of runs, and the diagnosis does not locate (the local probe would take
 a run per material group).
 
+Several garment levels (two socks, `levels.LevelsModel`): the model is one leg under each tension. r stacks every
+level's residual, whitened together (`levels.JointDisplacementObjective`), and so does every column G (each level's
+deck carries the effect), so an effect is scored, and refitted, on all the levels at once. The neighbour correlation
+is taken within each level (the levels share their windows' places), and each level's own misfit over its own floor
+and its residual maps say where, level by level, the model fails (`level_misfits`, `level_maps`).
+
 Verdict. If the best significant effect's predicted misfit F - reduction reaches EXPLAINED_FACTOR times
 the noise floor, that effect explains the residual; otherwise the diagnosis says that no catalog effect
 explains it and points at where the residual is, in words (`regions.LegFrame`): the tissue, the
@@ -78,6 +84,7 @@ from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
 from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
 from .identify import FitResult, levenberg_marquardt, residual_jacobian
+from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator
 
@@ -91,6 +98,16 @@ ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters 
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
 FRICTION_PROBE_MU = 0.05     # forward-difference step of the friction coefficient from a frictionless band
 MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
+# the band's own variants that are not ranked on a model of the band, and why (said in diagnosis.json "not_ranked")
+BAND_VARIANTS_NOT_RANKED = {
+    "band stiffness": "a band stiffer by a factor s carries s T at the same stretch, and the tissues' moduli scaled by s "
+                      "then give the same displacements (both x1.5 moved the skin by 3.5 um of 0.99 mm, frictionless "
+                      "or at mu = 0.3): displacements cannot tell it from the tissues' scale; the tension's "
+                      "uncertainty carries it into the pressures (Table 4)",
+    "band tension profile": "a prestretch of the band varying around the leg: frictionless, the band's hoop force is the "
+                            "same all round whatever its prestretch (p = T / r); with friction it would need the band's "
+                            "prestretch per sector, which the band's deck does not have yet",
+}
 PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 
 
@@ -168,6 +185,8 @@ class Diagnosis:
     wall_time_s: float
     not_ranked: dict[str, str] = field(default_factory=dict)
     patches: list[PatchScore] = field(default_factory=list)   # where a local stiffness change would help, best first
+    levels: list[dict] = field(default_factory=list)   # several socks: each level's misfit and floor (`level_misfits`)
+    level_maps: list[ResidualMaps] = field(default_factory=list)   # and its residual maps, level by level
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -179,19 +198,26 @@ class Diagnosis:
         values["ranking"] = [EffectScore(**s) for s in data["ranking"]]
         values["maps"] = ResidualMaps(**data["maps"])
         values["patches"] = [PatchScore(**p) for p in data.get("patches", [])]
+        values["level_maps"] = [ResidualMaps(**m) for m in data.get("level_maps", [])]
         return cls(**values)
 
 
 # --- statistics ---------------------------------------------------------------------------------
 
-def neighbour_correlation(positions_mm: np.ndarray, residual: np.ndarray) -> float:
-    """Correlation of each point's residual vector with that of its nearest neighbour."""
+def neighbour_correlation(positions_mm: np.ndarray, residual: np.ndarray, levels: Sequence[slice] | None = None) -> float:
+    """Correlation of each point's residual vector with that of its nearest neighbour in the same garment level
+    (`levels`: each level's rows; the levels' windows are the same windows of I0, each its own twin otherwise)."""
     vectors = np.asarray(residual, float).reshape(-1, 2)
-    if len(vectors) < 3:
-        return 0.0
-    _, nearest = cKDTree(positions_mm).query(positions_mm, k=2)
-    neighbour = vectors[nearest[:, 1]]
-    return float(np.sum(vectors * neighbour) / max(np.sum(vectors * vectors), 1e-300))
+    positions_mm = np.asarray(positions_mm, float)
+    products = squares = 0.0
+    for rows in levels or [slice(0, len(vectors))]:
+        own, places = vectors[rows], positions_mm[rows]
+        if len(own) < 3:
+            continue
+        _, nearest = cKDTree(places).query(places, k=2)
+        products += float(np.sum(own * own[nearest[:, 1]]))
+        squares += float(np.sum(own * own))
+    return products / max(squares, 1e-300) if squares else 0.0
 
 
 def design_effect(rho: float) -> float:
@@ -222,6 +248,33 @@ def information_criteria(chi2: float, k: int, n: int) -> dict:
 
 
 # --- residual maps --------------------------------------------------------------------------------
+
+def level_points(objective) -> list[slice]:
+    """The rows of each garment level's points in the objective's stacked positions (one slice for one level)."""
+    slices = getattr(objective, "slices", None)
+    if not slices:
+        return [slice(0, len(objective.positions_mm))]
+    return [slice(rows.start // 2, rows.stop // 2) for rows in slices]
+
+
+def level_misfits(objective, r: np.ndarray, n_parameters: int) -> list[dict]:
+    """Each garment level's own misfit and noise floor at the joint residual r (`levels.JointDisplacementObjective.
+    level_misfits`): which level the model fails at. Empty for one level."""
+    parts = getattr(objective, "parts", None)
+    if not parts:
+        return []
+    return [{"level": k, "misfit": float(misfit), "noise_floor": part.noise_floor(n_parameters),
+             "misfit_over_floor": float(misfit) / part.noise_floor(n_parameters)}
+            for k, (part, misfit) in enumerate(zip(parts, objective.level_misfits(r)), 1)]
+
+
+def level_maps(objective, residual_mm: np.ndarray, frame: LegFrame) -> list["ResidualMaps"]:
+    """The residual maps of each garment level's points (`residual_maps`); empty for one level."""
+    if not getattr(objective, "parts", None):
+        return []
+    residual_mm = np.asarray(residual_mm, float).reshape(-1, 2)
+    return [residual_maps(objective.positions_mm[rows], residual_mm[rows], frame) for rows in level_points(objective)]
+
 
 def residual_maps(positions_mm: np.ndarray, residual_mm: np.ndarray, frame: LegFrame) -> ResidualMaps:
     """The residual per tissue and per sector, and the named region (tissue, sector, depth band) that holds
@@ -277,7 +330,15 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
             skipped[name] = reason
         else:
             candidates.append(name)
+    if model.garment == "explicit":
+        skipped.update(BAND_VARIANTS_NOT_RANKED)
     return candidates, skipped
+
+
+def with_changes(model, **changes):
+    """`dataclasses.replace` of the leg model, or of the one leg model under every garment level of a
+    `levels.LevelsModel` (the diagnosis of several socks adds its effects to every level)."""
+    return model.replace(**changes) if isinstance(model, LevelsModel) else replace(model, **changes)
 
 
 def laplace_only(model: LegModel) -> list[str]:
@@ -294,8 +355,8 @@ def garment_model(model: LegModel, effects: Sequence[str] = ()) -> LegModel:
     blockers = laplace_only(model)
     if blockers:
         raise ValueError(f"the explicit band cannot carry {', '.join(blockers)}: they belong to Laplace's law")
-    return replace(model, garment="explicit", friction_mu=0.0 if "friction" in effects else model.friction_mu,
-                   effects=tuple(model.effects) + (("friction",) if "friction" in effects else ()))
+    return with_changes(model, garment="explicit", friction_mu=0.0 if "friction" in effects else model.friction_mu,
+                        effects=tuple(model.effects) + (("friction",) if "friction" in effects else ()))
 
 
 def garment_columns(evaluator_factory, model: LegModel, theta: Sequence[float], r: np.ndarray,
@@ -369,7 +430,8 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     # each by finite differences: without the former (friction gives none), the diagnosis does not locate
     engine_sensitivities = engine_sensitivities and model.engine_differentiable
     probing = (LOCAL_PROBE.name,) if engine_sensitivities else ()
-    probe = replace(model, effects=model.effects + tuple(candidates) + probing, engine_sensitivities=engine_sensitivities)
+    probe = with_changes(model, effects=model.effects + tuple(candidates) + probing,
+                         engine_sensitivities=engine_sensitivities)
     probe_sets = list(model.mesh.element_sets()) + [group.name for group in probe.groups]
     p = model.space.size
     theta_probe = list(map(float, theta)) + [0.0] * (probe.space.size - p)
@@ -384,7 +446,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     chi2_to_misfit = misfit / chi2 if chi2 > 0 else 0.0
     lack_of_fit_p = float(stats.chi2.sf(chi2, n - p - objective.nuisance_dof))
     positions_mm = objective.positions_mm
-    rho = neighbour_correlation(positions_mm, r)
+    rho = neighbour_correlation(positions_mm, r, level_points(objective))
     deff = design_effect(rho)
     # dr/dtheta of the fitted parameters (the projection onto their span does not depend on how columns are scaled)
     J = jacobian[:, :p]
@@ -436,7 +498,8 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         patches = locate(r, J, local, probe.groups, frame, chi2_to_misfit, deff, misfit, alpha)
     return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,
                      lack_of_fit_p, deff, rho, ranking, explained, verdict, maps, runs, source,
-                     time.perf_counter() - began, skipped, patches)
+                     time.perf_counter() - began, skipped, patches, level_misfits(objective, r, p),
+                     level_maps(objective, residual_mm, frame))
 
 
 def locate(r: np.ndarray, J: np.ndarray, local: np.ndarray, groups: Sequence[Group], frame: LegFrame,
@@ -552,6 +615,7 @@ class Refit:
     aic: float
     bic: float
     fit: dict
+    levels: list[dict] = field(default_factory=list)   # several socks: each level's misfit (`level_misfits`)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -565,7 +629,7 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
     Returns the fit and its residual u_model - u_measured (mm) at the points."""
     garment = [name for name in effects if effect(name).apply is None]
     others = tuple(name for name in effects if name not in garment)
-    extended = replace(model, effects=model.effects + others)
+    extended = with_changes(model, effects=model.effects + others)
     extended = garment_model(extended, garment) if garment else extended
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
     # one-sided difference, and Levenberg-Marquardt may not leave the bound
@@ -587,7 +651,8 @@ def summarize_fit(model: LegModel, fit: FitResult, record: dict, objective) -> R
     criteria = information_criteria(chi2, model.space.size, len(r))
     floor = objective.noise_floor(model.space.size)
     return Refit(list(model.effects), list(model.space.names), list(fit.theta), float(record["cost"]),
-                 float(record["cost"]) / floor, chi2, criteria["aic"], criteria["bic"], fit.as_dict())
+                 float(record["cost"]) / floor, chi2, criteria["aic"], criteria["bic"], fit.as_dict(),
+                 level_misfits(objective, r, model.space.size))
 
 
 def weigh_local(diagnosis: Diagnosis, patch: PatchScore, before: Refit, after: Refit,
@@ -659,6 +724,26 @@ def effect_label(name: str) -> str:
 def model_label(effects: Sequence[str]) -> str:
     """A refitted model as tables name it: "baseline" or "+ " and its added effects."""
     return "+ " + ", ".join(map(effect_label, effects)) if effects else "baseline"
+
+
+def level_rows(levels: Sequence[dict], before: Refit, after: Sequence[Refit]) -> list[list]:
+    """Per garment level (diagnosis.json "levels"): its number, image, tension, its own misfit over its floor for the
+    identified model and after each refit, and where its residual is largest: where, level by level, the model
+    fails."""
+    return [[level["level"], level.get("image", ""), level.get("tension_N_per_mm", float("nan"))]
+            + [fit.levels[k]["misfit_over_floor"] if len(fit.levels) > k else float("nan") for fit in (before, *after)]
+            + [level.get("worst_region", "")] for k, level in enumerate(levels)]
+
+
+def level_lines(levels: Sequence[dict], before: Refit, after: Sequence[Refit]) -> list[str]:
+    """`level_rows` as text."""
+    labels = [model_label(fit.effects) for fit in (before, *after)]
+    lines = [f"{'level':<6}{'image':<22}{'N/mm':>7}" + "".join(f"{label[:20]:>22}" for label in labels)
+             + "  largest share of the residual (identified model)"]
+    for row in level_rows(levels, before, after):
+        lines.append(f"{row[0]:<6}{row[1]:<22}{row[2]:>7.3g}" + "".join(f"{v:>20.2f} x" for v in row[3:-1])
+                     + f"  {row[-1]}")
+    return ["misfit over each garment level's own floor:"] + lines
 
 
 def comparison_lines(before: Refit, after: Sequence[Refit]) -> list[str]:

@@ -94,10 +94,10 @@ def compartments_figure(path: Path, image: np.ndarray, pixel_size_mm, compartmen
 
 
 def diagnosis_figure(path: Path, image: np.ndarray, pixel_size_mm, maps, mesh, patch_elements: np.ndarray | None = None,
-                     place: str = "") -> Path:
+                     place: str = "", title: str = "") -> Path:
     """The residual of the identified model (u_model - u_measured) as arrows coloured by length (mm, colour bar)
     on the unloaded image, the 30-degree sectors of `regions` about the leg centre with their anatomical names, and
-    the place of the proposed local stiffness change shaded."""
+    the place of the proposed local stiffness change shaded; `title` says which garment level it is, when several."""
     from matplotlib.collections import PolyCollection
     from scipy.spatial import cKDTree
 
@@ -121,17 +121,19 @@ def diagnosis_figure(path: Path, image: np.ndarray, pixel_size_mm, maps, mesh, p
                 ha="center", va="center")
     length = np.hypot(residual[:, 0], residual[:, 1])
     largest = float(length.max()) if length.size else 1.0
-    spacing = float(np.median(cKDTree(positions).query(positions, k=2)[0][:, 1])) if len(positions) > 1 else 1.0
+    places = np.unique(positions, axis=0)   # several garment levels share their windows' places
+    spacing = float(np.median(cKDTree(places).query(places, k=2)[0][:, 1])) if len(places) > 1 else 1.0
     scale = largest / (1.5 * spacing) if largest > 0 else 1.0
     arrows = ax.quiver(positions[:, 0], positions[:, 1], residual[:, 0], residual[:, 1], length, cmap="magma",
                        angles="xy", scale_units="xy", scale=scale, width=0.003)
     figure.colorbar(arrows, ax=ax, shrink=0.8, label="residual u_model - u_measured (mm)")
     reference = float(f"{largest:.1g}") if largest > 0 else 1.0
-    ax.quiverkey(arrows, 0.80, 1.02, reference, f"{reference:g} mm", labelpos="E", coordinates="axes")
+    ax.quiverkey(arrows, 0.80, 0.10, reference, f"{reference:g} mm", labelpos="E", coordinates="axes", color="white",
+                 labelcolor="white")
     if patch_elements is not None and len(patch_elements):
         ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
-    ax.set_title(f"residual of the identified model, arrows x{1 / scale:.0f}"
-                 + (f"; largest share: {maps.worst_region}" if maps.worst_region else ""), fontsize=9)
+    ax.set_title((f"{title}\n" if title else "") + f"residual of the identified model, arrows x{1 / scale:.0f}"
+                 + (f"\nlargest share: {maps.worst_region}" if maps.worst_region else ""), fontsize=9, loc="left")
     figure.tight_layout()
     figure.savefig(path, dpi=DPI)
     plt.close(figure)

@@ -40,6 +40,7 @@ fabric pulls, the mesh and every level's deck stay one model's.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -81,6 +82,36 @@ class LevelsModel:
 
     def start(self, *args, **kwargs) -> list[float]:
         return self.base.start(*args, **kwargs)
+
+    # what the diagnosis asks of a model (`diagnose`) is the base model's: every level is the same leg
+
+    @property
+    def fixed_effects(self):
+        return self.base.fixed_effects
+
+    @property
+    def tension_profile(self):
+        return self.base.tension_profile
+
+    @property
+    def friction_mu(self) -> float:
+        return self.base.friction_mu
+
+    @property
+    def engine_differentiable(self) -> bool:
+        return self.base.engine_differentiable
+
+    @property
+    def groups(self):
+        return self.base.groups
+
+    def law_conflict(self, name: str) -> str | None:
+        return self.base.law_conflict(name)
+
+    def replace(self, **changes) -> "LevelsModel":
+        """The same levels of the base model with these fields changed (`dataclasses.replace` of a LegModel):
+        effects added, the garment switched to the band."""
+        return LevelsModel(dataclasses.replace(self.base, **changes), self.tensions)
 
     def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]]]:
         """The base model's: the tension is not a parameter, so every level has the same engine sensitivities."""

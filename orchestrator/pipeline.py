@@ -25,8 +25,8 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import (ALPHA, diagnose, patch_elements, refit, refit_verdict, residual_maps, settle_ties, weigh_local,
-                       summarize_fit)
+from .diagnose import (ALPHA, diagnose, level_maps, patch_elements, refit, refit_verdict, residual_maps, settle_ties,
+                       summarize_fit, weigh_local)
 from .digits import interval_uncertainty, rounded, with_uncertainty
 from .figures import diagnosis_figure
 from .garment_state import band_state
@@ -377,12 +377,8 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     if identification["objective"] != "displacement":
         raise ValueError("the diagnosis compares the model with measured displacements (DIC from the images, or "
                          "points.csv): identify with --objective displacement (the default) first")
-    if setup.case.levels:
-        raise ValueError(f"the diagnosis scores the catalog's effects against one loaded image, and "
-                         f"{setup.case.files['toml']} has {len(setup.case.levels)} more garment level(s) "
-                         "([[garment.levels]]) fitted jointly, whose diagnosis is not available yet: identify a copy "
-                         "of the case without those tables to diagnose its first level")
-    model = setup.model_with(identification.get("effects", ()), sensitivities=engine_sensitivities)
+    # several socks: every effect is scored on all the levels at once (one deck per level, whitened together)
+    model = setup.fit_model(identification.get("effects", ()), sensitivities=engine_sensitivities)
     objective = setup.displacement_objective(identified_data(identification))
 
     def evaluator_for(m):
@@ -403,7 +399,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
     names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
     names += [n for n in requested if n not in ("auto", "none") and n not in names]
-    after, after_maps = [], []
+    after, after_maps, after_level_maps = [], [], []
     refit_failures = {}
     for name in names:
         try:
@@ -413,6 +409,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
             continue
         after.append(fit)
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
+        after_level_maps.append(level_maps(objective, residual, frame))
     settle_ties(diagnosis, after)
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
     if diagnosis.ranking and diagnosis.ranking[0].effect in refit_failures:
@@ -432,16 +429,26 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         local = weigh_local(diagnosis, patch, before, fit, after)
         after.append(fit)
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
+        after_level_maps.append(level_maps(objective, residual, frame))
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]
     result["refit_failures"] = refit_failures
     result["maps_after"] = [asdict(m) for m in after_maps]
+    if diagnosis.levels:
+        images = [setup.case.files["loaded"].name] + [level.path.name for level in setup.case.levels]
+        for k, (row, image, tension) in enumerate(zip(result["levels"], images, setup.case.tensions)):
+            row.update(image=image, tension_N_per_mm=tension, worst_region=diagnosis.level_maps[k].worst_region)
+        result["level_maps_after"] = [[asdict(m) for m in maps] for maps in after_level_maps]
     result["local"] = local
     write_json(run_dir / "diagnosis.json", result)
+    patch = (patch_elements(model, local["patch"]["effect"]), local["patch"]["place"]) if local else (None, "")
     diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
-                     setup.mesh, patch_elements(model, local["patch"]["effect"]) if local else None,
-                     local["patch"]["place"] if local else "")
+                     setup.mesh, *patch, title="every garment level, one arrow each" if diagnosis.levels else "")
+    for k, maps in enumerate(diagnosis.level_maps, 1):
+        diagnosis_figure(run_dir / f"diagnosis-level-{k}.png", setup.case.unloaded, setup.case.pixel_size_mm, maps,
+                         setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
+                                                   f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
     return result
 
 

@@ -34,7 +34,7 @@ import numpy as np
 
 from . import figures
 from .decks import template_dir
-from .diagnose import ALPHA, EXPLAINED_FACTOR, model_label
+from .diagnose import ALPHA, EXPLAINED_FACTOR, Refit, level_rows, model_label
 from .digits import interval_uncertainty, rounded
 from .forward import MeshInterpolator, field_on_pixels
 from .identify import pressure_spreads
@@ -401,10 +401,11 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
     floor = diagnosis["noise_floor"]
     fits = [diagnosis["before"]] + diagnosis["refits"]
     labels = ["identified model"] + [model_label(f["effects"]) for f in diagnosis["refits"]]
-    maps = diagnosis["maps"]
+    maps, maps_after = diagnosis["maps"], diagnosis.get("maps_after", [])
+    if diagnosis.get("level_maps"):   # several socks: the first level's points here, every level's own map below
+        maps, maps_after = diagnosis["level_maps"][0], [m[0] for m in diagnosis.get("level_maps_after", [])]
     positions = np.asarray(maps["positions_mm"], float)
-    residuals = [np.asarray(maps["residual_mm"], float)] + [np.asarray(m["residual_mm"], float)
-                                                            for m in diagnosis.get("maps_after", [])]
+    residuals = [np.asarray(maps["residual_mm"], float)] + [np.asarray(m["residual_mm"], float) for m in maps_after]
     measured = _measured_displacements(setup, identification, len(positions))
     figures.residual_figure(staging / "residuals_before_after.png", case.unloaded, setup.labels_unloaded > 0, px,
                             positions, measured, list(zip(labels, residuals)), maps["centre_mm"])
@@ -434,6 +435,13 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                         [[label, len(f["parameters"]), f["misfit"], f["misfit_over_floor"], f["aic"], f["bic"], m,
                           ", ".join(f"{n} = {v:.4g}" for n, v in zip(f["parameters"], f["theta"]))]
                          for label, f, m in zip(labels, fits, mismatch_values)])
+    tables = [ranking, comparison]
+    if diagnosis.get("levels"):
+        before, after = Refit(**diagnosis["before"]), [Refit(**fit) for fit in diagnosis["refits"]]
+        tables.append(_table("levels", "Misfit over each garment level's own noise floor, before and after the refit, "
+                                       "and where that level's residual is largest",
+                             ["level", "image", "tension (N/mm)"] + labels + ["largest share of the residual"],
+                             level_rows(diagnosis["levels"], before, after)))
     names = maps.get("sector_names") or [f"{c:.0f} deg" for c in maps["sector_centre_deg"]]
     sectors = _table("sectors", "Residual per sector around the leg (angles counter-clockwise on the image from its "
                                 "+x axis, 90 deg at the top; anterior towards the tibia, lateral towards the fibula)",
@@ -462,12 +470,17 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
         shown.append(_figure("diagnosis.png", "Residual of the identified model by sector"
                                               + (f"; shaded: the place of a local stiffness change, {patch['place']}"
                                                  if patch else "") + "."))
+    for level in diagnosis.get("levels", []):
+        if _copy_figure(setup.run_dir / f"diagnosis-level-{level['level']}.png", staging):
+            shown.append(_figure(f"diagnosis-level-{level['level']}.png",
+                                 f"Residual of the identified model at garment level {level['level']} "
+                                 f"({level['image']}, {level['tension_N_per_mm']:g} N/mm), by sector."))
     shown.append(_figure("dk_before_after.png", "Contour distances d_k before and after the refit (mm)."))
     verdict = [f"{diagnosis['verdict']}."]
     lacking = diagnosis["lack_of_fit_p"] < ALPHA     # the identified model misses something: say it loudly
     return _section("diagnosis", "Diagnosis: where the model fails and which effect is missing",
                     paragraphs=([] if lacking else verdict) + paragraphs, alerts=verdict if lacking else [],
-                    tables=[ranking, comparison, sectors], figures_=shown)
+                    tables=tables + [sectors], figures_=shown)
 
 
 def _measured_displacements(setup, identification: dict, count: int) -> np.ndarray | None:

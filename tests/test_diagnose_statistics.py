@@ -68,6 +68,20 @@ def test_neighbour_correlation_tells_noise_from_a_smooth_field():
     assert design_effect(0.5) == pytest.approx(3.0)
 
 
+def test_the_neighbour_of_a_garment_levels_window_is_in_the_same_level():
+    """Two socks measured with the same windows of I0: stacked, each window's nearest point is its twin at the other
+    level, whose noise is another draw; the correlation is taken within each level."""
+    rng = np.random.default_rng(2)
+    xy = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0)), -1).reshape(-1, 2)
+    noise = rng.normal(size=(2 * len(xy), 2))
+    same = np.vstack([noise[:len(xy)], noise[:len(xy)]])      # the twins equal: a stacked search calls it smooth
+    stacked, levels = np.vstack([xy, xy]), [slice(0, len(xy)), slice(len(xy), 2 * len(xy))]
+    assert neighbour_correlation(stacked, same.ravel()) > 0.99
+    assert abs(neighbour_correlation(stacked, same.ravel(), levels)) < 0.1
+    smooth = np.tile(np.stack([np.sin(xy[:, 0] / 8), np.cos(xy[:, 1] / 8)], 1), (2, 1))
+    assert neighbour_correlation(stacked, smooth.ravel(), levels) > 0.95
+
+
 def _correlated_measurements(n_points=150, rigid=False, seed=0):
     """Points on an annulus with a covariance that couples neighbours (as overlapping DIC windows do)."""
     rng = np.random.default_rng(seed)

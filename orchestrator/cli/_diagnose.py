@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..diagnose import ALPHA, Diagnosis, Refit, comparison_lines, ranking_lines
+from ..diagnose import ALPHA, Diagnosis, Refit, comparison_lines, level_lines, ranking_lines
 from ..effects import EffectError, describe, parse_effects
 from ..pipeline import run_diagnose
 from ..runfiles import RunFolderError
@@ -58,8 +58,11 @@ def run(args: argparse.Namespace) -> int:
     except (RunFolderError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
     lines = ranking_lines(Diagnosis.from_dict(result))
-    if result["refits"]:
-        lines += [""] + comparison_lines(Refit(**result["before"]), [Refit(**fit) for fit in result["refits"]])
+    before, after = Refit(**result["before"]), [Refit(**fit) for fit in result["refits"]]
+    if after:
+        lines += [""] + comparison_lines(before, after)
+    if result.get("levels"):
+        lines += [""] + level_lines(result["levels"], before, after)
     lines.append(f"{result['engine_runs']} engine runs for the ranking, {result['wall_time_s']:.1f} s; "
                  f"written to {args.run_dir}/diagnosis.json")
     emit(args, result, lines)

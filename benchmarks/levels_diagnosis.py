@@ -1,0 +1,160 @@
+"""Two socks against one in the diagnosis (issue 29, item 3): the rank and the p-value of a hidden effect, side by
+side, when the same slice is diagnosed from one loaded image or from two under garments of different tensions.
+
+    .venv/bin/python benchmarks/levels_diagnosis.py [--effects drainage compartments] [--seed 4]
+        [--model laplace|band|second-paper] [--data points|dic] [--second-tension 0.32] [--workers 2] [--keep DIR]
+
+For each hidden effect, a phantom calf is made by the engine at a truth drawn in physiological ranges (not the fit's
+start; `phantom.truths.random_truth(seed)`), on the phantom's own 8,000-element mesh, with scanner motion, under
+0.16 N/mm and under the second tension, the effect switched on in both. The case with the two loaded images
+([[garment.levels]]) and the same case without the second are identified (`calfit identify`, on the fit's own mesh
+from the segmentation) and diagnosed (`calfit diagnose`, refit "auto"); every effect is scored on all the levels at
+once. Models:
+- laplace: neo-Hookean tissues under Laplace's law (the first paper's), engine sensitivities;
+- band: the same tissues under the explicit frictionless band, engine sensitivities through the contact;
+- second-paper: Bouten and Drapier's Table 1 Mooney-Rivlin tissues, incompressible on CPE6H, the band with friction
+  0.3 (every column and refit a difference of runs: slow).
+Printed per effect: one sock and two socks, the hidden effect's rank, score statistic and p-value, the best effect,
+the design effect D of the residual's correlation (the statistic is the chi^2 reduction over D), the misfit over the
+floor before and after the refit (and each level's own after it), and the wall times.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from levels import first_level_only
+
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.materials import TissueLaw
+from orchestrator.phantom.truths import random_truth
+from orchestrator.pipeline import run_diagnose, run_identify
+from orchestrator.study import make_phantom_case
+
+SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
+FIRST_TENSION = 0.16   # N/mm
+HIDDEN = {
+    "drainage": {"values": {"dv_muscle": -0.05}},
+    "tension_profile": {"values": {"a1": 0.08, "b1": -0.05}},
+    "bone_motion": {"values": {"ux_BONE2": 0.2, "uy_BONE2": -0.15}},
+    "compartments": {"values": {"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
+                     "labels": "compartments"},
+}
+# Bouten and Drapier's Table 1 (kPa) and the fit's tables for it, as tests/test_second_paper_model.py
+TABLE1_KPA = [1.4, 0.9, 1.0, 0.6]   # C10 fat, C10 muscle, C01 fat, C01 muscle
+SECOND_PAPER_TABLES = """
+[model]
+element = "CPE6H"
+garment = "explicit"
+friction = 0.3
+[model.fat]
+law = "mooney_rivlin"
+terms = 3
+incompressible = true
+fixed = { C20 = -0.04 }
+[model.muscle]
+law = "mooney_rivlin"
+incompressible = true
+fixed = { C01 = 0.6 }
+"""
+BAND_TABLES = '\n[model]\nelement = "CPE6"\ngarment = "explicit"\n'
+
+
+def make_case(folder: Path, model: str, effect: str, seed: int, second_tension: float, data: str) -> Path:
+    """The two-sock phantom case of `model` with `effect` hidden (module text)."""
+    spec = HIDDEN[effect]
+    options = dict(tension_N_per_mm=FIRST_TENSION, levels=(second_tension,), rigid=SCANNER_MOTION,
+                   effects={effect: spec["values"]}, labels=spec.get("labels", "segmented"),
+                   points_spacing_mm=6.0 if data == "points" else None, noise_seeds=(10 + seed, 20 + seed),
+                   overwrite=True)
+    if model == "second-paper":
+        options.update(theta_kPa=TABLE1_KPA, garment="explicit", friction_mu=0.3, hybrid=True, points_sigma_mm=0.05,
+                       tissues={"fat": TissueLaw("mooney_rivlin", terms=3, incompressible=True, fixed={"C20": -0.04}),
+                                "muscle": TissueLaw("mooney_rivlin", incompressible=True)})
+    else:
+        options.update(theta_kPa=random_truth(seed), garment="explicit" if model == "band" else "laplace")
+    case, _ = make_phantom_case(folder, **options)
+    tables = {"second-paper": SECOND_PAPER_TABLES, "band": BAND_TABLES}.get(model, "")
+    if tables:
+        with open(case / "case.toml", "a") as toml:
+            toml.write(tables)
+    return case
+
+
+def identify_and_diagnose(case: Path, run: Path, data: str, workers: int) -> dict:
+    began = time.perf_counter()
+    identification = run_identify(case, run, data=data, workers=workers, progress=False)
+    identified = time.perf_counter()
+    diagnosis = run_diagnose(run, workers=workers, progress=False)
+    return {"identification": identification, "diagnosis": diagnosis, "identify_s": identified - began,
+            "diagnose_s": time.perf_counter() - identified}
+
+
+def summary(effect: str, result: dict) -> dict:
+    """The hidden effect's place in the ranking and what its refit reached."""
+    diagnosis = result["diagnosis"]
+    ranking = diagnosis["ranking"]
+    names = [score["effect"] for score in ranking]
+    rank = names.index(effect) + 1 if effect in names else None
+    score = ranking[rank - 1] if rank else None
+    refit = next((fit for fit in diagnosis["refits"] if fit["effects"][-1:] == [effect]), None)
+    return {"rank": rank, "of": len(names), "statistic": score["statistic"] if score else float("nan"),
+            "p_value": score["p_value"] if score else float("nan"), "best": names[0] if names else "-",
+            "before": diagnosis["before"]["misfit_over_floor"],
+            "after": refit["misfit_over_floor"] if refit else float("nan"),
+            "after_levels": [level["misfit_over_floor"] for level in (refit or {}).get("levels", [])],
+            "design_effect": diagnosis["design_effect"], "verdict": diagnosis["verdict"], "identify_s": result["identify_s"], "diagnose_s": result["diagnose_s"],
+            "engine_runs": diagnosis["engine_runs"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--effects", nargs="+", default=["drainage", "compartments"], choices=sorted(HIDDEN))
+    parser.add_argument("--model", default="laplace", choices=("laplace", "band", "second-paper"))
+    parser.add_argument("--data", default="points", choices=("points", "dic"))
+    parser.add_argument("--seed", type=int, default=4)
+    parser.add_argument("--second-tension", type=float, default=0.32)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--keep", type=Path, help="keep the cases and runs in this folder")
+    arguments = parser.parse_args()
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="calfit-levels-diagnosis-") as scratch:
+        root = arguments.keep or Path(scratch)
+        for effect in arguments.effects:
+            folder = root / f"{arguments.model}-{effect}"
+            if folder.exists():
+                shutil.rmtree(folder)
+            began = time.perf_counter()
+            two = make_case(folder / "two-socks", arguments.model, effect, arguments.seed, arguments.second_tension,
+                            arguments.data)
+            one = first_level_only(two, folder / "one-sock")
+            print(f"{effect}: phantom made in {time.perf_counter() - began:.0f} s", flush=True)
+            pair = {}
+            for label, case in (("one sock", one), ("two socks", two)):
+                pair[label] = summary(effect, identify_and_diagnose(case, folder / f"run-{case.name}", arguments.data,
+                                                                    arguments.workers))
+                print(f"  {label}: {json.dumps(pair[label])}", flush=True)
+            rows.append((effect, pair))
+    print()
+    print(f"model {arguments.model}, data {arguments.data}, truth seed {arguments.seed}, socks {FIRST_TENSION:g} and "
+          f"{arguments.second_tension:g} N/mm")
+    header = (f"{'hidden':<16}{'socks':>6} {'rank':>6} {'statistic':>10} {'p-value':>9} {'best':>16} "
+              f"{'D':>6} {'x floor':>8} {'refit':>7}  {'each level after':<18}{'identify':>9}{'diagnose':>9}")
+    print(header)
+    print("-" * len(header))
+    for effect, pair in rows:
+        for label, s in pair.items():
+            rank = f"{s['rank']}/{s['of']}" if s["rank"] else "-"
+            levels = ", ".join(f"{v:.2f}" for v in s["after_levels"])
+            print(f"{effect:<16}{label.split()[0]:>6} {rank:>6} {s['statistic']:10.1f} {s['p_value']:9.2g} "
+                  f"{s['best']:>16} {s.get('design_effect', float('nan')):6.1f} {s['before']:8.2f} {s['after']:7.2f}  {levels:<18}{s['identify_s']:8.0f}s"
+                  f"{s['diagnose_s']:8.0f}s")
+
+
+if __name__ == "__main__":
+    main()
