@@ -263,9 +263,10 @@ def level_misfits(objective, r: np.ndarray, n_parameters: int) -> list[dict]:
     parts = getattr(objective, "parts", None)
     if not parts:
         return []
-    return [{"level": k, "misfit": float(misfit), "noise_floor": part.noise_floor(n_parameters),
-             "misfit_over_floor": float(misfit) / part.noise_floor(n_parameters)}
-            for k, (part, misfit) in enumerate(zip(parts, objective.level_misfits(r)), 1)]
+    # each level's floor counts its share of the fitted parameters, p n_k / n (as identification.json's levels)
+    floors = [part.noise_floor(n_parameters * part.n_residuals / objective.n_residuals) for part in parts]
+    return [{"level": k, "misfit": float(misfit), "noise_floor": floor, "misfit_over_floor": float(misfit) / floor}
+            for k, (floor, misfit) in enumerate(zip(floors, objective.level_misfits(r)), 1)]
 
 
 def level_maps(objective, residual_mm: np.ndarray, frame: LegFrame) -> list["ResidualMaps"]:

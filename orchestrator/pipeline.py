@@ -264,12 +264,17 @@ def _measurement_share(measured) -> float:
     return float(noise / total)
 
 
+def _level_images(setup: RunSetup) -> list[str]:
+    """The loaded image of every garment level, the case's own first."""
+    return [setup.case.files["loaded"].name] + [level.path.name for level in setup.case.levels]
+
+
 def _level_fits(setup: RunSetup, scorer, measured, theta) -> list[dict]:
     """Each garment level of a joint fit: its image, tension, measurements and own misfit over its own floor (the
     evaluation at theta is read back from the run's log)."""
     with Evaluator(setup.at_every_level(setup.model), scorer, setup.run_dir, progress=False) as evaluator:
         record = evaluator(theta)
-    images = [setup.case.files["loaded"].name] + [level.path.name for level in setup.case.levels]
+    images = _level_images(setup)
     misfits = record["outputs"].get("level_misfits") or [None] * len(images)
     rows = []
     for part, image, tension, level_measured, misfit in zip(scorer.parts, images, setup.case.tensions, measured,
@@ -347,6 +352,9 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
                                                montecarlo["central"], level.tension_N_per_mm, draws=draws,
                                                tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
         levels.append({"level": level.number, "image": level.path.name, **level_stats.as_dict()})
+        if setup.model.band is not None:
+            levels[-1]["band"] = _band_on_the_leg(setup, montecarlo["central"],
+                                                  AtTension(setup.model, level.tension_N_per_mm))
     if levels:
         result["levels"] = levels
     if setup.model.band is not None:
@@ -355,11 +363,12 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
     return result
 
 
-def _band_on_the_leg(setup: RunSetup, theta: Sequence[float]) -> dict:
+def _band_on_the_leg(setup: RunSetup, theta: Sequence[float], model: AtTension | None = None) -> dict:
     """The explicit band's contact pressure, shear, status and slip around the leg, its bridges and its hoop force at
-    theta, under the case's own garment (`garment_state`; the other levels' bands are not reported)."""
+    theta, under the case's own garment or another level's (`model`: the run's model at that level's tension; the
+    band's shape is the same, its fabric stiffer or softer: `garment_state` reads the forces from the engine)."""
     with tempfile.TemporaryDirectory(prefix="calfit-band-") as scratch:
-        results = setup.solve(theta, Path(scratch))
+        results = setup.solve(theta, Path(scratch), model)
         state = band_state(results, setup.mesh, setup.model.band, setup.frame(), setup.model.friction_at(theta))
     return {"theta": [float(v) for v in theta], **state.as_dict()}
 
@@ -436,8 +445,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     result["refit_failures"] = refit_failures
     result["maps_after"] = [asdict(m) for m in after_maps]
     if diagnosis.levels:
-        images = [setup.case.files["loaded"].name] + [level.path.name for level in setup.case.levels]
-        for k, (row, image, tension) in enumerate(zip(result["levels"], images, setup.case.tensions)):
+        for k, (row, image, tension) in enumerate(zip(result["levels"], _level_images(setup), setup.case.tensions)):
             row.update(image=image, tension_N_per_mm=tension, worst_region=diagnosis.level_maps[k].worst_region)
         result["level_maps_after"] = [[asdict(m) for m in maps] for maps in after_level_maps]
     result["local"] = local

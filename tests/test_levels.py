@@ -459,8 +459,8 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
 def test_two_socks_on_the_explicit_band_are_identified_jointly(tmp_path):
     """The second paper's garment at two tensions (issue 29): a phantom made with the band under 0.16 and 0.32 N/mm
     (each level's band of the same size, its fabric stiffer in proportion), on its own 2,000-element mesh, points with
-    0.02 mm noise and scanner motion, fitted jointly with the band from case.toml."""
-    from orchestrator.pipeline import run_identify
+    0.02 mm noise and scanner motion, fitted jointly with the band from case.toml; each sock's band in pressures.json."""
+    from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
     from orchestrator.study import make_phantom_case
 
     truth = random_truth(4)
@@ -475,6 +475,17 @@ def test_two_socks_on_the_explicit_band_are_identified_jointly(tmp_path):
     assert [row["tension_N_per_mm"] for row in identification["levels"]] == list(TENSIONS)
     assert identification["misfit_over_floor"] < 1.5
     assert np.all(np.abs(error[[1, 3]]) < 0.05)   # the muscle's constants, as one level of the band gives them
+
+    # each sock's band on the leg in pressures.json (issue 29 item 4), the second under its own tension
+    run_montecarlo(tmp_path / "run", draws=10, workers=2, progress=False)
+    pressures = run_pressures(tmp_path / "run", draws=4, workers=2, progress=False)
+    bands = [pressures["band"], pressures["levels"][0]["band"]]
+    hoop = [band["hoop_tension_N_per_mm"]["mean"] for band in bands]
+    print("hoop force of the two socks", np.round(hoop, 4), "contact force",
+          [round(band["contact_force_N_per_mm"], 4) for band in bands])
+    for band, tension in zip(bands, hoop):
+        assert band["contact_force_N_per_mm"] == pytest.approx(2.0 * np.pi * tension, rel=0.03)   # the band's balance
+    assert 1.6 < hoop[1] / hoop[0] < 2.1
 
 
 @pytest.mark.slow
