@@ -622,16 +622,22 @@ class Refit:
         return asdict(self)
 
 
+def refit_model(model: LegModel, effects: Sequence[str]) -> LegModel:
+    """The model that `refit` fits with these effects added: the catalog's in its deck, the garment's (friction,
+    bridging) by switching it to the band (`garment_model`)."""
+    garment = [name for name in effects if effect(name).apply is None]
+    others = tuple(name for name in effects if name not in garment)
+    extended = with_changes(model, effects=model.effects + others)
+    return garment_model(extended, garment) if garment else extended
+
+
 def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str], objective, *,
           max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and from
     the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
     when the missing effect dragged the baseline fit to a bound or far from the tissue's values.
     Returns the fit and its residual u_model - u_measured (mm) at the points."""
-    garment = [name for name in effects if effect(name).apply is None]
-    others = tuple(name for name in effects if name not in garment)
-    extended = with_changes(model, effects=model.effects + others)
-    extended = garment_model(extended, garment) if garment else extended
+    extended = refit_model(model, effects)
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
     # one-sided difference, and Levenberg-Marquardt may not leave the bound
     extra = [(model.friction_mu or FRICTION_PROBE_MU) if name == "mu" else 0.0

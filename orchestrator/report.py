@@ -34,7 +34,7 @@ import numpy as np
 
 from . import figures
 from .decks import template_dir
-from .diagnose import ALPHA, EXPLAINED_FACTOR, Refit, level_rows, model_label
+from .diagnose import ALPHA, EXPLAINED_FACTOR, Refit, level_rows, model_label, refit_model
 from .digits import interval_uncertainty, rounded
 from .forward import MeshInterpolator, field_on_pixels
 from .identify import pressure_spreads
@@ -414,8 +414,10 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                           EXPLAINED_FACTOR)
 
     mismatch_values, distances = [], []
+    identified = setup.model_with(diagnosis["before"]["effects"])
     for k, fit in enumerate(fits):
-        model = setup.model_with(fit["effects"])
+        # as the refit built it: a garment effect (friction, bridging) switches a Laplace-law model to the band
+        model = refit_model(identified, fit["effects"][len(diagnosis["before"]["effects"]):])
         nodal = leg_rows(setup.solve(fit["theta"], staging / f"diagnosis-{k}", model).displacement(), len(setup.mesh.nodes))
         result, _ = contour_distances(setup, nodal)
         mismatch_values.append(result.value_mm2)

@@ -504,7 +504,9 @@ def test_two_socks_are_diagnosed_together_from_the_images(tmp_path):
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
                                 labels=None, points_spacing_mm=None, rigid=SCANNER_MOTION, noise_seeds=(14, 24),
                                 effects={"drainage": {"dv_muscle": -0.05}})
-    identification = run_identify(case, tmp_path / "run", workers=2, progress=False)
+    # a 1,000-element fit mesh: on the default 2,000 the test took 26 minutes (the ties' refits: bridging,
+    # friction and out_of_plane were each predicted to explain), for the same verdict
+    identification = run_identify(case, tmp_path / "run", n_elements=1000, workers=2, progress=False)
     assert identification["data"]["source"] == "dic"
     diagnosis = run_diagnose(tmp_path / "run", workers=2, progress=False)
     best = diagnosis["ranking"][0]
