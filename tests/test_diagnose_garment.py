@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.diagnose import candidate_effects, garment_model
+from orchestrator.diagnose import candidate_effects, garment_model, refit_model
 from orchestrator.forward import LegModel
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.phantom import CalfPhantom
@@ -55,6 +55,19 @@ def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
         LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=("friction",))
     with pytest.raises(ValueError, match="not available on this model"):
         LegModel(leg_mesh, 0.16, garment="explicit", effects=("friction", "unloaded_curvature"))
+
+
+def test_a_refit_with_a_garment_effect_is_the_band_model(leg_mesh):
+    """What the report solves again for each refit (`refit_model`): bridging and friction are the band, not an effect
+    of the Laplace-law deck, which refuses them (the report raised on such a refit)."""
+    laplace = LegModel(leg_mesh, 0.16, effects=("drainage",))
+    bridged = refit_model(laplace, ["bridging"])
+    assert bridged.garment == "explicit" and bridged.effects == ("drainage",) and bridged.friction_mu == 0.0
+    sliding = refit_model(laplace, ["friction"])
+    assert sliding.garment == "explicit" and sliding.space.names[-2:] == ("dv_muscle", "mu")
+    assert refit_model(laplace, ["bone_motion"]).effects == ("drainage", "bone_motion")
+    with pytest.raises(ValueError, match="not available on this model"):
+        LegModel(leg_mesh, 0.16, effects=("drainage", "bridging"))
 
 
 def _diagnosed(tmp_path, phantom=None, friction_mu: float = 0.0, fit_elements: int | None = None):
