@@ -98,17 +98,17 @@ ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters 
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
 FRICTION_PROBE_MU = 0.05     # forward-difference step of the friction coefficient from a frictionless band
 MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
+PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 # the band's own variants that are not ranked on a model of the band, and why (said in diagnosis.json "not_ranked")
 BAND_VARIANTS_NOT_RANKED = {
     "band stiffness": "a band stiffer by a factor s carries s T at the same stretch, and the tissues' moduli scaled by s "
-                      "then give the same displacements (both x1.5 moved the skin by 3.5 um of 0.99 mm, frictionless "
-                      "or at mu = 0.3): displacements cannot tell it from the tissues' scale; the tension's "
-                      "uncertainty carries it into the pressures (Table 4)",
+                      "then give the same displacements (both x1.5 moved the leg by 3.3 um of 0.98 mm, "
+                      "tests/test_garment.py; 3.1 um at mu = 0.3): displacements cannot tell it from the tissues' "
+                      "scale; the tension's uncertainty carries it into the pressures (Table 4)",
     "band tension profile": "a prestretch of the band varying around the leg: frictionless, the band's hoop force is the "
                             "same all round whatever its prestretch (p = T / r); with friction it would need the band's "
                             "prestretch per sector, which the band's deck does not have yet",
 }
-PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 
 
 @dataclass
