@@ -745,11 +745,12 @@ def level_rows(levels: Sequence[dict], before: Refit, after: Sequence[Refit]) ->
 def level_lines(levels: Sequence[dict], before: Refit, after: Sequence[Refit]) -> list[str]:
     """`level_rows` as text."""
     labels = [model_label(fit.effects) for fit in (before, *after)]
-    lines = [f"{'level':<6}{'image':<22}{'N/mm':>7}" + "".join(f"{label[:20]:>22}" for label in labels)
+    widths = [max(12, len(label) + 2) for label in labels]
+    lines = [f"{'level':<6}{'image':<22}{'N/mm':>7}" + "".join(f"{label:>{w}}" for label, w in zip(labels, widths))
              + "  largest share of the residual (identified model)"]
     for row in level_rows(levels, before, after):
-        lines.append(f"{row[0]:<6}{row[1]:<22}{row[2]:>7.3g}" + "".join(f"{v:>20.2f} x" for v in row[3:-1])
-                     + f"  {row[-1]}")
+        lines.append(f"{row[0]:<6}{row[1]:<22}{row[2]:>7.3g}"
+                     + "".join(f"{v:>{w - 2}.2f} x" for v, w in zip(row[3:-1], widths)) + f"  {row[-1]}")
     return ["misfit over each garment level's own floor:"] + lines
 
 
