@@ -109,7 +109,9 @@ class StepEffects:
     (`*TENSION PROFILE, TYPE=FOURIER`);
     sensitivities: data lines of `*SENSITIVITY` (du/dtheta of the converged state, engine-computed);
     reference_share: alpha, the share of the garment's pressure taken from the curvature of the unloaded contour
-    (`*LAPLACE PRESSURE, REFERENCE=alpha`; 0 is Laplace's law on the deformed contour).
+    (`*LAPLACE PRESSURE, REFERENCE=alpha`; 0 is Laplace's law on the deformed contour);
+    band_volume_changes: (band sector set, dv) pairs of the explicit band's natural state, `*VOLUME CHANGE` in its
+    first step (a prestretch varying around the leg: the sector's natural length times (1 + dv)^(1/3)).
     """
 
     volume_changes: tuple[tuple[str, float], ...] = ()
@@ -118,6 +120,7 @@ class StepEffects:
     fourier_profile: tuple[tuple[int, float, float], ...] = ()
     sensitivities: tuple[str, ...] = ()
     reference_share: float = 0.0
+    band_volume_changes: tuple[tuple[str, float], ...] = ()
 
 
 def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tension_N_per_mm: float, *,
@@ -149,7 +152,11 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
 def _check_tissue_effects(effects: StepEffects) -> None:
     if effects.axial_stretch is not None:
         _positive("the axial stretch", [effects.axial_stretch])
-    for elset, dv in effects.volume_changes:
+    _check_volume_changes(effects.volume_changes)
+
+
+def _check_volume_changes(volume_changes) -> None:
+    for elset, dv in volume_changes:
         if not float(dv) > -1.0:
             raise DeckError(f"the volume change of {elset} must be > -1 (a relative change), got {dv!r}")
 
@@ -216,6 +223,7 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
         raise DeckError("a garment tension profile and the unloaded curvature are Laplace's law's (p = T / r): the "
                         "explicit band carries neither")
     _check_tissue_effects(effects)
+    _check_volume_changes(effects.band_volume_changes)
     rows = _material_rows(materials)
     return render("leg_garment.inp.j2", description=description, mesh_include=MESH_INCLUDE_NAME, materials=rows,
                   band_constants=numbers((band.C10, band.D1)), penalty=f"{penalty:.10g}",
@@ -225,6 +233,7 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   sliding_pins=band.deck_pins(leg, ("GARMENT_PIN_Y",)), inflate_static=numbers(inflate_static),
                   let_go_static=numbers(let_go_static), settle_static=numbers(SETTLE_STATIC),
                   release_static=numbers(release_static), max_increments=max_increments,
+                  band_volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.band_volume_changes],
                   **_tissue_effect_lines(effects))
 
 

@@ -99,15 +99,13 @@ FD_FRACTION = 1.0            # forward-difference step of an effect parameter, i
 FRICTION_PROBE_MU = 0.05     # forward-difference step of the friction coefficient from a frictionless band
 MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
 PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
-# the band's own variants that are not ranked on a model of the band, and why (said in diagnosis.json "not_ranked")
+# the band's own variant that is not ranked on a model of the band, and why (said in diagnosis.json "not_ranked"); its
+# prestretch varying around the leg is the catalog's band_profile
 BAND_VARIANTS_NOT_RANKED = {
     "band stiffness": "a band stiffer by a factor s carries s T at the same stretch, and the tissues' moduli scaled by s "
                       "then give the same displacements (both x1.5 moved the leg by 3.3 um of 0.98 mm, "
                       "tests/test_garment.py; 3.1 um at mu = 0.3): displacements cannot tell it from the tissues' "
                       "scale; the tension's uncertainty carries it into the pressures (Table 4)",
-    "band tension profile": "a prestretch of the band varying around the leg: frictionless, the band's hoop force is the "
-                            "same all round whatever its prestretch (p = T / r); with friction it would need the band's "
-                            "prestretch per sector, which the band's deck does not have yet",
 }
 
 
@@ -322,11 +320,15 @@ def candidate_effects(model: LegModel) -> tuple[list[str], dict[str, str]]:
     for name, item in CATALOG.items():
         if name in model.effects or name in model.fixed_effects:
             continue
-        if model.garment == "laplace" and "laplace" not in item.garments:   # friction, bridging: switch to the band
+        if model.garment == "laplace" and item.garments == ("explicit",) and item.apply is not None:
+            reason = ("it is the explicit band's own, held by friction: diagnose a model of the band ([model] "
+                      "garment = \"explicit\" and friction in case.toml)")
+        elif model.garment == "laplace" and "laplace" not in item.garments:   # friction, bridging: switch to the band
             reason = (f"the explicit band it needs cannot carry {', '.join(blockers)}, which belong to Laplace's law"
                       if blockers else None)
         else:
-            reason = item.unavailable(sets, nodes, model.garment) or model.law_conflict(name)
+            reason = (item.unavailable(sets, nodes, model.garment) or model.law_conflict(name)
+                      or model.garment_conflict(name))
         if reason:
             skipped[name] = reason
         else:

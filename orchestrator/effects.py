@@ -18,6 +18,7 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | out_of_plane    | eps_z                           | *AXIAL STRETCH                      |
 | heterogeneity   | h_<mode>_<fat, muscle>          | one *MATERIAL per group             |
 | unloaded_curvature | alpha_unloaded               | *LAPLACE PRESSURE, REFERENCE=alpha  |
+| band_profile    | band_a1, band_b1                | *VOLUME CHANGE of the band's sectors|
 
 Beyond the catalog, three effects act on the material groups of `orchestrator.heterogeneity` (every tissue cut
 by sector and depth, one material each): `patch:<groups>` (dlnE_patch: every modulus of the law, C10 and
@@ -33,7 +34,10 @@ explicit band's deck carries every effect of the tissues and bones (compartments
 stiffening, out_of_plane, heterogeneity, and the group effects), written into its last step, once the band is on
 the leg: the fluid leaves, the fibula moves and the slice lengthens under the garment, as they do in a real calf.
 It carries `friction` (its coefficient mu) too. `tension_profile` and `unloaded_curvature` change Laplace's law
-itself, and `bridging` is what the band does: none of the three has a meaning on the band.
+itself, and `bridging` is what the band does: none of the three has a meaning on the band. `band_profile` is the
+band's own: a prestretch that varies around the leg, the band's natural length per 15-degree sector changed in its
+first step; with friction it makes the hoop force vary around the leg (a frictionless band slides until its force is
+the same all round, so there it is refused).
 """
 
 from __future__ import annotations
@@ -84,6 +88,8 @@ class LegDeckState:
     rigid_motions: dict[str, tuple[float, float, float]] = field(default_factory=dict)
     fourier_profile: dict[int, tuple[float, float]] = field(default_factory=dict)
     reference_share: float = 0.0   # the share of the garment's pressure taken from the unloaded contour
+    band_sectors: dict[str, float] = field(default_factory=dict)         # band sector set -> its middle angle (rad)
+    band_volume_changes: dict[str, float] = field(default_factory=dict)  # band sector set -> dv of its natural state
     sensitivity: dict[str, list[tuple[str, float]]] = field(default_factory=dict)
     c10_factor: dict[str, float] = field(default_factory=dict)   # sensitivity line -> C10 / C10_muscle (compartments)
     groups: list = field(default_factory=list)                   # heterogeneity.Group of the model, [] if none
@@ -157,6 +163,17 @@ def _apply_tension_profile(state: LegDeckState, values: dict[str, float]) -> Non
         state.fourier_profile[k] = (values.get(f"a{k}", 0.0), values.get(f"b{k}", 0.0))
         for name in (f"a{k}", f"b{k}"):
             _add_sensitivity(state, name, f"PROFILE, {PROFILE_NAME}, {name.upper()}", 1.0)
+
+
+def _apply_band_profile(state: LegDeckState, values: dict[str, float]) -> None:
+    # the band's natural length in a sector at angle phi times 1 + e(phi), e = a1 cos phi + b1 sin phi: an isotropic
+    # volume change dv = (1 + e)^3 - 1 of its natural state (the engine's growth g = (1 + dv)^(1/3) = 1 + e)
+    a1, b1 = values["band_a1"], values["band_b1"]
+    for sector, phi in state.band_sectors.items():
+        stretch = 1.0 + a1 * np.cos(phi) + b1 * np.sin(phi)
+        state.band_volume_changes[sector] = stretch ** 3 - 1.0
+        _add_sensitivity(state, "band_a1", f"VOLUME CHANGE, {sector}", 3.0 * stretch ** 2 * np.cos(phi))
+        _add_sensitivity(state, "band_b1", f"VOLUME CHANGE, {sector}", 3.0 * stretch ** 2 * np.sin(phi))
 
 
 def _apply_unloaded_curvature(state: LegDeckState, values: dict[str, float]) -> None:
@@ -351,6 +368,14 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            _fixed(EffectParameter("alpha_unloaded", "1", 0.0, 1.0, 0.1,
                                   "share of the pressure taken from the unloaded contour's curvature")),
            _apply_unloaded_curvature, garments=("laplace",)),
+    Effect("band_profile", "the garment band's prestretch varying around the leg (explicit band with friction)",
+           "A knit stretched unevenly, a seam or a band pulled on askew: the band's natural length varies around the "
+           "leg, e(phi) = a1 cos phi + b1 sin phi (phi counter-clockwise on the image from its +x axis, about the "
+           "band's centre). Held by friction, the band keeps a hoop force that varies with it, and presses harder "
+           "where it is shorter; frictionless it would slide until its force is the same all round.",
+           _fixed(EffectParameter("band_a1", "1", -0.3, 0.3, 0.02, "cos phi amplitude of the band's natural length"),
+                  EffectParameter("band_b1", "1", -0.3, 0.3, 0.02, "sin phi amplitude of the band's natural length")),
+           _apply_band_profile, garments=("explicit",)),
     Effect("bone_motion", "rigid motion of the fibula relative to the tibia instead of clamping",
            "The bones are not welded together: the interosseous membrane lets the fibula move under load, which "
            "drags the deep tissue with it: a residual that is largest around the second bone.",

@@ -37,6 +37,7 @@ from .meshing import Mesh
 from .meshing.mesh import muscle_sets
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
+BAND_PROFILE = "band_profile"   # the band's own effect: its prestretch varying around the leg (`effects`)
 # Avril et al. Table 2, central values (kPa), in LEG_PARAMETERS order: the phantom's default truth and the fits' usual
 # start (`materials.AVRIL_START_KPA`).
 TABLE2_CENTRAL_KPA = tuple(AVRIL_START_KPA[name.split("_")[1]][name.split("_")[0]] for name in LEG_PARAMETERS)
@@ -234,6 +235,9 @@ class LegModel:
         sets = self.mesh.element_sets()
         self._set_laws(list(sets))
         self.effects = tuple(self.effects)
+        conflict = self.garment_conflict(BAND_PROFILE) if BAND_PROFILE in self._all_effects else None
+        if conflict:
+            raise ValueError(f"effect {BAND_PROFILE!r} is not available on this model: {conflict}")
         overlap = set(self.effects) & set(self.fixed_effects)
         if overlap:
             raise ValueError(f"effects {sorted(overlap)} are both fitted and fixed")
@@ -244,12 +248,27 @@ class LegModel:
         _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets), self.garment)  # they fit?
         self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
         mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
+        if self.band and BAND_PROFILE in self._all_effects:
+            mesh_text += self.band.sector_elsets_text(self.mesh)
         if self.hybrid:   # the leg's element block only: the band stays a compressible displacement element
             leg_block = f"*ELEMENT, TYPE={self.mesh.element_type}, ELSET=EALL"
             mesh_text = mesh_text.replace(leg_block, f"*ELEMENT, TYPE={self.mesh.element_type}H, ELSET=EALL", 1)
         self.mesh_text = mesh_text + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
         self.engine_sensitivities = self.engine_sensitivities and self.engine_differentiable
+
+    @property
+    def _all_effects(self) -> tuple[str, ...]:
+        return tuple(self.effects) + tuple(self.fixed_effects)
+
+    def garment_conflict(self, effect_name: str) -> str | None:
+        """Why an effect of the band cannot act on this model's garment (None when it can)."""
+        if effect_name == BAND_PROFILE and self.garment == "explicit" and not (self.friction_mu > 0.0
+                                                                               or "friction" in self.effects):
+            return ("a frictionless band slides over the skin until its hoop force is the same all round, whatever "
+                    "its prestretch: the prestretch's profile needs friction ([model] friction, or the friction "
+                    "effect)")
+        return None
 
     @property
     def engine_differentiable(self) -> bool:
@@ -354,6 +373,8 @@ class LegModel:
         state = LegDeckState({elset: dict(per_tissue[tissue]) for elset, tissue in self.set_tissue.items()},
                              laws={elset: self.tissue_laws[tissue] for elset, tissue in self.set_tissue.items()},
                              groups=self.groups)
+        if self.band is not None and BAND_PROFILE in self._all_effects:
+            state.band_sectors = {name: angle for name, (_, angle) in self.band.sector_sets().items()}
         for name in self.law_parameters:
             constant, tissue = name.split("_", 1)
             state.sensitivity[name] = []
@@ -392,7 +413,7 @@ class LegModel:
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,
                               tuple((n, *m) for n, m in state.rigid_motions.items()),
                               tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
-                              tuple(lines), state.reference_share)
+                              tuple(lines), state.reference_share, tuple(state.band_volume_changes.items()))
         stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
         materials = {elset: deck_material(state.laws[elset], c, stiffening) for elset, c in state.constants.items()}
         if self.band is not None:

@@ -108,6 +108,9 @@ class LevelsModel:
     def law_conflict(self, name: str) -> str | None:
         return self.base.law_conflict(name)
 
+    def garment_conflict(self, name: str) -> str | None:
+        return self.base.garment_conflict(name)
+
     def replace(self, **changes) -> "LevelsModel":
         """The same levels of the base model with these fields changed (`dataclasses.replace` of a LegModel):
         effects added, the garment switched to the band."""

@@ -41,12 +41,15 @@ def solved_band(leg, workdir, friction_mu=0.0):
     (workdir / MESH_INCLUDE_NAME).write_text(band.include_text(leg))
     run = run_engine(leg_garment_deck(DEFAULT_MATERIALS, band, leg, friction_mu=friction_mu), workdir)
     assert run.returncode == 0, run.stderr
-    # the frame of the leg as the report has it: from a segmentation (here the skin polygon, no bones)
+    return band_state(EngineResults(run.outdir), leg, band, leg_frame(leg), friction_mu, GARMENT_STEPS["released"]), band
+
+
+def leg_frame(leg) -> LegFrame:
+    """The frame of the leg as the report has it: from a segmentation (here the skin polygon, no bones)."""
     rows, cols = np.mgrid[0:320, 0:320]
     pixels = np.column_stack([(cols.ravel() + 0.5) * PIXEL_MM, (rows.ravel() + 0.5) * PIXEL_MM])
     labels = np.where(points_in_poly(pixels, leg.nodes[leg.skin_loop]), FAT, 0).reshape(rows.shape)
-    frame = LegFrame.from_labels(labels, (PIXEL_MM, PIXEL_MM))
-    return band_state(EngineResults(run.outdir), leg, band, frame, friction_mu, GARMENT_STEPS["released"]), band
+    return LegFrame.from_labels(labels, (PIXEL_MM, PIXEL_MM))
 
 
 @pytest.fixture(scope="module")
@@ -101,3 +104,35 @@ def test_the_band_bridges_the_dent_and_the_bridge_is_found_there(tmp_path):
     assert 10.0 < bridge.length_mm < 40.0 and bridge.max_gap_mm > 0.5
     assert np.all(state.pressure_kPa[state.status == OPEN] == 0.0)
     assert state.contact_force_N_per_mm == pytest.approx(2.0 * np.pi * T.mean(), rel=0.02)
+
+
+def test_a_band_knitted_unevenly_keeps_an_uneven_hoop_force_where_friction_holds_it(leg, tmp_path):
+    """The band_profile effect (issue 29: the band's prestretch varying around the leg): the band's natural length
+    times 1 + 0.05 cos phi. Held at mu = 0.3, the band keeps a hoop force lower where it is longer (measured: the
+    force's cos phi part -0.025 N/mm of 0.149, -17 %); at mu = 0.02 it slips (half the skin) until the force is nearly
+    even again (-0.002 N/mm). Either way within the capstan bound, max T / min T <= exp(mu 2 pi)."""
+    from orchestrator.forward import LegModel, write_mesh_include
+
+    theta = [3.1, 14.0, 90.0, 120.0]
+    harmonic = {}
+    for mu in (FRICTION_MU, SLIPPERY_MU):
+        model = LegModel(leg, 0.16, garment="explicit", friction_mu=mu, effects=("band_profile",))
+        stations = model.band.nodes[model.band.inner_corners] - model.band.centroid
+        phi = np.arctan2(-stations[:, 1], stations[:, 0])   # the effect's angle: counter-clockwise on the image
+        forces = []
+        for a1 in (0.0, 0.05):
+            folder = tmp_path / f"mu{mu}-a{a1}"
+            folder.mkdir()
+            write_mesh_include(model, folder)
+            run = run_engine(model.deck(theta + [a1, 0.0]), folder)
+            assert run.returncode == 0, run.stderr
+            T = band_state(EngineResults(run.outdir), leg, model.band, leg_frame(leg), mu).hoop_tension_N_per_mm
+            assert T.max() / T.min() <= np.exp(mu * 2.0 * np.pi)   # the capstan equation around the whole leg
+            forces.append(T)
+        fit = np.linalg.lstsq(np.column_stack([np.ones_like(phi), np.cos(phi), np.sin(phi)]), forces[1] - forces[0],
+                              rcond=None)[0]
+        harmonic[mu] = fit[1] / forces[0].mean()
+        print(f"mu {mu}: the hoop force's cos phi part changes by {fit[1]:.4f} N/mm ({100 * harmonic[mu]:.1f} %), "
+              f"sin phi {fit[2]:.4f}")
+    assert harmonic[FRICTION_MU] < -0.10                      # held: the longer side pulls less
+    assert abs(harmonic[SLIPPERY_MU]) < 0.2 * abs(harmonic[FRICTION_MU])   # slipping evens it out

@@ -79,6 +79,7 @@ DEFAULT_STRETCH = 1.15
 DEFAULT_POISSON = 0.4
 DEFAULT_N_THROUGH = 1  # one T6 element through the thickness bends quadratically; more only slow Newton down
 DEFAULT_CLEARANCE_FRACTION = 0.05
+BAND_SECTORS = 24   # 15-degree sectors of the band for a prestretch that varies around the leg (`sector_sets`)
 
 
 def neo_hooke_D1(C10: float, poisson: float) -> float:
@@ -168,6 +169,22 @@ class GarmentBand:
         ratio = tension_N_per_mm / self.design_tension_N_per_mm
         return replace(self, C10=self.C10 * ratio, D1=self.D1 / ratio, design_tension_N_per_mm=tension_N_per_mm,
                        inflation_pressure_MPa=self.inflation_pressure_MPa * ratio)
+
+    def sector_sets(self, count: int = BAND_SECTORS) -> dict[str, tuple[np.ndarray, float]]:
+        """The band's elements in `count` equal sectors around its centroid: name GARMENT_Skk -> (0-based local
+        elements, the sector's middle angle in radians, counter-clockwise on the image from its +x axis, y up),
+        by each element's natural centroid. A prestretch that varies around the leg (`effects`, band_profile)
+        is a volume change per sector."""
+        centres = self.nodes[self.elements[:, :3]].mean(axis=1) - self.centroid
+        angle = np.mod(np.arctan2(-centres[:, 1], centres[:, 0]), 2.0 * np.pi)
+        index = np.minimum((angle / (2.0 * np.pi) * count).astype(int), count - 1)
+        return {f"GARMENT_S{k:02d}": (np.flatnonzero(index == k), (k + 0.5) * 2.0 * np.pi / count)
+                for k in range(count) if np.any(index == k)}
+
+    def sector_elsets_text(self, leg: Mesh, count: int = BAND_SECTORS) -> str:
+        """*ELSET GARMENT_Skk of `sector_sets` with the deck's element ids (after the leg's)."""
+        return "".join(f"*ELSET, ELSET={name}\n" + _id_lines(members + 1 + len(leg.elements))
+                       for name, (members, _) in self.sector_sets(count).items())
 
     def include_text(self, leg: Mesh) -> str:
         """The leg's mesh include followed by the band: *NODE (NSET=GARMENT_NODES), *ELEMENT
