@@ -456,7 +456,8 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     ranking = []
     column = p
     for name in candidates:
-        parameters = [prm.name for prm in effect(name).parameters(probe_sets, list(model.mesh.node_sets))]
+        parameters = [prm.name for prm in effect(name).parameters(probe_sets, list(model.mesh.node_sets),
+                                                                  model.garment)]
         G = jacobian[:, column:column + len(parameters)]
         column += len(parameters)
         score = score_effect(r, J, G, chi2_to_misfit, deff)

@@ -43,6 +43,19 @@ def test_garment_effects_are_candidates_of_the_laplace_model_without_effects(leg
     assert "friction" not in candidates and "cannot carry tension_profile" in skipped["friction"]
 
 
+def test_the_bands_prestretch_profile_is_a_candidate_where_friction_holds_the_band(leg_mesh):
+    held = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3)
+    candidates, skipped = candidate_effects(held)
+    assert "band_profile" in candidates and "band stiffness" in skipped
+    _, skipped = candidate_effects(LegModel(leg_mesh, 0.16, garment="explicit"))
+    assert "slides over the skin" in skipped["band_profile"]
+    _, skipped = candidate_effects(LegModel(leg_mesh, 0.16))
+    assert "the explicit band's own" in skipped["band_profile"]
+    profiled = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=("band_profile",))
+    assert profiled.space.names[-2:] == ("band_a1", "band_b1")
+    assert profiled.deck(list(TRUTH_KPA) + [0.05, 0.0]).count("*VOLUME CHANGE, ELSET=GARMENT_S") == 24
+
+
 def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
     laplace = LegModel(leg_mesh, 0.16, engine_sensitivities=True)
     band = garment_model(laplace, ("friction",))
