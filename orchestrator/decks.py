@@ -110,8 +110,9 @@ class StepEffects:
     sensitivities: data lines of `*SENSITIVITY` (du/dtheta of the converged state, engine-computed);
     reference_share: alpha, the share of the garment's pressure taken from the curvature of the unloaded contour
     (`*LAPLACE PRESSURE, REFERENCE=alpha`; 0 is Laplace's law on the deformed contour);
-    band_volume_changes: (band sector set, dv) pairs of the explicit band's natural state, `*VOLUME CHANGE` in its
-    first step (a prestretch varying around the leg: the sector's natural length times (1 + dv)^(1/3)).
+    band_volume_changes: (band sector set, dv) pairs of the explicit band's natural state, `*VOLUME CHANGE` ramped in
+    its second step, the band free and round under its pressure (a prestretch varying around the leg: the sector's
+    natural length times (1 + dv)^(1/3)).
     """
 
     volume_changes: tuple[tuple[str, float], ...] = ()

@@ -373,8 +373,8 @@ CATALOG: dict[str, Effect] = {effect.name: effect for effect in (
            "leg, e(phi) = a1 cos phi + b1 sin phi (phi counter-clockwise on the image from its +x axis, about the "
            "band's centre). Held by friction, the band keeps a hoop force that varies with it, and presses harder "
            "where it is shorter; frictionless it would slide until its force is the same all round.",
-           _fixed(EffectParameter("band_a1", "1", -0.3, 0.3, 0.02, "cos phi amplitude of the band's natural length"),
-                  EffectParameter("band_b1", "1", -0.3, 0.3, 0.02, "sin phi amplitude of the band's natural length")),
+           _fixed(EffectParameter("band_a1", "1", -0.15, 0.15, 0.02, "cos phi amplitude of the band's natural length"),
+                  EffectParameter("band_b1", "1", -0.15, 0.15, 0.02, "sin phi amplitude of the band's natural length")),
            _apply_band_profile, garments=("explicit",)),
     Effect("bone_motion", "rigid motion of the fibula relative to the tibia instead of clamping",
            "The bones are not welded together: the interosseous membrane lets the fibula move under load, which "
