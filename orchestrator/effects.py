@@ -36,8 +36,8 @@ the leg: the fluid leaves, the fibula moves and the slice lengthens under the ga
 It carries `friction` (its coefficient mu) too. `tension_profile` and `unloaded_curvature` change Laplace's law
 itself, and `bridging` is what the band does: none of the three has a meaning on the band. `band_profile` is the
 band's own: a prestretch that varies around the leg, the band's natural length per 15-degree sector changed in its
-first step; with friction it makes the hoop force vary around the leg (a frictionless band slides until its force is
-the same all round, so there it is refused).
+second step (free and round, before it closes on the leg); with friction it makes the hoop force vary around the leg
+(a frictionless band slides until its force is the same all round, so there it is refused).
 """
 
 from __future__ import annotations
