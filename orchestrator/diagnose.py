@@ -267,7 +267,7 @@ def level_misfits(objective, r: np.ndarray, n_parameters: int) -> list[dict]:
             for k, (floor, misfit) in enumerate(zip(floors, objective.level_misfits(r)), 1)]
 
 
-def level_maps(objective, residual_mm: np.ndarray, frame: LegFrame) -> list["ResidualMaps"]:
+def level_maps(objective, residual_mm: np.ndarray, frame: LegFrame) -> list[ResidualMaps]:
     """The residual maps of each garment level's points (`residual_maps`); empty for one level."""
     if not getattr(objective, "parts", None):
         return []
