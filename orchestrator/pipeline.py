@@ -13,7 +13,8 @@ any stage interrupted and started again resumes without repeating an evaluation.
 
 A case with more garment levels ([[garment.levels]]) is measured at every level (the same windows of I0),
 identified and drawn by the Monte-Carlo on all of them at once (`levels`: one evaluation solves every level),
-its pressures given at every level; its diagnosis is refused (the catalog's scores are made for one image)."""
+its pressures (and with the explicit garment, each level's band) given at every level, and diagnosed on all of
+them at once, each level's own misfit and residual maps reported (`diagnose`)."""
 
 from __future__ import annotations
 
