@@ -108,7 +108,8 @@ def summary(effect: str, result: dict) -> dict:
             "before": diagnosis["before"]["misfit_over_floor"],
             "after": refit["misfit_over_floor"] if refit else float("nan"),
             "after_levels": [level["misfit_over_floor"] for level in (refit or {}).get("levels", [])],
-            "design_effect": diagnosis["design_effect"], "verdict": diagnosis["verdict"], "identify_s": result["identify_s"], "diagnose_s": result["diagnose_s"],
+            "design_effect": diagnosis["design_effect"], "verdict": diagnosis["verdict"],
+            "identify_s": result["identify_s"], "diagnose_s": result["diagnose_s"],
             "engine_runs": diagnosis["engine_runs"]}
 
 
@@ -152,7 +153,8 @@ def main() -> None:
             rank = f"{s['rank']}/{s['of']}" if s["rank"] else "-"
             levels = ", ".join(f"{v:.2f}" for v in s["after_levels"])
             print(f"{effect:<16}{label.split()[0]:>6} {rank:>6} {s['statistic']:10.1f} {s['p_value']:9.2g} "
-                  f"{s['best']:>16} {s.get('design_effect', float('nan')):6.1f} {s['before']:8.2f} {s['after']:7.2f}  {levels:<18}{s['identify_s']:8.0f}s"
+                  f"{s['best']:>16} {s.get('design_effect', float('nan')):6.1f} {s['before']:8.2f} {s['after']:7.2f}  "
+                  f"{levels:<18}{s['identify_s']:8.0f}s"
                   f"{s['diagnose_s']:8.0f}s")
 
 

@@ -102,8 +102,8 @@ PATCHES_KEPT = 3             # candidate places for a local stiffness change rep
 # the band's own variant that is not ranked on a model of the band, and why (said in diagnosis.json "not_ranked"); its
 # prestretch varying around the leg is the catalog's band_profile
 BAND_VARIANTS_NOT_RANKED = {
-    "band stiffness": "a band stiffer by a factor s carries s T at the same stretch, and the tissues' moduli scaled by s "
-                      "then give the same displacements (both x1.5 moved the leg by 3.3 um of 0.98 mm, "
+    "band stiffness": "a band stiffer by a factor s carries s T at the same stretch, and the tissues' moduli scaled by "
+                      "s then give the same displacements (both x1.5 moved the leg by 3.3 um of 0.98 mm, "
                       "tests/test_garment.py; 3.1 um at mu = 0.3): displacements cannot tell it from the tissues' "
                       "scale; the tension's uncertainty carries it into the pressures (Table 4)",
 }
@@ -202,7 +202,8 @@ class Diagnosis:
 
 # --- statistics ---------------------------------------------------------------------------------
 
-def neighbour_correlation(positions_mm: np.ndarray, residual: np.ndarray, levels: Sequence[slice] | None = None) -> float:
+def neighbour_correlation(positions_mm: np.ndarray, residual: np.ndarray,
+                          levels: Sequence[slice] | None = None) -> float:
     """Correlation of each point's residual vector with that of its nearest neighbour in the same garment level
     (`levels`: each level's rows; the levels' windows are the same windows of I0, each its own twin otherwise)."""
     vectors = np.asarray(residual, float).reshape(-1, 2)

@@ -41,7 +41,8 @@ def solved_band(leg, workdir, friction_mu=0.0):
     (workdir / MESH_INCLUDE_NAME).write_text(band.include_text(leg))
     run = run_engine(leg_garment_deck(DEFAULT_MATERIALS, band, leg, friction_mu=friction_mu), workdir)
     assert run.returncode == 0, run.stderr
-    return band_state(EngineResults(run.outdir), leg, band, leg_frame(leg), friction_mu, GARMENT_STEPS["released"]), band
+    state = band_state(EngineResults(run.outdir), leg, band, leg_frame(leg), friction_mu, GARMENT_STEPS["released"])
+    return state, band
 
 
 def leg_frame(leg) -> LegFrame:

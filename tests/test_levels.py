@@ -459,7 +459,8 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
 def test_two_socks_on_the_explicit_band_are_identified_jointly(tmp_path):
     """The second paper's garment at two tensions (issue 29): a phantom made with the band under 0.16 and 0.32 N/mm
     (each level's band of the same size, its fabric stiffer in proportion), on its own 2,000-element mesh, points with
-    0.02 mm noise and scanner motion, fitted jointly with the band from case.toml; each sock's band in pressures.json."""
+    0.02 mm noise and scanner motion, fitted jointly with the band from case.toml; each sock's band in
+    pressures.json."""
     from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
     from orchestrator.study import make_phantom_case
 
