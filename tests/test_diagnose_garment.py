@@ -136,7 +136,7 @@ def test_a_band_knitted_unevenly_is_found_on_the_band_with_friction(tmp_path):
     """Issue 29: the band's own variant. A phantom under the band with friction 0.3 whose prestretch varies around
     the leg (natural length x 1 + 0.05 cos phi - 0.03 sin phi), the truth random_truth(4), its own 8,000-element mesh,
     scanner motion, points; fitted and diagnosed with the band of the same friction on 800 elements (every column
-    and refit a difference of runs). Measured: identified at 238.7 x the floor (C10s on their bounds), band_profile
+    and refit a difference of runs). Measured: identified at 238.7 x the floor (three constants on their bounds), band_profile
     first (statistic 2,895, heterogeneity 2,835 tied), its refit 1.07 x with 0.0491 and -0.0317, the tissues within
     2.1 %; the whole test 14 minutes (856 s)."""
     from orchestrator.phantom.truths import random_truth
