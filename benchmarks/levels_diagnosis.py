@@ -31,8 +31,7 @@ from pathlib import Path
 from levels import first_level_only
 
 from orchestrator.imaging.frame import RigidMotion
-from orchestrator.materials import TissueLaw
-from orchestrator.phantom.truths import random_truth
+from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES, random_truth
 from orchestrator.pipeline import run_diagnose, run_identify
 from orchestrator.study import make_phantom_case
 
@@ -45,23 +44,6 @@ HIDDEN = {
     "compartments": {"values": {"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
                      "labels": "compartments"},
 }
-# Bouten and Drapier's Table 1 (kPa) and the fit's tables for it, as tests/test_second_paper_model.py
-TABLE1_KPA = [1.4, 0.9, 1.0, 0.6]   # C10 fat, C10 muscle, C01 fat, C01 muscle
-SECOND_PAPER_TABLES = """
-[model]
-element = "CPE6H"
-garment = "explicit"
-friction = 0.3
-[model.fat]
-law = "mooney_rivlin"
-terms = 3
-incompressible = true
-fixed = { C20 = -0.04 }
-[model.muscle]
-law = "mooney_rivlin"
-incompressible = true
-fixed = { C01 = 0.6 }
-"""
 BAND_TABLES = '\n[model]\nelement = "CPE6"\ngarment = "explicit"\n'
 
 
@@ -73,13 +55,12 @@ def make_case(folder: Path, model: str, effect: str, seed: int, second_tension: 
                    points_spacing_mm=6.0 if data == "points" else None, noise_seeds=(10 + seed, 20 + seed),
                    overwrite=True)
     if model == "second-paper":
-        options.update(theta_kPa=TABLE1_KPA, garment="explicit", friction_mu=0.3, hybrid=True, points_sigma_mm=0.05,
-                       tissues={"fat": TissueLaw("mooney_rivlin", terms=3, incompressible=True, fixed={"C20": -0.04}),
-                                "muscle": TissueLaw("mooney_rivlin", incompressible=True)})
+        options.update(theta_kPa=list(SECOND_PAPER_KPA.values()), garment="explicit", friction_mu=0.3, hybrid=True,
+                       points_sigma_mm=0.05, tissues=SECOND_PAPER_TISSUES)
     else:
         options.update(theta_kPa=random_truth(seed), garment="explicit" if model == "band" else "laplace")
     case, _ = make_phantom_case(folder, **options)
-    tables = {"second-paper": SECOND_PAPER_TABLES, "band": BAND_TABLES}.get(model, "")
+    tables = {"second-paper": SECOND_PAPER_FIT_TABLES, "band": BAND_TABLES}.get(model, "")
     if tables:
         with open(case / "case.toml", "a") as toml:
             toml.write(tables)

@@ -26,37 +26,18 @@ import numpy as np
 import pytest
 
 from orchestrator.imaging.frame import RigidMotion
-from orchestrator.materials import TissueLaw
+from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES
 from orchestrator.pipeline import run_identify, run_montecarlo
 from orchestrator.study import make_phantom_case
-
-TABLE1_KPA = {"C10_fat": 1.4, "C10_muscle": 0.9, "C01_fat": 1.0, "C01_muscle": 0.6}
-FAT = TissueLaw("mooney_rivlin", terms=3, incompressible=True, fixed={"C20": -0.04})
-MUSCLE = TissueLaw("mooney_rivlin", incompressible=True)
-FIT_TABLES = """
-[model]
-element = "CPE6H"
-garment = "explicit"
-friction = 0.3
-[model.fat]
-law = "mooney_rivlin"
-terms = 3
-incompressible = true
-fixed = { C20 = -0.04 }
-[model.muscle]
-law = "mooney_rivlin"
-incompressible = true
-fixed = { C01 = 0.6 }
-"""
 
 
 @pytest.mark.slow
 def test_second_paper_model_is_identified_back(tmp_path):
-    case, _ = make_phantom_case(tmp_path / "case", tmp_path / "truth", theta_kPa=list(TABLE1_KPA.values()),
+    case, _ = make_phantom_case(tmp_path / "case", tmp_path / "truth", theta_kPa=list(SECOND_PAPER_KPA.values()),
                                 rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)), points_sigma_mm=0.05,
-                                garment="explicit", friction_mu=0.3, tissues={"fat": FAT, "muscle": MUSCLE}, hybrid=True)
+                                garment="explicit", friction_mu=0.3, tissues=SECOND_PAPER_TISSUES, hybrid=True)
     with open(case / "case.toml", "a") as toml:
-        toml.write(FIT_TABLES)
+        toml.write(SECOND_PAPER_FIT_TABLES)
     run = tmp_path / "run"
     result = run_identify(case, run, data="points", workers=2, progress=False)
     names, theta = result["parameters"], np.array(result["best"]["theta"])
@@ -65,7 +46,7 @@ def test_second_paper_model_is_identified_back(tmp_path):
     assert any("friction 0.3" in line and "differences runs" in line for line in result["setup_lines"])
 
     intervals = run_montecarlo(run, draws=30, workers=2, progress=False)
-    truth = np.array([TABLE1_KPA[name] for name in names])
+    truth = np.array([SECOND_PAPER_KPA[name] for name in names])
     lower, upper = np.array(intervals["lower"]), np.array(intervals["upper"])
     fat = intervals["sums"][0]
     print(f"fit {dict(zip(names, theta.round(4)))}, misfit {result['misfit_over_floor']:.3f} x floor, "
