@@ -628,7 +628,9 @@ class Refit:
 
 def refit_model(model: LegModel, effects: Sequence[str]) -> LegModel:
     """The model that `refit` fits with these effects added: the catalog's in its deck, the garment's (friction,
-    bridging) by switching it to the band (`garment_model`)."""
+    bridging) by switching it to the band (`garment_model`); the model itself without any."""
+    if not effects:
+        return model
     garment = [name for name in effects if effect(name).apply is None]
     others = tuple(name for name in effects if name not in garment)
     extended = with_changes(model, effects=model.effects + others)

@@ -248,7 +248,10 @@ class LegModel:
         _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets), self.garment)  # they fit?
         self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
         mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
-        if self.band and BAND_PROFILE in self._all_effects:
+        # the band's sectors, once: every deck of a model with band_profile writes their volume changes
+        self.band_sectors = (self.band.sector_sets() if self.band is not None and BAND_PROFILE in self._all_effects
+                             else {})
+        if self.band_sectors:
             mesh_text += self.band.sector_elsets_text(self.mesh)
         if self.hybrid:   # the leg's element block only: the band stays a compressible displacement element
             leg_block = f"*ELEMENT, TYPE={self.mesh.element_type}, ELSET=EALL"
@@ -373,8 +376,7 @@ class LegModel:
         state = LegDeckState({elset: dict(per_tissue[tissue]) for elset, tissue in self.set_tissue.items()},
                              laws={elset: self.tissue_laws[tissue] for elset, tissue in self.set_tissue.items()},
                              groups=self.groups)
-        if self.band is not None and BAND_PROFILE in self._all_effects:
-            state.band_sectors = {name: angle for name, (_, angle) in self.band.sector_sets().items()}
+        state.band_sectors = {name: angle for name, (_, angle) in self.band_sectors.items()}
         for name in self.law_parameters:
             constant, tissue = name.split("_", 1)
             state.sensitivity[name] = []
@@ -414,7 +416,7 @@ class LegModel:
                               tuple((n, *m) for n, m in state.rigid_motions.items()),
                               tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
                               tuple(lines), state.reference_share, tuple(state.band_volume_changes.items()))
-        stiffening = "stiffening" in self.effects or "stiffening" in self.fixed_effects   # C20 written, even at 0
+        stiffening = "stiffening" in self._all_effects   # C20 written, even at 0
         materials = {elset: deck_material(state.laws[elset], c, stiffening) for elset, c in state.constants.items()}
         if self.band is not None:
             band = self.band if tension == self.tension_N_per_mm else self.band.at_tension(tension)
