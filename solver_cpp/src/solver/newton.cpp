@@ -38,6 +38,15 @@ constexpr int kEasyIterations = 3;
 constexpr int kRateCheckIterations = 3;     // Newton iterations before the contraction is checked
 constexpr double kSlowContraction = 0.1;    // a residual that falls by less than this per iteration is slow
 constexpr int kLoadEasyIterations = 5;
+// Slip releases (release_slipping_contacts) allowed in one increment. A release is a severe discontinuity: the
+// residual jumps and Newton starts again from the state it had nearly converged to, so each round of iterations
+// between releases gets the whole equilibrium budget (SolverSettings::max_iterations), and the releases have a
+// limit of their own, as Abaqus/Standard counts severe-discontinuity iterations apart from equilibrium ones
+// (*CONTROLS, PARAMETERS=TIME INCREMENTATION: I_S, default 12). A step whose increment is not ramped (a pin
+// released at its start) cannot be cut back into smaller slip events: on the leg under an uneven band with
+// mu = 0.02, releasing the band's pins took 26 iterations over several releases, where one budget of 25 failed
+// at every increment size.
+constexpr int kMaxSlipReleases = 12;
 
 // How exactly a Newton correction is solved when GMRES solves it (an earlier factor, the symmetric part of an
 // unsymmetric tangent): to |K du + R| <= eta |R| with eta = 0.1 r, r the current relative residual, between
@@ -206,7 +215,7 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
         return false;
       }
     }
-    int rises = 0;
+    int rises = 0, releases = 0, round_start = 0;
     double last_correction = std::numeric_limits<double>::infinity();
     forget_contact_iterates();
     for (int it = 0;; ++it) {
@@ -229,9 +238,14 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       // A converged state must obey Coulomb's law at the held nodes too; those it would let slip slip from now
       // on, and Newton iterates on from the residual with them slipping.
       if (converged() && release_slipping_contacts()) {
+        if (++releases > kMaxSlipReleases) {
+          rec.note = "more than " + std::to_string(kMaxSlipReleases) + " slip releases";
+          return false;
+        }
         ev = evaluate(u, lambda, true);
         relative = ev.norm / std::max(ev.reference, increment_reference);
         last_correction = std::numeric_limits<double>::infinity();
+        round_start = it;
       }
       rec.residual_norms.push_back(relative);
       // Converged: the residual below the tolerance; or, as stiff penalties (contact) put a round-off floor
@@ -239,14 +253,16 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
       // round-off from the start (all nodes moved rigidly, only hybrid pressures free) and there is no force
       // scale at all, a correction at the round-off of the model's size: nothing is left to solve.
       if (converged()) return true;
-      if (!std::isfinite(relative) || it >= settings_.max_iterations) {
-        rec.note = it >= settings_.max_iterations ? "no convergence within the iteration limit" : "residual not finite";
+      const bool out_of_iterations = it - round_start >= settings_.max_iterations;
+      if (!std::isfinite(relative) || out_of_iterations) {
+        rec.note = out_of_iterations ? "no convergence within the iteration limit" : "residual not finite";
         return false;
       }
       // The convergence-rate check of CalculiX and Abaqus (I_0 iterations): a displacement-driven increment
       // whose residual is still far from the quadratic regime after kRateCheckIterations is too large; cutting
       // it back costs less than iterating on
-      if (displacement_driven && it >= kRateCheckIterations && relative > kSlowContraction * rec.residual_norms[it - 1]) {
+      if (displacement_driven && it - round_start >= kRateCheckIterations &&
+          relative > kSlowContraction * rec.residual_norms[it - 1]) {
         rec.note = "converging slowly: a smaller increment";
         return false;
       }
