@@ -27,7 +27,8 @@ checks that every reference run ended below 1e-10, so that this part stays below
 about 1e-6 too.
 
 The same through frictionless penalty contact: the leg under the explicit garment band, the
-tissues' constants and the band's C10. With *FRICTION, *SENSITIVITY exits 2.
+tissues' constants and the band's C10; and through Coulomb friction, carried along the loading
+path. With *FRICTION, *SENSITIVITY of anything but a material constant exits 2.
 
 Also: the pressure sensitivities (PRESSURE=YES) against the same differences of the
 element pressures; the reader EngineResults.sensitivities on a synthetic output folder;
@@ -413,26 +414,22 @@ def test_malformed_sensitivity(tmp_path, case):
     _expect_error(tmp_path, text, line, fragment)
 
 
-def test_sensitivity_refused_with_friction(tmp_path):
+def test_sensitivity_of_a_load_refused_with_friction(tmp_path):
     text = BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
                         "1000.0\n*FRICTION\n0.3, 100.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n"
                         "*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n*BOUNDARY")
     text += "*SENSITIVITY\nTENSION, SKIN\n"
-    _expect_error(tmp_path, text, len(text.splitlines()) - 1, "not available with *FRICTION")
+    _expect_error(tmp_path, text, len(text.splitlines()), "material constants only")
 
 
 GARMENT_PARAMETERS = ["MATERIAL:FAT:C10", "MATERIAL:MUSCLE:C10", "MATERIAL:MUSCLE:D1", "MATERIAL:GARMENT:C10"]
 
 
-def test_sensitivities_through_frictionless_contact(tmp_path):
-    """The leg under the explicit garment band (templates/leg_garment.inp.j2: inflated, let go onto the skin with
-    frictionless penalty contact, settled): du/dtheta of the tissues' constants and of the band's C10 (its tension)
-    against central differences of the engine's own runs, which each redo the whole put-on. The tangent at the
-    converged state, contact elements included, gives the derivative of the state as long as no slave node changes
-    its contact status or segment, which a relative step of 1e-4 leaves as it is (measured on this leg, du/dC10 of
-    muscle: 2.4e-2, 3.0e-3 and 1.5e-6 from the central differences of steps 1e-2, 1e-3 and 1e-4: a node within 1e-3
-    of such a change)."""
-    step = 1e-4
+def _band_sensitivities_against_differences(tmp_path: Path, step: float, friction_mu: float = 0.0,
+                                            hybrid: bool = False) -> list[tuple[str, float, float, float]]:
+    """The leg under the explicit garment band (templates/leg_garment.inp.j2: inflated, let go onto the skin,
+    settled): du/dtheta and dp/dtheta of GARMENT_PARAMETERS against central differences of the engine's own runs,
+    which each redo the whole put-on; the report rows of _check_report."""
     from dataclasses import replace
 
     from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck
@@ -442,12 +439,15 @@ def test_sensitivities_through_frictionless_contact(tmp_path):
     band = garment_band(leg)
     materials = {elset: (law, dict(zip(("C10", "D1"), constants))) for elset, (law, constants) in DEFAULT_MATERIALS.items()}
     materials["GARMENT"] = ("NEO HOOKE", {"C10": band.C10, "D1": band.D1})
+    mesh_text = band.include_text(leg)
+    if hybrid:   # the leg's u/p elements (the band stays a displacement element, as forward.LegModel writes it)
+        mesh_text = mesh_text.replace("*ELEMENT, TYPE=CPE6, ELSET=EALL", "*ELEMENT, TYPE=CPE6H, ELSET=EALL", 1)
 
     def run(folder: Path, laws, sensitivity=()):
         folder.mkdir(parents=True)
-        (folder / MESH_INCLUDE_NAME).write_text(band.include_text(leg))
+        (folder / MESH_INCLUDE_NAME).write_text(mesh_text)
         tissues = {elset: (law, tuple(c.values())) for elset, (law, c) in laws.items() if elset != "GARMENT"}
-        text = leg_garment_deck(tissues, replace(band, **laws["GARMENT"][1]), leg)   # the band's own constants
+        text = leg_garment_deck(tissues, replace(band, **laws["GARMENT"][1]), leg, friction_mu=friction_mu)
         if sensitivity:
             text += "*SENSITIVITY, PRESSURE=YES\n" + "\n".join(", ".join(name.split(":")) for name in sensitivity) + "\n"
         (folder / "leg.inp").write_text(text)
@@ -473,7 +473,34 @@ def test_sensitivities_through_frictionless_contact(tmp_path):
         du_fd, dp_fd = (u[0] - u[1]) / width, (pressure[0] - pressure[1]) / width
         report.append((name, np.abs(du_fd).max(), np.abs(du[name] - du_fd).max() / np.abs(du_fd).max(),
                        np.abs(dp[name] - dp_fd).max() / np.abs(dp_fd).max()))
-    _check_report("leg under the explicit garment band, frictionless contact", report)
+    return report
+
+
+def test_sensitivities_through_frictionless_contact(tmp_path):
+    """The tissues' constants and the band's C10 (its tension) through frictionless penalty contact. The tangent at
+    the converged state, contact elements included, gives the derivative of the state as long as no slave node
+    changes its contact status or segment, which a relative step of 1e-4 leaves as it is (measured on this leg,
+    du/dC10 of muscle: 2.4e-2, 3.0e-3 and 1.5e-6 from the central differences of steps 1e-2, 1e-3 and 1e-4: a node
+    within 1e-3 of such a change)."""
+    _check_report("leg under the explicit garment band, frictionless contact",
+                  _band_sensitivities_against_differences(tmp_path, 1e-4))
+
+
+@pytest.mark.parametrize("friction_mu, hybrid, step", [(0.3, False, 1e-4), (0.02, False, 1e-4), (0.3, True, 1e-5)],
+                         ids=["mu0.3", "mu0.02", "mu0.3-CPE6H"])
+def test_sensitivities_through_friction_along_the_loading_path(tmp_path, friction_mu, hybrid, step):
+    """With Coulomb friction the put-on's end state depends on its path (where each skin node first touched the
+    band and how far it slid since): the engine carries du/dtheta and the contact history's sensitivity from
+    increment to increment (solver_cpp/src/solver/sensitivity.hpp, (4)-(5)). At mu = 0.3 (most of the skin
+    sticking), at mu = 0.02 (much of it slipping) and on the second paper's u/p elements, the tissues' constants and
+    the band's C10 against central differences of the whole put-on. Measured at mu = 0.3: relative errors 7e-9 to
+    4e-7; without the history's part of (4), which the last tangent alone gives, 5e-2 to 0.68. The relative step
+    is 1e-4, where the runs' Newton residual (1e-9 of the forces) divided by the step stays far below the tolerance
+    (at 1e-5 and mu = 0.02, dp/dC10 of fat read 1.2e-4 off); on CPE6H it is 1e-5: a step of 1e-4 or 1e-3 moved a
+    skin node across a change of contact state, and the difference of the band's C10 read 5-6 % off (2.7e-7 at
+    1e-5)."""
+    report = _band_sensitivities_against_differences(tmp_path, step, friction_mu, hybrid)
+    _check_report(f"leg under the explicit garment band, friction {friction_mu}{', CPE6H' if hybrid else ''}", report)
 
 
 @pytest.mark.parametrize(

@@ -26,4 +26,35 @@ ContactPoint contact_element(const Eigen::VectorXd& x, const ContactLaw& law, co
   return point;
 }
 
+ContactHistoryDerivatives contact_history_derivatives(const Eigen::VectorXd& x, const ContactLaw& law,
+                                                      const ContactHistory& history, int segment, double weight) {
+  using C = std::complex<double>;
+  constexpr double h = 1e-30;
+  const int n = static_cast<int>(x.size());
+  const int n_nodes = n / 2;
+  ContactHistoryDerivatives out{Eigen::MatrixXd::Zero(n, 3), Eigen::MatrixXd::Zero(3, n), Eigen::Matrix3d::Zero()};
+  std::vector<C> xc(x.data(), x.data() + n), rc(n);
+  const HistoryValues<C> base{history.xi, history.shear, history.gap};
+  auto store = [&](const HistoryValues<C>& left, auto&& column) {
+    column(0) = std::imag(left.xi) / h;
+    column(1) = std::imag(left.shear) / h;
+    column(2) = std::imag(left.gap) / h;
+  };
+  for (int j = 0; j < n; ++j) {  // d(history left) / dx
+    xc[j] += C(0.0, h);
+    HistoryValues<C> left{};
+    contact_residual(xc.data(), n_nodes, law, history, segment, weight, rc.data(), false, &base, &left);
+    store(left, out.dh_dx.col(j));
+    xc[j] = x[j];
+  }
+  for (int k = 0; k < 3; ++k) {  // d(residual, history left) / d(history started from)
+    HistoryValues<C> old = base, left{};
+    (k == 0 ? old.xi : k == 1 ? old.shear : old.gap) += C(0.0, h);
+    contact_residual(xc.data(), n_nodes, law, history, segment, weight, rc.data(), false, &old, &left);
+    for (int i = 0; i < n; ++i) out.dr_dh(i, k) = std::imag(rc[i]) / h;
+    store(left, out.dh_dh.col(k));
+  }
+  return out;
+}
+
 }  // namespace calfit

@@ -76,9 +76,21 @@ constexpr int kContactNodes = 5, kFrictionNodes = 7;
 // hold_stick: the shear is the trial traction even outside the cone (ContactPoint::slip still says where the
 // law would slip): Newton's iterates hold a node that chatters between slip directions there (see
 // StaticAnalysis::contact_residual), and a converged state is accepted only if no held node lies outside it.
+// The continuous part of a slave node's history (ContactHistory's xi, shear and gap), in the scalar of the
+// residual: the parameter sensitivities through friction (solver/sensitivity.hpp) differentiate the residual with
+// respect to the history it started the increment from, and the history it leaves with respect to both.
+template <typename T>
+struct HistoryValues {
+  T xi, shear, gap;
+};
+
+// `old`: the continuous history the residual uses (nullptr: the history's own values); `updated`: if not null, the
+// continuous history the node leaves this state with (as StaticAnalysis::contact_residual records it: touching,
+// the contact point and the shear, gap 0; open, the point it faces and its gap, shear 0).
 template <typename T>
 ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, const ContactHistory& history,
-                              int segment, double weight, T* r, bool hold_stick = false) {
+                              int segment, double weight, T* r, bool hold_stick = false,
+                              const HistoryValues<T>* old = nullptr, HistoryValues<T>* updated = nullptr) {
   using std::sqrt;
   using V = Eigen::Matrix<T, 2, 1>;
   auto node = [&](int k) { return V(x[2 * k], x[2 * k + 1]); };
@@ -111,16 +123,18 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
   out.segment = segment;
   out.xi = std::real(xi);
   out.gap = std::real(gap);
+  if (updated) *updated = HistoryValues<T>{xi, T(0), gap};
   if (std::real(gap) >= 0.0 || std::real(xi) < -0.5 || std::real(xi) > 1.5) return out;
   out.touching = true;
   const T pressure = -law.penalty * gap;
   T shear(0);
   if (law.friction > 0.0 && history.anchored() && n_nodes == kFrictionNodes) {
-    const V xo = (1.0 - history.xi) * node(5) + history.xi * node(6);
+    const HistoryValues<T> h = old ? *old : HistoryValues<T>{T(history.xi), T(history.shear), T(history.gap)};
+    const V xo = (1.0 - h.xi) * node(5) + h.xi * node(6);
     T slip = dot(xs - xo, t);
-    if (!history.touching) slip *= -gap / (history.gap - gap);  // slip since the first touch
+    if (!history.touching) slip *= -gap / (h.gap - gap);  // slip since the first touch
     out.tangential_motion = std::real(slip);
-    const T trial = history.shear - law.stick_slope * slip;
+    const T trial = h.shear - law.stick_slope * slip;
     const double limit = law.friction * std::real(pressure);
     if (std::abs(std::real(trial)) > limit) out.slip = std::real(trial) > 0 ? 1 : -1;
     if (out.slip == 0 || hold_stick) {
@@ -131,6 +145,7 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
   }
   out.pressure = std::real(pressure);
   out.shear = std::real(shear);
+  if (updated) *updated = HistoryValues<T>{xi, shear, T(0)};
   // Traction on the slave; residual = -(force on the node).
   const V traction = (pressure * n + shear * t) * weight;
   r[0] -= traction.x();
@@ -146,5 +161,17 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
 ContactPoint contact_element(const Eigen::VectorXd& x, const ContactLaw& law, const ContactHistory& history,
                              int segment, double weight, Eigen::VectorXd& r, Eigen::MatrixXd* K,
                              bool hold_stick = false);
+
+// How a local contact element at a converged state depends on the history it started from, and how the history
+// it leaves depends on its positions and on that history (complex step, every entry exact): the chain that carries
+// parameter sensitivities through Coulomb friction from one increment to the next (StaticAnalysis::
+// propagate_path_sensitivities). Columns and rows of the history are (xi, shear, gap).
+struct ContactHistoryDerivatives {
+  Eigen::MatrixXd dr_dh;  // 2 n_nodes x 3: the local residual
+  Eigen::MatrixXd dh_dx;  // 3 x 2 n_nodes: the history left
+  Eigen::Matrix3d dh_dh = Eigen::Matrix3d::Zero();
+};
+ContactHistoryDerivatives contact_history_derivatives(const Eigen::VectorXd& x, const ContactLaw& law,
+                                                      const ContactHistory& history, int segment, double weight);
 
 }  // namespace calfit

@@ -26,17 +26,19 @@ void ModelBuilder::resolve_sensitivities() {
   if (!model_.sensitivity.requested) return;
   // Frictionless penalty contact is elastic: the converged state is a function of theta as long as no slave
   // node changes its contact status, and its tangent, contact elements included, gives du/dtheta. Friction makes
-  // the state depend on the loading path (the stick history), which the last tangent does not know.
+  // the state depend on the loading path (the stick history): the sensitivities are then carried along it
+  // (solver/sensitivity.hpp, (4)-(5)), for material constants, which act the same way at every increment.
+  bool friction = false;
   for (const ContactPairDef& pair : model_.contact_pairs)
-    if (model_.interactions[pair.interaction].law.friction > 0.0)
-      throw DeckError(model_.sensitivity.where,
-                      "*SENSITIVITY is not available with *FRICTION on a *CONTACT PAIR (the friction history makes "
-                      "the solution depend on the loading path): difference runs of the deck instead, or remove "
-                      "*FRICTION");
+    friction = friction || model_.interactions[pair.interaction].law.friction > 0.0;
   std::set<std::string> names;
   for (const DataLine& line : sensitivity_lines_) {
     SensitivityParameter p = resolve_sensitivity_parameter(model_, line);
     if (!names.insert(p.name).second) throw DeckError(line.where, "parameter " + p.name + " is listed twice");
+    if (friction && (p.name.rfind("MATERIAL:", 0) != 0 || !p.scope.faces.empty() || p.scope.prescribed))
+      throw DeckError(line.where, "with *FRICTION on a *CONTACT PAIR, *SENSITIVITY carries material constants "
+                                  "only along the loading path, not " + p.name +
+                                  ": difference runs of the deck for it, or remove *FRICTION");
     model_.sensitivity.parameters.push_back(std::move(p));
   }
 }

@@ -72,6 +72,9 @@ void StaticAnalysis::build_contacts() {
     state.points.assign(state.slave_nodes.size(), ContactPoint{});
     state.iterate_slip.assign(state.slave_nodes.size(), 0);
     state.hold.assign(state.slave_nodes.size(), kFree);
+    state.element_nodes.assign(state.slave_nodes.size(), {});
+    state.element_segment.assign(state.slave_nodes.size(), -1);
+    state.history_sensitivity.assign(state.slave_nodes.size(), Eigen::MatrixXd());
     contacts_.push_back(std::move(state));
   }
 }
@@ -138,6 +141,7 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       c.trial[i] = ContactHistory{};
       c.trial[i].slip = c.history[i].slip;   // the slip so far outlives an open increment
       c.points[i] = ContactPoint{};
+      c.element_nodes[i].clear();
       if (!active && !friction) continue;
       const int slave = c.slave_nodes[i];
       const Eigen::Vector2d xs = position(slave);
@@ -195,6 +199,8 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       const bool hold = friction && active && c.hold[i] == kHeld;
       const ContactPoint point = contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r,
                                                  tangent && active ? &K : nullptr, hold);
+      c.element_nodes[i] = nodes;
+      c.element_segment[i] = best;
       if (!active || !point.touching) {
         // Open (or the pair inactive): keep the master point the node faces, for its first touch.
         if (friction && point.gap >= 0.0 && point.xi >= -0.5 && point.xi <= 1.5)

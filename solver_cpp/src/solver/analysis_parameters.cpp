@@ -1,6 +1,7 @@
 // StaticAnalysis: what the parameter sensitivities (solver/sensitivity.hpp) need of the analysis: residuals
 // with perturbed parameters, scoped to the elements a parameter touches, and solves with the converged tangent.
 #include "solver/analysis_support.hpp"
+#include "solver/sensitivity.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -122,6 +123,95 @@ Eigen::VectorXd StaticAnalysis::element_pressures(const ParameterState& state, c
     pressure[e] = -s.cauchy.trace() / 3.0;
   }
   return pressure;
+}
+
+Eigen::VectorXd StaticAnalysis::material_residual(const std::vector<MaterialDef>& materials,
+                                                  const std::vector<int>& elements, const Eigen::VectorXd& u) const {
+  const int n = static_cast<int>(elements.size());
+  std::vector<ElementVector> forces(elements.size());
+  int failures = 0;
+#pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
+  for (int k = 0; k < n; ++k) {
+    const int e = elements[k];
+    if (!make_element(model_, materials, e)->internal_force(local_unknowns(u, e), kinematics(e, last_lambda_), forces[k],
+                                                             nullptr))
+      ++failures;
+  }
+  if (failures > 0) throw std::runtime_error("an element is inverted (det F <= 0) at a converged state");
+  Eigen::VectorXd R = Eigen::VectorXd::Zero(n_dofs_);
+  for (int k = 0; k < n; ++k) {
+    const std::vector<int>& dofs = element_dofs_[elements[k]];
+    for (std::size_t i = 0; i < dofs.size(); ++i) R[dofs[i]] += forces[k][static_cast<Eigen::Index>(i)];
+  }
+  return R;
+}
+
+// sensitivity.hpp, (4)-(5). The parameters are material constants (deck/model_sensitivity.cpp refuses others
+// with friction), so dR/dtheta at fixed u and history is that of the elements they govern, under the kinematics of
+// this increment, and (2) holds at every increment as at the last.
+void StaticAnalysis::propagate_path_sensitivities() {
+  const std::vector<SensitivityParameter>& parameters = model_.sensitivity.parameters;
+  const auto n_parameters = static_cast<Eigen::Index>(parameters.size());
+  const ParameterState base = model_.parameter_state();
+  Eigen::MatrixXd B = Eigen::MatrixXd::Zero(n_dofs_, n_parameters);
+  for (Eigen::Index j = 0; j < n_parameters; ++j) {
+    const SensitivityParameter& p = parameters[static_cast<std::size_t>(j)];
+    const double theta = p.get(base);
+    const double h = SensitivityAnalysis::kRelativeStep * (theta != 0.0 ? std::abs(theta) : p.scale);
+    ParameterState plus = base, minus = base;
+    p.set(plus, theta + h);
+    p.set(minus, theta - h);
+    B.col(j) = -(material_residual(plus.materials, p.scope.elements, u_) -
+                 material_residual(minus.materials, p.scope.elements, u_)) / (2.0 * h);
+  }
+  auto positions = [&](const std::vector<int>& nodes) {
+    Eigen::VectorXd x(2 * static_cast<Eigen::Index>(nodes.size()));
+    for (std::size_t k = 0; k < nodes.size(); ++k)
+      x.segment<2>(2 * static_cast<Eigen::Index>(k)) =
+          model_.coordinates[nodes[k]] + u_.segment<2>(2 * static_cast<Eigen::Index>(nodes[k]));
+    return x;
+  };
+  // The history's part of dR/dtheta: -dr/dh dh_n/dtheta over the touching slave nodes, (4).
+  std::vector<std::vector<ContactHistoryDerivatives>> derivatives(contacts_.size());
+  for (std::size_t ci = 0; ci < contacts_.size(); ++ci) {
+    ContactState& c = contacts_[ci];
+    if (c.law.friction <= 0.0) continue;
+    for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
+      const std::vector<int>& nodes = c.element_nodes[i];
+      if (nodes.empty()) {
+        derivatives[ci].push_back({});
+        continue;
+      }
+      derivatives[ci].push_back(
+          contact_history_derivatives(positions(nodes), c.law, c.history[i], c.element_segment[i], c.slave_weight[i]));
+      const Eigen::MatrixXd& dh = c.history_sensitivity[i];
+      if (!c.points[i].touching || dh.size() == 0) continue;
+      const Eigen::MatrixXd dr = derivatives[ci].back().dr_dh * dh;
+      for (std::size_t k = 0; k < nodes.size(); ++k)
+        for (int d = 0; d < 2; ++d) B.row(2 * nodes[k] + d) -= dr.row(2 * static_cast<Eigen::Index>(k) + d);
+    }
+  }
+  if (!solve_tangent(B, path_du_))
+    throw std::runtime_error("the tangent at a converged increment is singular: no sensitivities through friction");
+  // The history each node leaves, (5).
+  for (std::size_t ci = 0; ci < contacts_.size(); ++ci) {
+    ContactState& c = contacts_[ci];
+    if (c.law.friction <= 0.0) continue;
+    for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
+      const std::vector<int>& nodes = c.element_nodes[i];
+      if (nodes.empty() || !c.trial[i].anchored()) {
+        c.history_sensitivity[i].resize(0, 0);
+        continue;
+      }
+      const ContactHistoryDerivatives& D = derivatives[ci][i];
+      Eigen::MatrixXd du_local(2 * static_cast<Eigen::Index>(nodes.size()), n_parameters);
+      for (std::size_t k = 0; k < nodes.size(); ++k)
+        du_local.middleRows(2 * static_cast<Eigen::Index>(k), 2) = path_du_.middleRows(2 * nodes[k], 2);
+      Eigen::MatrixXd dh = D.dh_dx * du_local;
+      if (c.history_sensitivity[i].size() != 0) dh += D.dh_dh * c.history_sensitivity[i];
+      c.history_sensitivity[i] = std::move(dh);
+    }
+  }
 }
 
 // Relative residual of the sensitivity solves. Its error in X is about as large (the

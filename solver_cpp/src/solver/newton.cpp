@@ -105,6 +105,11 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
   model_size_ = (high - low).norm();
   u_.setZero(n_dofs_);
   build_contacts();
+  carries_path_sensitivities_ =
+      model.sensitivity.requested &&
+      std::any_of(contacts_.begin(), contacts_.end(), [](const ContactState& c) { return c.law.friction > 0.0; });
+  if (carries_path_sensitivities_)
+    path_du_.setZero(n_dofs_, static_cast<Eigen::Index>(model.sensitivity.parameters.size()));
   element_force_.resize(elements_.size());
   element_tangent_.resize(elements_.size());
 }
@@ -319,8 +324,9 @@ StepResult StaticAnalysis::run_step(int step, const std::function<void(const std
     log(line.str());
     if (rec.converged) {
       u_ = u;
-      for (ContactState& c : contacts_) c.history = c.trial;
       last_lambda_ = lambda;
+      if (carries_path_sensitivities_) propagate_path_sensitivities();
+      for (ContactState& c : contacts_) c.history = c.trial;
       last_lambda_in_step = lambda;
       time += dt;
       result.time_reached = time;

@@ -100,6 +100,11 @@ public:
   // every column of B (full length: prescribed rows of B are ignored, of X set to 0).
   // Returns false when K is singular.
   bool solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
+  // With Coulomb friction the converged state depends on the loading path: the sensitivities of *SENSITIVITY's
+  // (material) parameters are then carried along it, one solve per converged increment (sensitivity.hpp, (4));
+  // path_sensitivities() holds du/dtheta of the last one (n_dofs x parameters).
+  bool carries_path_sensitivities() const { return carries_path_sensitivities_; }
+  const Eigen::MatrixXd& path_sensitivities() const { return path_du_; }
 
 private:
   struct FaceLoad {
@@ -153,6 +158,12 @@ private:
     // direction at an iterate (0: none yet), and whether it is held sticking (kHeld) or was released from it.
     std::vector<int> iterate_slip;
     std::vector<char> hold;
+    // Each slave node's local contact element at the last evaluation (its nodes, empty if none, and the master
+    // segment), and, when sensitivities are carried through friction, d(xi, shear, gap of its history)/dtheta
+    // (3 x parameters, empty while zero).
+    std::vector<std::vector<int>> element_nodes;
+    std::vector<int> element_segment;
+    std::vector<Eigen::MatrixXd> history_sensitivity;
   };
   static constexpr char kFree = 0, kHeld = 1, kReleased = 2;
   struct ContactElement {
@@ -176,6 +187,12 @@ private:
   bool release_slipping_contacts();
   void forget_contact_iterates();
   void rebuild_system(const std::vector<ContactElement>& contact);
+  // After a converged increment, before its contact history is committed: du/dtheta of the increment and the
+  // history's sensitivity it leaves (sensitivity.hpp, (4)-(5)).
+  void propagate_path_sensitivities();
+  // Internal forces of `elements` built with `materials`, at u and the committed increment's kinematics.
+  Eigen::VectorXd material_residual(const std::vector<MaterialDef>& materials, const std::vector<int>& elements,
+                                    const Eigen::VectorXd& u) const;
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   // Moves u along the Newton correction du by the step the line search chooses and returns the evaluation
@@ -246,6 +263,8 @@ private:
   // per-element buffers filled in parallel, scattered serially
   std::vector<ElementVector> element_force_;
   std::vector<ElementMatrix> element_tangent_;
+  bool carries_path_sensitivities_ = false;
+  Eigen::MatrixXd path_du_;
 };
 
 }  // namespace calfit

@@ -45,7 +45,9 @@ Eigen::MatrixXd SensitivityAnalysis::residual_derivatives() const {
 std::vector<ParameterSensitivity> SensitivityAnalysis::compute() const {
   const std::vector<SensitivityParameter>& parameters = model_.sensitivity.parameters;
   Eigen::MatrixXd du;
-  if (!analysis_.solve_tangent(-residual_derivatives(), du))
+  if (analysis_.carries_path_sensitivities())  // (4), carried to the last increment
+    du = analysis_.path_sensitivities();
+  else if (!analysis_.solve_tangent(-residual_derivatives(), du))
     throw std::runtime_error("the tangent at the converged state is singular: no sensitivities");
 
   std::vector<ParameterSensitivity> out;

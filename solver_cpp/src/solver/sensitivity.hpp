@@ -21,6 +21,18 @@
 // theta in (2), which brings K_fp du_p/dtheta into the free rows, and du_p/dtheta is
 // the difference of the prescribed values.
 //
+// Through Coulomb friction (Kleiber et al. ch. 5, path-dependent problems; Michaleris, Tortorelli & Vidal,
+// IJNME 37 (1994) 2471-2499): the converged state of increment n+1 solves R(u_n+1, h_n; theta) = 0, where h_n is
+// the contact history it started from (each slave node's anchor xi on the master, shear and open gap), and it
+// leaves h_n+1 = H(u_n+1, h_n). Differentiated along the path, one solve per converged increment:
+//   K du_n+1/dtheta = -dR/dtheta |_u,h - dR/dh dh_n/dtheta,                                 (4)
+//   dh_n+1/dtheta = dH/du du_n+1/dtheta + dH/dh dh_n/dtheta,                                 (5)
+// from dh_0/dtheta = 0 (the reference state), with the local derivatives of the contact element exact by complex
+// step (contact_history_derivatives) and dR/dtheta by (2) under the increment's kinematics. The stick/slip states
+// and the anchors' segments are those of the converged path, as in any direct differentiation of it. The
+// parameters must be material constants there (the deck reader says so otherwise). du/dtheta of the last
+// increment is (1)'s answer.
+//
 // Pressure sensitivities (*SENSITIVITY, PRESSURE=YES): the element pressure
 // p_e = -tr(sigma)/3 differentiated along the solution path,
 //   dp_e/dtheta = [p_e(u + h du/dtheta; theta + h) - p_e(u - h du/dtheta; theta - h)] / 2h.
