@@ -83,7 +83,7 @@ from scipy.spatial import cKDTree
 from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
 from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
-from .identify import FitResult, levenberg_marquardt, residual_jacobian
+from .identify import FitResult, levenberg_marquardt, missing_columns, residual_jacobian
 from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator
@@ -401,21 +401,29 @@ def _residuals(record: dict) -> np.ndarray:
 
 
 def probe_jacobian(evaluator: Evaluator, theta: Sequence[float]) -> tuple[np.ndarray, np.ndarray, str]:
-    """r and dr/dtheta of the evaluator's model at theta: from the engine's sensitivities when the record
-    has them, otherwise forward differences (ln theta steps for constants, `scale` steps for effects)."""
+    """r and dr/dtheta of the evaluator's model at theta: from the engine's sensitivities where the record has
+    them, forward differences for the other columns (ln theta steps for constants, `scale` steps for effects); the
+    source says which."""
     model = evaluator.model
     theta = np.asarray(theta, float)
     record = evaluator(theta)
     r = _residuals(record)
-    jacobian = residual_jacobian(model, record, theta)
-    if jacobian is not None:
+    p = len(theta)
+    jacobian = residual_jacobian(model, record, theta, partial=True)
+    missing = missing_columns(jacobian, p)
+    if not missing:
         return r, jacobian, "engine"
     space = model.space
     steps = np.where(np.array(space.linear), FD_FRACTION * np.array(space.scale), 1e-3 * np.abs(theta))
-    probes = [theta + steps[j] * np.eye(len(theta))[j] for j in range(len(theta))]
-    records = evaluator.evaluate([p.tolist() for p in probes], tag="diagnosis", label="diagnosis sensitivities")
-    columns = [(_residuals(rec) - r) / steps[j] for j, rec in enumerate(records)]
-    return r, np.column_stack(columns), "finite differences"
+    probes = [theta + steps[j] * np.eye(p)[j] for j in missing]
+    records = evaluator.evaluate([probe.tolist() for probe in probes], tag="diagnosis",
+                                 label="diagnosis sensitivities")
+    J = np.zeros((len(r), p)) if jacobian is None else jacobian
+    for j, rec in zip(missing, records):
+        J[:, j] = (_residuals(rec) - r) / steps[j]
+    source = ("finite differences" if len(missing) == p else
+              f"engine, finite differences for {', '.join(space.names[j] for j in missing)}")
+    return r, J, source
 
 
 def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objective, frame: LegFrame, *,
@@ -431,7 +439,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     garment_effects = [name for name in candidates if effect(name).apply is None]
     candidates = [name for name in candidates if effect(name).apply is not None]
     # the local probe's many columns are one back-substitution each with the engine's sensitivities, an engine run
-    # each by finite differences: without the former (friction gives none), the diagnosis does not locate
+    # each by finite differences: without the former (a fitted friction coefficient has none), it does not locate
     engine_sensitivities = engine_sensitivities and model.engine_differentiable
     probing = (LOCAL_PROBE.name,) if engine_sensitivities else ()
     probe = with_changes(model, effects=model.effects + tuple(candidates) + probing,
@@ -498,7 +506,7 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     explained, verdict = _verdict(ranking, misfit, floor, lack_of_fit)
     maps = residual_maps(positions_mm, residual_mm, frame)
     patches = []
-    if probing and lack_of_fit and source == "engine":
+    if probing and lack_of_fit and source.startswith("engine"):
         local = jacobian[:, column:column + len(probe.groups)]
         patches = locate(r, J, local, probe.groups, frame, chi2_to_misfit, deff, misfit, alpha)
     return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,

@@ -190,8 +190,10 @@ class LegModel:
     (`orchestrator.meshing.garment_band`, carrying tension_N_per_mm at its design stretch) put on by
     templates/leg_garment.inp.j2 with penalty contact and Coulomb friction `friction_mu`. The band's nodes follow
     the leg's in the deck, and the objectives read the leg's rows only. The engine's sensitivities pass through
-    frictionless contact; with friction they do not (the stick history), so an explicit garment with friction
-    > 0 asks for none, and Levenberg-Marquardt differences runs instead (one run per parameter and iteration).
+    frictionless contact; with friction the engine carries those of the material constants along the loading path
+    (solver_cpp/README.md, Sensitivities) and of nothing else: the deck then asks for the constants' (the tissues'
+    laws, heterogeneity, compartments, stiffening), and the fits difference runs for the other parameters
+    (`engine_differentiates`).
     The explicit band's deck carries the catalog's effects on the tissues and bones, and friction
     (`effects.Effect.garments`).
 
@@ -258,7 +260,6 @@ class LegModel:
             mesh_text = mesh_text.replace(leg_block, f"*ELEMENT, TYPE={self.mesh.element_type}H, ELSET=EALL", 1)
         self.mesh_text = mesh_text + group_elsets_text(self.groups)
         self.mesh_sha = text_sha256(self.mesh_text)
-        self.engine_sensitivities = self.engine_sensitivities and self.engine_differentiable
 
     @property
     def _all_effects(self) -> tuple[str, ...]:
@@ -274,9 +275,18 @@ class LegModel:
         return None
 
     @property
+    def has_friction(self) -> bool:
+        return self.garment == "explicit" and (self.friction_mu > 0.0 or "friction" in self.effects)
+
+    def engine_differentiates(self, line: str) -> bool:
+        """Whether calfit-fe gives du/dtheta of a `*SENSITIVITY` line on this model: every line through
+        frictionless contact; with friction, material constants only (solver_cpp/README.md, Sensitivities)."""
+        return not self.has_friction or line.startswith("MATERIAL,")
+
+    @property
     def engine_differentiable(self) -> bool:
-        """The engine differentiates through frictionless contact only (solver_cpp/README.md, Sensitivities)."""
-        return self.friction_mu == 0.0 and "friction" not in self.effects
+        """The engine gives the sensitivity of every parameter of theta."""
+        return all(terms is not None for terms in self.sensitivity_map(self.start()).values())
 
     def _set_laws(self, element_sets: list[str]) -> None:
         """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""
@@ -409,7 +419,8 @@ class LegModel:
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
         lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
         own = lines if self.engine_sensitivities else []
-        lines = own + [line for line in extra_sensitivities if line not in own]
+        lines = [line for line in own + [line for line in extra_sensitivities if line not in own]
+                 if self.engine_differentiates(line)]
         if any(line.startswith("PROFILE") for line in extra_sensitivities) and not self.tension_profile:
             state.fourier_profile.setdefault(1, (0.0, 0.0))
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,
@@ -431,10 +442,16 @@ class LegModel:
         """The band's friction coefficient at theta: fitted (the friction effect's mu) or fixed."""
         return float(theta[self.space.names.index("mu")]) if "friction" in self.effects else self.friction_mu
 
-    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]]]:
-        """Parameter name -> (engine sensitivity name, factor) pairs: du/dtheta_j = sum factor * du/d(line)."""
+    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]] | None]:
+        """Parameter name -> (engine sensitivity name, factor) pairs: du/dtheta_j = sum factor * du/d(line); None
+        for a parameter whose sensitivity the engine does not give on this model (differenced instead)."""
         state = self.deck_state(theta)
-        return {name: [(line.replace(", ", ":"), f) for line, f in state.sensitivity[name]] for name in self.space.names}
+        out = {}
+        for name in self.space.names:
+            terms = state.sensitivity.get(name)
+            out[name] = (None if terms is None or not all(self.engine_differentiates(line) for line, _ in terms)
+                         else [(line.replace(", ", ":"), f) for line, f in terms])
+        return out
 
 
 def annulus_mesh(inner_radius_mm: float = 10.0, outer_radius_mm: float = 40.0, rings: int = 6,

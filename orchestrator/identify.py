@@ -99,20 +99,33 @@ def _dtheta_dx(space, theta) -> np.ndarray:
     return np.where(np.array(space.linear), np.array(space.scale), theta)
 
 
-def residual_jacobian(model, record: dict, theta) -> np.ndarray | None:
+def residual_jacobian(model, record: dict, theta, partial: bool = False) -> np.ndarray | None:
     """dr/dtheta (n_residuals x p) from the engine sensitivities of an evaluation record: the objective stores
     dr/d(engine parameter) (`outputs["sensitivity"]`), the model says how its parameters map onto the engine's
-    (`sensitivity_map`: du/dtheta_j = sum factor x du/d(engine name)). None when either is missing."""
+    (`sensitivity_map`: du/dtheta_j = sum factor x du/d(engine name), None for a parameter the engine does not
+    differentiate, e.g. a load under friction). None when the record or the model has none; a column missing from
+    the record makes the whole None, or with `partial` that column NaN (`difference_missing_columns` fills it)."""
     stored = record["outputs"].get("sensitivity") if record["status"] == OK else None
     mapping = getattr(model, "sensitivity_map", None)
     if not stored or mapping is None:
         return None
     columns = []
     for name, terms in mapping(theta).items():
-        if any(line not in stored for line, _ in terms):
-            return None
+        if terms is None or any(line not in stored for line, _ in terms):
+            if not partial:
+                return None
+            columns.append(None)
+            continue
         columns.append(sum(factor * np.asarray(stored[line], float) for line, factor in terms))
-    return np.column_stack(columns)
+    n = next((len(c) for c in columns if c is not None), None)
+    if n is None:
+        return None
+    return np.column_stack([np.full(n, np.nan) if c is None else c for c in columns])
+
+
+def missing_columns(jacobian: np.ndarray | None, p: int) -> list[int]:
+    """The columns of a (partial) engine Jacobian that must be differenced: all of them without one."""
+    return list(range(p)) if jacobian is None else [j for j in range(p) if np.isnan(jacobian[:, j]).any()]
 
 
 def nelder_mead(evaluator: Evaluator, start: Sequence[float], *, xatol: float = 2e-3, fatol: float = 1e-6,
@@ -157,9 +170,10 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
         return np.asarray(record["outputs"]["residuals"]) if record["status"] == OK else None
 
     def engine_jacobian(record: dict, at_x: np.ndarray) -> np.ndarray | None:
-        """dr/dx from the engine's du/dtheta (chain rule through theta(x)), when the record has it."""
+        """dr/dx from the engine's du/dtheta (chain rule through theta(x)) where the record has it, NaN columns
+        where it does not (a parameter the engine does not differentiate)."""
         theta = _from_x(space, at_x)
-        jacobian = residual_jacobian(evaluator.model, record, theta)
+        jacobian = residual_jacobian(evaluator.model, record, theta, partial=True)
         return None if jacobian is None else jacobian * _dtheta_dx(space, theta)[None, :]
 
     current = evaluator(_from_x(space, x))
@@ -170,14 +184,15 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     evaluations, converged, message, iteration = 1, False, "maximum number of iterations reached", 0
     for iteration in range(1, max_iterations + 1):
         J = engine_jacobian(current, x)
-        if J is None:
+        missing = missing_columns(J, p)
+        if missing:
             # one-sided differences pointing into the box (a parameter on its upper bound steps down)
             signs = np.where(_to_x(space, _from_x(space, x + FD_STEP)) > x + 0.5 * FD_STEP, 1.0, -1.0)
-            probes = [_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in range(p)]
+            probes = [_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in missing]
             records = evaluator.evaluate(probes, tag="lm-jacobian", label=f"LM Jacobian {iteration}")
-            evaluations += p
-            columns = [residuals(rec) for rec in records]
-            failed = [j for j, c in enumerate(columns) if c is None]
+            evaluations += len(missing)
+            columns = dict(zip(missing, (residuals(rec) for rec in records)))
+            failed = [j for j, c in columns.items() if c is None]
             if failed:   # a probe the engine cannot solve (contact with friction): the difference on the other side
                 signs[failed] *= -1.0
                 retried = evaluator.evaluate([_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in failed],
@@ -185,10 +200,12 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
                 evaluations += len(failed)
                 for j, rec in zip(failed, retried):
                     columns[j] = residuals(rec)
-                if any(c is None for c in columns):
+                if any(c is None for c in columns.values()):
                     raise RuntimeError("the engine failed in a finite-difference probe on both sides: "
                                        + "; ".join(rec["message"] for rec in retried if rec["status"] != OK))
-            J = np.column_stack([(c - r) / (signs[j] * FD_STEP) for j, c in enumerate(columns)])
+            J = np.zeros((len(r), p)) if J is None else J
+            for j, c in columns.items():
+                J[:, j] = (c - r) / (signs[j] * FD_STEP)
         structural = _sum_only_directions(evaluator, _from_x(space, x))[0]
         J = _without(J, structural)
         gradient, normal = J.T @ r, J.T @ J
@@ -347,16 +364,20 @@ class NoiseMonteCarloResult:
 def _engine_or_fd_jacobian(evaluator: Evaluator, record: dict, space, x: np.ndarray) -> np.ndarray:
     """dr/dx at x: from the record's engine sensitivities, or forward differences (FD_STEP, one parallel batch)."""
     theta = _from_x(space, x)
-    jacobian = residual_jacobian(evaluator.model, record, theta)
-    if jacobian is not None:
-        return jacobian * _dtheta_dx(space, theta)[None, :]
     r = np.asarray(record["outputs"]["residuals"], float)
     p = len(x)
-    probes = [_from_x(space, x + FD_STEP * np.eye(p)[j]) for j in range(p)]
+    jacobian = residual_jacobian(evaluator.model, record, theta, partial=True)
+    J = np.zeros((len(r), p)) if jacobian is None else jacobian * _dtheta_dx(space, theta)[None, :]
+    missing = missing_columns(jacobian, p)
+    if not missing:
+        return J
+    probes = [_from_x(space, x + FD_STEP * np.eye(p)[j]) for j in missing]
     records = evaluator.evaluate(probes, tag="mc-jacobian", label="Monte-Carlo Jacobian")
     if any(rec["status"] != OK for rec in records):
         raise RuntimeError("the engine failed in a finite-difference probe at the identified point")
-    return np.column_stack([(np.asarray(rec["outputs"]["residuals"]) - r) / FD_STEP for rec in records])
+    for j, rec in zip(missing, records):
+        J[:, j] = (np.asarray(rec["outputs"]["residuals"]) - r) / FD_STEP
+    return J
 
 
 def _free_directions(J: np.ndarray, noise_scale: float, width_x: np.ndarray, identifiable_half_width: float,

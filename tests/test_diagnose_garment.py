@@ -2,8 +2,9 @@
 
 - A Laplace-law model gets friction and bridging as candidates (the band's runs give their columns), with its effects
   on the tissues carried by the band; with an effect of Laplace's law itself fitted they are skipped with the reason. The band model fits friction's coefficient mu as
-  its only effect, writes *FRICTION only for mu > 0, differences runs (no engine sensitivity through friction), and
-  refuses mu both fixed and fitted.
+  its only effect, writes *FRICTION only for mu > 0, asks the engine for the constants' sensitivities (carried along
+  the path through friction) and differences runs for mu and for the effects' parameters, and refuses mu both fixed
+  and fitted.
 - Slow: a phantom made with the frictionless band on a calf with a groove that the band bridges, then one made with
   the band and friction (mu = 0.3) on the convex calf, each identified with Laplace's law (the default model) and
   diagnosed: the hidden effect is ranked first and its refit explains the residual, to within 1.2 times the noise
@@ -59,9 +60,23 @@ def test_the_bands_prestretch_profile_is_a_candidate_where_friction_holds_the_ba
 def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
     laplace = LegModel(leg_mesh, 0.16, engine_sensitivities=True)
     band = garment_model(laplace, ("friction",))
-    assert band.garment == "explicit" and band.space.names[-1] == "mu" and not band.engine_sensitivities
+    assert band.garment == "explicit" and band.space.names[-1] == "mu"
     with_friction = band.deck(list(TRUTH_KPA) + [0.2])
     assert "*FRICTION\n0.2, 0.1\n" in with_friction and "mu = 0.2" in with_friction
+    # through friction the engine carries the constants' sensitivities along the path; mu's column is differenced
+    def sensitivity_lines(deck: str) -> list[str]:
+        block = deck.split("*SENSITIVITY\n")[1].splitlines()
+        return block[:next(k for k, line in enumerate(block) if line.startswith("*"))]
+
+    lines = sensitivity_lines(with_friction)
+    assert lines and all(line.startswith("MATERIAL, ") for line in lines)
+    terms = band.sensitivity_map(list(TRUTH_KPA) + [0.2])
+    assert terms["mu"] is None and all(terms[name] for name in band.space.names[:-1])
+    assert not band.engine_differentiable
+    drained = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=("drainage",),
+                        engine_sensitivities=True)
+    assert all(line.startswith("MATERIAL, ") for line in sensitivity_lines(drained.deck(drained.start())))
+    assert drained.sensitivity_map(drained.start())["dv_muscle"] is None
     assert "*FRICTION" not in band.deck(list(TRUTH_KPA) + [0.0])
     assert garment_model(laplace).engine_sensitivities and "*SENSITIVITY" in garment_model(laplace).deck(TRUTH_KPA)
     with pytest.raises(ValueError, match="both fixed"):
