@@ -1,9 +1,10 @@
 """Cost of a full diagnosis (issues 6 and 29) on the 400-element model: every catalog effect that the model can
-carry is scored, then the best one (and those tied with it) refitted; with Laplace's law and with the explicit
-garment band (the second paper's, frictionless: the effects act under the band, the engine's sensitivities pass
-through its contact), side by side.
+carry is scored, then the best one (and those tied with it) refitted; with Laplace's law, with the explicit garment
+band (frictionless: the effects act under the band, the engine's sensitivities pass through its contact) and with
+the band and friction 0.3 (the second paper's: the engine carries the constants' sensitivities along the put-on's
+path, the effects' columns are differences of runs), side by side.
 
-    .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage] [--garment laplace|explicit|both]
+    .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage] [--garment laplace explicit friction]
         [--lines engine-none engine-auto fd-none fd-auto]
 
 For each garment model a phantom case is made with it and a hidden effect (default: 5 % fluid loss of the muscle;
@@ -30,7 +31,7 @@ from orchestrator.study import make_phantom_case
 
 HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
                  "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05}}
-GARMENTS = ("laplace", "explicit")
+GARMENTS = {"laplace": ("laplace", 0.0), "explicit": ("explicit", 0.0), "friction": ("explicit", 0.3)}
 # sensitivities x refit: the engine's or finite differences, the ranking alone ("none") or with its refits ("auto")
 LINES = ("engine-none", "engine-auto", "fd-none", "fd-auto")
 
@@ -46,13 +47,13 @@ def main() -> None:
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="element order of the fit (default 2)")
     parser.add_argument("--hidden", choices=sorted(HIDDEN_VALUES), default="drainage", help="the hidden effect")
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--garment", choices=GARMENTS + ("both",), default="both",
-                        help="the garment model of the phantom and of the fit (default: both, side by side)")
+    parser.add_argument("--garment", nargs="+", choices=sorted(GARMENTS), default=list(GARMENTS),
+                        help="the garment models of the phantom and of the fit (default: all three, side by side)")
     parser.add_argument("--lines", nargs="+", default=list(LINES), choices=LINES,
                         help="which lines to time (default: all four); e.g. engine-auto alone for the band's refits")
     args = parser.parse_args()
-    garments = GARMENTS if args.garment == "both" else (args.garment,)
-    if "explicit" in garments and args.hidden == "tension_profile":
+    garments = args.garment
+    if set(garments) != {"laplace"} and args.hidden == "tension_profile":
         parser.error("a tension profile is Laplace's law's: the explicit band carries none (--garment laplace)")
     with tempfile.TemporaryDirectory(prefix="calfit-bench-") as scratch:
         for garment in garments:
@@ -62,12 +63,13 @@ def main() -> None:
 def _diagnose_timed(scratch: Path, garment: str, args) -> None:
     print(f"\n{garment} garment: making a phantom case with hidden {args.hidden} {HIDDEN_VALUES[args.hidden]} ...",
           flush=True)
+    model, friction = GARMENTS[garment]
     case, _ = make_phantom_case(scratch / "case", effects={args.hidden: HIDDEN_VALUES[args.hidden]},
                                 rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)), points_sigma_mm=0.05,
-                                points_spacing_mm=3.0, garment=garment)
-    if garment == "explicit":
+                                points_spacing_mm=3.0, garment=model, friction_mu=friction)
+    if model == "explicit":
         with open(case / "case.toml", "a") as toml:
-            toml.write('\n[model]\ngarment = "explicit"\n')
+            toml.write(f'\n[model]\ngarment = "explicit"\nfriction = {friction}\n')
     identified = scratch / "identified"
     fit = run_identify(case, identified, method="lm", order=args.order, workers=args.workers, progress=False)
     setup = json.loads((identified / "setup.json").read_text())

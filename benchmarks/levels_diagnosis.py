@@ -13,7 +13,8 @@ once. Models:
 - laplace: neo-Hookean tissues under Laplace's law (the first paper's), engine sensitivities;
 - band: the same tissues under the explicit frictionless band, engine sensitivities through the contact;
 - second-paper: Bouten and Drapier's Table 1 Mooney-Rivlin tissues, incompressible on CPE6H, the band with friction
-  0.3 (every column and refit a difference of runs: slow).
+  0.3 (the engine carries the constants' sensitivities along the put-on's path; an effect's columns are differences
+  of runs).
 Printed per effect: one sock and two socks, the hidden effect's rank, score statistic and p-value, the best effect,
 the design effect D of the residual's correlation (the statistic is the chi^2 reduction over D), the misfit over the
 floor before and after the refit (and each level's own after it), and the wall times.
@@ -43,6 +44,7 @@ HIDDEN = {
     "bone_motion": {"values": {"ux_BONE2": 0.2, "uy_BONE2": -0.15}},
     "compartments": {"values": {"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
                      "labels": "compartments"},
+    "band_profile": {"values": {"band_a1": 0.05, "band_b1": -0.03}},   # the band's own, with friction only
 }
 BAND_TABLES = '\n[model]\nelement = "CPE6"\ngarment = "explicit"\n'
 
@@ -104,6 +106,10 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--keep", type=Path, help="keep the cases and runs in this folder")
     arguments = parser.parse_args()
+    if "band_profile" in arguments.effects and arguments.model != "second-paper":
+        parser.error("band_profile is the band's own and needs friction: --model second-paper")
+    if "tension_profile" in arguments.effects and arguments.model != "laplace":
+        parser.error("tension_profile is Laplace's law's: --model laplace")
     rows = []
     with tempfile.TemporaryDirectory(prefix="calfit-levels-diagnosis-") as scratch:
         root = arguments.keep or Path(scratch)
