@@ -438,9 +438,9 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     # friction and bridging are not written into a deck state (no sensitivity): the band's own runs give their columns
     garment_effects = [name for name in candidates if effect(name).apply is None]
     candidates = [name for name in candidates if effect(name).apply is not None]
-    # the local probe's many columns are one back-substitution each with the engine's sensitivities, an engine run
-    # each by finite differences: without the former (a fitted friction coefficient has none), it does not locate
-    engine_sensitivities = engine_sensitivities and model.engine_differentiable
+    # the local probe's many columns (material constants, which the engine differentiates with or without friction)
+    # are one back-substitution each with the engine's sensitivities, an engine run each by finite differences:
+    # without the former, the diagnosis does not locate
     probing = (LOCAL_PROBE.name,) if engine_sensitivities else ()
     probe = with_changes(model, effects=model.effects + tuple(candidates) + probing,
                          engine_sensitivities=engine_sensitivities)

@@ -283,11 +283,6 @@ class LegModel:
         frictionless contact; with friction, material constants only (solver_cpp/README.md, Sensitivities)."""
         return not self.has_friction or line.startswith("MATERIAL,")
 
-    @property
-    def engine_differentiable(self) -> bool:
-        """The engine gives the sensitivity of every parameter of theta."""
-        return all(terms is not None for terms in self.sensitivity_map(self.start()).values())
-
     def _set_laws(self, element_sets: list[str]) -> None:
         """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""
         given = dict(self.tissues or {})

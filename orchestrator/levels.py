@@ -98,10 +98,6 @@ class LevelsModel:
         return self.base.friction_mu
 
     @property
-    def engine_differentiable(self) -> bool:
-        return self.base.engine_differentiable
-
-    @property
     def groups(self):
         return self.base.groups
 
