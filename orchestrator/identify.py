@@ -104,7 +104,7 @@ def residual_jacobian(model, record: dict, theta, partial: bool = False) -> np.n
     dr/d(engine parameter) (`outputs["sensitivity"]`), the model says how its parameters map onto the engine's
     (`sensitivity_map`: du/dtheta_j = sum factor x du/d(engine name), None for a parameter the engine does not
     differentiate, e.g. a load under friction). None when the record or the model has none; a column missing from
-    the record makes the whole None, or with `partial` that column NaN (`difference_missing_columns` fills it)."""
+    the record makes the whole None, or with `partial` that column NaN (`missing_columns` lists them, to difference)."""
     stored = record["outputs"].get("sensitivity") if record["status"] == OK else None
     mapping = getattr(model, "sensitivity_map", None)
     if not stored or mapping is None:
@@ -362,7 +362,8 @@ class NoiseMonteCarloResult:
 
 
 def _engine_or_fd_jacobian(evaluator: Evaluator, record: dict, space, x: np.ndarray) -> np.ndarray:
-    """dr/dx at x: from the record's engine sensitivities, or forward differences (FD_STEP, one parallel batch)."""
+    """dr/dx at x: from the record's engine sensitivities where it has them, forward differences (FD_STEP, one
+    parallel batch) for the other columns."""
     theta = _from_x(space, x)
     r = np.asarray(record["outputs"]["residuals"], float)
     p = len(x)
