@@ -190,10 +190,11 @@ class LegModel:
     (`orchestrator.meshing.garment_band`, carrying tension_N_per_mm at its design stretch) put on by
     templates/leg_garment.inp.j2 with penalty contact and Coulomb friction `friction_mu`. The band's nodes follow
     the leg's in the deck, and the objectives read the leg's rows only. The engine's sensitivities pass through
-    frictionless contact; with friction the engine carries those of the material constants along the loading path
-    (solver_cpp/README.md, Sensitivities) and of nothing else: the deck then asks for the constants' (the tissues'
-    laws, heterogeneity, compartments, stiffening), and the fits difference runs for the other parameters
-    (`engine_differentiates`).
+    frictionless contact; with friction the engine carries them along the loading path for what acts on the elements
+    alone (solver_cpp/README.md, Sensitivities): the deck then asks for the constants' (the tissues' laws,
+    heterogeneity, compartments, stiffening), the drainage's and the out-of-plane stretch's, and the fits difference
+    runs for the other parameters (a bone's motion, the band's prestretch profile, the friction coefficient:
+    `engine_differentiates`).
     The explicit band's deck carries the catalog's effects on the tissues and bones, and friction
     (`effects.Effect.garments`).
 
@@ -280,8 +281,12 @@ class LegModel:
 
     def engine_differentiates(self, line: str) -> bool:
         """Whether calfit-fe gives du/dtheta of a `*SENSITIVITY` line on this model: every line through
-        frictionless contact; with friction, material constants only (solver_cpp/README.md, Sensitivities)."""
-        return not self.has_friction or line.startswith("MATERIAL,")
+        frictionless contact; with friction, what acts on the elements alone from the band's last step on (the
+        constants, the tissues' volume changes, the axial stretch), not a rigid motion or the band's own prestretch,
+        set in its second step (solver_cpp/README.md, Sensitivities)."""
+        if not self.has_friction or line.startswith("MATERIAL,") or line == "AXIAL STRETCH":
+            return True
+        return line.startswith("VOLUME CHANGE,") and line.split(", ")[1] not in self.band_sectors
 
     def _set_laws(self, element_sets: list[str]) -> None:
         """The tissues' laws, the element sets each governs and the checks that they fit the mesh and elements."""

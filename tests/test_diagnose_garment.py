@@ -72,10 +72,16 @@ def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
     assert lines and all(line.startswith("MATERIAL, ") for line in lines)
     terms = band.sensitivity_map(list(TRUTH_KPA) + [0.2])
     assert terms["mu"] is None and all(terms[name] for name in band.space.names[:-1])
-    drained = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=("drainage",),
-                        engine_sensitivities=True)
-    assert all(line.startswith("MATERIAL, ") for line in sensitivity_lines(drained.deck(drained.start())))
-    assert drained.sensitivity_map(drained.start())["dv_muscle"] is None
+    # and those of the tissues' volume change and the axial stretch, which the band's last step brings in; not a
+    # bone's motion (prescribed) or the band's prestretch profile (set in its second step)
+    effects = ("drainage", "out_of_plane", "bone_motion", "band_profile")
+    several = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3, effects=effects, engine_sensitivities=True)
+    lines = sensitivity_lines(several.deck(several.start()))
+    assert "VOLUME CHANGE, MUSCLE" in lines and "AXIAL STRETCH" in lines
+    assert not any(line.startswith(("RIGID MOTION", "VOLUME CHANGE, GARMENT")) for line in lines)
+    terms = several.sensitivity_map(several.start())
+    assert terms["dv_muscle"] and terms["eps_z"] and terms["band_a1"] is None
+    assert all(terms[name] is None for name in several.space.names if name.startswith(("ux_", "uy_", "angle_")))
     assert "*FRICTION" not in band.deck(list(TRUTH_KPA) + [0.0])
     assert garment_model(laplace).engine_sensitivities and "*SENSITIVITY" in garment_model(laplace).deck(TRUTH_KPA)
     with pytest.raises(ValueError, match="both fixed"):

@@ -28,7 +28,8 @@ about 1e-6 too.
 
 The same through frictionless penalty contact: the leg under the explicit garment band, the
 tissues' constants and the band's C10; and through Coulomb friction, carried along the loading
-path. With *FRICTION, *SENSITIVITY of anything but a material constant exits 2.
+path, with the last step's volume change and axial stretch. With *FRICTION, *SENSITIVITY of a
+load on faces or of a prescribed motion exits 2.
 
 Also: the pressure sensitivities (PRESSURE=YES) against the same differences of the
 element pressures; the reader EngineResults.sensitivities on a synthetic output folder;
@@ -419,20 +420,28 @@ def test_sensitivity_of_a_load_refused_with_friction(tmp_path):
                         "1000.0\n*FRICTION\n0.3, 100.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n"
                         "*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n*BOUNDARY")
     text += "*SENSITIVITY\nTENSION, SKIN\n"
-    _expect_error(tmp_path, text, len(text.splitlines()), "material constants only")
+    _expect_error(tmp_path, text, len(text.splitlines()), "not TENSION:SKIN: difference runs of the deck for it")
 
 
 GARMENT_PARAMETERS = ["MATERIAL:FAT:C10", "MATERIAL:MUSCLE:C10", "MATERIAL:MUSCLE:D1", "MATERIAL:GARMENT:C10"]
 
 
+# the effects that act once the band is on (its last step), as the effect catalog writes them: dv of the muscle and
+# lambda_z, at values given in the deck, and their values where the deck leaves them out
+BAND_EFFECTS = {"VOLUME CHANGE:MUSCLE": -0.03, "AXIAL STRETCH": 1.02}
+BAND_EFFECTS_ABSENT = {"VOLUME CHANGE:MUSCLE": 0.0, "AXIAL STRETCH": 1.0}
+
+
 def _band_sensitivities_against_differences(tmp_path: Path, step: float, friction_mu: float = 0.0,
-                                            hybrid: bool = False) -> list[tuple[str, float, float, float]]:
+                                            hybrid: bool = False, effects: dict | None = None,
+                                            parameters=GARMENT_PARAMETERS) -> list[tuple[str, float, float, float]]:
     """The leg under the explicit garment band (templates/leg_garment.inp.j2: inflated, let go onto the skin,
-    settled): du/dtheta and dp/dtheta of GARMENT_PARAMETERS against central differences of the engine's own runs,
-    which each redo the whole put-on; the report rows of _check_report."""
+    settled), with `effects` (BAND_EFFECTS' names -> values) in its last step: du/dtheta and dp/dtheta of
+    `parameters` against central differences of the engine's own runs, which each redo the whole put-on; the report
+    rows of _check_report."""
     from dataclasses import replace
 
-    from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck
+    from orchestrator.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
     from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
 
     leg = leg_slice_mesh(400, order=2)
@@ -443,11 +452,17 @@ def _band_sensitivities_against_differences(tmp_path: Path, step: float, frictio
     if hybrid:   # the leg's u/p elements (the band stays a displacement element, as forward.LegModel writes it)
         mesh_text = mesh_text.replace("*ELEMENT, TYPE=CPE6, ELSET=EALL", "*ELEMENT, TYPE=CPE6H, ELSET=EALL", 1)
 
-    def run(folder: Path, laws, sensitivity=()):
+    effects = dict(effects or {})
+
+    def run(folder: Path, laws, values, sensitivity=()):
         folder.mkdir(parents=True)
         (folder / MESH_INCLUDE_NAME).write_text(mesh_text)
         tissues = {elset: (law, tuple(c.values())) for elset, (law, c) in laws.items() if elset != "GARMENT"}
-        text = leg_garment_deck(tissues, replace(band, **laws["GARMENT"][1]), leg, friction_mu=friction_mu)
+        keywords = StepEffects(volume_changes=tuple((name.split(":")[1], dv) for name, dv in values.items()
+                                                    if name.startswith("VOLUME CHANGE")),
+                               axial_stretch=values.get("AXIAL STRETCH"))
+        text = leg_garment_deck(tissues, replace(band, **laws["GARMENT"][1]), leg, friction_mu=friction_mu,
+                                effects=keywords)
         if sensitivity:
             text += "*SENSITIVITY, PRESSURE=YES\n" + "\n".join(", ".join(name.split(":")) for name in sensitivity) + "\n"
         (folder / "leg.inp").write_text(text)
@@ -455,21 +470,28 @@ def _band_sensitivities_against_differences(tmp_path: Path, step: float, frictio
         assert result.returncode == 0, result.stderr
         return result
 
-    base = run(tmp_path / "base", materials, GARMENT_PARAMETERS)
+    base = run(tmp_path / "base", materials, effects, parameters)
     results = EngineResults(base.outdir)
     du, dp = results.sensitivities(), results.pressure_sensitivities()
     report = []
-    for k, name in enumerate(GARMENT_PARAMETERS):
-        _, elset, constant = name.split(":")
-        value = materials[elset][1][constant]
+    for k, name in enumerate(parameters):
+        if name.startswith("MATERIAL"):
+            _, elset, constant = name.split(":")
+            value = materials[elset][1][constant]
+        else:
+            value = effects.get(name, BAND_EFFECTS_ABSENT[name])
         u, pressure = [], []
         for sign in (1.0, -1.0):
             laws = {e: (law, dict(c)) for e, (law, c) in materials.items()}
-            laws[elset][1][constant] = _written(value * (1.0 + sign * step))
-            side = run(tmp_path / f"{k}{'+' if sign > 0 else '-'}", laws)
+            values = dict(effects)
+            if name.startswith("MATERIAL"):
+                laws[elset][1][constant] = _written(value * (1.0 + sign * step))
+            else:
+                values[name] = _written(value * (1.0 + sign * step) if value else sign * step)
+            side = run(tmp_path / f"{k}{'+' if sign > 0 else '-'}", laws, values)
             u.append(side.u())
             pressure.append(EngineResults(side.outdir).cell_field("pressure"))
-        width = _written(value * (1 + step)) - _written(value * (1 - step))
+        width = (_written(value * (1 + step)) - _written(value * (1 - step)) if value else 2.0 * step)
         du_fd, dp_fd = (u[0] - u[1]) / width, (pressure[0] - pressure[1]) / width
         report.append((name, np.abs(du_fd).max(), np.abs(du[name] - du_fd).max() / np.abs(du_fd).max(),
                        np.abs(dp[name] - dp_fd).max() / np.abs(dp_fd).max()))
@@ -486,20 +508,23 @@ def test_sensitivities_through_frictionless_contact(tmp_path):
                   _band_sensitivities_against_differences(tmp_path, 1e-4))
 
 
-@pytest.mark.parametrize("friction_mu, hybrid", [(0.3, False), (0.02, False), (0.3, True)],
-                         ids=["mu0.3", "mu0.02", "mu0.3-CPE6H"])
-def test_sensitivities_through_friction_along_the_loading_path(tmp_path, friction_mu, hybrid):
+@pytest.mark.parametrize("friction_mu, hybrid, effects", [(0.3, False, {}), (0.02, False, {}), (0.3, True, {}),
+                                                           (0.3, False, BAND_EFFECTS)],
+                         ids=["mu0.3", "mu0.02", "mu0.3-CPE6H", "mu0.3-effects"])
+def test_sensitivities_through_friction_along_the_loading_path(tmp_path, friction_mu, hybrid, effects):
     """With Coulomb friction the put-on's end state depends on its path (where each skin node first touched the
     band and how far it slid since): the engine carries du/dtheta and the contact history's sensitivity from
     increment to increment (solver_cpp/src/solver/sensitivity.hpp, (4)-(5)). At mu = 0.3 (most of the skin
     sticking), at mu = 0.02 (much of it slipping) and on the second paper's u/p elements, the tissues' constants and
-    the band's C10 against central differences of the whole put-on (the release in twentieths, as
-    orchestrator.decks writes it with friction). Measured at mu = 0.3: relative errors 3e-9 to 7e-7; without the
+    the band's C10, and the muscle's volume change and the axial stretch of the last step (where the deck leaves
+    them out, and where it gives them), against central differences of the whole put-on (the release in twentieths,
+    as orchestrator.decks writes it with friction). Measured at mu = 0.3: relative errors 3e-9 to 7e-7; without the
     history's part of (4), which the last tangent alone gives, 5e-2 to 0.68. The relative step of the differences
     is 3e-5: at 1e-5 the runs' Newton residual (1e-9 of the forces) over the step reached 5e-4, and at 1e-4 or 3e-4
     a step moved a skin node across a change of contact state (the band's C10 read 1-4 % off at mu = 0.02 and 5 % on
     CPE6H; 1e-7 at 3e-5)."""
-    report = _band_sensitivities_against_differences(tmp_path, 3e-5, friction_mu, hybrid)
+    report = _band_sensitivities_against_differences(tmp_path, 3e-5, friction_mu, hybrid, effects,
+                                                     GARMENT_PARAMETERS + list(BAND_EFFECTS_ABSENT))
     _check_report(f"leg under the explicit garment band, friction {friction_mu}{', CPE6H' if hybrid else ''}", report)
 
 

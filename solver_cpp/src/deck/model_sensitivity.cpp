@@ -27,18 +27,31 @@ void ModelBuilder::resolve_sensitivities() {
   // Frictionless penalty contact is elastic: the converged state is a function of theta as long as no slave
   // node changes its contact status, and its tangent, contact elements included, gives du/dtheta. Friction makes
   // the state depend on the loading path (the stick history): the sensitivities are then carried along it
-  // (solver/sensitivity.hpp, (4)-(5)), for material constants, which act the same way at every increment.
+  // (solver/sensitivity.hpp, (4)-(5)), for what acts on the elements alone: material constants, and the volume
+  // change or axial stretch that the last step brings in (a load on faces or a prescribed motion is not carried).
   bool friction = false;
   for (const ContactPairDef& pair : model_.contact_pairs)
     friction = friction || model_.interactions[pair.interaction].law.friction > 0.0;
+  auto before_last_step = [&](const SensitivityParameter& p) {
+    for (std::size_t k = 0; k + 1 < model_.steps.size(); ++k) {
+      const LoadState& loads = model_.steps[k].loads;
+      if (p.name == "AXIAL STRETCH" && loads.axial_stretch != 1.0) return true;
+      if (p.name.rfind("VOLUME CHANGE:", 0) == 0)
+        for (int e : p.scope.elements)
+          if (const auto dv = loads.volume_change.find(e); dv != loads.volume_change.end() && dv->second != 0.0)
+            return true;
+    }
+    return false;
+  };
   std::set<std::string> names;
   for (const DataLine& line : sensitivity_lines_) {
     SensitivityParameter p = resolve_sensitivity_parameter(model_, line);
     if (!names.insert(p.name).second) throw DeckError(line.where, "parameter " + p.name + " is listed twice");
-    if (friction && (p.name.rfind("MATERIAL:", 0) != 0 || !p.scope.faces.empty() || p.scope.prescribed))
-      throw DeckError(line.where, "with *FRICTION on a *CONTACT PAIR, *SENSITIVITY carries material constants "
-                                  "only along the loading path, not " + p.name +
-                                  ": difference runs of the deck for it, or remove *FRICTION");
+    if (friction && (!p.scope.faces.empty() || p.scope.prescribed || before_last_step(p)))
+      throw DeckError(line.where, "with *FRICTION on a *CONTACT PAIR, *SENSITIVITY carries along the loading path "
+                                  "material constants and the volume change or axial stretch of the last step "
+                                  "only, not " + p.name + ": difference runs of the deck for it, or remove "
+                                  "*FRICTION");
     model_.sensitivity.parameters.push_back(std::move(p));
   }
 }

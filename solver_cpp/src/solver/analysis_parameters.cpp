@@ -125,16 +125,25 @@ Eigen::VectorXd StaticAnalysis::element_pressures(const ParameterState& state, c
   return pressure;
 }
 
-Eigen::VectorXd StaticAnalysis::material_residual(const std::vector<MaterialDef>& materials,
-                                                  const std::vector<int>& elements, const Eigen::VectorXd& u) const {
+Eigen::VectorXd StaticAnalysis::increment_residual(const ParameterState& state, const std::vector<int>& elements,
+                                                   const Eigen::VectorXd& u) const {
+  // state's loads are the last step's: before it they do not act, and in it they ramp from the step's start
+  const bool last_step = current_step_ + 1 == static_cast<int>(model_.steps.size());
+  auto kinematics_of = [&](int e) {
+    if (!last_step) return kinematics(e, last_lambda_);
+    const auto dv = state.loads.volume_change.find(e);
+    return ElementKinematics::from_volume_change(
+        ramp(volume_change_start_[e], dv == state.loads.volume_change.end() ? 0.0 : dv->second, last_lambda_),
+        ramp(axial_stretch_start_, state.loads.axial_stretch, last_lambda_));
+  };
   const int n = static_cast<int>(elements.size());
   std::vector<ElementVector> forces(elements.size());
   int failures = 0;
 #pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
   for (int k = 0; k < n; ++k) {
     const int e = elements[k];
-    if (!make_element(model_, materials, e)->internal_force(local_unknowns(u, e), kinematics(e, last_lambda_), forces[k],
-                                                             nullptr))
+    if (!make_element(model_, state.materials, e)->internal_force(local_unknowns(u, e), kinematics_of(e), forces[k],
+                                                                   nullptr))
       ++failures;
   }
   if (failures > 0) throw std::runtime_error("an element is inverted (det F <= 0) at a converged state");
@@ -146,9 +155,9 @@ Eigen::VectorXd StaticAnalysis::material_residual(const std::vector<MaterialDef>
   return R;
 }
 
-// sensitivity.hpp, (4)-(5). The parameters are material constants (deck/model_sensitivity.cpp refuses others
-// with friction), so dR/dtheta at fixed u and history is that of the elements they govern, under the kinematics of
-// this increment, and (2) holds at every increment as at the last.
+// sensitivity.hpp, (4)-(5). The parameters are material constants, or a volume change or the axial stretch that
+// the last step brings in (deck/model_sensitivity.cpp refuses others with friction): dR/dtheta at fixed u and
+// history is that of the elements they act on, (2) under this increment's kinematics.
 void StaticAnalysis::propagate_path_sensitivities() {
   const std::vector<SensitivityParameter>& parameters = model_.sensitivity.parameters;
   const auto n_parameters = static_cast<Eigen::Index>(parameters.size());
@@ -161,8 +170,8 @@ void StaticAnalysis::propagate_path_sensitivities() {
     ParameterState plus = base, minus = base;
     p.set(plus, theta + h);
     p.set(minus, theta - h);
-    B.col(j) = -(material_residual(plus.materials, p.scope.elements, u_) -
-                 material_residual(minus.materials, p.scope.elements, u_)) / (2.0 * h);
+    B.col(j) = -(increment_residual(plus, p.scope.elements, u_) - increment_residual(minus, p.scope.elements, u_)) /
+               (2.0 * h);
   }
   auto positions = [&](const std::vector<int>& nodes) {
     Eigen::VectorXd x(2 * static_cast<Eigen::Index>(nodes.size()));

@@ -101,7 +101,7 @@ public:
   // Returns false when K is singular.
   bool solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
   // With Coulomb friction the converged state depends on the loading path: the sensitivities of *SENSITIVITY's
-  // (material) parameters are then carried along it, one solve per converged increment (sensitivity.hpp, (4));
+  // parameters are then carried along it, one solve per converged increment (sensitivity.hpp, (4));
   // path_sensitivities() holds du/dtheta of the last one (n_dofs x parameters).
   bool carries_path_sensitivities() const { return carries_path_sensitivities_; }
   const Eigen::MatrixXd& path_sensitivities() const { return path_du_; }
@@ -190,9 +190,10 @@ private:
   // After a converged increment, before its contact history is committed: du/dtheta of the increment and the
   // history's sensitivity it leaves (sensitivity.hpp, (4)-(5)).
   void propagate_path_sensitivities();
-  // Internal forces of `elements` built with `materials`, at u and the committed increment's kinematics.
-  Eigen::VectorXd material_residual(const std::vector<MaterialDef>& materials, const std::vector<int>& elements,
-                                    const Eigen::VectorXd& u) const;
+  // Internal forces of `elements` with state's materials at u and the committed increment's load fraction; in the
+  // last step under state's volume change and axial stretch, ramped from the step's start.
+  Eigen::VectorXd increment_residual(const ParameterState& state, const std::vector<int>& elements,
+                                     const Eigen::VectorXd& u) const;
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   // Moves u along the Newton correction du by the step the line search chooses and returns the evaluation

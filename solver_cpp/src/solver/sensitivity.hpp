@@ -30,7 +30,8 @@
 // from dh_0/dtheta = 0 (the reference state), with the local derivatives of the contact element exact by complex
 // step (contact_history_derivatives) and dR/dtheta by (2) under the increment's kinematics. The stick/slip states
 // and the anchors' segments are those of the converged path, as in any direct differentiation of it. The
-// parameters must be material constants there (the deck reader says so otherwise). du/dtheta of the last
+// parameters must act on the elements alone there: material constants, or a volume change or the axial stretch
+// that the last step brings in, which ramps with it (the deck reader says so otherwise). du/dtheta of the last
 // increment is (1)'s answer.
 //
 // Pressure sensitivities (*SENSITIVITY, PRESSURE=YES): the element pressure
