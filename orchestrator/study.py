@@ -109,9 +109,10 @@ class RunSetup:
                   for name, share in self.missing_fraction.items()]
         if self.model.garment == "explicit":
             lines.append(f"garment: the explicit band of {self.case.tension_N_per_mm:g} N/mm, penalty contact"
-                         + (f" with friction {self.model.friction_mu:g}: the engine carries the material constants' "
-                            "sensitivities along the loading path; Levenberg-Marquardt differences runs for any "
-                            "other parameter (one per parameter and iteration)"
+                         + (f" with friction {self.model.friction_mu:g}: the engine carries the sensitivities "
+                            "along the loading path (the constants, a volume change, the out-of-plane stretch); "
+                            "Levenberg-Marquardt differences runs for any other parameter (one per parameter and "
+                            "iteration)"
                             if self.model.friction_mu > 0 else ", frictionless"))
         lines += [note for tissue, law in self.model.tissue_laws.items() for note in law_notes(tissue, law)]
         if self.case.levels:
