@@ -1,8 +1,9 @@
 """Cost of a full diagnosis (issues 6 and 29) on the 400-element model: every catalog effect that the model can
 carry is scored, then the best one (and those tied with it) refitted; with Laplace's law, with the explicit garment
 band (frictionless: the effects act under the band, the engine's sensitivities pass through its contact) and with
-the band and friction 0.3 (the second paper's: the engine carries the constants' sensitivities along the put-on's
-path, the effects' columns are differences of runs), side by side.
+the band and friction 0.3 (the second paper's: the engine carries the sensitivities of the constants, a volume
+change and the out-of-plane stretch along the put-on's path; a bone's motion and the band's prestretch profile are
+differences of runs), side by side.
 
     .venv/bin/python benchmarks/diagnose.py [--order 1|2] [--hidden drainage] [--garment laplace explicit friction]
         [--lines engine-none engine-auto fd-none fd-auto]

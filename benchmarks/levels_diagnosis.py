@@ -13,8 +13,8 @@ once. Models:
 - laplace: neo-Hookean tissues under Laplace's law (the first paper's), engine sensitivities;
 - band: the same tissues under the explicit frictionless band, engine sensitivities through the contact;
 - second-paper: Bouten and Drapier's Table 1 Mooney-Rivlin tissues, incompressible on CPE6H, the band with friction
-  0.3 (the engine carries the constants' sensitivities along the put-on's path; an effect's columns are differences
-  of runs).
+  0.3 (the engine carries the sensitivities of the constants, a volume change and the out-of-plane stretch along
+  the put-on's path; a bone's motion and the band's prestretch profile are differences of runs).
 Printed per effect: one sock and two socks, the hidden effect's rank, score statistic and p-value, the best effect,
 the design effect D of the residual's correlation (the statistic is the chi^2 reduction over D), the misfit over the
 floor before and after the refit (and each level's own after it), and the wall times.
