@@ -73,9 +73,6 @@ struct ContactPoint {
 // the residual r (2 per node).
 constexpr int kContactNodes = 5, kFrictionNodes = 7;
 
-// hold_stick: the shear is the trial traction even outside the cone (ContactPoint::slip still says where the
-// law would slip): Newton's iterates hold a node that chatters between slip directions there (see
-// StaticAnalysis::contact_residual), and a converged state is accepted only if no held node lies outside it.
 // The continuous part of a slave node's history (ContactHistory's xi, shear and gap), in the scalar of the
 // residual: the parameter sensitivities through friction (solver/sensitivity.hpp) differentiate the residual with
 // respect to the history it started the increment from, and the history it leaves with respect to both.
@@ -84,6 +81,9 @@ struct HistoryValues {
   T xi, shear, gap;
 };
 
+// hold_stick: the shear is the trial traction even outside the cone (ContactPoint::slip still says where the
+// law would slip): Newton's iterates hold a node that chatters between slip directions there (see
+// StaticAnalysis::contact_residual), and a converged state is accepted only if no held node lies outside it.
 // `old`: the continuous history the residual uses (nullptr: the history's own values); `updated`: if not null, the
 // continuous history the node leaves this state with (as StaticAnalysis::contact_residual records it: touching,
 // the contact point and the shear, gap 0; open, the point it faces and its gap, shear 0).
