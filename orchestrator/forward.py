@@ -277,6 +277,7 @@ class LegModel:
 
     @property
     def has_friction(self) -> bool:
+        """The band with friction, fixed ([model] friction) or fitted (the friction effect)."""
         return self.garment == "explicit" and (self.friction_mu > 0.0 or "friction" in self.effects)
 
     def engine_differentiates(self, line: str) -> bool:

@@ -112,7 +112,7 @@ class LevelsModel:
         effects added, the garment switched to the band."""
         return LevelsModel(dataclasses.replace(self.base, **changes), self.tensions)
 
-    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]]]:
+    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]] | None]:
         """The base model's: the tension is not a parameter, so every level has the same engine sensitivities."""
         return self.base.sensitivity_map(theta)
 
