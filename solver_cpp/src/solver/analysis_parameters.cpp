@@ -26,11 +26,14 @@ Eigen::VectorXd StaticAnalysis::residual(const Eigen::VectorXd& u) {
   return residual_;
 }
 
-StaticAnalysis::ParameterElement StaticAnalysis::element_for(const ParameterState& state, int e) const {
+ElementKinematics StaticAnalysis::end_of_step_kinematics(const ParameterState& state, int e) const {
   const auto dv = state.loads.volume_change.find(e);
-  return {make_element(model_, state.materials, e),
-          ElementKinematics::from_volume_change(dv == state.loads.volume_change.end() ? 0.0 : dv->second,
-                                                state.loads.axial_stretch)};
+  return ElementKinematics::from_volume_change(dv == state.loads.volume_change.end() ? 0.0 : dv->second,
+                                               state.loads.axial_stretch);
+}
+
+StaticAnalysis::ParameterElement StaticAnalysis::element_for(const ParameterState& state, int e) const {
+  return {make_element(model_, state.materials, e), end_of_step_kinematics(state, e)};
 }
 
 std::map<int, double> StaticAnalysis::prescribed_values(const LoadState& loads) const {
@@ -51,26 +54,10 @@ Eigen::VectorXd StaticAnalysis::scoped_residual(const ParameterState& state, con
   Eigen::VectorXd u = u_given;
   if (scope.prescribed)
     for (const auto& [dof, value] : prescribed_values(state.loads)) u[dof] = value;
-  Eigen::VectorXd R = Eigen::VectorXd::Zero(n_dofs_);
-
   // Internal forces of the elements in scope, rebuilt with the state's materials.
-  const int n = static_cast<int>(scope.elements.size());
-  std::vector<ElementVector> forces(scope.elements.size());
-  int failures = 0;
-  // A thread team for a handful of elements costs more than it saves (and waits for
-  // descheduled threads on a loaded machine).
-#pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
-  for (int k = 0; k < n; ++k) {
-    const int e = scope.elements[k];
-    if (!element_for(state, e).internal_force(local_unknowns(u, e), forces[k])) ++failures;
-  }
-  if (failures > 0)
-    throw std::runtime_error("an element turns inside out (det F <= 0) where a sensitivity parameter moves the prescribed displacements");
-  for (int k = 0; k < n; ++k) {
-    const std::vector<int>& dofs = element_dofs_[scope.elements[k]];
-    for (std::size_t i = 0; i < dofs.size(); ++i) R[dofs[i]] += forces[k][static_cast<Eigen::Index>(i)];
-  }
-
+  Eigen::VectorXd R = rebuilt_element_forces(
+      state.materials, scope.elements, [&](int e) { return end_of_step_kinematics(state, e); }, u,
+      "an element turns inside out (det F <= 0) where a sensitivity parameter moves the prescribed displacements");
   subtract_face_loads(state, scope.faces, u, R);
   return R;
 }
@@ -125,6 +112,30 @@ Eigen::VectorXd StaticAnalysis::element_pressures(const ParameterState& state, c
   return pressure;
 }
 
+Eigen::VectorXd StaticAnalysis::rebuilt_element_forces(const std::vector<MaterialDef>& materials,
+                                                       const std::vector<int>& elements,
+                                                       const std::function<ElementKinematics(int)>& kinematics_of,
+                                                       const Eigen::VectorXd& u, const char* inverted) const {
+  const int n = static_cast<int>(elements.size());
+  std::vector<ElementVector> forces(elements.size());
+  int failures = 0;
+  // A thread team for a handful of elements costs more than it saves (and waits for
+  // descheduled threads on a loaded machine).
+#pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
+  for (int k = 0; k < n; ++k) {
+    const int e = elements[k];
+    if (!make_element(model_, materials, e)->internal_force(local_unknowns(u, e), kinematics_of(e), forces[k], nullptr))
+      ++failures;
+  }
+  if (failures > 0) throw std::runtime_error(inverted);
+  Eigen::VectorXd R = Eigen::VectorXd::Zero(n_dofs_);
+  for (int k = 0; k < n; ++k) {
+    const std::vector<int>& dofs = element_dofs_[elements[k]];
+    for (std::size_t i = 0; i < dofs.size(); ++i) R[dofs[i]] += forces[k][static_cast<Eigen::Index>(i)];
+  }
+  return R;
+}
+
 Eigen::VectorXd StaticAnalysis::increment_residual(const ParameterState& state, const std::vector<int>& elements,
                                                    const Eigen::VectorXd& u) const {
   // state's loads are the last step's: before it they do not act, and in it they ramp from the step's start
@@ -136,23 +147,8 @@ Eigen::VectorXd StaticAnalysis::increment_residual(const ParameterState& state, 
         ramp(volume_change_start_[e], dv == state.loads.volume_change.end() ? 0.0 : dv->second, last_lambda_),
         ramp(axial_stretch_start_, state.loads.axial_stretch, last_lambda_));
   };
-  const int n = static_cast<int>(elements.size());
-  std::vector<ElementVector> forces(elements.size());
-  int failures = 0;
-#pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
-  for (int k = 0; k < n; ++k) {
-    const int e = elements[k];
-    if (!make_element(model_, state.materials, e)->internal_force(local_unknowns(u, e), kinematics_of(e), forces[k],
-                                                                   nullptr))
-      ++failures;
-  }
-  if (failures > 0) throw std::runtime_error("an element is inverted (det F <= 0) at a converged state");
-  Eigen::VectorXd R = Eigen::VectorXd::Zero(n_dofs_);
-  for (int k = 0; k < n; ++k) {
-    const std::vector<int>& dofs = element_dofs_[elements[k]];
-    for (std::size_t i = 0; i < dofs.size(); ++i) R[dofs[i]] += forces[k][static_cast<Eigen::Index>(i)];
-  }
-  return R;
+  return rebuilt_element_forces(state.materials, elements, kinematics_of, u,
+                                "an element is inverted (det F <= 0) at a converged state");
 }
 
 // sensitivity.hpp, (4)-(5). The parameters are material constants, or a volume change or the axial stretch that

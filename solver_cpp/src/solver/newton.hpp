@@ -194,6 +194,11 @@ private:
   // last step under state's volume change and axial stretch, ramped from the step's start.
   Eigen::VectorXd increment_residual(const ParameterState& state, const std::vector<int>& elements,
                                      const Eigen::VectorXd& u) const;
+  // Internal forces of `elements` rebuilt with `materials` under kinematics_of(e), at u, summed into a full-length
+  // vector (the sensitivities' dR/dtheta); throws `inverted` where an element turns inside out.
+  Eigen::VectorXd rebuilt_element_forces(const std::vector<MaterialDef>& materials, const std::vector<int>& elements,
+                                         const std::function<ElementKinematics(int)>& kinematics_of,
+                                         const Eigen::VectorXd& u, const char* inverted) const;
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
   Evaluation evaluate(const Eigen::VectorXd& u, double lambda, bool tangent);
   // Moves u along the Newton correction du by the step the line search chooses and returns the evaluation
@@ -226,6 +231,7 @@ private:
     ElementState state(const ElementVector& ue) const { return element->state(ue, kinematics); }
   };
   ParameterElement element_for(const ParameterState& state, int e) const;
+  ElementKinematics end_of_step_kinematics(const ParameterState& state, int e) const;  // element_for's kinematics
   // R -= the end-of-step loads of `faces` (follower pressures, Laplace) with state's loads and profiles, at u.
   void subtract_face_loads(const ParameterState& state, const std::vector<std::pair<int, int>>& faces,
                            const Eigen::VectorXd& u, Eigen::VectorXd& R) const;
