@@ -26,7 +26,8 @@ from orchestrator.engine import find_engine
 from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel
 from orchestrator.meshing import leg_slice_mesh
 from orchestrator.objectives import DisplacementResidualObjective
-from orchestrator.runner import BAD_DECK, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT, Evaluator
+from orchestrator.runner import (BAD_DECK, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT, TIMEOUT_COLUMNS_PER_RUN, Evaluator,
+                                 run_timeout)
 
 SLEEP_MARKER = "** calfit-test: sleep"
 
@@ -160,3 +161,17 @@ def test_verbose_streams_every_engine_log_and_each_job_keeps_it(leg_model, tmp_p
     with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "quiet", progress=False) as evaluator:
         assert evaluator.evaluate([TABLE2_CENTRAL_KPA])[0]["status"] == OK
     assert "iterations, residual" not in capfd.readouterr().err     # not without --verbose
+
+
+def test_a_run_carrying_sensitivities_through_friction_gets_the_time_they_take(leg_model):
+    """Each column carried along the put-on's path is a back-substitution at every increment: the hang guard grows
+    with them, and only there (the same deck without friction, or without sensitivities, keeps the user's timeout)."""
+    theta = list(TABLE2_CENTRAL_KPA)
+    band = LegModel(leg_model.mesh, 0.16, garment="explicit", friction_mu=0.3, engine_sensitivities=True,
+                    effects=("drainage",))
+    text = band.deck(theta + [0.0])
+    # five columns: the four constants and the muscle's volume change
+    assert run_timeout(text, 120.0) == pytest.approx(120.0 * (1 + 5 / TIMEOUT_COLUMNS_PER_RUN))
+    frictionless = LegModel(leg_model.mesh, 0.16, garment="explicit", engine_sensitivities=True)
+    assert run_timeout(frictionless.deck(theta), 120.0) == 120.0
+    assert run_timeout(LegModel(leg_model.mesh, 0.16, garment="explicit", friction_mu=0.3).deck(theta), 120.0) == 120.0

@@ -347,12 +347,23 @@ bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, boo
   return solve_lu(b, x);
 }
 
-Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B) const {
+Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B, bool refine_each_column) const {
   switch (factor_) {
     case Factor::Cholesky:
     case Factor::SymmetricPart: return cholesky_->solve(B);
     case Factor::Ldlt: return ldlt_->solve(B);
-    case Factor::Lu: return lu_->solve(B);
+    case Factor::Lu: {
+      if (refine_each_column) return lu_->solve(B);
+      // UMFPACK solves one column at a time, each refined by a residual and a solve per step: with the sensitivities
+      // of many parameters along a path of friction (a diagnosis's 145 columns at each of 23 increments) that was
+      // most of the run (a third in the residuals alone). solve_refined refines the block where it needs to.
+      auto& control = lu_->umfpackControl();
+      const double steps = control(UMFPACK_IRSTEP);
+      control(UMFPACK_IRSTEP) = 0;
+      Eigen::MatrixXd X = lu_->solve(B);
+      control(UMFPACK_IRSTEP) = steps;
+      return X;
+    }
     case Factor::None: break;
   }
   return Eigen::MatrixXd::Constant(B.rows(), B.cols(), std::numeric_limits<double>::quiet_NaN());
@@ -395,14 +406,14 @@ bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, d
       if (solved && relative_residual() <= tolerance) return true;
       continue;
     }
-    X = solve_factored(B);
+    X = solve_factored(B, false);
     double previous = std::numeric_limits<double>::infinity();
     for (int it = 0; it < 10 && X.allFinite(); ++it) {
       const double r = relative_residual();
       if (r <= tolerance) return true;
       if (!(r < 0.5 * previous)) break;  // stalled: factorize the current matrix
       previous = r;
-      X += solve_factored(B - matrix_ * X);
+      X += solve_factored(B - matrix_ * X, false);
     }
   }
   return false;

@@ -108,7 +108,9 @@ private:
                          int* iterations = nullptr, double tolerance = kExactSolve) const;
   bool factorize_cholesky(const Eigen::SparseMatrix<double>& matrix);
   bool accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const;
-  Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B) const;
+  // refine_each_column: UMFPACK's own iterative refinement of every column (its default, two steps); off where the
+  // caller refines the whole block at once
+  Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B, bool refine_each_column = true) const;
 };
 
 template <typename Block>
