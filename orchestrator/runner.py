@@ -199,6 +199,13 @@ OK, NOT_CONVERGED, BAD_DECK, ENGINE_FAILED, TIMEOUT = "ok", "not_converged", "ba
 FAILED_STATUSES = (NOT_CONVERGED, BAD_DECK, ENGINE_FAILED, TIMEOUT)
 
 
+def _stopped_sooner(record: dict, item: EngineTask | dict) -> bool:
+    """A logged run that its timeout stopped sooner than this task's would be: it is launched again (a run stopped
+    is not a failure of its deck; a larger --timeout, or a timeout that grows with the run's work, may finish it)."""
+    return (record["status"] == TIMEOUT and isinstance(item, EngineTask)
+            and record.get("timeout_s", 0.0) < item.timeout_s)
+
+
 class EvaluationLog:
     """The append-only JSON-lines log of a run's evaluations, read back as a cache by key.
 
@@ -345,6 +352,8 @@ def execute_task(task: EngineTask, objective) -> dict:
     except EngineFailed as error:
         record.update(status=TIMEOUT if "timeout" in str(error) else ENGINE_FAILED,
                       message=_level_prefix(level, len(decks), levels) + str(error))
+        if record["status"] == TIMEOUT:
+            record["timeout_s"] = task.timeout_s
     finally:
         if not task.keep_job:
             shutil.rmtree(job, ignore_errors=True)
@@ -638,7 +647,7 @@ class Evaluator:
             todo: dict[str, EngineTask] = {}
             unrendered: set[str] = set()
             for key, item in zip(keys, items):
-                if key in self.log.records or key in todo:
+                if (key in self.log.records and not _stopped_sooner(self.log.records[key], item)) or key in todo:
                     continue
                 if isinstance(item, dict):   # not even rendered: recorded as it is, no engine launch
                     self.log.append(item)

@@ -118,6 +118,11 @@ def test_failures_never_stop_a_sweep_and_are_recorded(counting_engine, tmp_path)
     assert counting_engine() == 5   # the unrenderable deck never reached the engine
     logged = [json.loads(line) for line in (tmp_path / "run" / LOG_NAME).read_text().splitlines()]
     assert sorted(r["status"] for r in logged) == sorted(statuses)
+    # resumed with the same timeout, nothing is launched again; with a longer one, only the run it stopped
+    with Evaluator(model, skin_objective(model), tmp_path / "run", workers=2, timeout_s=3.0, progress=False) as evaluator:
+        assert [r["status"] for r in evaluator.evaluate(thetas)] == statuses and evaluator.launched == 0
+    with Evaluator(model, skin_objective(model), tmp_path / "run", workers=2, timeout_s=4.0, progress=False) as evaluator:
+        assert [r["status"] for r in evaluator.evaluate(thetas)] == statuses and evaluator.launched == 1
 
 
 def test_dask_cluster_gives_the_same_costs_as_the_local_pool(leg_model, tmp_path):
