@@ -33,9 +33,10 @@ identifies the band model (with mu free for friction) from the fitted point.
 A model of the band itself (the second paper's, `[model] garment = "explicit"`) is diagnosed the same way with the
 effects its deck carries (`effects.Effect.garments`: those of the tissues and bones, written into the band's last
 step), their columns through the frictionless contact from the engine; friction is the column dr/dmu alone, at
-the band's own coefficient (0, or the one the model fixed: its refit frees it). A band with friction gives no engine
-sensitivity: every column is then a difference of runs, and the diagnosis does not locate (the local probe would take
-a run per material group).
+the band's own coefficient (0, or the one the model fixed: its refit frees it). Through friction the engine carries
+the sensitivities along the put-on's path of what acts on the elements (material constants, hence the local probe,
+and a volume change or an axial stretch that the last step brings in); a bone's rigid motion and the band's prestretch
+profile (band_profile) are differences of runs there.
 
 Several garment levels (two socks, `levels.LevelsModel`): the model is one leg under each tension. r stacks every
 level's residual, whitened together (`levels.JointDisplacementObjective`), and so does every column G (each level's
@@ -83,7 +84,7 @@ from scipy.spatial import cKDTree
 from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
 from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
-from .identify import FitResult, levenberg_marquardt, missing_columns, residual_jacobian
+from .identify import FitResult, jacobian_in_x, levenberg_marquardt, steps_into_box
 from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator
@@ -402,26 +403,19 @@ def _residuals(record: dict) -> np.ndarray:
 
 def probe_jacobian(evaluator: Evaluator, theta: Sequence[float]) -> tuple[np.ndarray, np.ndarray, str]:
     """r and dr/dtheta of the evaluator's model at theta: from the engine's sensitivities where the record has
-    them, forward differences for the other columns (ln theta steps for constants, `scale` steps for effects); the
-    source says which."""
-    model = evaluator.model
+    them, forward differences for the other columns (`identify.jacobian_in_x`: steps of 1e-3 in ln theta for
+    constants, FD_FRACTION x `scale` for effects); the source says which."""
+    space = evaluator.model.space
     theta = np.asarray(theta, float)
     record = evaluator(theta)
     r = _residuals(record)
-    p = len(theta)
-    jacobian = residual_jacobian(model, record, theta, partial=True)
-    missing = missing_columns(jacobian, p)
+    x = space.to_x(theta)
+    steps = steps_into_box(space, x, np.where(np.array(space.linear), FD_FRACTION, 1e-3))
+    J, missing = jacobian_in_x(evaluator, record, x, steps, tag="diagnosis", label="diagnosis sensitivities")
+    J = J / np.where(np.array(space.linear), np.array(space.scale), theta)[None, :]   # dr/dx -> dr/dtheta
     if not missing:
-        return r, jacobian, "engine"
-    space = model.space
-    steps = np.where(np.array(space.linear), FD_FRACTION * np.array(space.scale), 1e-3 * np.abs(theta))
-    probes = [theta + steps[j] * np.eye(p)[j] for j in missing]
-    records = evaluator.evaluate([probe.tolist() for probe in probes], tag="diagnosis",
-                                 label="diagnosis sensitivities")
-    J = np.zeros((len(r), p)) if jacobian is None else jacobian
-    for j, rec in zip(missing, records):
-        J[:, j] = (_residuals(rec) - r) / steps[j]
-    source = ("finite differences" if len(missing) == p else
+        return r, J, "engine"
+    source = ("finite differences" if len(missing) == len(theta) else
               f"engine, finite differences for {', '.join(space.names[j] for j in missing)}")
     return r, J, source
 
@@ -647,9 +641,11 @@ def refit_model(model: LegModel, effects: Sequence[str]) -> LegModel:
 
 def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str], objective, *,
           max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
-    """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and from
-    the usual start (Avril et al. Table 2 central values); the better fit is kept. The second start matters
-    when the missing effect dragged the baseline fit to a bound or far from the tissue's values.
+    """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and, unless
+    that fit settled (`settled`), from the usual start (Avril et al. Table 2 central values); the better fit is kept.
+    The second start matters when the missing effect dragged the baseline fit to a bound or far from the tissue's
+    values; after a fit at the noise floor with no parameter on a bound it could only move chi^2 within the noise
+    (with friction it was most of a diagnosis's runs: 110 of 123).
     Returns the fit and its residual u_model - u_measured (mm) at the points."""
     extended = refit_model(model, effects)
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
@@ -658,12 +654,27 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
              for name in extended.space.names[model.space.size:]]
     starts = [list(map(float, theta)) + extra, model.start() + extra]
     with evaluator_factory(extended) as evaluator:
-        fits = [levenberg_marquardt(evaluator, start, max_iterations=max_iterations, ftol=REFIT_FTOL) for start in starts]
+        fits = [levenberg_marquardt(evaluator, starts[0], max_iterations=max_iterations, ftol=REFIT_FTOL)]
+        if not settled(extended, evaluator(fits[0].theta), objective):
+            fits.append(levenberg_marquardt(evaluator, starts[1], max_iterations=max_iterations, ftol=REFIT_FTOL))
         fit = min(fits, key=lambda f: f.cost)
         record = evaluator(fit.theta)
     # named by the effects asked for: the garment's band model lists none (bridging) or friction alone
     summary = replace(summarize_fit(extended, fit, record, objective), effects=list(model.effects) + list(effects))
     return summary, objective.residual_mm(_residuals(record))
+
+
+def settled(model: LegModel, record: dict, objective, alpha: float = ALPHA) -> bool:
+    """A fit that another start cannot better but within the noise: its chi^2 not above the noise's (the lack-of-fit
+    test at `alpha`) and no parameter on its search box's edge."""
+    if record["status"] != OK:
+        return False
+    r = _residuals(record)
+    p = model.space.size
+    if stats.chi2.sf(float(r @ r), len(r) - p - objective.nuisance_dof) < alpha:
+        return False
+    theta = np.asarray(record["theta"], float)
+    return not np.any(np.isclose(theta, model.space.lower) | np.isclose(theta, model.space.upper))
 
 
 def summarize_fit(model: LegModel, fit: FitResult, record: dict, objective) -> Refit:

@@ -411,9 +411,10 @@ class LegModel:
         return state
 
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None,
-             extra_sensitivities: Sequence[str] = ()) -> str:
+             extra_sensitivities: Sequence[str] = (), sensitivities: bool = True) -> str:
         """The deck of theta; extra_sensitivities: more `*SENSITIVITY` lines (a `PROFILE` line defines the garment's
-        Fourier profile, at zero, when the model has none)."""
+        Fourier profile, at zero, when the model has none); sensitivities=False: none at all (a finite-difference
+        probe needs the displacements alone)."""
         from .decks import StepEffects
 
         state = self.deck_state(theta)
@@ -421,7 +422,7 @@ class LegModel:
         lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
         own = lines if self.engine_sensitivities else []
         lines = [line for line in own + [line for line in extra_sensitivities if line not in own]
-                 if self.engine_differentiates(line)]
+                 if self.engine_differentiates(line)] if sensitivities else []
         if any(line.startswith("PROFILE") for line in extra_sensitivities) and not self.tension_profile:
             state.fourier_profile.setdefault(1, (0.0, 0.0))
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,

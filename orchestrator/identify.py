@@ -136,6 +136,50 @@ def missing_columns(jacobian: np.ndarray | None, p: int) -> list[int]:
     return list(range(p)) if jacobian is None else [j for j in range(p) if np.isnan(jacobian[:, j]).any()]
 
 
+def steps_into_box(space, x: np.ndarray, step=FD_STEP) -> np.ndarray:
+    """Forward-difference steps in x of size `step` (one, or one per parameter), each pointing into the search box
+    (a parameter on its upper bound steps down)."""
+    step = np.broadcast_to(np.asarray(step, float), np.shape(x))
+    return np.where(_to_x(space, _from_x(space, x + step)) > x + 0.5 * step, step, -step)
+
+
+def jacobian_in_x(evaluator: Evaluator, record: dict, x: np.ndarray, steps: np.ndarray, *, tag: str,
+                  label: str) -> tuple[np.ndarray, list[int]]:
+    """dr/dx at x (`record` the evaluation there) and the columns that were differenced: the engine's sensitivities
+    where the record has them (chain rule through theta(x)), one-sided differences x + steps[j] e_j for the others,
+    in one parallel batch of runs that carry no sensitivities (a difference needs the displacements alone, and
+    through friction each column carried costs a back-substitution at every increment: the diagnosis's probe of
+    281 columns ran 4 x as long as the run alone). A probe the engine cannot solve (contact with friction) is tried
+    on the other side; RuntimeError when both sides fail."""
+    space = parameter_space(evaluator)
+    theta = _from_x(space, x)
+    r = np.asarray(record["outputs"]["residuals"], float)
+    p = len(x)
+    engine = residual_jacobian(evaluator.model, record, theta, partial=True)
+    J = np.zeros((len(r), p)) if engine is None else engine * _dtheta_dx(space, theta)[None, :]
+    missing = missing_columns(engine, p)
+    if not missing:
+        return J, missing
+    steps = np.array(steps, float)
+    options = {"sensitivities": False} if getattr(evaluator.model, "engine_sensitivities", False) else None
+
+    def difference(columns: Sequence[int], label_now: str) -> dict[int, dict]:
+        probes = [_from_x(space, x + steps[j] * np.eye(p)[j]) for j in columns]
+        return dict(zip(columns, evaluator.evaluate(probes, options=options, tag=tag, label=label_now)))
+
+    records = difference(missing, label)
+    failed = [j for j, rec in records.items() if rec["status"] != OK]
+    if failed:
+        steps[failed] *= -1.0
+        records.update(difference(failed, f"{label}, other side"))
+        if any(records[j]["status"] != OK for j in failed):
+            raise RuntimeError("the engine failed in a finite-difference probe on both sides: "
+                               + "; ".join(records[j]["message"] for j in failed if records[j]["status"] != OK))
+    for j in missing:
+        J[:, j] = (np.asarray(records[j]["outputs"]["residuals"], float) - r) / steps[j]
+    return J, missing
+
+
 def nelder_mead(evaluator: Evaluator, start: Sequence[float], *, xatol: float = 2e-3, fatol: float = 1e-6,
                 max_evaluations: int = 400, initial_step: float = 0.15) -> FitResult:
     """Nelder-Mead in ln(theta) from `start`; initial simplex: each parameter +initial_step (15 %)."""
@@ -177,13 +221,6 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     def residuals(record: dict) -> np.ndarray | None:
         return np.asarray(record["outputs"]["residuals"]) if record["status"] == OK else None
 
-    def engine_jacobian(record: dict, at_x: np.ndarray) -> np.ndarray | None:
-        """dr/dx from the engine's du/dtheta (chain rule through theta(x)) where the record has it, NaN columns
-        where it does not (a parameter the engine does not differentiate)."""
-        theta = _from_x(space, at_x)
-        jacobian = residual_jacobian(evaluator.model, record, theta, partial=True)
-        return None if jacobian is None else jacobian * _dtheta_dx(space, theta)[None, :]
-
     current = evaluator(_from_x(space, x))
     r = residuals(current)
     if r is None:
@@ -192,36 +229,23 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     accepted_chi2 = [chi2]
     evaluations, converged, message, iteration = 1, False, "maximum number of iterations reached", 0
     for iteration in range(1, max_iterations + 1):
-        J = engine_jacobian(current, x)
-        missing = missing_columns(J, p)
-        if missing:
-            # one-sided differences pointing into the box (a parameter on its upper bound steps down)
-            signs = np.where(_to_x(space, _from_x(space, x + FD_STEP)) > x + 0.5 * FD_STEP, 1.0, -1.0)
-            probes = [_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in missing]
-            records = evaluator.evaluate(probes, tag="lm-jacobian", label=f"LM Jacobian {iteration}")
-            evaluations += len(missing)
-            columns = dict(zip(missing, (residuals(rec) for rec in records)))
-            failed = [j for j, c in columns.items() if c is None]
-            if failed:   # a probe the engine cannot solve (contact with friction): the difference on the other side
-                signs[failed] *= -1.0
-                retried = evaluator.evaluate([_from_x(space, x + signs[j] * FD_STEP * np.eye(p)[j]) for j in failed],
-                                             tag="lm-jacobian", label=f"LM Jacobian {iteration}, other side")
-                evaluations += len(failed)
-                for j, rec in zip(failed, retried):
-                    columns[j] = residuals(rec)
-                if any(c is None for c in columns.values()):
-                    raise RuntimeError("the engine failed in a finite-difference probe on both sides: "
-                                       + "; ".join(rec["message"] for rec in retried if rec["status"] != OK))
-            J = np.zeros((len(r), p)) if J is None else J
-            for j, c in columns.items():
-                J[:, j] = (c - r) / (signs[j] * FD_STEP)
+        J, missing = jacobian_in_x(evaluator, current, x, steps_into_box(space, x), tag="lm-jacobian",
+                                   label=f"LM Jacobian {iteration}")
+        evaluations += len(missing)
         structural = _sum_only_directions(evaluator, _from_x(space, x))[0]
         J = _without(J, structural)
         gradient, normal = J.T @ r, J.T @ J
         improved = False
         while lam < 1e12:
             step = _without(np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient), structural)
-            step *= min(1.0, MAX_LM_STEP / max(np.max(np.abs(step)), 1e-300))   # a trust region in x
+            if np.max(np.abs(step)) > MAX_LM_STEP and lam < 1e11:
+                # outside the trust region: more damping, not a shorter step along the same direction (More 1978).
+                # A parameter the data hardly fix has a huge Gauss-Newton step; cut to the region's edge it took the
+                # whole step's direction with it, and the trials bounced between e and 1/e in that parameter (the
+                # second paper's fat from its images: 7 runs rejected in a row), each rejection an engine run
+                lam *= 4.0
+                continue
+            step *= min(1.0, MAX_LM_STEP / max(np.max(np.abs(step)), 1e-300))
             step = _to_x(space, _from_x(space, x + step)) - x                     # projected onto the box
             trial = evaluator(_from_x(space, x + step))
             evaluations += 1
@@ -377,23 +401,12 @@ class NoiseMonteCarloResult:
 
 
 def _engine_or_fd_jacobian(evaluator: Evaluator, record: dict, space, x: np.ndarray) -> np.ndarray:
-    """dr/dx at x: from the record's engine sensitivities where it has them, forward differences (FD_STEP, one
-    parallel batch) for the other columns."""
-    theta = _from_x(space, x)
-    r = np.asarray(record["outputs"]["residuals"], float)
-    p = len(x)
-    jacobian = residual_jacobian(evaluator.model, record, theta, partial=True)
-    J = np.zeros((len(r), p)) if jacobian is None else jacobian * _dtheta_dx(space, theta)[None, :]
-    missing = missing_columns(jacobian, p)
-    if not missing:
-        return J
-    probes = [_from_x(space, x + FD_STEP * np.eye(p)[j]) for j in missing]
-    records = evaluator.evaluate(probes, tag="mc-jacobian", label="Monte-Carlo Jacobian")
-    if any(rec["status"] != OK for rec in records):
-        raise RuntimeError("the engine failed in a finite-difference probe at the identified point")
-    for j, rec in zip(missing, records):
-        J[:, j] = (np.asarray(rec["outputs"]["residuals"]) - r) / FD_STEP
-    return J
+    """dr/dx at x: the engine's sensitivities, forward differences (FD_STEP) for the columns it does not give."""
+    try:
+        return jacobian_in_x(evaluator, record, x, steps_into_box(space, x), tag="mc-jacobian",
+                             label="Monte-Carlo Jacobian")[0]
+    except RuntimeError as error:
+        raise RuntimeError(f"at the identified point: {error}") from None
 
 
 def _free_directions(J: np.ndarray, noise_scale: float, width_x: np.ndarray, identifiable_half_width: float,

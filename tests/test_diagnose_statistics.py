@@ -1,14 +1,18 @@
 """The statistics of the diagnosis (orchestrator.diagnose) on linear models where the answers are exact."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose import design_effect, information_criteria, neighbour_correlation, residual_maps, score_effect
-from orchestrator.forward import annulus_mesh
+from orchestrator.diagnose import (design_effect, information_criteria, neighbour_correlation, residual_maps,
+                                  score_effect, settled)
+from orchestrator.forward import ParameterSpace, annulus_mesh
 from orchestrator.measure import Measurements
 from orchestrator.objectives import DisplacementResidualObjective
 from orchestrator.regions import LegFrame
+from orchestrator.runner import OK
 
 
 def _linear_problem(seed=0, n=400, p=4):
@@ -155,3 +159,20 @@ def test_the_leg_frame_names_directions_from_the_bones():
     assert frame.depth_mm(np.array([[50.0, 12.0]]))[0] == pytest.approx(2.0, abs=0.5)
     mirrored = LegFrame.from_labels(_leg_labels()[:, ::-1], (0.5, 0.5))
     assert mirrored.direction(180.0) == "lateral" and mirrored.direction(0.0) == "medial"
+
+
+def test_a_refit_is_settled_at_the_noise_floor_inside_its_box():
+    """`settled` spares a refit its second start only when another start could better it but within the noise."""
+    model = SimpleNamespace(space=ParameterSpace(("C10_fat", "dv_muscle"), (0.5, -0.2), (20.0, 0.2),
+                                                 linear=(False, True)))
+    objective = SimpleNamespace(nuisance_dof=3)
+    noise = np.random.default_rng(3).standard_normal(600)
+
+    def record(theta, residuals):
+        return {"status": OK, "theta": theta, "outputs": {"residuals": list(residuals)}}
+
+    assert settled(model, record([4.5, -0.05], noise), objective)
+    assert not settled(model, record([4.5, -0.05], 1.3 * noise), objective)   # chi^2 / dof 1.7: a lack of fit
+    assert not settled(model, record([0.5, -0.05], noise), objective)         # a constant on its lower bound
+    assert not settled(model, record([4.5, 0.2], noise), objective)           # an effect on its upper bound
+    assert not settled(model, {"status": "failed", "theta": [4.5, 0.0], "message": "diverged"}, objective)
