@@ -31,12 +31,12 @@ import pytest
 from orchestrator.diagnose import ALPHA
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.regions import SECTORS, display_angle_deg
+from orchestrator.regions import SECTORS
 from orchestrator.study import make_phantom_case
+from hidden_physics import OEDEMA_SECTOR_DEG, oedema
 from renderers import RENDERERS, phantom
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
-OEDEMA_SECTOR_DEG = (210.0, 300.0)     # display angles (counter-clockwise, 90 at the top of the image)
 SECTOR_DEG = 360.0 / SECTORS            # the width of the diagnosis' sectors (`diagnose.residual_maps`)
 CLEAR_LACK_OF_FIT_P = 1e-6
 
@@ -54,17 +54,6 @@ HIDDEN = {
 }
 # every hidden-effect case is slow (the drainage one took 106 s of the fast suite); the fast suite keeps the control
 # here and the compartments found at the septa (`test_diagnose_heterogeneity`)
-
-
-def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
-    """Swelling of the fat in one angular sector: physics that no effect of the catalog describes."""
-    centre = mesh.nodes[mesh.skin_loop].mean(axis=0)
-    fat = mesh.element_sets()["FAT"]
-    angle = display_angle_deg(mesh.nodes[mesh.elements[fat][:, :3]].mean(axis=1), centre)
-    ids = fat[(angle > OEDEMA_SECTOR_DEG[0]) & (angle < OEDEMA_SECTOR_DEG[1])] + 1
-    elset = "*ELSET, ELSET=OEDEMA\n" + "\n".join(", ".join(map(str, ids[k:k + 12])) for k in range(0, len(ids), 12))
-    deck_text = deck_text.replace("*BOUNDARY\n", elset + "\n*BOUNDARY\n", 1)
-    return deck_text.replace("*NODE FILE", f"*VOLUME CHANGE, ELSET=OEDEMA\n{dv}\n*NODE FILE", 1)
 
 
 def diagnosed(tmp_path_factory, name, *, renderer="calf", effects=None, refit="auto", labels=None, edit_deck=None):

@@ -172,7 +172,7 @@ class _SumOnlyEvaluator:
         rng = np.random.default_rng(5)
         self.g, self.h = rng.standard_normal(300), rng.standard_normal(300)
 
-    def evaluate(self, thetas, tag="", label=""):
+    def evaluate(self, thetas, *, options=None, tag="", label=""):
         records = []
         for theta in thetas:
             fat, muscle = theta[0] + theta[2], theta[1]
