@@ -29,6 +29,7 @@ from dataclasses import asdict
 from .diagnose import (ALPHA, diagnose, level_maps, patch_elements, refit, refit_verdict, residual_maps, settle_ties,
                        summarize_fit, weigh_local)
 from .digits import interval_uncertainty, rounded, with_uncertainty
+from .discretization import discretization_check, discretization_line
 from .figures import diagnosis_figure
 from .garment_state import band_state
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
@@ -225,6 +226,11 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
             result["floor_calibration"] = floor_calibration(run_dir)
     if measured is not None and setup.case.levels:
         result["levels"] = _level_fits(setup, scorer, measured, best.theta)
+    if measured is not None:
+        # whether the misfit's floor holds on this mesh: its discretization error against the measurements' noise
+        result["discretization"] = discretization_check(setup, setup.model.effects, best.theta, measured[0], run_dir,
+                                                        workers=workers, timeout_s=timeout_s)
+        result["setup_lines"].append(discretization_line(result["discretization"]))
     write_json(run_dir / "identification.json", result)
     return result
 
@@ -427,6 +433,12 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         diagnosis.explained = False
         diagnosis.verdict += (f"; but its refit failed ({refit_failures[diagnosis.ranking[0].effect]}), so that is "
                               "not confirmed")
+    check = identification.get("discretization") or {}
+    if check.get("checked") and not check["adequate"]:
+        # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
+        diagnosis.verdict += (f"; caution, the mesh is too coarse for these measurements (the misfit at the fit "
+                              f"{check['misfit_over_floor_mesh']:.2f} x the floor on {check['elements']} elements, "
+                              f"{check['misfit_over_floor_finer']:.2f} x on {check['finer_elements']})")
     unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
     if unexplained and diagnosis.maps.worst_region:
         maps = diagnosis.maps

@@ -35,6 +35,7 @@ import numpy as np
 from . import figures
 from .decks import template_dir
 from .diagnose import ALPHA, EXPLAINED_FACTOR, Refit, level_rows, model_label, refit_model
+from .discretization import discretization_line
 from .digits import interval_uncertainty, rounded
 from .forward import MeshInterpolator, field_on_pixels
 from .identify import pressure_spreads
@@ -280,7 +281,11 @@ def _identification_section(setup, identification: dict, staging: Path) -> dict:
                           f"({identification['noise_floor']:.4g} mm^2).")
         if "floor_calibration" in identification:
             paragraphs.append(floor_sentence(identification["floor_calibration"]))
-    return _section("identification", "Identification", paragraphs=paragraphs, tables=[table1],
+    check = identification.get("discretization")
+    if check:
+        paragraphs.append(f"{discretization_line(check)}.")
+    alerts = [f"{discretization_line(check)}."] if check and check.get("checked") and not check["adequate"] else []
+    return _section("identification", "Identification", paragraphs=paragraphs, tables=[table1], alerts=alerts,
                     figures_=[_figure("warped_dk.png", "I1 warped by the identified model, the target I0, and the "
                                                        "contour distances d_k between their tissue boundaries "
                                                        "(Avril et al. Fig. 4).")])
