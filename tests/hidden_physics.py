@@ -1,5 +1,6 @@
-"""Physics outside the catalog, written into a truth's deck directly: how a case is made whose residual no catalog
-effect explains (`study.make_phantom_case(edit_deck=...)`)."""
+"""Hidden physics in a phantom case and what its diagnosis must show: physics outside the catalog, written into a
+truth's deck directly (how a case is made whose residual no catalog effect explains,
+`study.make_phantom_case(edit_deck=...)`), and the checks of a diagnosis of a hidden catalog effect or of none."""
 
 from __future__ import annotations
 
@@ -19,3 +20,35 @@ def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
     deck_text = deck_text.replace("*BOUNDARY\n", elset + "\n*BOUNDARY\n", 1)
     before, after = deck_text.rsplit("*NODE FILE", 1)
     return f"{before}*VOLUME CHANGE, ELSET=OEDEMA\n{dv}\n*NODE FILE{after}"
+
+
+def identified_and_diagnosed(case, run, label: str, model_tables: str = "") -> dict:
+    """`calfit identify` from the images (the case's [model] tables appended first) then `calfit diagnose`; the
+    ranking, the refits and the verdict printed under `label`."""
+    from orchestrator.pipeline import run_diagnose, run_identify
+
+    if model_tables:
+        with open(case / "case.toml", "a") as toml:
+            toml.write(model_tables)
+    identified = run_identify(case, run, workers=2, progress=False)
+    assert identified["data"]["source"] == "dic"
+    diagnosis = run_diagnose(run, workers=2, progress=False)
+    print(label, f"{diagnosis['before']['misfit_over_floor']:.2f} x floor;",
+          [(s["effect"], round(s["statistic"], 1), f"{s['p_value']:.1e}") for s in diagnosis["ranking"][:5]],
+          [(f["effects"], round(f["misfit_over_floor"], 3)) for f in diagnosis["refits"]],
+          f"{diagnosis['engine_runs']} runs;", diagnosis["verdict"])
+    return diagnosis
+
+
+def assert_found_or_nothing(name: str, diagnosis: dict) -> None:
+    """A control shows nothing significant at about 1 x the floor; a hidden effect lacks fit clearly, is ranked
+    first, significant, and its refit reaches 1.2 x the floor."""
+    if name == "control":
+        assert not any(score["significant"] for score in diagnosis["ranking"]), diagnosis["verdict"]
+        assert 0.8 < diagnosis["misfit"] / diagnosis["noise_floor"] < 1.2
+        return
+    assert diagnosis["lack_of_fit_p"] < 1e-6
+    best = diagnosis["ranking"][0]
+    assert best["effect"] == name and best["significant"], diagnosis["verdict"]
+    refitted = next(fit for fit in diagnosis["refits"] if fit["effects"] == [name])
+    assert refitted["misfit_over_floor"] <= 1.2 and diagnosis["explained"], diagnosis["verdict"]

@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hidden_physics import assert_found_or_nothing, identified_and_diagnosed
 
 from orchestrator.diagnose import candidate_effects, garment_model
 from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel, write_mesh_include
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.phantom import CalfPhantom
-from orchestrator.pipeline import run_diagnose, run_identify
 from orchestrator.results import EngineResults
 from orchestrator.runner import run_engine
 from orchestrator.study import make_phantom_case, truth_mesh
@@ -98,24 +98,8 @@ def band_diagnosis(request, tmp_path_factory):
     hidden = {"drainage": {"dv_muscle": -0.05}} if name == "drainage" else None
     case, _ = make_phantom_case(folder / "case", theta_kPa=TRUTH_KPA, rigid=SCANNER_MOTION, points_spacing_mm=None,
                                 garment="explicit", effects=hidden)
-    with open(case / "case.toml", "a") as toml:
-        toml.write('\n[model]\ngarment = "explicit"\n')
-    identified = run_identify(case, folder / "run", workers=2, progress=False)
-    assert identified["data"]["source"] == "dic"
-    diagnosis = run_diagnose(folder / "run", workers=2, progress=False)
-    print(name, [(s["effect"], round(s["statistic"], 1), f"{s['p_value']:.1e}") for s in diagnosis["ranking"]],
-          [(f["effects"], round(f["misfit_over_floor"], 3)) for f in diagnosis["refits"]], diagnosis["verdict"])
-    return name, diagnosis
+    return name, identified_and_diagnosed(case, folder / "run", name, '\n[model]\ngarment = "explicit"\n')
 
 
 def test_the_band_s_hidden_effect_is_found_and_refitted_to_the_floor(band_diagnosis):
-    name, diagnosis = band_diagnosis
-    if name == "control":
-        assert not any(score["significant"] for score in diagnosis["ranking"]), diagnosis["verdict"]
-        assert 0.8 < diagnosis["misfit"] / diagnosis["noise_floor"] < 1.2
-        return
-    assert diagnosis["lack_of_fit_p"] < 1e-6
-    best = diagnosis["ranking"][0]
-    assert best["effect"] == name and best["significant"], diagnosis["verdict"]
-    refitted = next(fit for fit in diagnosis["refits"] if fit["effects"] == [name])
-    assert refitted["misfit_over_floor"] <= 1.2 and diagnosis["explained"], diagnosis["verdict"]
+    assert_found_or_nothing(*band_diagnosis)
