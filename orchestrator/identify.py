@@ -136,6 +136,21 @@ def missing_columns(jacobian: np.ndarray | None, p: int) -> list[int]:
     return list(range(p)) if jacobian is None else [j for j in range(p) if np.isnan(jacobian[:, j]).any()]
 
 
+def _damped_step(J: np.ndarray, r: np.ndarray, lam: float, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Levenberg-Marquardt's step with its bounds: argmin |J s + r|^2 + lam s^T D s over low <= s <= high, D =
+    diag(J^T J) (Marquardt's scaling). The bounds hold the trust region and the search box. Solved as bounded linear
+    least squares (BVLS), a parameter that would leave the region stops at its edge while the others take their best
+    step given it: a step cut to the region along the unbounded step's direction took the whole direction with a
+    parameter the data hardly fix (the second paper's fat from its images bounced between e and 1/e, 7 runs rejected
+    in a row), and damping it until the whole step fits slowed every other parameter (a foreign case's baseline
+    reached 50 iterations, 6.1 x the floor, against 3.7 x)."""
+    damping = np.sqrt(lam * (np.sum(J * J, axis=0) + 1e-30))
+    A = np.vstack([J, np.diag(damping)])
+    b = np.concatenate([-r, np.zeros(len(damping))])
+    low, high = np.minimum(low, -1e-15), np.maximum(high, 1e-15)   # BVLS needs low < high: a parameter on the box
+    return optimize.lsq_linear(A, b, bounds=(low, high), method="bvls").x
+
+
 def steps_into_box(space, x: np.ndarray, step=FD_STEP) -> np.ndarray:
     """Forward-difference steps in x of size `step` (one, or one per parameter), each pointing into the search box
     (a parameter on its upper bound steps down)."""
@@ -234,19 +249,13 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
         evaluations += len(missing)
         structural = _sum_only_directions(evaluator, _from_x(space, x))[0]
         J = _without(J, structural)
-        gradient, normal = J.T @ r, J.T @ J
+        # the step's room: the trust region (MAX_LM_STEP in every x) within the search box
+        low, high = np.full(p, -MAX_LM_STEP), np.full(p, MAX_LM_STEP)
+        if space is not None:
+            low, high = np.maximum(low, space.to_x(space.lower) - x), np.minimum(high, space.to_x(space.upper) - x)
         improved = False
         while lam < 1e12:
-            step = _without(np.linalg.solve(normal + lam * np.diag(np.diag(normal) + 1e-30), -gradient), structural)
-            if np.max(np.abs(step)) > MAX_LM_STEP and lam < 1e11:
-                # outside the trust region: more damping, not a shorter step along the same direction (More 1978).
-                # A parameter the data hardly fix has a huge Gauss-Newton step; cut to the region's edge it took the
-                # whole step's direction with it, and the trials bounced between e and 1/e in that parameter (the
-                # second paper's fat from its images: 7 runs rejected in a row), each rejection an engine run
-                lam *= 4.0
-                continue
-            step *= min(1.0, MAX_LM_STEP / max(np.max(np.abs(step)), 1e-300))
-            step = _to_x(space, _from_x(space, x + step)) - x                     # projected onto the box
+            step = np.clip(_without(_damped_step(J, r, lam, low, high), structural), low, high)
             trial = evaluator(_from_x(space, x + step))
             evaluations += 1
             r_trial = residuals(trial)
