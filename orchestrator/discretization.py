@@ -10,7 +10,8 @@ same way. On the leg below it was 142 for a drop of 353.)
 
 The mesh is adequate when the drop is at most sqrt(2 n), one standard deviation of the floor's own chi^2 with n
 degrees of freedom: then no test on the misfit can tell the discretization from the noise. Above it the run says
-so, with the misfit on both meshes and the number of elements to ask for (--elements).
+so, with the misfit on both meshes and the number of elements to ask for (--elements); a default mesh is meshed
+again with the finer mesh's elements, once, and the fit carried to it (`pipeline.run_identify`).
 
 Measured (the second paper's leg under the band with friction, 0.007 mm DIC windows, the model at the phantom's
 truth, 620 values): 1.74 x the floor on calfit's 2,000-element mesh of its segmentation, 1.16 x on 4,000 (the skin's

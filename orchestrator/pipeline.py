@@ -47,7 +47,7 @@ from .runlock import holds_run_folder
 from .results import MMHG_PER_KPA
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .runfiles import read_json, write_json
-from .study import SETUP_JSON, RunSetup, load_run, prepare_run
+from .study import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
 
 OBJECTIVES = ("contour", "displacement")
 OBJECTIVE_ALIASES = {"mismatch": "contour"}   # the name runs written before the images-first path used
@@ -169,7 +169,9 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         measured = setup.level_measurements(source, with_geometry=False)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else setup.model.base_start
-    start_points = [setup.model.start(s) for s in (table1_starts(base) if starts == "table1" else [base])]
+    # a start of the laws' constants (effects off), or a whole theta (a fit carried to a finer mesh)
+    start_points = [s if len(s) == setup.model.space.size else setup.model.start(s)
+                    for s in (table1_starts(base) if starts == "table1" else [base])]
 
     def fit_from(points, scorer, stage):
         with Evaluator(setup.at_every_level(setup.model), scorer, run_dir, workers=workers, scheduler=scheduler,
@@ -228,11 +230,38 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         result["levels"] = _level_fits(setup, scorer, measured, best.theta)
     if measured is not None:
         # whether the misfit's floor holds on this mesh: its discretization error against the measurements' noise
-        result["discretization"] = discretization_check(setup, setup.model.effects, best.theta, measured[0], run_dir,
-                                                        workers=workers, timeout_s=timeout_s)
-        result["setup_lines"].append(discretization_line(result["discretization"]))
+        check = discretization_check(setup, setup.model.effects, best.theta, measured[0], run_dir, workers=workers,
+                                     timeout_s=timeout_s)
+        result["discretization"] = check
+        result["setup_lines"].append(discretization_line(check))
+        if check.get("checked") and not check["adequate"] and n_elements is None:
+            # the default mesh is too coarse for these measurements: meshed again with the check's finer mesh and
+            # fitted from where this fit ended (once: a mesh the user asks for, as this one is, is kept and judged)
+            _discard_mesh(run_dir)
+            refined = run_identify(case_dir, run_dir, method=method, objective=objective, data=data,
+                                   window_px=window_px, start=best.theta, n_elements=check["finer_elements"],
+                                   order=setup.mesh.order, effects=effects, engine_sensitivities=engine_sensitivities,
+                                   skin_sigma_mm=skin_sigma_mm, skin_uncertainty=skin_uncertainty, workers=workers,
+                                   scheduler=scheduler, timeout_s=timeout_s, progress=progress, verbose=verbose)
+            refined["coarser_mesh"] = {"elements": check["elements"], "best": result["best"],
+                                       "misfit_over_floor": result["misfit_over_floor"], "discretization": check}
+            elements = refined.get("discretization", {}).get("elements", check["finer_elements"])
+            refined["setup_lines"].insert(-1, f"meshed again with {elements} elements: on the default "
+                                              f"{check['elements']} the misfit at the fit was "
+                                              f"{check['misfit_over_floor_mesh']:.2f} x the floor and "
+                                              f"{check['misfit_over_floor_finer']:.2f} x on the finer mesh, a "
+                                              "discretization error above what the noise hides")
+            write_json(run_dir / "identification.json", refined)
+            return refined
     write_json(run_dir / "identification.json", result)
     return result
+
+
+def _discard_mesh(run_dir: Path) -> None:
+    """A run folder's mesh and what was made on it (the setup, the skin's geometric covariance), so that the next
+    identification meshes it again; the measurements and the evaluations' log stay (their keys hold the mesh)."""
+    for path in [run_dir / SETUP_JSON, run_dir / SETUP_ARRAYS, *run_dir.glob("geometry_uncertainty*.npz")]:
+        path.unlink(missing_ok=True)
 
 
 def floor_calibration(run_dir: Path) -> dict:

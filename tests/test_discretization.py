@@ -4,7 +4,7 @@ on a mesh of twice the elements and says whether the misfit depends on the mesh 
 A phantom calf made on its own 8,000-element mesh, measured at points (0.02 mm noise), identified from a start that
 is not the truth: on a mesh of 400 linear triangles (CPE3) the discretization error is many times the noise and the
 run says the mesh is too coarse, with the number of elements to ask for; on the default mesh (2,000 CPE6) it is
-fine."""
+fine. A default mesh that the check finds too coarse is meshed again with twice the elements, once."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import pytest
 
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.phantom.truths import random_truth
+from orchestrator import pipeline
 from orchestrator.pipeline import run_identify
-from orchestrator.study import make_phantom_case
+from orchestrator.study import load_run, make_phantom_case
 
 
 @pytest.fixture(scope="module")
@@ -37,3 +38,18 @@ def test_the_identification_says_whether_its_mesh_is_fine_enough(case, tmp_path,
     else:
         assert line.startswith("MESH TOO COARSE") and f"--elements {check['finer_elements']}" in line
         assert check["misfit_over_floor_mesh"] > check["misfit_over_floor_finer"] + check["limit"] / check["values"]
+
+
+def test_a_default_mesh_too_coarse_is_meshed_again_and_the_fit_carried_to_it(case, tmp_path, monkeypatch):
+    """The default mesh here made coarse (400 CPE3): the run meshes again with the check's finer mesh, fits from where
+    the coarse fit ended, says so, and keeps what the coarse mesh gave."""
+    monkeypatch.setitem(pipeline.DEFAULT_MESH, "displacement", (400, 1))
+    result = run_identify(case, tmp_path / "run", data="points", progress=False)
+    coarse = result["coarser_mesh"]
+    assert not coarse["discretization"]["adequate"]
+    elements = len(load_run(tmp_path / "run").mesh.elements)
+    assert elements == result["discretization"]["elements"]
+    assert abs(elements / coarse["discretization"]["finer_elements"] - 1) < 0.05   # the mesher's count is approximate
+    assert result["misfit_over_floor"] < coarse["misfit_over_floor"]
+    assert any(line.startswith("meshed again with") for line in result["setup_lines"])
+    assert result["best"]["start"] == coarse["best"]["theta"]
