@@ -645,7 +645,7 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
     that fit settled (`settled`), from the usual start (Avril et al. Table 2 central values); the better fit is kept.
     The second start matters when the missing effect dragged the baseline fit to a bound or far from the tissue's
     values; after a fit at the noise floor with no parameter on a bound it could only move chi^2 within the noise
-    (with friction it was most of a diagnosis's runs: 110 of 123).
+    (with friction, refits from two starts took 110 of a diagnosis's 123 runs).
     Returns the fit and its residual u_model - u_measured (mm) at the points."""
     extended = refit_model(model, effects)
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
