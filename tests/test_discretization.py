@@ -34,10 +34,10 @@ def test_the_identification_says_whether_its_mesh_is_fine_enough(case, tmp_path,
     assert check["finer_elements"] >= 1.9 * check["elements"]
     line = result["setup_lines"][-1]
     if adequate:
-        assert line.startswith("mesh fine enough") and check["drop"] <= check["limit"]
+        assert line.startswith("mesh fine enough") and check["chi2_disc"] <= check["limit"]
     else:
         assert line.startswith("MESH TOO COARSE") and f"--elements {check['finer_elements']}" in line
-        assert check["misfit_over_floor_mesh"] > check["misfit_over_floor_finer"] + check["limit"] / check["values"]
+        assert check["chi2_disc"] > check["limit"] and check["drop"] > check["limit"]
 
 
 def test_a_default_mesh_too_coarse_is_meshed_again_and_the_fit_carried_to_it(case, tmp_path, monkeypatch):
