@@ -26,7 +26,6 @@ from typing import Sequence
 
 import numpy as np
 
-from .effects import parse_effects
 from .imaging.compartments import find_compartments
 from .meshing.labels import mesh_from_labels
 from .objectives import DisplacementResidualObjective
@@ -35,9 +34,10 @@ from .runner import OK, Evaluator
 FINER_FACTOR = 2
 
 
-def discretization_check(setup, effects: Sequence[str], theta: Sequence[float], measurements, run_dir, *,
-                         workers: int = 1, timeout_s: float = 120.0) -> dict:
-    """chi2_disc of the module text for the first garment level's measurements, at theta: the run's mesh against one
+def discretization_check(setup, theta: Sequence[float], measurements, run_dir, *, workers: int = 1,
+                         timeout_s: float = 120.0) -> dict:
+    """chi2_disc of the module text for the first garment level's measurements, at theta: the run's fitted model
+    (`setup.model`, whose run at theta a case of one level has in its log already) against the same effects on a mesh
     of FINER_FACTOR times its elements meshed from the same labels. Returns what identification.json keeps."""
     from .study import assign_compartments, case_model
 
@@ -49,9 +49,8 @@ def discretization_check(setup, effects: Sequence[str], theta: Sequence[float], 
         finer = assign_compartments(finer, find_compartments(setup.case.unloaded, setup.labels_unloaded, pixel).labels,
                                     pixel)
     residuals = []
-    for label, leg in (("mesh", mesh), ("finer", finer)):
-        model = case_model(leg, setup.case, effects=parse_effects(list(effects)))
-        objective = DisplacementResidualObjective(leg, measurements)
+    for label, model in (("mesh", setup.model), ("finer", case_model(finer, setup.case, effects=setup.model.effects))):
+        objective = DisplacementResidualObjective(model.mesh, measurements)
         with Evaluator(model, objective, run_dir, workers=workers, timeout_s=FINER_FACTOR * timeout_s,
                        progress=False, label=f"discretization check ({label})") as evaluator:
             record = evaluator(list(theta))

@@ -230,8 +230,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         result["levels"] = _level_fits(setup, scorer, measured, best.theta)
     if measured is not None:
         # whether the misfit's floor holds on this mesh: its discretization error against the measurements' noise
-        check = discretization_check(setup, setup.model.effects, best.theta, measured[0], run_dir, workers=workers,
-                                     timeout_s=timeout_s)
+        check = discretization_check(setup, best.theta, measured[0], run_dir, workers=workers, timeout_s=timeout_s)
         result["discretization"] = check
         result["setup_lines"].append(discretization_line(check))
         if check.get("checked") and not check["adequate"] and n_elements is None:
@@ -465,9 +464,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     check = identification.get("discretization") or {}
     if check.get("checked") and not check["adequate"]:
         # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
-        diagnosis.verdict += (f"; caution, the mesh is too coarse for these measurements (the misfit at the fit "
-                              f"{check['misfit_over_floor_mesh']:.2f} x the floor on {check['elements']} elements, "
-                              f"{check['misfit_over_floor_finer']:.2f} x on {check['finer_elements']})")
+        diagnosis.verdict += f"; caution: {discretization_line(check)}"
     unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
     if unexplained and diagnosis.maps.worst_region:
         maps = diagnosis.maps
