@@ -227,7 +227,9 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     (chi^2 = r.r); the reported cost and history are the objective's own cost (F, eq. 2). Steps have no part
     along the direction in which a pair that acts only through its sum (`_sum_only_directions`) changes but not its
     sum: the misfit is flat there but for a differenced Jacobian's noise, on which the steps would wander to the
-    box's edge (the second paper's fat went to C01 = 0.05, its lower bound, in 24 iterations and 115 runs)."""
+    box's edge (the second paper's fat went to C01 = 0.05, its lower bound, in 24 iterations and 115 runs). Such a
+    pair steps as one parameter (`_step_basis`), so the bounds hold the step without giving it a part along that
+    direction (a step projected after the bounds had clipped one of the two moved the pair's split)."""
     launched0, replayed0, began = evaluator.launched, evaluator.replayed, time.perf_counter()
     space = parameter_space(evaluator)
     x = _to_x(space, start)
@@ -247,15 +249,22 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
         J, missing = jacobian_in_x(evaluator, current, x, steps_into_box(space, x), tag="lm-jacobian",
                                    label=f"LM Jacobian {iteration}")
         evaluations += len(missing)
-        structural = _sum_only_directions(evaluator, _from_x(space, x))[0]
-        J = _without(J, structural)
-        # the step's room: the trust region (MAX_LM_STEP in every x) within the search box
+        pairs = _sum_only_directions(evaluator, _from_x(space, x))[1]
+        if space is not None:   # a pair one of whose members is on the box's edge steps apart: the box holds that one
+            edge = np.isclose(x, space.to_x(space.lower), atol=1e-9) | np.isclose(x, space.to_x(space.upper), atol=1e-9)
+            pairs = [(i, j) for i, j in pairs if not (edge[i] or edge[j])]
+        basis = _step_basis(p, pairs, _from_x(space, x))
+        # the step's room: the trust region (MAX_LM_STEP in every x) within the search box, as bounds on the
+        # coordinates z of step = basis z (each column of the basis is >= 0, so a bound on z is the tightest of its
+        # parameters')
         low, high = np.full(p, -MAX_LM_STEP), np.full(p, MAX_LM_STEP)
         if space is not None:
             low, high = np.maximum(low, space.to_x(space.lower) - x), np.minimum(high, space.to_x(space.upper) - x)
+        spans = np.where(basis > 0, 1.0, np.nan) / np.where(basis > 0, basis, 1.0)
+        z_low, z_high = np.nanmax(low[:, None] * spans, axis=0), np.nanmin(high[:, None] * spans, axis=0)
         improved = False
         while lam < 1e12:
-            step = np.clip(_without(_damped_step(J, r, lam, low, high), structural), low, high)
+            step = basis @ _damped_step(J @ basis, r, lam, z_low, z_high)
             trial = evaluator(_from_x(space, x + step))
             evaluations += 1
             r_trial = residuals(trial)
@@ -443,6 +452,23 @@ def _without(a: np.ndarray, directions: Sequence[np.ndarray]) -> np.ndarray:
     for direction in directions:
         a = a - np.multiply.outer(a @ direction, direction)
     return a
+
+
+def _step_basis(p: int, pairs: Sequence[tuple[int, int]], theta: np.ndarray) -> np.ndarray:
+    """Columns that span the steps in x = ln theta which leave every sum-only pair's split alone: a unit column per
+    parameter, one column (a, b)/|(a, b)| for a pair (a, b) (the normal of its flat direction (b, -a))."""
+    merged = {j for _, j in pairs}
+    columns = []
+    for k in range(p):
+        if k in merged:
+            continue
+        column = np.zeros(p)
+        column[k] = 1.0
+        for i, j in pairs:
+            if i == k:
+                column[j] = theta[j] / theta[i]
+        columns.append(column / np.linalg.norm(column))
+    return np.column_stack(columns)
 
 
 def _sum_only_directions(evaluator: Evaluator, best: np.ndarray) -> tuple[list[np.ndarray], list[tuple[int, int]]]:

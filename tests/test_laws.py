@@ -159,10 +159,10 @@ def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg
 
 
 class _SumOnlyEvaluator:
-    """A stand-in for the engine's evaluator: residuals g (C10_fat + C01_fat - 2.4) + h (C10_muscle - 0.9) and a
+    """A stand-in for the engine's evaluator: residuals g (C10_fat + C01_fat - fat_sum) + h (C10_muscle - 0.9) and a
     jitter of 1e-4 that changes with theta, as a differenced run under friction has (its Newton tolerance)."""
 
-    def __init__(self, sum_only):
+    def __init__(self, sum_only, fat_sum=2.4):
         from types import SimpleNamespace
 
         from orchestrator.forward import ParameterSpace
@@ -171,13 +171,14 @@ class _SumOnlyEvaluator:
         self.launched = self.replayed = 0
         rng = np.random.default_rng(5)
         self.g, self.h = rng.standard_normal(300), rng.standard_normal(300)
+        self.fat_sum = fat_sum
 
     def evaluate(self, thetas, *, options=None, tag="", label=""):
         records = []
         for theta in thetas:
             fat, muscle = theta[0] + theta[2], theta[1]
             jitter = 1e-4 * np.random.default_rng(abs(hash(tuple(np.round(theta, 12))))).standard_normal(300)
-            r = self.g * (fat - 2.4) + self.h * (muscle - 0.9) + jitter
+            r = self.g * (fat - self.fat_sum) + self.h * (muscle - 0.9) + jitter
             self.launched += 1
             records.append({"status": "ok", "cost": float(r @ r), "outputs": {"residuals": r.tolist()}})
         return records
@@ -195,6 +196,17 @@ def test_levenberg_marquardt_does_not_wander_along_a_sum():
     c10, muscle, c01 = fit.theta
     assert fit.converged and abs(c10 + c01 - 2.4) < 1e-3 and abs(muscle - 0.9) < 1e-3
     assert abs(c10 / c01 - 1.0) < 0.01, fit.theta                      # without the projection: 1.05
+
+
+def test_levenberg_marquardt_moves_the_other_of_a_pair_whose_one_is_on_its_bound():
+    """The pair steps as one while both are inside the box; once C10_fat is on its lower bound (0.1) C01_fat
+    alone takes the rest of the sum (0.18)."""
+    from orchestrator.identify import levenberg_marquardt
+
+    fit = levenberg_marquardt(_SumOnlyEvaluator([("C10_fat", "C01_fat")], fat_sum=0.18), [0.5, 5.6, 0.5])
+    c10, muscle, c01 = fit.theta
+    assert fit.converged and abs(c10 + c01 - 0.18) < 1e-3 and abs(muscle - 0.9) < 1e-3, fit.theta
+    assert c10 == pytest.approx(0.1, rel=1e-6)
 
 
 def test_a_sum_only_pair_is_reported_by_its_sum():
