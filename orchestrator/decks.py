@@ -211,7 +211,8 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                      penalty: float = GARMENT_PENALTY_MPA_PER_MM, stick_slope: float = GARMENT_STICK_SLOPE_MPA_PER_MM,
                      inflate_static: Sequence[float] = INFLATE_STATIC, let_go_static: Sequence[float] = LET_GO_STATIC,
                      release_static: Sequence[float] | None = None, max_increments: int = 200,
-                     effects: StepEffects = StepEffects(), description: str = "") -> str:
+                     effects: StepEffects = StepEffects(), gap_profile: Sequence[tuple[int, float, float]] | None = None,
+                     description: str = "") -> str:
     """The leg slice under the explicit garment band of the second paper (Bouten and Drapier sec. 2.5,
     Fig. 2), `orchestrator.meshing.garment_band(leg)`, put on in four steps (module docstring of
     orchestrator.meshing.garment): 1, every band node drawn onto the inflated circle, the holding
@@ -223,7 +224,8 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
     released states. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
     effects: the effect catalog's keywords on the tissues and bones (volume changes, axial stretch, rigid motions)
     act in step 4, once the band is on (`orchestrator.effects`), and its *SENSITIVITY lines; a tension profile or
-    the unloaded curvature belong to Laplace's law and are refused.
+    the unloaded curvature belong to Laplace's law and are refused. gap_profile: (k, a_k, b_k) of the skin's offset
+    as the band feels it (`*GAP PROFILE`, mm; () writes the keyword at zero, for its `GAP PROFILE` sensitivities).
     The mesh include (mesh.inp) is `band.include_text(leg)`."""
     _positive("the penalty slope and stick slope", [penalty, stick_slope])
     if friction_mu < 0.0:
@@ -245,6 +247,7 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   let_go_static=numbers(let_go_static), settle_static=numbers(SETTLE_STATIC),
                   release_static=numbers(release_static), max_increments=max_increments,
                   band_volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.band_volume_changes],
+                  gap_profile=None if gap_profile is None else [(int(k), float(a), float(b)) for k, a, b in gap_profile],
                   **_tissue_effect_lines(effects))
 
 

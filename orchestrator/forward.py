@@ -283,9 +283,11 @@ class LegModel:
     def engine_differentiates(self, line: str) -> bool:
         """Whether calfit-fe gives du/dtheta of a `*SENSITIVITY` line on this model: every line through
         frictionless contact; with friction, what acts on the elements alone from the band's last step on (the
-        constants, the tissues' volume changes, the axial stretch), not a rigid motion or the band's own prestretch,
-        set in its second step (solver_cpp/README.md, Sensitivities)."""
-        if not self.has_friction or line.startswith("MATERIAL,") or line == "AXIAL STRETCH":
+        constants, the tissues' volume changes, the axial stretch) and the skin's offset as the band feels it
+        (`GAP PROFILE`), not a rigid motion or the band's own prestretch, set in its second step (solver_cpp/README.md,
+        Sensitivities)."""
+        if (not self.has_friction or line.startswith("MATERIAL,") or line.startswith("GAP PROFILE,")
+                or line == "AXIAL STRETCH"):
             return True
         return line.startswith("VOLUME CHANGE,") and line.split(", ")[1] not in self.band_sectors
 
@@ -413,8 +415,8 @@ class LegModel:
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None,
              extra_sensitivities: Sequence[str] = (), sensitivities: bool = True) -> str:
         """The deck of theta; extra_sensitivities: more `*SENSITIVITY` lines (a `PROFILE` line defines the garment's
-        Fourier profile, at zero, when the model has none); sensitivities=False: none at all (a finite-difference
-        probe needs the displacements alone)."""
+        Fourier profile, at zero, when the model has none; a `GAP PROFILE` line the band's `*GAP PROFILE` of the
+        skin, at zero); sensitivities=False: none at all (a finite-difference probe needs the displacements alone)."""
         from .decks import StepEffects
 
         state = self.deck_state(theta)
@@ -434,7 +436,8 @@ class LegModel:
         if self.band is not None:
             band = self.band if tension == self.tension_N_per_mm else self.band.at_tension(tension)
             mu = self.friction_at(theta)
-            return leg_garment_deck(materials, band, self.mesh, friction_mu=mu, effects=effects,
+            gap = () if any(line.startswith("GAP PROFILE") for line in extra_sensitivities) else None
+            return leg_garment_deck(materials, band, self.mesh, friction_mu=mu, effects=effects, gap_profile=gap,
                                     description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
                                                 f"mu = {mu:g}")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,

@@ -430,15 +430,19 @@ GARMENT_PARAMETERS = ["MATERIAL:FAT:C10", "MATERIAL:MUSCLE:C10", "MATERIAL:MUSCL
 # lambda_z, at values given in the deck, and their values where the deck leaves them out
 BAND_EFFECTS = {"VOLUME CHANGE:MUSCLE": -0.03, "AXIAL STRETCH": 1.02}
 BAND_EFFECTS_ABSENT = {"VOLUME CHANGE:MUSCLE": 0.0, "AXIAL STRETCH": 1.0}
+# the skin's offset as the band feels it (*GAP PROFILE, mm): a uniform one, a cosine and a sine term
+GAP_PROFILE = {"GAP PROFILE:SKIN:A0": 0.0, "GAP PROFILE:SKIN:A3": 0.0, "GAP PROFILE:SKIN:B2": 0.0}
 
 
 def _band_sensitivities_against_differences(tmp_path: Path, step: float, friction_mu: float = 0.0,
                                             hybrid: bool = False, effects: dict | None = None,
-                                            parameters=GARMENT_PARAMETERS) -> list[tuple[str, float, float, float]]:
+                                            parameters=GARMENT_PARAMETERS, gap_step: float = 1e-4
+                                            ) -> list[tuple[str, float, float, float]]:
     """The leg under the explicit garment band (templates/leg_garment.inp.j2: inflated, let go onto the skin,
     settled), with `effects` (BAND_EFFECTS' names -> values) in its last step: du/dtheta and dp/dtheta of
     `parameters` against central differences of the engine's own runs, which each redo the whole put-on; the report
-    rows of _check_report."""
+    rows of _check_report. `effects` may also give GAP_PROFILE's coefficients (then written as the skin's *GAP
+    PROFILE, differenced by +-gap_step mm)."""
     from dataclasses import replace
 
     from orchestrator.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
@@ -461,8 +465,15 @@ def _band_sensitivities_against_differences(tmp_path: Path, step: float, frictio
         keywords = StepEffects(volume_changes=tuple((name.split(":")[1], dv) for name, dv in values.items()
                                                     if name.startswith("VOLUME CHANGE")),
                                axial_stretch=values.get("AXIAL STRETCH"))
+        gap = {}
+        for name, value in values.items():
+            if name.startswith("GAP PROFILE"):
+                label = name.rsplit(":", 1)[1]
+                a, b = gap.get(int(label[1:]), (0.0, 0.0))
+                gap[int(label[1:])] = (value, b) if label[0] == "A" else (a, value)
         text = leg_garment_deck(tissues, replace(band, **laws["GARMENT"][1]), leg, friction_mu=friction_mu,
-                                effects=keywords)
+                                effects=keywords, gap_profile=[(k, a, b) for k, (a, b) in sorted(gap.items())]
+                                if any(p.startswith("GAP") for p in parameters) else None)
         if sensitivity:
             text += "*SENSITIVITY, PRESSURE=YES\n" + "\n".join(", ".join(name.split(":")) for name in sensitivity) + "\n"
         (folder / "leg.inp").write_text(text)
@@ -479,19 +490,22 @@ def _band_sensitivities_against_differences(tmp_path: Path, step: float, frictio
             _, elset, constant = name.split(":")
             value = materials[elset][1][constant]
         else:
-            value = effects.get(name, BAND_EFFECTS_ABSENT[name])
+            value = effects.get(name, {**BAND_EFFECTS_ABSENT, **GAP_PROFILE}[name])
         u, pressure = [], []
         for sign in (1.0, -1.0):
             laws = {e: (law, dict(c)) for e, (law, c) in materials.items()}
             values = dict(effects)
             if name.startswith("MATERIAL"):
                 laws[elset][1][constant] = _written(value * (1.0 + sign * step))
+            elif name.startswith("GAP PROFILE"):
+                values[name] = _written(value + sign * gap_step)
             else:
                 values[name] = _written(value * (1.0 + sign * step) if value else sign * step)
             side = run(tmp_path / f"{k}{'+' if sign > 0 else '-'}", laws, values)
             u.append(side.u())
             pressure.append(EngineResults(side.outdir).cell_field("pressure"))
-        width = (_written(value * (1 + step)) - _written(value * (1 - step)) if value else 2.0 * step)
+        width = (2.0 * gap_step if name.startswith("GAP PROFILE") else
+                 _written(value * (1 + step)) - _written(value * (1 - step)) if value else 2.0 * step)
         du_fd, dp_fd = (u[0] - u[1]) / width, (pressure[0] - pressure[1]) / width
         report.append((name, np.abs(du_fd).max(), np.abs(du[name] - du_fd).max() / np.abs(du_fd).max(),
                        np.abs(dp[name] - dp_fd).max() / np.abs(dp_fd).max()))
@@ -526,6 +540,18 @@ def test_sensitivities_through_friction_along_the_loading_path(tmp_path, frictio
     report = _band_sensitivities_against_differences(tmp_path, 3e-5, friction_mu, hybrid, effects,
                                                      GARMENT_PARAMETERS + list(BAND_EFFECTS_ABSENT))
     _check_report(f"leg under the explicit garment band, friction {friction_mu}{', CPE6H' if hybrid else ''}", report)
+
+
+@pytest.mark.parametrize("friction_mu", [0.0, 0.3], ids=["frictionless", "mu0.3"])
+def test_sensitivities_to_the_skin_offset_that_the_band_feels(tmp_path, friction_mu):
+    """`GAP PROFILE` lines: du/d(a_k, b_k) of the skin's offset as the band's contact sees it (*GAP PROFILE, the
+    skin's shape error under the band: orchestrator.geometry_uncertainty), frictionless and carried through friction
+    along the put-on (the offset acts at every increment, on the residual and on the contact history it leaves),
+    where the deck leaves the profile at zero and where it gives a term, against central differences of the whole
+    put-on with the offset moved by +-1e-4 mm."""
+    report = _band_sensitivities_against_differences(tmp_path, 3e-5, friction_mu, effects={"GAP PROFILE:SKIN:A3": 0.02},
+                                                     parameters=["MATERIAL:FAT:C10", *GAP_PROFILE])
+    _check_report(f"the skin's offset under the explicit garment band, friction {friction_mu}", report)
 
 
 @pytest.mark.parametrize(

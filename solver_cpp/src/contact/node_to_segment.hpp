@@ -86,11 +86,13 @@ struct HistoryValues {
 // StaticAnalysis::contact_residual), and a converged state is accepted only if no held node lies outside it.
 // `old`: the continuous history the residual uses (nullptr: the history's own values); `updated`: if not null, the
 // continuous history the node leaves this state with (as StaticAnalysis::contact_residual records it: touching,
-// the contact point and the shear, gap 0; open, the point it faces and its gap, shear 0).
+// the contact point and the shear, gap 0; open, the point it faces and its gap, shear 0). `offset`: how far the
+// slave stands out from its position as the contact sees it (*GAP PROFILE; the gap is g - offset).
 template <typename T>
 ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, const ContactHistory& history,
                               int segment, double weight, T* r, bool hold_stick = false,
-                              const HistoryValues<T>* old = nullptr, HistoryValues<T>* updated = nullptr) {
+                              const HistoryValues<T>* old = nullptr, HistoryValues<T>* updated = nullptr,
+                              T offset = T(0)) {
   using std::sqrt;
   using V = Eigen::Matrix<T, 2, 1>;
   auto node = [&](int k) { return V(x[2 * k], x[2 * k + 1]); };
@@ -117,7 +119,7 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
   const V normal = na + xi * m;
   const V n = normal / sqrt(dot(normal, normal));
   const V t(-n.y(), n.x());
-  const T gap = dot(rel - xi * d, n);
+  const T gap = dot(rel - xi * d, n) - offset;
 
   ContactPoint out;
   out.segment = segment;
@@ -160,18 +162,22 @@ ContactPoint contact_residual(const T* x, int n_nodes, const ContactLaw& law, co
 // Residual and its exact tangent (complex step) for a local contact element; hold_stick: see contact_residual.
 ContactPoint contact_element(const Eigen::VectorXd& x, const ContactLaw& law, const ContactHistory& history,
                              int segment, double weight, Eigen::VectorXd& r, Eigen::MatrixXd* K,
-                             bool hold_stick = false);
+                             bool hold_stick = false, double offset = 0.0);
 
 // How a local contact element at a converged state depends on the history it started from, and how the history
 // it leaves depends on its positions and on that history (complex step, every entry exact): the chain that carries
 // parameter sensitivities through Coulomb friction from one increment to the next (StaticAnalysis::
-// propagate_path_sensitivities). Columns and rows of the history are (xi, shear, gap).
+// propagate_path_sensitivities). Columns and rows of the history are (xi, shear, gap). With the slave's offset
+// (*GAP PROFILE) as well: how the residual and the history left depend on it (the *SENSITIVITY GAP PROFILE lines).
 struct ContactHistoryDerivatives {
   Eigen::MatrixXd dr_dh;  // 2 n_nodes x 3: the local residual
   Eigen::MatrixXd dh_dx;  // 3 x 2 n_nodes: the history left
   Eigen::Matrix3d dh_dh = Eigen::Matrix3d::Zero();
+  Eigen::VectorXd dr_doffset;  // 2 n_nodes
+  Eigen::Vector3d dh_doffset = Eigen::Vector3d::Zero();
 };
 ContactHistoryDerivatives contact_history_derivatives(const Eigen::VectorXd& x, const ContactLaw& law,
-                                                      const ContactHistory& history, int segment, double weight);
+                                                      const ContactHistory& history, int segment, double weight,
+                                                      double offset = 0.0);
 
 }  // namespace calfit

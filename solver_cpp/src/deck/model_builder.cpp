@@ -4,9 +4,12 @@
 // This file: the Model's lookups, the keyword table and build(), the checks and lookups the handlers share, and
 // the whole-model checks; the handlers are in the files of their keyword families (see model_builder.hpp).
 #include "deck/model_builder.hpp"
+#include "element/triangle.hpp"
 #include "material/material.hpp"
 
 #include <algorithm>
+#include <cmath>
+#include <set>
 #include <string>
 #include <utility>
 
@@ -32,7 +35,36 @@ int Model::material(const std::string& name) const { return index_by_name(materi
 int Model::profile(const std::string& name) const { return index_by_name(profiles, name); }
 
 ParameterState Model::parameter_state() const {
-  return {materials, profiles, steps.empty() ? LoadState{} : steps.back().loads};
+  return {materials, profiles, gap_profiles, steps.empty() ? LoadState{} : steps.back().loads};
+}
+
+int Model::gap_profile(int surface_index) const {
+  for (std::size_t k = 0; k < gap_profiles.size(); ++k)
+    if (gap_profiles[k].surface == surface_index) return static_cast<int>(k);
+  return -1;
+}
+
+Eigen::Vector2d Model::gap_center(const GapProfile& profile) const {
+  if (profile.has_center) return profile.center;
+  std::set<int> nodes;
+  for (const Face& f : surfaces[profile.surface]) {
+    const ElementDef& e = elements[f.element];
+    for (int local : face_nodes(e.shape, f.face)) nodes.insert(e.nodes[local]);
+  }
+  Eigen::Vector2d center = Eigen::Vector2d::Zero();
+  for (int n : nodes) center += coordinates[n];
+  return center / static_cast<double>(std::max<std::size_t>(nodes.size(), 1));
+}
+
+double GapProfile::basis(int k, bool sine, const Eigen::Vector2d& X, const Eigen::Vector2d& about) {
+  const double theta = std::atan2(X.y() - about.y(), X.x() - about.x());
+  return sine ? std::sin(k * theta) : std::cos(k * theta);
+}
+
+double GapProfile::offset(const Eigen::Vector2d& X, const Eigen::Vector2d& about) const {
+  double delta = 0.0;
+  for (const auto& [k, ab] : harmonics) delta += ab.first * basis(k, false, X, about) + ab.second * basis(k, true, X, about);
+  return delta;
 }
 
 namespace deck_building {
@@ -82,6 +114,7 @@ std::map<std::string, ModelBuilder::Handler> ModelBuilder::handlers() {
   h["SURFACE BEHAVIOR"] = bind(&ModelBuilder::surface_behavior);
   h["FRICTION"] = bind(&ModelBuilder::friction);
   h["CONTACT PAIR"] = bind(&ModelBuilder::contact_pair);
+  h["GAP PROFILE"] = bind(&ModelBuilder::gap_profile);
   h["MODEL CHANGE"] = bind(&ModelBuilder::model_change);
   h["VOLUME CHANGE"] = bind(&ModelBuilder::volume_change);
   h["AXIAL STRETCH"] = bind(&ModelBuilder::axial_stretch);

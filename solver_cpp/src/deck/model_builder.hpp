@@ -119,7 +119,8 @@ private:
   void rigid_motion(const KeywordBlock& b);
   void check_not_rigid(int node, const SourceLocation& where) const;
 
-  // ---- model_contact.cpp: *SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE -----
+  // ---- model_contact.cpp: *SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE,
+  // *GAP PROFILE ------------------------------------------------------------------------------------------------
   void surface_interaction(const KeywordBlock& b);
   InteractionDef& interaction_for(const KeywordBlock& b);
   void surface_behavior(const KeywordBlock& b);
@@ -127,6 +128,7 @@ private:
   int surface_named(const std::string& name, const SourceLocation& where) const;
   void contact_pair(const KeywordBlock& b);
   void model_change(const KeywordBlock& b);
+  void gap_profile(const KeywordBlock& b);
 
   // ---- model_sensitivity.cpp: *SENSITIVITY ----------------------------------------------------------------------
   void sensitivity(const KeywordBlock& b);

@@ -1,7 +1,8 @@
-// Deck keywords -> Model: contact (*SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE;
-// solver_cpp/README.md, Contact).
+// Deck keywords -> Model: contact (*SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE,
+// *GAP PROFILE; solver_cpp/README.md, Contact).
 #include "deck/model_builder.hpp"
 
+#include <algorithm>
 #include <cstddef>
 #include <string>
 
@@ -111,6 +112,37 @@ void ModelBuilder::model_change(const KeywordBlock& b) {
       }
     if (!found) throw DeckError(line.where, "no *CONTACT PAIR joins " + line.fields[0] + " and " + line.fields[1]);
   }
+}
+
+// *GAP PROFILE, SLAVE=<surface>[, CX=, CY=]: data lines k, a_k, b_k (mm; none: a profile at zero whose
+// coefficients *SENSITIVITY may still ask about). The surface must be the slave of a *CONTACT PAIR given before.
+void ModelBuilder::gap_profile(const KeywordBlock& b) {
+  b.allow_only({"SLAVE", "CX", "CY"});
+  model_data(b);
+  GapProfile p;
+  p.where = b.where;
+  const std::string name = upper(b.required("SLAVE"));
+  p.surface = surface_named(name, b.where);
+  if (std::none_of(model_.contact_pairs.begin(), model_.contact_pairs.end(),
+                   [&](const ContactPairDef& pair) { return pair.slave == p.surface; }))
+    throw DeckError(b.where, "surface " + name + " is the slave of no *CONTACT PAIR: put *GAP PROFILE after the "
+                             "*CONTACT PAIR whose slave surface it moves");
+  if (model_.gap_profile(p.surface) >= 0) throw DeckError(b.where, "surface " + name + " has two *GAP PROFILE blocks");
+  const auto cx = b.value("CX"), cy = b.value("CY");
+  if (cx.has_value() != cy.has_value()) throw DeckError(b.where, "give both CX= and CY= (or neither)");
+  if (cx) {
+    p.has_center = true;
+    p.center = {to_double(*cx, b.where, "CX"), to_double(*cy, b.where, "CY")};
+  }
+  for (const DataLine& line : b.data) {
+    field_count(line, 3, 3, "*GAP PROFILE data line (k, a_k, b_k in mm)");
+    Context c{line};
+    const int k = c.integer(0, "harmonic number k");
+    require(k >= 0, line, "harmonic number k must be >= 0 (0: a uniform offset a_0)");
+    if (p.harmonics.count(k)) throw DeckError(line.where, "harmonic " + std::to_string(k) + " is listed twice");
+    p.harmonics[k] = {c.number(1, "a_k"), c.number(2, "b_k")};
+  }
+  model_.gap_profiles.push_back(p);
 }
 
 }  // namespace calfit::deck_building

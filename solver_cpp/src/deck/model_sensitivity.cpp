@@ -28,7 +28,8 @@ void ModelBuilder::resolve_sensitivities() {
   // node changes its contact status, and its tangent, contact elements included, gives du/dtheta. Friction makes
   // the state depend on the loading path (the stick history): the sensitivities are then carried along it
   // (solver/sensitivity.hpp, (4)-(5)), for what acts on the elements alone: material constants, and the volume
-  // change or axial stretch that the last step brings in (a load on faces or a prescribed motion is not carried).
+  // change or axial stretch that the last step brings in; and for the contact's own gap offsets (GAP PROFILE),
+  // which act at every increment (a load on faces or a prescribed motion is not carried).
   bool friction = false;
   for (const ContactPairDef& pair : model_.contact_pairs)
     friction = friction || model_.interactions[pair.interaction].law.friction > 0.0;
@@ -49,8 +50,8 @@ void ModelBuilder::resolve_sensitivities() {
     if (!names.insert(p.name).second) throw DeckError(line.where, "parameter " + p.name + " is listed twice");
     if (friction && (!p.scope.faces.empty() || p.scope.prescribed || before_last_step(p)))
       throw DeckError(line.where, "with *FRICTION on a *CONTACT PAIR, *SENSITIVITY carries along the loading path "
-                                  "material constants and the volume change or axial stretch of the last step "
-                                  "only, not " + p.name + ": difference runs of the deck for it, or remove "
+                                  "material constants, the volume change or axial stretch of the last step and "
+                                  "GAP PROFILE coefficients only, not " + p.name + ": difference runs of the deck for it, or remove "
                                   "*FRICTION");
     model_.sensitivity.parameters.push_back(std::move(p));
   }

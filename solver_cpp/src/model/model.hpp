@@ -77,6 +77,24 @@ struct InteractionDef {
   SourceLocation where;
 };
 
+// *GAP PROFILE: the nodes of a contact pair's slave surface stand out from their mesh positions,
+// as the contact sees them, by delta(theta) = sum_k a_k cos k theta + b_k sin k theta (mm) along the
+// master's normal, theta the polar angle of the node's reference position about the center (CX, CY,
+// or the centroid of the surface's nodes): a positive delta closes the gap. The elements keep the
+// mesh's shape: it is the shape error of a segmented skin as the garment band feels it (the pressure
+// it adds where the band must bend over it), whose sensitivities *SENSITIVITY asks for with
+// GAP PROFILE lines (solver_cpp/README.md).
+struct GapProfile {
+  int surface = -1;
+  bool has_center = false;
+  Eigen::Vector2d center = Eigen::Vector2d::Zero();
+  std::map<int, std::pair<double, double>> harmonics;  // k -> (a_k, b_k), mm
+  SourceLocation where;
+  // cos k theta (sine: sin k theta) at the reference position X about `about`.
+  static double basis(int k, bool sine, const Eigen::Vector2d& X, const Eigen::Vector2d& about);
+  double offset(const Eigen::Vector2d& X, const Eigen::Vector2d& about) const;
+};
+
 // Penalty contact between the nodes of a slave surface and the faces of a master
 // surface (*CONTACT PAIR); active in the steps where `active` says so (*MODEL CHANGE).
 struct ContactPairDef {
@@ -147,6 +165,7 @@ struct StepDef {
 struct ParameterState {
   std::vector<MaterialDef> materials;
   std::vector<TensionProfile> profiles;
+  std::vector<GapProfile> gap_profiles;
   LoadState loads;  // in force at the end of the last step
 };
 
@@ -167,6 +186,12 @@ struct SensitivityParameter {
   std::function<double(const ParameterState&)> get;
   std::function<void(ParameterState&, double)> set;
   ParameterScope scope;
+  // GAP PROFILE lines: theta moves the contact gaps of this surface's slave nodes by theta times
+  // GapProfile::basis(gap_harmonic, gap_sine); dR/dtheta then comes from the contact elements
+  // (StaticAnalysis::contact_gap_derivatives), not from the scope.
+  int gap_surface = -1;
+  int gap_harmonic = 0;
+  bool gap_sine = false;
 };
 
 // *SENSITIVITY: du/dtheta of the last step's converged state for each parameter.
@@ -193,6 +218,7 @@ struct Model {
   std::vector<TensionProfile> profiles;
   std::vector<InteractionDef> interactions;
   std::vector<ContactPairDef> contact_pairs;
+  std::vector<GapProfile> gap_profiles;
   std::vector<StepDef> steps;
   SensitivityRequest sensitivity;
 
@@ -200,6 +226,9 @@ struct Model {
   int surface(const std::string& name) const;   // -1 when unknown
   int material(const std::string& name) const;  // -1 when unknown
   int profile(const std::string& name) const;   // -1 when unknown
+  int gap_profile(int surface) const;           // -1 when the surface has none
+  // The center of a gap profile's angles: CX, CY, or the centroid of its surface's nodes.
+  Eigen::Vector2d gap_center(const GapProfile& profile) const;
   ParameterState parameter_state() const;       // materials, profiles, the last step's loads
 };
 

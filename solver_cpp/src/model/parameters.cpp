@@ -149,6 +149,49 @@ SensitivityParameter profile_coefficient(const Model& model, const DataLine& lin
   return p;
 }
 
+// GAP PROFILE, <slave surface>, A<k> | B<k>: a coefficient of the surface's *GAP PROFILE (mm; 0 where it does not
+// list k). R depends on it through the contact elements only, which StaticAnalysis differentiates itself
+// (contact_gap_derivatives): the scope is empty, and get/set only report the value.
+SensitivityParameter gap_coefficient(const Model& model, const DataLine& line) {
+  expect_fields(line, 3, "GAP PROFILE, slave surface, A<k> or B<k>");
+  const std::string name = upper(line.fields[1]), label = upper(line.fields[2]);
+  const int surface = model.surface(name);
+  if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+  const int profile = model.gap_profile(surface);
+  if (profile < 0)
+    throw DeckError(line.where, "surface " + name + " has no *GAP PROFILE: add *GAP PROFILE, SLAVE=" + name +
+                                    " (no data lines: a profile at zero) after its *CONTACT PAIR");
+  const std::string digits = label.size() > 1 ? label.substr(1) : "";
+  const bool valid = (label[0] == 'A' || label[0] == 'B') && !digits.empty() && digits.size() < 6 &&
+                     std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; }) &&
+                     std::stoi(digits) >= (label[0] == 'A' ? 0 : 1);
+  if (!valid)
+    throw DeckError(line.where, "gap profile coefficient " + line.fields[2] + " is not valid: use A<k> (k >= 0) or B<k> "
+                                "(k >= 1), e.g. A2");
+  const int k = std::stoi(digits);
+  const bool cosine = label[0] == 'A';
+  SensitivityParameter p;
+  p.name = "GAP PROFILE:" + name + ":" + label[0] + std::to_string(k);
+  p.where = line.where;
+  // mm. The pressure sensitivities' difference step is 1e-4 of it: the band's nearly incompressible pressure,
+  // a bulk modulus times J - 1, loses its digits to round-off over a step of 1e-7 mm (1 % where dp/da is small)
+  p.scale = 1.0;
+  p.affine = true;
+  p.get = [profile, k, cosine](const ParameterState& s) {
+    const auto& h = s.gap_profiles[profile].harmonics;
+    const auto it = h.find(k);
+    return it == h.end() ? 0.0 : (cosine ? it->second.first : it->second.second);
+  };
+  p.set = [profile, k, cosine](ParameterState& s, double value) {
+    auto& ab = s.gap_profiles[profile].harmonics[k];
+    (cosine ? ab.first : ab.second) = value;
+  };
+  p.gap_surface = surface;
+  p.gap_harmonic = k;
+  p.gap_sine = !cosine;
+  return p;
+}
+
 // The elements with a node in `nodes` (sorted).
 std::vector<int> elements_touching(const Model& model, const std::vector<int>& nodes) {
   std::vector<int> elements;
@@ -294,6 +337,7 @@ const std::map<std::string, Resolver>& kinds() {
       {"TENSION", laplace_tension},
       {"REFERENCE", laplace_reference},
       {"PROFILE", profile_coefficient},
+      {"GAP PROFILE", gap_coefficient},
       {"VOLUME CHANGE", volume_change},
       {"AXIAL STRETCH", axial_stretch},
       {"RIGID MOTION", rigid_motion},

@@ -1,6 +1,6 @@
 // The parameters that *SENSITIVITY asks about. Each kind turns one data line into a
 // SensitivityParameter (model.hpp): its name, how to read and set its value on a
-// ParameterState (a copy of the model's materials, tension profiles and last-step loads),
+// ParameterState (a copy of the model's materials, tension and gap profiles and last-step loads),
 // and the parts of the model it touches (ParameterScope), so that the solver evaluates
 // dR/dtheta over those parts only.
 //
@@ -8,6 +8,8 @@
 //   TENSION, <surface>                 the TENSION of the last step's *LAPLACE PRESSURE there
 //   PROFILE, <profile>, A<k> | B<k>    a coefficient of a TYPE=FOURIER tension profile
 //                                      (0 when the profile does not list k)
+//   GAP PROFILE, <surface>, A<k> | B<k>  a coefficient of the slave surface's *GAP PROFILE (mm;
+//                                      0 when it does not list k); through the contact elements
 //   VOLUME CHANGE, <elset>             dv of the set's elements in the last step (0 when absent)
 //   AXIAL STRETCH                      lambda_z of the last step (1 when absent)
 //   RIGID MOTION, <nset>, UX|UY|ANGLE  a component of the set's last-step *RIGID MOTION (0 when

@@ -67,6 +67,27 @@ void StaticAnalysis::build_contacts() {
       state.previous.push_back(before == ending_at.end() ? -1 : before->second);
       state.next.push_back(after == starting_at.end() ? -1 : after->second);
     }
+    // *GAP PROFILE of the slave surface: its offsets, and what the GAP PROFILE sensitivities move of them
+    state.slave_offset.assign(state.slave_nodes.size(), 0.0);
+    if (const int g = model_.gap_profile(pair.slave); g >= 0) {
+      const GapProfile& profile = model_.gap_profiles[g];
+      const Eigen::Vector2d center = model_.gap_center(profile);
+      const std::vector<SensitivityParameter>& parameters = model_.sensitivity.parameters;
+      for (std::size_t i = 0; i < state.slave_nodes.size(); ++i)
+        state.slave_offset[i] = profile.offset(model_.coordinates[state.slave_nodes[i]], center);
+      if (std::any_of(parameters.begin(), parameters.end(),
+                      [&](const SensitivityParameter& p) { return p.gap_surface == pair.slave; })) {
+        state.gap_factors.setZero(static_cast<Eigen::Index>(state.slave_nodes.size()),
+                                  static_cast<Eigen::Index>(parameters.size()));
+        for (std::size_t j = 0; j < parameters.size(); ++j) {
+          const SensitivityParameter& p = parameters[j];
+          if (p.gap_surface != pair.slave) continue;
+          for (std::size_t i = 0; i < state.slave_nodes.size(); ++i)
+            state.gap_factors(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) =
+                GapProfile::basis(p.gap_harmonic, p.gap_sine, model_.coordinates[state.slave_nodes[i]], center);
+        }
+      }
+    }
     state.history.assign(state.slave_nodes.size(), ContactHistory{});
     state.trial = state.history;
     state.points.assign(state.slave_nodes.size(), ContactPoint{});
@@ -180,7 +201,8 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       for (int k : {nearest, c.previous[nearest], c.next[nearest]}) {
         if (k < 0) continue;
         Eigen::VectorXd scratch;
-        const ContactPoint probe = contact_element(positions(element_nodes(k)), c.law, h, k, c.slave_weight[i], scratch, nullptr);
+        const ContactPoint probe = contact_element(positions(element_nodes(k)), c.law, h, k, c.slave_weight[i], scratch,
+                                                   nullptr, false, c.slave_offset[i]);
         if (probe.xi >= 0.0 && probe.xi <= 1.0) {
           best = k;
           break;
@@ -198,7 +220,7 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       // accepted state obeys the same Coulomb law.
       const bool hold = friction && active && c.hold[i] == kHeld;
       const ContactPoint point = contact_element(positions(nodes), c.law, h, best, c.slave_weight[i], r,
-                                                 tangent && active ? &K : nullptr, hold);
+                                                 tangent && active ? &K : nullptr, hold, c.slave_offset[i]);
       c.element_nodes[i] = nodes;
       c.element_segment[i] = best;
       if (!active || !point.touching) {

@@ -187,15 +187,19 @@ void StaticAnalysis::propagate_path_sensitivities() {
         derivatives[ci].push_back({});
         continue;
       }
-      derivatives[ci].push_back(
-          contact_history_derivatives(positions(nodes), c.law, c.history[i], c.element_segment[i], c.slave_weight[i]));
+      derivatives[ci].push_back(contact_history_derivatives(positions(nodes), c.law, c.history[i], c.element_segment[i],
+                                                            c.slave_weight[i], c.slave_offset[i]));
+      if (!c.points[i].touching) continue;
+      const ContactHistoryDerivatives& D = derivatives[ci].back();
       const Eigen::MatrixXd& dh = c.history_sensitivity[i];
-      if (!c.points[i].touching || dh.size() == 0) continue;
-      const Eigen::MatrixXd dr = derivatives[ci].back().dr_dh * dh;
+      Eigen::MatrixXd dr = Eigen::MatrixXd::Zero(D.dr_dh.rows(), n_parameters);
+      if (dh.size() != 0) dr += D.dr_dh * dh;
+      if (c.gap_factors.size() != 0) dr += D.dr_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
       for (std::size_t k = 0; k < nodes.size(); ++k)
         for (int d = 0; d < 2; ++d) B.row(2 * nodes[k] + d) -= dr.row(2 * static_cast<Eigen::Index>(k) + d);
     }
   }
+  B -= frictionless_gap_derivatives();
   if (!solve_tangent(B, path_du_))
     throw std::runtime_error("the tangent at a converged increment is singular: no sensitivities through friction");
   // The history each node leaves, (5).
@@ -214,9 +218,41 @@ void StaticAnalysis::propagate_path_sensitivities() {
         du_local.middleRows(2 * static_cast<Eigen::Index>(k), 2) = path_du_.middleRows(2 * nodes[k], 2);
       Eigen::MatrixXd dh = D.dh_dx * du_local;
       if (c.history_sensitivity[i].size() != 0) dh += D.dh_dh * c.history_sensitivity[i];
+      if (c.gap_factors.size() != 0) dh += D.dh_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
       c.history_sensitivity[i] = std::move(dh);
     }
   }
+}
+
+Eigen::MatrixXd StaticAnalysis::contact_gap_derivatives() {
+  if (forces_lambda_ != last_lambda_ || forces_u_.size() != u_.size() || forces_u_ != u_) evaluate(u_, last_lambda_, false);
+  return gap_derivatives(false);
+}
+
+Eigen::MatrixXd StaticAnalysis::frictionless_gap_derivatives() const { return gap_derivatives(true); }
+
+// dR/dtheta of the GAP PROFILE parameters from the touching slave nodes' contact elements at the last evaluation:
+// those of every pair, or (frictionless_only) of the pairs without friction, whose part the friction path has
+// already taken with its history.
+Eigen::MatrixXd StaticAnalysis::gap_derivatives(bool frictionless_only) const {
+  Eigen::MatrixXd dR = Eigen::MatrixXd::Zero(n_dofs_, static_cast<Eigen::Index>(model_.sensitivity.parameters.size()));
+  for (const ContactState& c : contacts_) {
+    if (c.gap_factors.size() == 0 || (frictionless_only && c.law.friction > 0.0)) continue;
+    for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
+      const std::vector<int>& nodes = c.element_nodes[i];
+      if (nodes.empty() || !c.points[i].touching) continue;
+      Eigen::VectorXd x(2 * static_cast<Eigen::Index>(nodes.size()));
+      for (std::size_t k = 0; k < nodes.size(); ++k)
+        x.segment<2>(2 * static_cast<Eigen::Index>(k)) =
+            model_.coordinates[nodes[k]] + u_.segment<2>(2 * static_cast<Eigen::Index>(nodes[k]));
+      const ContactHistoryDerivatives D =
+          contact_history_derivatives(x, c.law, c.history[i], c.element_segment[i], c.slave_weight[i], c.slave_offset[i]);
+      const Eigen::MatrixXd dr = D.dr_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
+      for (std::size_t k = 0; k < nodes.size(); ++k)
+        for (int d = 0; d < 2; ++d) dR.row(2 * nodes[k] + d) += dr.row(2 * static_cast<Eigen::Index>(k) + d);
+    }
+  }
+  return dR;
 }
 
 // Relative residual of the sensitivity solves. Its error in X is about as large (the

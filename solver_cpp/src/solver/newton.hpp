@@ -100,6 +100,9 @@ public:
   // every column of B (full length: prescribed rows of B are ignored, of X set to 0).
   // Returns false when K is singular.
   bool solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
+  // dR/dtheta of the contact elements at the converged state for *SENSITIVITY's GAP PROFILE parameters (the
+  // slaves' offsets; other columns zero): what the scoped residuals do not see (n_dofs x parameters).
+  Eigen::MatrixXd contact_gap_derivatives();
   // With Coulomb friction the converged state depends on the loading path: the sensitivities of *SENSITIVITY's
   // parameters are then carried along it, one solve per converged increment (sensitivity.hpp, (4));
   // path_sensitivities() holds du/dtheta of the last one (n_dofs x parameters).
@@ -164,6 +167,10 @@ private:
     std::vector<std::vector<int>> element_nodes;
     std::vector<int> element_segment;
     std::vector<Eigen::MatrixXd> history_sensitivity;
+    // *GAP PROFILE: each slave node's offset (mm, 0 without a profile), and d(offset)/dtheta for *SENSITIVITY's
+    // GAP PROFILE parameters (slave nodes x parameters; empty without such a parameter on this pair's slave).
+    std::vector<double> slave_offset;
+    Eigen::MatrixXd gap_factors;
   };
   static constexpr char kFree = 0, kHeld = 1, kReleased = 2;
   struct ContactElement {
@@ -190,6 +197,8 @@ private:
   // After a converged increment, before its contact history is committed: du/dtheta of the increment and the
   // history's sensitivity it leaves (sensitivity.hpp, (4)-(5)).
   void propagate_path_sensitivities();
+  Eigen::MatrixXd frictionless_gap_derivatives() const;
+  Eigen::MatrixXd gap_derivatives(bool frictionless_only) const;
   // Internal forces of `elements` with state's materials at u and the committed increment's load fraction; in the
   // last step under state's volume change and axial stretch, ramped from the step's start.
   Eigen::VectorXd increment_residual(const ParameterState& state, const std::vector<int>& elements,
