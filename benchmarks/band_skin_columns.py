@@ -8,8 +8,11 @@ what the measurements see of it through Laplace's law: the offset changes the sk
 pressure by (k^2 - 1) alpha / R, a tension profile whose sensitivities the engine gives in one run. Under the
 explicit band the pressure comes from the contact instead. Here the same offset is put on the model itself: the
 skin nodes of the run's mesh moved by +-step along their normals, the band rebuilt on the moved skin as
-calfit builds it, both solved at the truth, the central difference observed at the case's points. Printed for
-each mode: the norm of the band's column over Laplace's, their correlation and their relative difference.
+calfit builds it, both solved at the truth, the central difference observed at the case's points. Against it,
+Laplace's column and the engine's: `GAP PROFILE` (the offset given to the contact alone, the elements keep the
+mesh's shape) and `SHAPE` (the skin's nodes moved radially, elements, contact and its weights with them: what
+calfit uses under the band; the band is not rebuilt). Printed for each mode: the norm of each column over the
+moved skin's, their correlation and their relative difference.
 An explicit phantom case (frictionless band, truth (3.4, 14.1, 85, 52) kPa, its own 2,000-element mesh, points) is
 made in a scratch folder. Asserts nothing.
 """
@@ -37,6 +40,21 @@ from orchestrator.study import make_phantom_case  # noqa: E402
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)
 
 
+def _gap_profile_sensitivities(model, count: int) -> dict:
+    """du/d(a_k, b_k) of the band's *GAP PROFILE of the skin, k = 1 .. count, at TRUTH_KPA."""
+    from orchestrator.forward import write_mesh_include
+    from orchestrator.results import EngineResults
+    from orchestrator.runner import run_engine
+
+    lines = [f"GAP PROFILE, SKIN, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
+    with tempfile.TemporaryDirectory(prefix="calfit-bench-gap-") as scratch:
+        write_mesh_include(model, Path(scratch))
+        deck = Path(scratch) / "deck.inp"
+        deck.write_text(model.deck(TRUTH_KPA, extra_sensitivities=lines, own_sensitivities=False))
+        found = EngineResults(run_engine(deck, Path(scratch) / "out", threads=None).outdir).sensitivities()
+    return {line: found[line.replace(", ", ":")] for line in lines}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--modes", default="2,3,4,6,8,12,16", help="the skin offset's harmonics k")
@@ -54,6 +72,9 @@ def main() -> None:
         observe = setup.measurements("points", with_geometry=False).observation(mesh)
         laplace = LegModel(mesh, tension, tissues=setup.model.tissues, hybrid=setup.model.hybrid)
         sensitivities = skin_pressure_sensitivities(laplace, TRUTH_KPA, max(modes))
+        explicit = LegModel(mesh, tension, garment="explicit", tissues=setup.model.tissues, hybrid=setup.model.hybrid)
+        gap = skin_pressure_sensitivities(explicit, TRUTH_KPA, max(modes))   # SHAPE lines
+        gap.update(_gap_profile_sensitivities(explicit, max(modes)))
         radius = skin_perimeter_mm(mesh) / (2.0 * np.pi)
         skin = mesh.nodes[mesh.skin_loop]
         centre = skin.mean(axis=0)
@@ -71,15 +92,20 @@ def main() -> None:
 
         print(f"explicit band, {len(mesh.elements)} {mesh.element_type}, R = {radius:.1f} mm, offsets "
               f"+-{arguments.step} mm; per unit offset amplitude:")
-        print(f"  {'mode':>5} {'|band| / |Laplace|':>19} {'correlation':>12} {'relative difference':>20}")
+        print(f"  {'mode':>5} {'column':>12} {'|column| / |moved skin|':>24} {'correlation':>12} "
+              f"{'relative difference':>20}")
         for k in modes:
             for kind, shape in (("A", np.cos), ("B", np.sin)):
                 offset = arguments.step * shape(k * angle)
                 band = (observed_with_offset(offset) - observed_with_offset(-offset)) / (2.0 * arguments.step)
-                law = observe @ sensitivities[f"PROFILE, GARMENT, {kind}{k}"].ravel() * (k * k - 1) / radius
-                norm_band, norm_law = np.linalg.norm(band), np.linalg.norm(law)
-                print(f"  {k:>4}{kind} {norm_band / norm_law:19.3f} {band @ law / (norm_band * norm_law):+12.3f} "
-                      f"{np.linalg.norm(band - law) / norm_law:20.3f}", flush=True)
+                columns = {"Laplace": observe @ sensitivities[f"PROFILE, GARMENT, {kind}{k}"].ravel() * (k * k - 1) / radius,
+                           "GAP PROFILE": observe @ gap[f"GAP PROFILE, SKIN, {kind}{k}"][:len(mesh.nodes)].ravel(),
+                           "SHAPE": observe @ gap[f"SHAPE, SKIN, {kind}{k}"][:len(mesh.nodes)].ravel()}
+                norm_band = np.linalg.norm(band)
+                for name, column in columns.items():
+                    norm = np.linalg.norm(column)
+                    print(f"  {k:>4}{kind} {name:>12} {norm / norm_band:24.3f} {band @ column / (norm_band * norm):+12.3f} "
+                          f"{np.linalg.norm(band - column) / norm_band:20.3f}", flush=True)
 
 
 if __name__ == "__main__":

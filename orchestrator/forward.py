@@ -283,10 +283,10 @@ class LegModel:
     def engine_differentiates(self, line: str) -> bool:
         """Whether calfit-fe gives du/dtheta of a `*SENSITIVITY` line on this model: every line through
         frictionless contact; with friction, what acts on the elements alone from the band's last step on (the
-        constants, the tissues' volume changes, the axial stretch) and the skin's offset as the band feels it
-        (`GAP PROFILE`), not a rigid motion or the band's own prestretch, set in its second step (solver_cpp/README.md,
-        Sensitivities)."""
-        if (not self.has_friction or line.startswith("MATERIAL,") or line.startswith("GAP PROFILE,")
+        constants, the tissues' volume changes, the axial stretch) and the skin's shape and its offset as the band
+        feels it (`SHAPE`, `GAP PROFILE`), not a rigid motion or the band's own prestretch, set in its second step
+        (solver_cpp/README.md, Sensitivities)."""
+        if (not self.has_friction or line.startswith(("MATERIAL,", "GAP PROFILE,", "SHAPE,"))
                 or line == "AXIAL STRETCH"):
             return True
         return line.startswith("VOLUME CHANGE,") and line.split(", ")[1] not in self.band_sectors
@@ -413,16 +413,17 @@ class LegModel:
         return state
 
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None,
-             extra_sensitivities: Sequence[str] = (), sensitivities: bool = True) -> str:
+             extra_sensitivities: Sequence[str] = (), sensitivities: bool = True, own_sensitivities: bool = True) -> str:
         """The deck of theta; extra_sensitivities: more `*SENSITIVITY` lines (a `PROFILE` line defines the garment's
         Fourier profile, at zero, when the model has none; a `GAP PROFILE` line the band's `*GAP PROFILE` of the
-        skin, at zero); sensitivities=False: none at all (a finite-difference probe needs the displacements alone)."""
+        skin, at zero); sensitivities=False: none at all (a finite-difference probe needs the displacements alone);
+        own_sensitivities=False: the extra lines alone, not theta's."""
         from .decks import StepEffects
 
         state = self.deck_state(theta)
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
         lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
-        own = lines if self.engine_sensitivities else []
+        own = lines if self.engine_sensitivities and own_sensitivities else []
         lines = [line for line in own + [line for line in extra_sensitivities if line not in own]
                  if self.engine_differentiates(line)] if sensitivities else []
         if any(line.startswith("PROFILE") for line in extra_sensitivities) and not self.tension_profile:

@@ -25,6 +25,19 @@ which `measure.Measurements.with_model_covariance` adds to the measurements'. k 
 changes no curvature, so the first harmonic of a real tension profile (the `tension_profile` effect) stays
 fully visible.
 
+Under the explicit band (the second paper's garment) there is no law p = T kappa to perturb: the band's contact
+pressure is what the band's tension, its bending and the friction make of the skin's shape, bridges included.
+The skin itself is then moved: the engine's `SHAPE` sensitivities differentiate the solution with respect to the
+skin nodes' reference positions moved radially by delta = alpha_k cos k theta (beta_k sin k theta), the tissue's
+elements, the band's contact and its tributary lengths all on the moved skin, carried along the put-on through
+friction, every mode in one run. The columns are g = O du/d alpha_k with the offset's own variances v_k (the model
+does the curvature's amplification), from k = 1 (a shift of the contour thickens the fat on one side, which a
+band, unlike Laplace's law, feels). Against whole runs on meshes whose skin was moved along its normals and the
+band rebuilt on it (benchmarks/band_skin_columns.py, the frictionless band, 2,000 CPE6, modes 2-16): these columns
+correlate 0.997-1.000 with them, norms 0.99-1.03 times, relative difference 0.004-0.08; Laplace's columns 0.83-0.996,
+norms 0.77-1.48 times, relative difference 0.11-0.86; the contact's offset alone (`GAP PROFILE`, the elements
+unmoved) 0.88-0.99, 0.15-0.57.
+
 Where the interfaces are. A uniform shift of the skin or of the fascia changes little of the misfit (0.14 mm of
 skin: under 0.1 of the noise variance) but what it changes, the fat's thickness, the fitted fat constants
 absorb: a bias of the parameters, not of the misfit, that the intervals must hold. The fascia of the phantom
@@ -67,14 +80,21 @@ def skin_perimeter_mm(mesh) -> float:
     return float(np.sum(np.linalg.norm(np.diff(np.vstack([loop, loop[:1]]), axis=0), axis=1)))
 
 
-def mode_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
-    """Variance of the relative pressure coefficients a_k (= of b_k), k = 1 .. K, for a skin offset of RMS
-    skin_sigma_mm low-passed at cutoff_mm (module text); K is where the low-pass response falls below
+def offset_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """Variance of the skin offset's Fourier coefficients alpha_k (= of beta_k), k = 1 .. K, mm^2, for an offset of
+    RMS skin_sigma_mm low-passed at cutoff_mm (module text); K is where the low-pass response falls below
     RESPONSE_FLOOR."""
     last = int(np.ceil(perimeter_mm / cutoff_mm * (1.0 / RESPONSE_FLOOR - 1.0) ** (1.0 / (2 * order))))
     k = np.arange(1, max(last, 2) + 1, dtype=float)
     response = 1.0 / (1.0 + (k * cutoff_mm / perimeter_mm) ** (2 * order))
-    offset_variance = skin_sigma_mm ** 2 * response ** 2 / np.sum(response ** 2)
+    return skin_sigma_mm ** 2 * response ** 2 / np.sum(response ** 2)
+
+
+def mode_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """Variance of the relative pressure coefficients a_k (= of b_k) of Laplace's law, k = 1 .. K, for the skin
+    offset of `offset_variances`: a_k = (k^2 - 1) alpha_k / R (module text)."""
+    offset_variance = offset_variances(perimeter_mm, skin_sigma_mm, cutoff_mm, order)
+    k = np.arange(1, len(offset_variance) + 1, dtype=float)
     radius = perimeter_mm / (2 * np.pi)
     return (k ** 2 - 1.0) ** 2 * offset_variance / radius ** 2
 
@@ -85,36 +105,56 @@ def profile_lines(count: int) -> list[str]:
     return [f"PROFILE, {PROFILE_NAME}, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
 
 
+def shape_lines(count: int) -> list[str]:
+    """The explicit band's counterpart of `profile_lines`: the skin itself moved (module text)."""
+    return [f"SHAPE, SKIN, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
+
+
+def skin_mode_lines(model, count: int) -> list[str]:
+    """The *SENSITIVITY lines of the skin's modes k = 1 .. count on this model's garment."""
+    return shape_lines(count) if model.band is not None else profile_lines(count)
+
+
 def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> dict[str, np.ndarray]:
-    """du/da_k and du/db_k (k = 1 .. count, nodal (M, 2) each) of the model at theta, from one engine run."""
+    """du/d(mode) of the skin's modes k = 1 .. count (`skin_mode_lines`; nodal (M, 2) each) of the model at theta,
+    from one engine run (only these lines: the model's own are not needed here)."""
     from .forward import write_mesh_include
     from .results import EngineResults
-    from .runner import run_engine
+    from .runner import DEFAULT_TIMEOUT_S, run_engine, run_timeout
 
+    lines = skin_mode_lines(model, count)
     with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:
         write_mesh_include(model, Path(scratch))
         deck = Path(scratch) / "deck.inp"
-        deck.write_text(model.deck(theta, extra_sensitivities=profile_lines(count)))
-        outcome = run_engine(deck, Path(scratch) / "out", threads=None)
+        text = model.deck(theta, extra_sensitivities=lines, own_sensitivities=False)
+        deck.write_text(text)
+        outcome = run_engine(deck, Path(scratch) / "out", threads=None, timeout_s=run_timeout(text, DEFAULT_TIMEOUT_S))
         if not outcome.converged:
-            raise RuntimeError(f"the engine did not converge at {list(theta)} for the skin's pressure sensitivities")
+            raise RuntimeError(f"the engine did not converge at {list(theta)} for the skin's sensitivities")
         found = EngineResults(outcome.outdir).sensitivities()
-    return {line: found[line.replace(", ", ":")] for line in profile_lines(count)}
+    return {line: found[line.replace(", ", ":")] for line in lines}
+
+
+def _model_on(setup, mesh, effects, tension_N_per_mm):
+    """The run's model (its tissues, elements and garment) on `mesh` under `tension_N_per_mm`, with `effects`."""
+    from .forward import LegModel
+
+    model = setup.model
+    return LegModel(mesh, tension_N_per_mm, effects=tuple(effects), tissues=model.tissues, hybrid=model.hybrid,
+                    garment=model.garment, friction_mu=model.friction_mu)
 
 
 def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
     """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
-    from .forward import LegModel
     from .meshing import mesh_from_labels
     from .runner import solve_once
 
     mesh = mesh_from_labels(setup.labels_unloaded, setup.case.pixel_size_mm, n_elements=len(setup.mesh.elements),
                             order=setup.mesh.order, image=setup.case.unloaded, interface_offsets=offsets)
-    model = LegModel(mesh, tension_N_per_mm, effects=tuple(effects), tissues=setup.model.tissues,
-                     hybrid=setup.model.hybrid)
-    displacement = solve_once(model, model.deck(theta),
+    model = _model_on(setup, mesh, effects, tension_N_per_mm)
+    displacement = solve_once(model, model.deck(theta, sensitivities=False),
                               f"the engine did not converge on a shifted interface at {list(theta)}")
-    return measurements.observation(mesh) @ displacement.ravel()
+    return measurements.observation(mesh) @ displacement[:len(mesh.nodes)].ravel()   # the leg's nodes (not a band's)
 
 
 def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Sequence[str] = (),
@@ -123,17 +163,17 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
     """The columns g of C_geo (module text: what is measured of each skin mode and interface shift, (2N, m) mm per
     unit), their variances w (the same at every garment level: they hold the segmentation, not the load) and what
     made them, under the case's [garment] tension or `tension_N_per_mm` (another garment level's)."""
-    from .forward import LegModel
     from .meshing.labels import interface_shift
 
     tension = setup.case.tension_N_per_mm if tension_N_per_mm is None else float(tension_N_per_mm)
-    model = LegModel(setup.mesh, tension, effects=tuple(effects), tissues=setup.model.tissues, hybrid=setup.model.hybrid)
+    model = _model_on(setup, setup.mesh, effects, tension)
     perimeter = skin_perimeter_mm(model.mesh)
-    variances = mode_variances(perimeter, skin_sigma_mm, cutoff_mm)
+    # the band's model moves the skin itself; Laplace's law feels its curvature's change (module text)
+    variances = (offset_variances if model.band is not None else mode_variances)(perimeter, skin_sigma_mm, cutoff_mm)
     sensitivities = skin_pressure_sensitivities(model, theta, len(variances))
     observation = measurements.observation(model.mesh)
-    lines = profile_lines(len(variances))
-    columns = [observation @ sensitivities[line].ravel() for line in lines]
+    leg_nodes = len(model.mesh.nodes)   # a band's nodes come after the leg's
+    columns = [observation @ sensitivities[line][:leg_nodes].ravel() for line in skin_mode_lines(model, len(variances))]
     weights = list(np.repeat(variances, 2))
     for interface in ("skin", "fascia"):
         plus, minus = (_observed(setup, measurements, theta, effects, interface_shift(
@@ -142,7 +182,8 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
         columns.append((plus - minus) / (2 * SHIFT_STEP_MM))
         weights.append(interface_sigma_mm ** 2)
     info = {"skin_sigma_mm": skin_sigma_mm, "interface_sigma_mm": interface_sigma_mm, "cutoff_mm": cutoff_mm,
-            "modes": len(variances), "perimeter_mm": perimeter, "theta": [float(v) for v in theta]}
+            "modes": len(variances), "perimeter_mm": perimeter, "theta": [float(v) for v in theta],
+            "skin_model": "the skin moved under the band" if model.band is not None else "laplace"}
     if tension_N_per_mm is not None:
         info["tension_N_per_mm"] = tension
     return np.column_stack(columns), weights, info

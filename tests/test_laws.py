@@ -158,6 +158,25 @@ def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg
     assert all(np.abs(du).max() > 1e-3 for du in found.values())
 
 
+def test_under_the_band_the_skins_modes_move_the_skin_itself(leg_mesh):
+    """With the explicit band the skin's uncertainty asks the engine for the SHAPE sensitivities (the skin's nodes
+    moved, orchestrator.geometry_uncertainty), not a Laplace profile the band's deck has no place for, and only those
+    lines: the model's own are not needed there."""
+    from orchestrator.geometry_uncertainty import shape_lines, skin_mode_lines, skin_pressure_sensitivities
+
+    model = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3)
+    theta = [3.4, 14.1, 85.0, 52.0]
+    assert skin_mode_lines(model, 2) == shape_lines(2) == ["SHAPE, SKIN, A1", "SHAPE, SKIN, B1", "SHAPE, SKIN, A2",
+                                                           "SHAPE, SKIN, B2"]
+    deck = model.deck(theta, extra_sensitivities=shape_lines(2), own_sensitivities=False)
+    assert "MATERIAL, MUSCLE" not in deck
+    assert deck.split("*SENSITIVITY\n")[1].split("**")[0].split("\n")[:4] == shape_lines(2)
+    found = skin_pressure_sensitivities(model, theta, 2)
+    assert sorted(found) == sorted(shape_lines(2))
+    # du per mm of offset: the tissue under the band moves by a good part of the offset
+    assert all(0.05 < np.abs(du).max() < 2.0 for du in found.values()), {k: np.abs(v).max() for k, v in found.items()}
+
+
 class _SumOnlyEvaluator:
     """A stand-in for the engine's evaluator: residuals g (C10_fat + C01_fat - fat_sum) + h (C10_muscle - 0.9) and a
     jitter of 1e-4 that changes with theta, as a differenced run under friction has (its Newton tolerance)."""

@@ -35,8 +35,10 @@ ContactHistoryDerivatives contact_history_derivatives(const Eigen::VectorXd& x, 
   constexpr double h = 1e-30;
   const int n = static_cast<int>(x.size());
   const int n_nodes = n / 2;
-  ContactHistoryDerivatives out{Eigen::MatrixXd::Zero(n, 3), Eigen::MatrixXd::Zero(3, n), Eigen::Matrix3d::Zero(),
-                                Eigen::VectorXd::Zero(n), Eigen::Vector3d::Zero()};
+  ContactHistoryDerivatives out{Eigen::MatrixXd::Zero(n, 3), Eigen::MatrixXd::Zero(3, n), Eigen::MatrixXd::Zero(n, n),
+                                Eigen::VectorXd::Zero(n), Eigen::Matrix3d::Zero(), Eigen::VectorXd::Zero(n),
+                                Eigen::Vector3d::Zero()};
+  contact_residual<double>(x.data(), n_nodes, law, history, segment, weight, out.r.data(), false, nullptr, nullptr, offset);
   const C at(offset);
   std::vector<C> xc(x.data(), x.data() + n), rc(n);
   const HistoryValues<C> base{history.xi, history.shear, history.gap};
@@ -45,10 +47,11 @@ ContactHistoryDerivatives contact_history_derivatives(const Eigen::VectorXd& x, 
     column(1) = std::imag(left.shear) / h;
     column(2) = std::imag(left.gap) / h;
   };
-  for (int j = 0; j < n; ++j) {  // d(history left) / dx
+  for (int j = 0; j < n; ++j) {  // d(residual, history left) / dx
     xc[j] += C(0.0, h);
     HistoryValues<C> left{};
     contact_residual(xc.data(), n_nodes, law, history, segment, weight, rc.data(), false, &base, &left, at);
+    for (int i = 0; i < n; ++i) out.dr_dx(i, j) = std::imag(rc[i]) / h;
     store(left, out.dh_dx.col(j));
     xc[j] = x[j];
   }

@@ -168,10 +168,13 @@ ContactPoint contact_element(const Eigen::VectorXd& x, const ContactLaw& law, co
 // it leaves depends on its positions and on that history (complex step, every entry exact): the chain that carries
 // parameter sensitivities through Coulomb friction from one increment to the next (StaticAnalysis::
 // propagate_path_sensitivities). Columns and rows of the history are (xi, shear, gap). With the slave's offset
-// (*GAP PROFILE) as well: how the residual and the history left depend on it (the *SENSITIVITY GAP PROFILE lines).
+// (*GAP PROFILE) as well: how the residual and the history left depend on it (the *SENSITIVITY GAP PROFILE lines),
+// and the residual on the positions (what a SHAPE parameter moves).
 struct ContactHistoryDerivatives {
   Eigen::MatrixXd dr_dh;  // 2 n_nodes x 3: the local residual
   Eigen::MatrixXd dh_dx;  // 3 x 2 n_nodes: the history left
+  Eigen::MatrixXd dr_dx;  // 2 n_nodes x 2 n_nodes: the local residual at the history started from
+  Eigen::VectorXd r;      // the local residual itself (linear in the slave's weight)
   Eigen::Matrix3d dh_dh = Eigen::Matrix3d::Zero();
   Eigen::VectorXd dr_doffset;  // 2 n_nodes
   Eigen::Vector3d dh_doffset = Eigen::Vector3d::Zero();

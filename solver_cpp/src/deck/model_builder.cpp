@@ -35,7 +35,7 @@ int Model::material(const std::string& name) const { return index_by_name(materi
 int Model::profile(const std::string& name) const { return index_by_name(profiles, name); }
 
 ParameterState Model::parameter_state() const {
-  return {materials, profiles, gap_profiles, steps.empty() ? LoadState{} : steps.back().loads};
+  return {materials, profiles, gap_profiles, steps.empty() ? LoadState{} : steps.back().loads, {}, {}};
 }
 
 int Model::gap_profile(int surface_index) const {

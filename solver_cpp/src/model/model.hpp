@@ -167,6 +167,9 @@ struct ParameterState {
   std::vector<TensionProfile> profiles;
   std::vector<GapProfile> gap_profiles;
   LoadState loads;  // in force at the end of the last step
+  // SHAPE parameters: their values (0: the mesh's own shape) and the reference positions they move (node -> shift)
+  std::map<std::string, double> shape_coefficients;
+  std::map<int, Eigen::Vector2d> node_shifts;
 };
 
 // What a parameter changes in the residual, so that dR/dtheta is evaluated over these
@@ -192,6 +195,9 @@ struct SensitivityParameter {
   int gap_surface = -1;
   int gap_harmonic = 0;
   bool gap_sine = false;
+  // SHAPE lines: dX/dtheta of the reference positions theta moves (node, shift per unit theta); the elements in
+  // the scope are rebuilt on the moved positions, and the contact elements see them too.
+  std::vector<std::pair<int, Eigen::Vector2d>> shape;
 };
 
 // *SENSITIVITY: du/dtheta of the last step's converged state for each parameter.

@@ -1,5 +1,6 @@
 // Sensitivity parameter kinds: see parameters.hpp.
 #include "model/parameters.hpp"
+#include "element/triangle.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -110,23 +111,32 @@ SensitivityParameter laplace_reference(const Model& model, const DataLine& line)
   return p;
 }
 
+// The harmonic of an `A<k>` / `B<k>` field (A from k = 0 when allow_a0); DeckError otherwise.
+std::pair<int, bool> harmonic_label(const DataLine& line, const std::string& what, bool allow_a0) {
+  const std::string label = upper(line.fields[2]);
+  const std::string digits = label.size() > 1 ? label.substr(1) : "";
+  const bool valid = (label[0] == 'A' || label[0] == 'B') && !digits.empty() && digits.size() < 6 &&
+                     std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; }) &&
+                     std::stoi(digits) >= (label[0] == 'A' && allow_a0 ? 0 : 1);
+  if (!valid)
+    throw DeckError(line.where, what + " coefficient " + line.fields[2] + " is not valid: " +
+                                    (allow_a0 ? "use A<k> (k >= 0) or B<k> (k >= 1), e.g. A2"
+                                              : "use A<k> or B<k> with k >= 1 (e.g. A2)"));
+  return {std::stoi(digits), label[0] == 'B'};
+}
+
 // PROFILE, <profile>, A<k> | B<k>: a Fourier coefficient, 0 where the profile does not list k.
 SensitivityParameter profile_coefficient(const Model& model, const DataLine& line) {
   expect_fields(line, 3, "PROFILE, profile name, A<k> or B<k>");
-  const std::string name = upper(line.fields[1]), label = upper(line.fields[2]);
+  const std::string name = upper(line.fields[1]);
   const int profile = model.profile(name);
   if (profile < 0) throw DeckError(line.where, "tension profile " + name + " is not defined (*TENSION PROFILE, NAME=" + name + ")");
   if (model.profiles[profile].type != TensionProfile::Type::Fourier)
     throw DeckError(line.where, "tension profile " + name + " is TYPE=TABLE: coefficients A<k>, B<k> belong to TYPE=FOURIER profiles");
-  const std::string digits = label.size() > 1 ? label.substr(1) : "";
-  const bool valid = (label[0] == 'A' || label[0] == 'B') && !digits.empty() && digits.size() < 6 &&
-                     std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; }) &&
-                     std::stoi(digits) >= 1;
-  if (!valid) throw DeckError(line.where, "profile coefficient " + line.fields[2] + " is not valid: use A<k> or B<k> with k >= 1 (e.g. A2)");
-  const int k = std::stoi(digits);
-  const bool cosine = label[0] == 'A';
+  const auto [k, sine] = harmonic_label(line, "profile", false);
+  const bool cosine = !sine;
   SensitivityParameter p;
-  p.name = "PROFILE:" + name + ":" + label[0] + std::to_string(k);
+  p.name = "PROFILE:" + name + ":" + (cosine ? "A" : "B") + std::to_string(k);
   p.where = line.where;
   p.affine = true;  // the factor, and so the tension and the load, are linear in a_k, b_k
   p.get = [profile, k, cosine](const ParameterState& s) {
@@ -154,24 +164,17 @@ SensitivityParameter profile_coefficient(const Model& model, const DataLine& lin
 // (contact_gap_derivatives): the scope is empty, and get/set only report the value.
 SensitivityParameter gap_coefficient(const Model& model, const DataLine& line) {
   expect_fields(line, 3, "GAP PROFILE, slave surface, A<k> or B<k>");
-  const std::string name = upper(line.fields[1]), label = upper(line.fields[2]);
+  const std::string name = upper(line.fields[1]);
   const int surface = model.surface(name);
   if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
   const int profile = model.gap_profile(surface);
   if (profile < 0)
     throw DeckError(line.where, "surface " + name + " has no *GAP PROFILE: add *GAP PROFILE, SLAVE=" + name +
                                     " (no data lines: a profile at zero) after its *CONTACT PAIR");
-  const std::string digits = label.size() > 1 ? label.substr(1) : "";
-  const bool valid = (label[0] == 'A' || label[0] == 'B') && !digits.empty() && digits.size() < 6 &&
-                     std::all_of(digits.begin(), digits.end(), [](char c) { return c >= '0' && c <= '9'; }) &&
-                     std::stoi(digits) >= (label[0] == 'A' ? 0 : 1);
-  if (!valid)
-    throw DeckError(line.where, "gap profile coefficient " + line.fields[2] + " is not valid: use A<k> (k >= 0) or B<k> "
-                                "(k >= 1), e.g. A2");
-  const int k = std::stoi(digits);
-  const bool cosine = label[0] == 'A';
+  const auto [k, sine] = harmonic_label(line, "gap profile", true);
+  const bool cosine = !sine;
   SensitivityParameter p;
-  p.name = "GAP PROFILE:" + name + ":" + label[0] + std::to_string(k);
+  p.name = "GAP PROFILE:" + name + ":" + (cosine ? "A" : "B") + std::to_string(k);
   p.where = line.where;
   // mm. The pressure sensitivities' difference step is 1e-4 of it: the band's nearly incompressible pressure,
   // a bulk modulus times J - 1, loses its digits to round-off over a step of 1e-7 mm (1 % where dp/da is small)
@@ -218,6 +221,62 @@ std::vector<std::pair<int, int>> loaded_faces_of(const Model& model, const std::
               faces.end());
   sort_unique(faces);
   return faces;
+}
+
+// The nodes of a surface's faces (sorted, unique).
+std::vector<int> surface_nodes(const Model& model, int surface) {
+  std::vector<int> nodes;
+  for (const Face& f : model.surfaces[surface]) {
+    const ElementDef& e = model.elements[f.element];
+    for (int local : face_nodes(e.shape, f.face)) nodes.push_back(e.nodes[local]);
+  }
+  std::sort(nodes.begin(), nodes.end());
+  nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
+  return nodes;
+}
+
+// SHAPE, <surface>, A<k> | B<k>: the surface's nodes moved radially, X += theta cos k phi e_r (sin k phi for B),
+// phi and e_r about the centroid of its nodes (mm; 0 is the mesh's own shape): a segmented contour's shape error.
+// The elements touching them are rebuilt on the moved positions (central difference), and any contact element
+// with such a node sees it moved (StaticAnalysis::contact_parameter_derivatives).
+SensitivityParameter shape_coefficient(const Model& model, const DataLine& line) {
+  expect_fields(line, 3, "SHAPE, surface, A<k> or B<k>");
+  const std::string name = upper(line.fields[1]);
+  const int surface = model.surface(name);
+  if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+  const auto [k, sine] = harmonic_label(line, "shape", true);
+  SensitivityParameter p;
+  p.name = "SHAPE:" + name + ":" + (sine ? "B" : "A") + std::to_string(k);
+  p.where = line.where;
+  p.scale = 1.0;  // mm: the difference step is 1e-4 mm
+  const std::vector<int> nodes = surface_nodes(model, surface);
+  Eigen::Vector2d center = Eigen::Vector2d::Zero();
+  for (int n : nodes) center += model.coordinates[n];
+  center /= static_cast<double>(std::max<std::size_t>(nodes.size(), 1));
+  for (int n : nodes) {
+    const Eigen::Vector2d radial = model.coordinates[n] - center;
+    if (radial.norm() == 0.0) continue;
+    p.shape.emplace_back(n, GapProfile::basis(k, sine, model.coordinates[n], center) * radial.normalized());
+  }
+  const std::string key = p.name;
+  const auto shape = p.shape;
+  p.get = [key](const ParameterState& s) {
+    const auto it = s.shape_coefficients.find(key);
+    return it == s.shape_coefficients.end() ? 0.0 : it->second;
+  };
+  p.set = [key, shape](ParameterState& s, double value) {
+    double& current = s.shape_coefficients[key];
+    for (const auto& [node, direction] : shape)  // (Eigen's vectors start uninitialized)
+      s.node_shifts.try_emplace(node, Eigen::Vector2d::Zero()).first->second += (value - current) * direction;
+    current = value;
+  };
+  p.scope.elements = elements_touching(model, nodes);
+  if (!loaded_faces_of(model, p.scope.elements).empty())
+    throw DeckError(line.where, "SHAPE of surface " + name + ": its elements carry face loads in the last step "
+                                "(*LAPLACE PRESSURE, *DLOAD), which a moved contour would change too; calfit-fe "
+                                "differentiates the shape of unloaded or contact surfaces only (for Laplace's "
+                                "garment, PROFILE lines give the pressure's change)");
+  return p;
 }
 
 // VOLUME CHANGE, <elset>: the dv of the set's elements in the last step (0 where the step
@@ -338,6 +397,7 @@ const std::map<std::string, Resolver>& kinds() {
       {"REFERENCE", laplace_reference},
       {"PROFILE", profile_coefficient},
       {"GAP PROFILE", gap_coefficient},
+      {"SHAPE", shape_coefficient},
       {"VOLUME CHANGE", volume_change},
       {"AXIAL STRETCH", axial_stretch},
       {"RIGID MOTION", rigid_motion},

@@ -29,15 +29,21 @@ void StaticAnalysis::build_contacts() {
     state.pair = static_cast<int>(k);
     state.law = model_.interactions[pair.interaction].law;
     // Consistent nodal weights (integral of N_a ds x thickness) on both sides, so that a
-    // uniform pressure transferred between matching T6 faces reads uniform.
-    auto surface_weights = [&](int surface) {
+    // uniform pressure transferred between matching T6 faces reads uniform; on the reference positions moved by
+    // `along` times `h` (node -> shift: a SHAPE parameter's, whose change of the weights the contact's
+    // sensitivities need).
+    auto surface_weights = [&](int surface, const std::map<int, Eigen::Vector2d>& along = {}, double h = 0.0) {
       std::map<int, double> weights;
       for (const Face& f : model_.surfaces[surface]) {
         const ElementDef& e = model_.elements[f.element];
         const std::vector<int> local = face_nodes(e.shape, f.face);
         EdgeNodes X(static_cast<Eigen::Index>(local.size()), 2);
-        for (std::size_t j = 0; j < local.size(); ++j)
-          X.row(static_cast<Eigen::Index>(j)) = model_.coordinates[e.nodes[local[j]]].transpose();
+        for (std::size_t j = 0; j < local.size(); ++j) {
+          const int node = e.nodes[local[j]];
+          X.row(static_cast<Eigen::Index>(j)) = model_.coordinates[node].transpose();
+          if (const auto moved = along.find(node); moved != along.end())
+            X.row(static_cast<Eigen::Index>(j)) += h * moved->second.transpose();
+        }
         Eigen::VectorXd w;
         EdgeNodes normals;
         face_weights(X, w, normals);
@@ -87,6 +93,22 @@ void StaticAnalysis::build_contacts() {
                 GapProfile::basis(p.gap_harmonic, p.gap_sine, model_.coordinates[state.slave_nodes[i]], center);
         }
       }
+    }
+    // d(slave weight)/dtheta of the SHAPE parameters: a moved contour changes the tributary lengths (central
+    // difference; exact for straight faces, whose weights are linear in the positions)
+    const auto n_parameters = static_cast<Eigen::Index>(model_.sensitivity.parameters.size());
+    for (Eigen::Index j = 0; j < n_parameters && !shape_of_node_.empty(); ++j) {
+      std::map<int, Eigen::Vector2d> along;
+      for (const auto& [node, direction] : model_.sensitivity.parameters[static_cast<std::size_t>(j)].shape)
+        along.emplace(node, direction);
+      if (along.empty()) continue;
+      if (state.weight_derivatives.size() == 0)
+        state.weight_derivatives.setZero(static_cast<Eigen::Index>(state.slave_nodes.size()), n_parameters);
+      constexpr double h = 1e-3;  // mm
+      const std::map<int, double> plus = surface_weights(pair.slave, along, h), minus = surface_weights(pair.slave, along, -h);
+      for (std::size_t i = 0; i < state.slave_nodes.size(); ++i)
+        state.weight_derivatives(static_cast<Eigen::Index>(i), j) =
+            (plus.at(state.slave_nodes[i]) - minus.at(state.slave_nodes[i])) / (2.0 * h);
     }
     state.history.assign(state.slave_nodes.size(), ContactHistory{});
     state.trial = state.history;

@@ -33,7 +33,7 @@ ElementKinematics StaticAnalysis::end_of_step_kinematics(const ParameterState& s
 }
 
 StaticAnalysis::ParameterElement StaticAnalysis::element_for(const ParameterState& state, int e) const {
-  return {make_element(model_, state.materials, e), end_of_step_kinematics(state, e)};
+  return {make_element(model_, state.materials, e, &state.node_shifts), end_of_step_kinematics(state, e)};
 }
 
 std::map<int, double> StaticAnalysis::prescribed_values(const LoadState& loads) const {
@@ -56,7 +56,7 @@ Eigen::VectorXd StaticAnalysis::scoped_residual(const ParameterState& state, con
     for (const auto& [dof, value] : prescribed_values(state.loads)) u[dof] = value;
   // Internal forces of the elements in scope, rebuilt with the state's materials.
   Eigen::VectorXd R = rebuilt_element_forces(
-      state.materials, scope.elements, [&](int e) { return end_of_step_kinematics(state, e); }, u,
+      state, scope.elements, [&](int e) { return end_of_step_kinematics(state, e); }, u,
       "an element turns inside out (det F <= 0) where a sensitivity parameter moves the prescribed displacements");
   subtract_face_loads(state, scope.faces, u, R);
   return R;
@@ -112,7 +112,7 @@ Eigen::VectorXd StaticAnalysis::element_pressures(const ParameterState& state, c
   return pressure;
 }
 
-Eigen::VectorXd StaticAnalysis::rebuilt_element_forces(const std::vector<MaterialDef>& materials,
+Eigen::VectorXd StaticAnalysis::rebuilt_element_forces(const ParameterState& state,
                                                        const std::vector<int>& elements,
                                                        const std::function<ElementKinematics(int)>& kinematics_of,
                                                        const Eigen::VectorXd& u, const char* inverted) const {
@@ -124,7 +124,8 @@ Eigen::VectorXd StaticAnalysis::rebuilt_element_forces(const std::vector<Materia
 #pragma omp parallel for schedule(static) reduction(+ : failures) if (n > 256)
   for (int k = 0; k < n; ++k) {
     const int e = elements[k];
-    if (!make_element(model_, materials, e)->internal_force(local_unknowns(u, e), kinematics_of(e), forces[k], nullptr))
+    if (!make_element(model_, state.materials, e, &state.node_shifts)
+             ->internal_force(local_unknowns(u, e), kinematics_of(e), forces[k], nullptr))
       ++failures;
   }
   if (failures > 0) throw std::runtime_error(inverted);
@@ -147,7 +148,7 @@ Eigen::VectorXd StaticAnalysis::increment_residual(const ParameterState& state, 
         ramp(volume_change_start_[e], dv == state.loads.volume_change.end() ? 0.0 : dv->second, last_lambda_),
         ramp(axial_stretch_start_, state.loads.axial_stretch, last_lambda_));
   };
-  return rebuilt_element_forces(state.materials, elements, kinematics_of, u,
+  return rebuilt_element_forces(state, elements, kinematics_of, u,
                                 "an element is inverted (det F <= 0) at a converged state");
 }
 
@@ -176,7 +177,9 @@ void StaticAnalysis::propagate_path_sensitivities() {
           model_.coordinates[nodes[k]] + u_.segment<2>(2 * static_cast<Eigen::Index>(nodes[k]));
     return x;
   };
-  // The history's part of dR/dtheta: -dr/dh dh_n/dtheta over the touching slave nodes, (4).
+  // The history's part of dR/dtheta: -dr/dh dh_n/dtheta over the touching slave nodes, (4); and the contact's own
+  // part for GAP PROFILE and SHAPE parameters.
+  const bool contact_parameters = has_contact_parameters();
   std::vector<std::vector<ContactHistoryDerivatives>> derivatives(contacts_.size());
   for (std::size_t ci = 0; ci < contacts_.size(); ++ci) {
     ContactState& c = contacts_[ci];
@@ -194,12 +197,16 @@ void StaticAnalysis::propagate_path_sensitivities() {
       const Eigen::MatrixXd& dh = c.history_sensitivity[i];
       Eigen::MatrixXd dr = Eigen::MatrixXd::Zero(D.dr_dh.rows(), n_parameters);
       if (dh.size() != 0) dr += D.dr_dh * dh;
-      if (c.gap_factors.size() != 0) dr += D.dr_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
+      if (contact_parameters) {
+        Eigen::MatrixXd own, unused;
+        contact_parameter_parts(c, i, D, own, unused);
+        dr += own;
+      }
       for (std::size_t k = 0; k < nodes.size(); ++k)
         for (int d = 0; d < 2; ++d) B.row(2 * nodes[k] + d) -= dr.row(2 * static_cast<Eigen::Index>(k) + d);
     }
   }
-  B -= frictionless_gap_derivatives();
+  if (contact_parameters) B -= contact_derivatives(true);
   if (!solve_tangent(B, path_du_))
     throw std::runtime_error("the tangent at a converged increment is singular: no sensitivities through friction");
   // The history each node leaves, (5).
@@ -218,26 +225,50 @@ void StaticAnalysis::propagate_path_sensitivities() {
         du_local.middleRows(2 * static_cast<Eigen::Index>(k), 2) = path_du_.middleRows(2 * nodes[k], 2);
       Eigen::MatrixXd dh = D.dh_dx * du_local;
       if (c.history_sensitivity[i].size() != 0) dh += D.dh_dh * c.history_sensitivity[i];
-      if (c.gap_factors.size() != 0) dh += D.dh_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
+      if (contact_parameters) {
+        Eigen::MatrixXd unused, own;
+        contact_parameter_parts(c, i, D, unused, own);
+        dh += own;
+      }
       c.history_sensitivity[i] = std::move(dh);
     }
   }
 }
 
-Eigen::MatrixXd StaticAnalysis::contact_gap_derivatives() {
+Eigen::MatrixXd StaticAnalysis::contact_parameter_derivatives() {
+  if (!has_contact_parameters()) return Eigen::MatrixXd::Zero(n_dofs_, static_cast<Eigen::Index>(model_.sensitivity.parameters.size()));
   if (forces_lambda_ != last_lambda_ || forces_u_.size() != u_.size() || forces_u_ != u_) evaluate(u_, last_lambda_, false);
-  return gap_derivatives(false);
+  return contact_derivatives(false);
 }
 
-Eigen::MatrixXd StaticAnalysis::frictionless_gap_derivatives() const { return gap_derivatives(true); }
+bool StaticAnalysis::has_contact_parameters() const {
+  return !shape_of_node_.empty() ||
+         std::any_of(contacts_.begin(), contacts_.end(), [](const ContactState& c) { return c.gap_factors.size() != 0; });
+}
 
-// dR/dtheta of the GAP PROFILE parameters from the touching slave nodes' contact elements at the last evaluation:
-// those of every pair, or (frictionless_only) of the pairs without friction, whose part the friction path has
-// already taken with its history.
-Eigen::MatrixXd StaticAnalysis::gap_derivatives(bool frictionless_only) const {
+void StaticAnalysis::contact_parameter_parts(const ContactState& c, std::size_t i, const ContactHistoryDerivatives& D,
+                                             Eigen::MatrixXd& dr, Eigen::MatrixXd& dh) const {
+  const auto n_parameters = static_cast<Eigen::Index>(model_.sensitivity.parameters.size());
+  const std::vector<int>& nodes = c.element_nodes[i];
+  // the positions' change per unit theta (SHAPE), the node's offset's (GAP PROFILE)
+  Eigen::MatrixXd dx = Eigen::MatrixXd::Zero(2 * static_cast<Eigen::Index>(nodes.size()), n_parameters);
+  for (std::size_t k = 0; k < nodes.size(); ++k)
+    if (const auto moved = shape_of_node_.find(nodes[k]); moved != shape_of_node_.end())
+      for (const auto& [j, direction] : moved->second) dx.block(2 * static_cast<Eigen::Index>(k), j, 2, 1) = direction;
+  dr = D.dr_dx * dx;
+  dh = D.dh_dx * dx;
+  if (c.weight_derivatives.size() != 0)   // the residual is linear in the slave's weight
+    dr += D.r / c.slave_weight[i] * c.weight_derivatives.row(static_cast<Eigen::Index>(i));
+  if (c.gap_factors.size() != 0) {
+    dr += D.dr_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
+    dh += D.dh_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
+  }
+}
+
+Eigen::MatrixXd StaticAnalysis::contact_derivatives(bool frictionless_only) const {
   Eigen::MatrixXd dR = Eigen::MatrixXd::Zero(n_dofs_, static_cast<Eigen::Index>(model_.sensitivity.parameters.size()));
   for (const ContactState& c : contacts_) {
-    if (c.gap_factors.size() == 0 || (frictionless_only && c.law.friction > 0.0)) continue;
+    if (frictionless_only && c.law.friction > 0.0) continue;
     for (std::size_t i = 0; i < c.slave_nodes.size(); ++i) {
       const std::vector<int>& nodes = c.element_nodes[i];
       if (nodes.empty() || !c.points[i].touching) continue;
@@ -245,9 +276,10 @@ Eigen::MatrixXd StaticAnalysis::gap_derivatives(bool frictionless_only) const {
       for (std::size_t k = 0; k < nodes.size(); ++k)
         x.segment<2>(2 * static_cast<Eigen::Index>(k)) =
             model_.coordinates[nodes[k]] + u_.segment<2>(2 * static_cast<Eigen::Index>(nodes[k]));
-      const ContactHistoryDerivatives D =
-          contact_history_derivatives(x, c.law, c.history[i], c.element_segment[i], c.slave_weight[i], c.slave_offset[i]);
-      const Eigen::MatrixXd dr = D.dr_doffset * c.gap_factors.row(static_cast<Eigen::Index>(i));
+      Eigen::MatrixXd dr, unused;
+      contact_parameter_parts(c, i, contact_history_derivatives(x, c.law, c.history[i], c.element_segment[i],
+                                                                c.slave_weight[i], c.slave_offset[i]),
+                              dr, unused);
       for (std::size_t k = 0; k < nodes.size(); ++k)
         for (int d = 0; d < 2; ++d) dR.row(2 * nodes[k] + d) += dr.row(2 * static_cast<Eigen::Index>(k) + d);
     }

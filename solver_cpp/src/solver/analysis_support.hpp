@@ -8,6 +8,7 @@
 #include "solver/newton.hpp"
 
 #include <chrono>
+#include <map>
 #include <memory>
 #include <set>
 #include <vector>
@@ -55,14 +56,19 @@ inline std::vector<int> local_dofs(const std::vector<int>& local_nodes) {
 }
 
 // Element `index` of the model with the given materials (the model's own, or a
-// sensitivity parameter's perturbed copy of them).
-inline std::unique_ptr<Element> make_element(const Model& model, const std::vector<MaterialDef>& materials, int index) {
+// sensitivity parameter's perturbed copy of them), on reference positions moved by `shifts` (a SHAPE parameter's).
+inline std::unique_ptr<Element> make_element(const Model& model, const std::vector<MaterialDef>& materials, int index,
+                                             const std::map<int, Eigen::Vector2d>* shifts = nullptr) {
   const ElementDef& e = model.elements[index];
   const SectionDef& s = model.sections[e.section];
   const Material& law = *materials[s.material].law;
   const int degree = e.shape == ElementShape::T3 ? 1 : (s.full_integration ? 4 : 2);
   NodeMatrix X(node_count(e.shape), 2);
-  for (int k = 0; k < X.rows(); ++k) X.row(k) = model.coordinates[e.nodes[k]].transpose();
+  for (int k = 0; k < X.rows(); ++k) {
+    X.row(k) = model.coordinates[e.nodes[k]].transpose();
+    if (shifts)
+      if (const auto moved = shifts->find(e.nodes[k]); moved != shifts->end()) X.row(k) += moved->second.transpose();
+  }
   if (!e.hybrid) return std::make_unique<SolidElement>(e.shape, X, law, s.thickness, degree);
   return std::make_unique<MixedElement>(e.shape, X, dynamic_cast<const SplitHyperelastic&>(law), s.thickness, degree);
 }

@@ -104,6 +104,9 @@ StaticAnalysis::StaticAnalysis(const Model& model, SolverSettings settings) : mo
   }
   model_size_ = (high - low).norm();
   u_.setZero(n_dofs_);
+  for (std::size_t j = 0; j < model.sensitivity.parameters.size(); ++j)
+    for (const auto& [node, direction] : model.sensitivity.parameters[j].shape)
+      shape_of_node_[node].emplace_back(static_cast<int>(j), direction);
   build_contacts();
   carries_path_sensitivities_ =
       model.sensitivity.requested &&

@@ -100,9 +100,10 @@ public:
   // every column of B (full length: prescribed rows of B are ignored, of X set to 0).
   // Returns false when K is singular.
   bool solve_tangent(const Eigen::MatrixXd& B, Eigen::MatrixXd& X);
-  // dR/dtheta of the contact elements at the converged state for *SENSITIVITY's GAP PROFILE parameters (the
-  // slaves' offsets; other columns zero): what the scoped residuals do not see (n_dofs x parameters).
-  Eigen::MatrixXd contact_gap_derivatives();
+  // dR/dtheta of the contact elements at the converged state for *SENSITIVITY's GAP PROFILE and SHAPE parameters
+  // (the slaves' offsets, the positions moved; other columns zero): what the scoped residuals do not see
+  // (n_dofs x parameters).
+  Eigen::MatrixXd contact_parameter_derivatives();
   // With Coulomb friction the converged state depends on the loading path: the sensitivities of *SENSITIVITY's
   // parameters are then carried along it, one solve per converged increment (sensitivity.hpp, (4));
   // path_sensitivities() holds du/dtheta of the last one (n_dofs x parameters).
@@ -171,6 +172,8 @@ private:
     // GAP PROFILE parameters (slave nodes x parameters; empty without such a parameter on this pair's slave).
     std::vector<double> slave_offset;
     Eigen::MatrixXd gap_factors;
+    // SHAPE parameters: d(slave weight)/dtheta (slave nodes x parameters; empty without SHAPE parameters)
+    Eigen::MatrixXd weight_derivatives;
   };
   static constexpr char kFree = 0, kHeld = 1, kReleased = 2;
   struct ContactElement {
@@ -197,15 +200,22 @@ private:
   // After a converged increment, before its contact history is committed: du/dtheta of the increment and the
   // history's sensitivity it leaves (sensitivity.hpp, (4)-(5)).
   void propagate_path_sensitivities();
-  Eigen::MatrixXd frictionless_gap_derivatives() const;
-  Eigen::MatrixXd gap_derivatives(bool frictionless_only) const;
+  // The contact's part of dR/dtheta (GAP PROFILE, SHAPE) of the touching slave nodes' elements at the last
+  // evaluation: of every pair, or (frictionless_only) of those without friction, whose part the path carries.
+  Eigen::MatrixXd contact_derivatives(bool frictionless_only) const;
+  // Slave node i's contact element (derivatives D, its nodes): its local residual's and left history's derivatives
+  // with respect to the GAP PROFILE and SHAPE parameters (2 n_nodes x parameters, 3 x parameters).
+  void contact_parameter_parts(const ContactState& c, std::size_t i, const ContactHistoryDerivatives& D,
+                               Eigen::MatrixXd& dr, Eigen::MatrixXd& dh) const;
+  bool has_contact_parameters() const;
   // Internal forces of `elements` with state's materials at u and the committed increment's load fraction; in the
   // last step under state's volume change and axial stretch, ramped from the step's start.
   Eigen::VectorXd increment_residual(const ParameterState& state, const std::vector<int>& elements,
                                      const Eigen::VectorXd& u) const;
-  // Internal forces of `elements` rebuilt with `materials` under kinematics_of(e), at u, summed into a full-length
-  // vector (the sensitivities' dR/dtheta); throws `inverted` where an element turns inside out.
-  Eigen::VectorXd rebuilt_element_forces(const std::vector<MaterialDef>& materials, const std::vector<int>& elements,
+  // Internal forces of `elements` rebuilt with state's materials on its moved reference positions under
+  // kinematics_of(e), at u, summed into a full-length vector (the sensitivities' dR/dtheta); throws `inverted`
+  // where an element turns inside out.
+  Eigen::VectorXd rebuilt_element_forces(const ParameterState& state, const std::vector<int>& elements,
                                          const std::function<ElementKinematics(int)>& kinematics_of,
                                          const Eigen::VectorXd& u, const char* inverted) const;
   // Residual R = f_int - f_ext at load fraction lambda; the tangent too if asked.
@@ -280,6 +290,8 @@ private:
   std::vector<ElementVector> element_force_;
   std::vector<ElementMatrix> element_tangent_;
   bool carries_path_sensitivities_ = false;
+  // SHAPE parameters: node -> (parameter index, dX/dtheta) of each that moves it
+  std::map<int, std::vector<std::pair<int, Eigen::Vector2d>>> shape_of_node_;
   Eigen::MatrixXd path_du_;
 };
 

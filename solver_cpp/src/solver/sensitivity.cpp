@@ -24,12 +24,19 @@ ParameterState SensitivityAnalysis::at(const SensitivityParameter& p, double val
 Eigen::MatrixXd SensitivityAnalysis::residual_derivatives() const {
   const std::vector<SensitivityParameter>& parameters = model_.sensitivity.parameters;
   const Eigen::VectorXd& u = analysis_.solution();
-  Eigen::MatrixXd dR = analysis_.contact_gap_derivatives();  // the contact's part (GAP PROFILE lines)
+  Eigen::MatrixXd dR = analysis_.contact_parameter_derivatives();  // the contact's part (GAP PROFILE, SHAPE)
   for (std::size_t j = 0; j < parameters.size(); ++j) {
     const SensitivityParameter& p = parameters[j];
     const double theta = p.get(base_);
     auto column = dR.col(static_cast<Eigen::Index>(j));
     if (p.gap_surface >= 0) continue;  // the contact's alone
+    if (!p.shape.empty()) {  // the elements' part (2) added to the contact's
+      const double h = step(p);
+      column += (analysis_.scoped_residual(at(p, theta + h), p.scope, u) -
+                 analysis_.scoped_residual(at(p, theta - h), p.scope, u)) /
+                (2.0 * h);
+      continue;
+    }
     if (p.affine) {  // (3): one evaluation, the converged residual kept from Newton
       const double h = theta != 0.0 ? std::abs(theta) : p.scale;
       column = (analysis_.scoped_residual(at(p, theta + h), p.scope, u) - analysis_.converged_scoped_residual(p.scope)) / h;
