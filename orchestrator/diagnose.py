@@ -583,13 +583,18 @@ def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool
     if not done:
         return diagnosis.explained, diagnosis.verdict
     ratio = done[0].misfit_over_floor
+    # the skin's uncertainty of the baseline's parameters may be far from the refit's (a baseline on a bound): the
+    # refit is judged against its own when it was estimated again
+    own = done[0].own_floor
+    floor = "" if own is None else f" ({ratio:.2f} with the skin's uncertainty of the baseline fit)"
+    ratio = ratio if own is None else own["misfit_over_floor"]
     tie = diagnosis.ranking[0].tied_with
     settled = (f" (the score could not tell it from {', '.join(tie)}; their refits decided, by BIC)" if tie else "")
     if ratio <= EXPLAINED_FACTOR:
         return True, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; {best} explains it: "
-                      f"refitted with it, the misfit is {ratio:.2f} x the floor{settled}")
+                      f"refitted with it, the misfit is {ratio:.2f} x the floor{floor}{settled}")
     return False, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; the best effect, {best}, "
-                   f"refitted, leaves {ratio:.2f} x the floor: no catalog effect explains the residual")
+                   f"refitted, leaves {ratio:.2f} x the floor{floor}: no catalog effect explains the residual")
 
 
 def _verdict(ranking: list[EffectScore], misfit: float, floor: float, lack_of_fit: bool) -> tuple[bool, str]:
@@ -623,6 +628,9 @@ class Refit:
     bic: float
     fit: dict
     levels: list[dict] = field(default_factory=list)   # several socks: each level's misfit (`level_misfits`)
+    # the misfit against the floor with the skin's uncertainty estimated again at this refit's parameters (DIC data;
+    # the identification estimated it at the baseline fit's): {"misfit", "misfit_over_floor"}, or None
+    own_floor: dict | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)

@@ -30,6 +30,7 @@ from .diagnose import (ALPHA, diagnose, level_maps, patch_elements, refit, refit
                        summarize_fit, weigh_local)
 from .digits import interval_uncertainty, rounded, with_uncertainty
 from .discretization import discretization_check, discretization_line
+from .effects import effect
 from .figures import diagnosis_figure
 from .garment_state import band_state
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
@@ -45,6 +46,7 @@ from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_me
 from .levels import AtTension
 from .runlock import holds_run_folder
 from .results import MMHG_PER_KPA
+from .objectives import DisplacementResidualObjective
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .runfiles import read_json, write_json
 from .study import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
@@ -444,7 +446,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
     names += [n for n in requested if n not in ("auto", "none") and n not in names]
     after, after_maps, after_level_maps = [], [], []
-    refit_failures = {}
+    refit_failures, residuals = {}, {}
     for name in names:
         try:
             fit, residual = refit(evaluator_for, model, theta, [name], objective)
@@ -452,9 +454,14 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
             refit_failures[name] = str(error)
             continue
         after.append(fit)
+        residuals[name] = residual
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
         after_level_maps.append(level_maps(objective, residual, frame))
     settle_ties(diagnosis, after)
+    if diagnosis.ranking and diagnosis.ranking[0].effect in residuals:
+        best = diagnosis.ranking[0].effect
+        fit = next(f for f in after if f.effects[-1:] == [best])
+        fit.own_floor = _refit_own_floor(setup, identification, fit, residuals[best])
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
     if diagnosis.ranking and diagnosis.ranking[0].effect in refit_failures:
         # a prediction the refit could not check is not an explanation
@@ -497,6 +504,24 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
                          setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
                                                    f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
     return result
+
+
+def _refit_own_floor(setup, identification: dict, fit, residual_mm: np.ndarray) -> dict | None:
+    """The refit's misfit against the noise floor with the skin's uncertainty estimated again at the refit's
+    parameters (`geometry_uncertainty`, as the identification did at the baseline fit's), for DIC data of one
+    garment level refitted with catalog effects; None otherwise. Its residual (mm, the fitted rigid motion removed)
+    is weighed again: no run of the model, only those of the skin's modes."""
+    geometry = identification.get("geometry_uncertainty")
+    if geometry is None or setup.case.levels or any(effect(name).apply is None for name in fit.effects):
+        return None
+    measured = setup.measurements("dic", with_geometry=False)
+    covariance, _ = geometry_covariance(setup, fit.theta, measured, effects=tuple(fit.effects),
+                                        skin_sigma_mm=geometry["skin_sigma_mm"],
+                                        interface_sigma_mm=geometry["interface_sigma_mm"], cutoff_mm=geometry["cutoff_mm"])
+    own = DisplacementResidualObjective(setup.mesh, measured.with_model_covariance(
+        covariance, f"skin uncertain by {geometry['skin_sigma_mm']:.3f} mm RMS, at the refit"))
+    misfit = own.cost_of(own.weigh(np.asarray(residual_mm, float).ravel()))
+    return {"misfit": misfit, "misfit_over_floor": misfit / own.noise_floor(len(fit.theta))}
 
 
 def pressure_summary(result: dict) -> list[str]:
