@@ -9,7 +9,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <set>
 #include <string>
 #include <utility>
 
@@ -44,13 +43,20 @@ int Model::gap_profile(int surface_index) const {
   return -1;
 }
 
+std::vector<int> Model::surface_nodes(int surface_index) const {
+  std::vector<int> nodes;
+  for (const Face& f : surfaces[surface_index]) {
+    const ElementDef& e = elements[f.element];
+    for (int local : face_nodes(e.shape, f.face)) nodes.push_back(e.nodes[local]);
+  }
+  std::sort(nodes.begin(), nodes.end());
+  nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
+  return nodes;
+}
+
 Eigen::Vector2d Model::gap_center(const GapProfile& profile) const {
   if (profile.has_center) return profile.center;
-  std::set<int> nodes;
-  for (const Face& f : surfaces[profile.surface]) {
-    const ElementDef& e = elements[f.element];
-    for (int local : face_nodes(e.shape, f.face)) nodes.insert(e.nodes[local]);
-  }
+  const std::vector<int> nodes = surface_nodes(profile.surface);
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
   for (int n : nodes) center += coordinates[n];
   return center / static_cast<double>(std::max<std::size_t>(nodes.size(), 1));

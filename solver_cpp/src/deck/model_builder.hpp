@@ -57,6 +57,10 @@ private:
   static void needs_data(const KeywordBlock& b);
   static void field_count(const DataLine& line, std::size_t min, std::size_t max, const std::string& what);
   static void require(bool ok, const DataLine& line, const std::string& message);
+  // Data lines `k, a_k, b_k` of a Fourier series (*TENSION PROFILE, TYPE=FOURIER; *GAP PROFILE), k >= lowest
+  // (`why` says why not lower), each k once.
+  static void read_harmonics(const KeywordBlock& b, const std::string& what, int lowest, const std::string& why,
+                             std::map<int, std::pair<double, double>>& harmonics);
   int node(const std::string& text, const SourceLocation& where) const;
   std::vector<int> nodes_of(const std::string& text, const SourceLocation& where) const;
   std::vector<int> elements_of(const std::string& text, const SourceLocation& where) const;

@@ -134,14 +134,7 @@ void ModelBuilder::gap_profile(const KeywordBlock& b) {
     p.has_center = true;
     p.center = {to_double(*cx, b.where, "CX"), to_double(*cy, b.where, "CY")};
   }
-  for (const DataLine& line : b.data) {
-    field_count(line, 3, 3, "*GAP PROFILE data line (k, a_k, b_k in mm)");
-    Context c{line};
-    const int k = c.integer(0, "harmonic number k");
-    require(k >= 0, line, "harmonic number k must be >= 0 (0: a uniform offset a_0)");
-    if (p.harmonics.count(k)) throw DeckError(line.where, "harmonic " + std::to_string(k) + " is listed twice");
-    p.harmonics[k] = {c.number(1, "a_k"), c.number(2, "b_k")};
-  }
+  read_harmonics(b, "*GAP PROFILE data line (k, a_k, b_k in mm)", 0, "0: a uniform offset a_0", p.harmonics);
   model_.gap_profiles.push_back(p);
 }
 

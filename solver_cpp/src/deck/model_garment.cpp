@@ -58,6 +58,18 @@ double TensionProfile::minimum_factor(double* at_degrees) const {
 
 namespace deck_building {
 
+void ModelBuilder::read_harmonics(const KeywordBlock& b, const std::string& what, int lowest, const std::string& why,
+                                  std::map<int, std::pair<double, double>>& harmonics) {
+  for (const DataLine& line : b.data) {
+    field_count(line, 3, 3, what);
+    Context c{line};
+    const int k = c.integer(0, "harmonic number k");
+    require(k >= lowest, line, "harmonic number k must be >= " + std::to_string(lowest) + " (" + why + ")");
+    if (harmonics.count(k)) throw DeckError(line.where, "harmonic " + std::to_string(k) + " is listed twice");
+    harmonics[k] = {c.number(1, "a_k"), c.number(2, "b_k")};
+  }
+}
+
 void ModelBuilder::tension_profile(const KeywordBlock& b) {
   b.allow_only({"NAME", "TYPE", "CX", "CY"});
   model_data(b);
@@ -99,14 +111,8 @@ void ModelBuilder::read_table_profile(const KeywordBlock& b, TensionProfile& p) 
 // TYPE=FOURIER: data lines k, a_k, b_k (none: a uniform tension whose coefficients
 // *SENSITIVITY may still ask about); the factor must stay > 0 all around.
 void ModelBuilder::read_fourier_profile(const KeywordBlock& b, TensionProfile& p) {
-  for (const DataLine& line : b.data) {
-    field_count(line, 3, 3, "*TENSION PROFILE, TYPE=FOURIER data line (k, a_k, b_k)");
-    Context c{line};
-    const int k = c.integer(0, "harmonic number k");
-    require(k >= 1, line, "harmonic number k must be >= 1 (the constant term is the TENSION itself)");
-    if (p.harmonics.count(k)) throw DeckError(line.where, "harmonic " + std::to_string(k) + " is listed twice");
-    p.harmonics[k] = {c.number(1, "a_k"), c.number(2, "b_k")};
-  }
+  read_harmonics(b, "*TENSION PROFILE, TYPE=FOURIER data line (k, a_k, b_k)", 1, "the constant term is the TENSION itself",
+                 p.harmonics);
   double angle = 0.0;
   const double smallest = p.minimum_factor(&angle);
   if (!(smallest > 0.0)) {

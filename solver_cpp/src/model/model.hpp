@@ -233,6 +233,7 @@ struct Model {
   int material(const std::string& name) const;  // -1 when unknown
   int profile(const std::string& name) const;   // -1 when unknown
   int gap_profile(int surface) const;           // -1 when the surface has none
+  std::vector<int> surface_nodes(int surface) const;  // the nodes of its faces, sorted, once each
   // The center of a gap profile's angles: CX, CY, or the centroid of its surface's nodes.
   Eigen::Vector2d gap_center(const GapProfile& profile) const;
   ParameterState parameter_state() const;       // materials, profiles, the last step's loads

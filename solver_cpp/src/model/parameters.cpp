@@ -111,6 +111,30 @@ SensitivityParameter laplace_reference(const Model& model, const DataLine& line)
   return p;
 }
 
+// get and set of a_k (cosine) or b_k of the Fourier series of profile `index` in a state's `profiles` (0 where it
+// does not list k).
+template <typename Profile>
+void fourier_accessors(SensitivityParameter& p, std::vector<Profile> ParameterState::*profiles, int index, int k,
+                       bool cosine) {
+  p.get = [=](const ParameterState& s) {
+    const auto& h = (s.*profiles)[static_cast<std::size_t>(index)].harmonics;
+    const auto it = h.find(k);
+    return it == h.end() ? 0.0 : (cosine ? it->second.first : it->second.second);
+  };
+  p.set = [=](ParameterState& s, double value) {
+    auto& ab = (s.*profiles)[static_cast<std::size_t>(index)].harmonics[k];
+    (cosine ? ab.first : ab.second) = value;
+  };
+}
+
+// The surface a data line names in its second field, and its index; DeckError when the model has none.
+std::pair<std::string, int> named_surface(const Model& model, const DataLine& line) {
+  const std::string name = upper(line.fields[1]);
+  const int surface = model.surface(name);
+  if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+  return {name, surface};
+}
+
 // The harmonic of an `A<k>` / `B<k>` field (A from k = 0 when allow_a0); DeckError otherwise.
 std::pair<int, bool> harmonic_label(const DataLine& line, const std::string& what, bool allow_a0) {
   const std::string label = upper(line.fields[2]);
@@ -139,15 +163,7 @@ SensitivityParameter profile_coefficient(const Model& model, const DataLine& lin
   p.name = "PROFILE:" + name + ":" + (cosine ? "A" : "B") + std::to_string(k);
   p.where = line.where;
   p.affine = true;  // the factor, and so the tension and the load, are linear in a_k, b_k
-  p.get = [profile, k, cosine](const ParameterState& s) {
-    const auto& h = s.profiles[profile].harmonics;
-    const auto it = h.find(k);
-    return it == h.end() ? 0.0 : (cosine ? it->second.first : it->second.second);
-  };
-  p.set = [profile, k, cosine](ParameterState& s, double value) {
-    auto& ab = s.profiles[profile].harmonics[k];
-    (cosine ? ab.first : ab.second) = value;
-  };
+  fourier_accessors(p, &ParameterState::profiles, profile, k, cosine);
   for (const auto& [surface, load] : model.steps.back().loads.laplace)
     if (load.profile == profile) {
       const auto faces = faces_of(model, surface);
@@ -161,12 +177,10 @@ SensitivityParameter profile_coefficient(const Model& model, const DataLine& lin
 
 // GAP PROFILE, <slave surface>, A<k> | B<k>: a coefficient of the surface's *GAP PROFILE (mm; 0 where it does not
 // list k). R depends on it through the contact elements only, which StaticAnalysis differentiates itself
-// (contact_gap_derivatives): the scope is empty, and get/set only report the value.
+// (contact_parameter_derivatives): the scope is empty, and get/set only report the value.
 SensitivityParameter gap_coefficient(const Model& model, const DataLine& line) {
   expect_fields(line, 3, "GAP PROFILE, slave surface, A<k> or B<k>");
-  const std::string name = upper(line.fields[1]);
-  const int surface = model.surface(name);
-  if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+  const auto [name, surface] = named_surface(model, line);
   const int profile = model.gap_profile(surface);
   if (profile < 0)
     throw DeckError(line.where, "surface " + name + " has no *GAP PROFILE: add *GAP PROFILE, SLAVE=" + name +
@@ -180,15 +194,7 @@ SensitivityParameter gap_coefficient(const Model& model, const DataLine& line) {
   // a bulk modulus times J - 1, loses its digits to round-off over a step of 1e-7 mm (1 % where dp/da is small)
   p.scale = 1.0;
   p.affine = true;
-  p.get = [profile, k, cosine](const ParameterState& s) {
-    const auto& h = s.gap_profiles[profile].harmonics;
-    const auto it = h.find(k);
-    return it == h.end() ? 0.0 : (cosine ? it->second.first : it->second.second);
-  };
-  p.set = [profile, k, cosine](ParameterState& s, double value) {
-    auto& ab = s.gap_profiles[profile].harmonics[k];
-    (cosine ? ab.first : ab.second) = value;
-  };
+  fourier_accessors(p, &ParameterState::gap_profiles, profile, k, cosine);
   p.gap_surface = surface;
   p.gap_harmonic = k;
   p.gap_sine = !cosine;
@@ -223,33 +229,19 @@ std::vector<std::pair<int, int>> loaded_faces_of(const Model& model, const std::
   return faces;
 }
 
-// The nodes of a surface's faces (sorted, unique).
-std::vector<int> surface_nodes(const Model& model, int surface) {
-  std::vector<int> nodes;
-  for (const Face& f : model.surfaces[surface]) {
-    const ElementDef& e = model.elements[f.element];
-    for (int local : face_nodes(e.shape, f.face)) nodes.push_back(e.nodes[local]);
-  }
-  std::sort(nodes.begin(), nodes.end());
-  nodes.erase(std::unique(nodes.begin(), nodes.end()), nodes.end());
-  return nodes;
-}
-
 // SHAPE, <surface>, A<k> | B<k>: the surface's nodes moved radially, X += theta cos k phi e_r (sin k phi for B),
 // phi and e_r about the centroid of its nodes (mm; 0 is the mesh's own shape): a segmented contour's shape error.
 // The elements touching them are rebuilt on the moved positions (central difference), and any contact element
 // with such a node sees it moved (StaticAnalysis::contact_parameter_derivatives).
 SensitivityParameter shape_coefficient(const Model& model, const DataLine& line) {
   expect_fields(line, 3, "SHAPE, surface, A<k> or B<k>");
-  const std::string name = upper(line.fields[1]);
-  const int surface = model.surface(name);
-  if (surface < 0) throw DeckError(line.where, "surface " + name + " is not defined (*SURFACE, NAME=" + name + ")");
+  const auto [name, surface] = named_surface(model, line);
   const auto [k, sine] = harmonic_label(line, "shape", true);
   SensitivityParameter p;
   p.name = "SHAPE:" + name + ":" + (sine ? "B" : "A") + std::to_string(k);
   p.where = line.where;
   p.scale = 1.0;  // mm: the difference step is 1e-4 mm
-  const std::vector<int> nodes = surface_nodes(model, surface);
+  const std::vector<int> nodes = model.surface_nodes(surface);
   Eigen::Vector2d center = Eigen::Vector2d::Zero();
   for (int n : nodes) center += model.coordinates[n];
   center /= static_cast<double>(std::max<std::size_t>(nodes.size(), 1));
