@@ -36,7 +36,7 @@ from .garment_state import band_state
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_spreads, pressure_uncertainty, table1_starts)
 from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
-                                   discard_without_columns, geometry_columns, geometry_covariance)
+                                   discard_without_columns, geometry_columns)
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .geometry_uncertainty import write as write_geometry
 from .imaging.case import read_model_choice
@@ -46,7 +46,6 @@ from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_me
 from .levels import AtTension
 from .runlock import holds_run_folder
 from .results import MMHG_PER_KPA
-from .objectives import DisplacementResidualObjective
 from .runner import LOG_NAME, EvaluationLog, Evaluator
 from .runfiles import read_json, write_json
 from .study import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
@@ -190,19 +189,15 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         # again with it in the weights (geometry_uncertainty); every garment level's windows under its own tension,
         # with the columns that make it kept, from which the joint fit forms the covariance between the levels
         pixel = min(setup.case.pixel_size_mm)
-        for level, (tension, level_measured) in enumerate(zip(setup.case.tensions, measured), start=1):
+        options = dict(effects=setup.model.effects,
+                       skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
+                       interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM)
+        for level, level_measured in enumerate(measured, start=1):
             stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
             if stored is None or not np.allclose(stored[1]["theta"], best.theta, rtol=1e-9):
-                options = dict(effects=setup.model.effects,
-                               skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
-                               interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM,
-                               tension_N_per_mm=None if level == 1 else tension)
-                if setup.case.levels:
-                    columns, weights, info = geometry_columns(setup, best.theta, level_measured, **options)
-                    write_geometry(run_dir, covariance_of(columns, weights), info, level, columns, weights)
-                else:
-                    covariance, info = geometry_covariance(setup, best.theta, level_measured, **options)
-                    write_geometry(run_dir, covariance, info, level)
+                columns, weights, info = _level_skin_columns(setup, best.theta, level_measured, level, options)
+                kept = (columns, weights) if setup.case.levels else ()
+                write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
         measured = setup.level_measurements(source)
         first = best
         fits, best = fit_from([first.theta], setup.objective_of(measured),
@@ -506,20 +501,30 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     return result
 
 
+def _level_skin_columns(setup, theta, measured, level: int, options: dict):
+    """`geometry_columns` of garment level `level`'s measurements, under that level's tension."""
+    tension = None if level == 1 else setup.case.tensions[level - 1]
+    return geometry_columns(setup, theta, measured, tension_N_per_mm=tension, **options)
+
+
 def _refit_own_floor(setup, identification: dict, fit, residual_mm: np.ndarray) -> dict | None:
     """The refit's misfit against the noise floor with the skin's uncertainty estimated again at the refit's
-    parameters (`geometry_uncertainty`, as the identification did at the baseline fit's), for DIC data of one
-    garment level refitted with catalog effects; None otherwise. Its residual (mm, the fitted rigid motion removed)
-    is weighed again: no run of the model, only those of the skin's modes."""
+    parameters (`geometry_uncertainty`, as the identification did at the baseline fit's), for DIC data refitted with
+    catalog effects; None otherwise. Its residual (mm, each level's fitted rigid motion removed) is weighed again:
+    no run of the model, only those of the skin's modes."""
     geometry = identification.get("geometry_uncertainty")
-    if geometry is None or setup.case.levels or any(effect(name).apply is None for name in fit.effects):
+    if geometry is None or any(effect(name).apply is None for name in fit.effects):
         return None
-    measured = setup.measurements("dic", with_geometry=False)
-    covariance, _ = geometry_covariance(setup, fit.theta, measured, effects=tuple(fit.effects),
-                                        skin_sigma_mm=geometry["skin_sigma_mm"],
-                                        interface_sigma_mm=geometry["interface_sigma_mm"], cutoff_mm=geometry["cutoff_mm"])
-    own = DisplacementResidualObjective(setup.mesh, measured.with_model_covariance(
-        covariance, f"skin uncertain by {geometry['skin_sigma_mm']:.3f} mm RMS, at the refit"))
+    options = dict(effects=tuple(fit.effects), skin_sigma_mm=geometry["skin_sigma_mm"],
+                   interface_sigma_mm=geometry["interface_sigma_mm"], cutoff_mm=geometry["cutoff_mm"])
+    measured = []
+    for level, level_measured in enumerate(setup.level_measurements("dic", with_geometry=False), start=1):
+        columns, weights, _ = _level_skin_columns(setup, fit.theta, level_measured, level, options)
+        kept = (columns, weights) if setup.case.levels else ()   # the joint fit's blocks between levels
+        measured.append(level_measured.with_model_covariance(
+            covariance_of(columns, weights), f"skin uncertain by {geometry['skin_sigma_mm']:.3f} mm RMS, at the refit",
+            *kept))
+    own = setup.objective_of(measured)
     misfit = own.cost_of(own.weigh(np.asarray(residual_mm, float).ravel()))
     return {"misfit": misfit, "misfit_over_floor": misfit / own.noise_floor(len(fit.theta))}
 

@@ -514,9 +514,12 @@ def test_two_socks_are_diagnosed_together_from_the_images(tmp_path):
     refit = next(fit for fit in diagnosis["refits"] if fit["effects"] == ["drainage"])
     print(f"identified at {identification['misfit_over_floor']:.2f} x floor; ranking "
           f"{[(s['effect'], round(s['statistic'], 1)) for s in diagnosis['ranking'][:4]]}; drainage refit "
-          f"{refit['misfit_over_floor']:.2f} x, levels {[round(v['misfit_over_floor'], 2) for v in refit['levels']]}, "
+          f"{refit['misfit_over_floor']:.2f} x ({refit['own_floor']}), levels "
+          f"{[round(v['misfit_over_floor'], 2) for v in refit['levels']]}, "
           f"dv {refit['theta'][-1]:.4f}; {diagnosis['verdict']}")
     assert best["effect"] == "drainage" and best["significant"]
+    # against the floor with the skin's uncertainty estimated again at the refit, the levels' blocks included
+    assert refit["own_floor"] is not None and refit["own_floor"]["misfit_over_floor"] <= 1.2
     assert diagnosis["explained"] and refit["misfit_over_floor"] <= 1.2
     assert [level["tension_N_per_mm"] for level in diagnosis["levels"]] == list(TENSIONS)
     assert [level["image"] for level in diagnosis["levels"]] == ["loaded.png", "loaded-level-2.png"]
