@@ -794,5 +794,7 @@ def comparison_lines(before: Refit, after: Sequence[Refit]) -> list[str]:
         values = ", ".join(f"{n}={v:.4g}" for n, v in zip(fit.parameters, fit.theta))
         lines.append(f"{label:<28}{len(fit.parameters):>3}{fit.misfit:>13.4g}{fit.misfit_over_floor:>9.2f}"
                      f"{fit.aic:>11.1f}{fit.bic:>11.1f}  {values}")
+    lines += [f"{model_label(fit.effects)}: {fit.own_floor['misfit_over_floor']:.2f} x the floor with the skin's "
+              "uncertainty estimated again at its own parameters" for fit in after if fit.own_floor]
     return lines
 

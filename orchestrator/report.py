@@ -438,8 +438,10 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                        s["predicted_misfit"] / floor, ", ".join(f"{v:.2f}" for v in s["orthogonal_fraction"]),
                        s["significant"]] for k, s in enumerate(diagnosis["ranking"], 1)])
     comparison = _table("comparison", "Before and after the refit",
-                        ["model", "k", "misfit (mm^2)", "misfit / floor", "AIC", "BIC", "M (mm^2)", "parameters"],
-                        [[label, len(f["parameters"]), f["misfit"], f["misfit_over_floor"], f["aic"], f["bic"], m,
+                        ["model", "k", "misfit (mm^2)", "misfit / floor", "misfit / floor, the skin's uncertainty at "
+                         "this fit", "AIC", "BIC", "M (mm^2)", "parameters"],
+                        [[label, len(f["parameters"]), f["misfit"], f["misfit_over_floor"],
+                          (f.get("own_floor") or {}).get("misfit_over_floor"), f["aic"], f["bic"], m,
                           ", ".join(f"{n} = {v:.4g}" for n, v in zip(f["parameters"], f["theta"]))]
                          for label, f, m in zip(labels, fits, mismatch_values)])
     tables = [ranking, comparison]
