@@ -51,6 +51,7 @@ from .runfiles import read_json, write_json
 from .study import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
 
 OBJECTIVES = ("contour", "displacement")
+REFINEMENT_JSON = "refinement.json"   # a run meshed again: the finer mesh's size, its start, the coarser mesh's fit
 # the skin's uncertainty is estimated again where the fit it weighs ends, at most SKIN_PASSES times, until that fit
 # moves no parameter by more than SKIN_SETTLED_X in the fit's coordinates (ln theta: 5 %)
 SKIN_PASSES = 3
@@ -155,6 +156,17 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     such as drainage need it: CPE3 is too stiff in dilatation)."""
     run_dir = Path(run_dir)
     objective = choose_objective(objective, method)
+    # a default mesh found too coarse is meshed again (below) from where its fit ended; a run resumed after that
+    # goes on from the same place on the same finer mesh, so that its evaluations replay (another identification in
+    # the folder, with other effects, keeps the finer mesh and starts as it would)
+    refinement = (read_json(run_dir / REFINEMENT_JSON, "calfit identify")
+                  if n_elements is None and start is None and (run_dir / REFINEMENT_JSON).is_file() else None)
+    if refinement:
+        n_elements = refinement["finer_elements"]
+        if refinement["effects"] == list(effects):
+            start = refinement["start"]
+        else:
+            refinement = None
     setup = _setup(case_dir, run_dir, n_elements, order, objective)
     if objective == "contour" and setup.case.levels:
         raise ValueError(f"the contour mismatch compares I0 with one loaded image, and {setup.case.files['toml']} has "
@@ -253,21 +265,24 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
             # the default mesh is too coarse for these measurements: meshed again with the check's finer mesh and
             # fitted from where this fit ended (once: a mesh the user asks for, as this one is, is kept and judged)
             _discard_mesh(run_dir)
-            refined = run_identify(case_dir, run_dir, method=method, objective=objective, data=data,
-                                   window_px=window_px, start=best.theta, n_elements=check["finer_elements"],
-                                   order=setup.mesh.order, effects=effects, engine_sensitivities=engine_sensitivities,
-                                   skin_sigma_mm=skin_sigma_mm, skin_uncertainty=skin_uncertainty, workers=workers,
-                                   scheduler=scheduler, timeout_s=timeout_s, progress=progress, verbose=verbose)
-            refined["coarser_mesh"] = {"elements": check["elements"], "best": result["best"],
-                                       "misfit_over_floor": result["misfit_over_floor"], "discretization": check}
-            elements = refined.get("discretization", {}).get("elements", check["finer_elements"])
-            refined["setup_lines"].insert(-1, f"meshed again with {elements} elements: on the default "
-                                              f"{check['elements']} the misfit at the fit was "
-                                              f"{check['misfit_over_floor_mesh']:.2f} x the floor and "
-                                              f"{check['misfit_over_floor_finer']:.2f} x on the finer mesh, a "
-                                              "discretization error above what the noise hides")
-            write_json(run_dir / "identification.json", refined)
-            return refined
+            write_json(run_dir / REFINEMENT_JSON, {
+                "finer_elements": check["finer_elements"], "effects": list(effects), "start": list(best.theta),
+                "coarser_mesh": {"elements": check["elements"], "best": result["best"],
+                                 "misfit_over_floor": result["misfit_over_floor"], "discretization": check}})
+            return run_identify(case_dir, run_dir, method=method, objective=objective, data=data,
+                                window_px=window_px, starts=starts, order=setup.mesh.order, effects=effects,
+                                engine_sensitivities=engine_sensitivities, skin_sigma_mm=skin_sigma_mm,
+                                skin_uncertainty=skin_uncertainty, workers=workers, scheduler=scheduler,
+                                timeout_s=timeout_s, progress=progress, verbose=verbose)
+    if refinement:
+        coarser = refinement["coarser_mesh"]
+        result["coarser_mesh"] = coarser
+        check = coarser["discretization"]
+        result["setup_lines"].insert(-1, f"meshed again with {len(setup.mesh.elements)} elements: on the default "
+                                         f"{check['elements']} the misfit at the fit was "
+                                         f"{check['misfit_over_floor_mesh']:.2f} x the floor and "
+                                         f"{check['misfit_over_floor_finer']:.2f} x on the finer mesh, a "
+                                         "discretization error above what the noise hides")
     write_json(run_dir / "identification.json", result)
     return result
 

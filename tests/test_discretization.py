@@ -14,6 +14,7 @@ from orchestrator.imaging.frame import RigidMotion
 from orchestrator.phantom.truths import random_truth
 from orchestrator import pipeline
 from orchestrator.pipeline import run_identify
+from orchestrator.runner import LOG_NAME, EvaluationLog
 from orchestrator.study import load_run, make_phantom_case
 
 
@@ -53,3 +54,8 @@ def test_a_default_mesh_too_coarse_is_meshed_again_and_the_fit_carried_to_it(cas
     assert result["misfit_over_floor"] < coarse["misfit_over_floor"]
     assert any(line.startswith("meshed again with") for line in result["setup_lines"])
     assert result["best"]["start"] == coarse["best"]["theta"]
+    # run again (as after an interruption): the same finer mesh from the same start, every evaluation replayed
+    runs = len(EvaluationLog(tmp_path / "run" / LOG_NAME))
+    again = run_identify(case, tmp_path / "run", data="points", progress=False)
+    assert len(EvaluationLog(tmp_path / "run" / LOG_NAME)) == runs
+    assert again["best"]["theta"] == result["best"]["theta"] and again["coarser_mesh"] == coarse
