@@ -26,7 +26,7 @@ moving the misfit, from two starts) were not waited for. Stop 40, on 1,987 eleme
 uncertainty: drainage first, 1.42 x. The band's prestretch profile refitted to 1.01 x the floor (band_a1 0.0496,
 band_b1 -0.0297; truth 0.05, -0.03) from a baseline at 219 x with both constants on their bounds (stop 40, the skin's
 uncertainty of that baseline, on its bounds); its ranking was not reached. The control passes (20 min beside
-another case): meshed again to 3,990 elements (17 -> 24 against 35 there), 0.89 x the floor, the skin's uncertainty
+another case): meshed again to 3,990 elements (its discretization chi^2 24 against 35 there), 0.89 x the floor, the skin's uncertainty
 settled in one pass, nothing significant (bone_motion p 0.05 the lowest), C10 of muscle -0.2 %, the fat's sum
 +3.9 %. The compartments and the swelling have not been measured.
 """
