@@ -98,13 +98,15 @@ def main() -> None:
             for kind, shape in (("A", np.cos), ("B", np.sin)):
                 offset = arguments.step * shape(k * angle)
                 band = (observed_with_offset(offset) - observed_with_offset(-offset)) / (2.0 * arguments.step)
-                columns = {"Laplace": observe @ sensitivities[f"PROFILE, GARMENT, {kind}{k}"].ravel() * (k * k - 1) / radius,
+                laplace_column = observe @ sensitivities[f"PROFILE, GARMENT, {kind}{k}"].ravel() * (k * k - 1) / radius
+                columns = {"Laplace": laplace_column,
                            "GAP PROFILE": observe @ gap[f"GAP PROFILE, SKIN, {kind}{k}"][:len(mesh.nodes)].ravel(),
                            "SHAPE": observe @ gap[f"SHAPE, SKIN, {kind}{k}"][:len(mesh.nodes)].ravel()}
                 norm_band = np.linalg.norm(band)
                 for name, column in columns.items():
                     norm = np.linalg.norm(column)
-                    print(f"  {k:>4}{kind} {name:>12} {norm / norm_band:24.3f} {band @ column / (norm_band * norm):+12.3f} "
+                    correlation = band @ column / (norm_band * norm)
+                    print(f"  {k:>4}{kind} {name:>12} {norm / norm_band:24.3f} {correlation:+12.3f} "
                           f"{np.linalg.norm(band - column) / norm_band:20.3f}", flush=True)
 
 

@@ -35,8 +35,8 @@ def identified_and_diagnosed(case, run, label: str, model_tables: str = "") -> d
     diagnosis = run_diagnose(run, workers=2, progress=False)
     print(label, f"{diagnosis['before']['misfit_over_floor']:.2f} x floor;",
           [(s["effect"], round(s["statistic"], 1), f"{s['p_value']:.1e}") for s in diagnosis["ranking"][:5]],
-          [(f["effects"], round(f["misfit_over_floor"], 3), f["own_floor"] and round(f["own_floor"]["misfit_over_floor"], 3))
-           for f in diagnosis["refits"]],
+          [(f["effects"], round(f["misfit_over_floor"], 3),
+            f["own_floor"] and round(f["own_floor"]["misfit_over_floor"], 3)) for f in diagnosis["refits"]],
           f"{diagnosis['engine_runs']} runs;", diagnosis["verdict"])
     return diagnosis
 
@@ -53,4 +53,5 @@ def assert_found_or_nothing(name: str, diagnosis: dict) -> None:
     assert best["effect"] == name and best["significant"], diagnosis["verdict"]
     refitted = next(fit for fit in diagnosis["refits"] if fit["effects"] == [name])
     # against the floor with the skin's uncertainty at the refit's parameters, when the images estimated it
-    assert (refitted["own_floor"] or refitted)["misfit_over_floor"] <= 1.2 and diagnosis["explained"], diagnosis["verdict"]
+    ratio = (refitted["own_floor"] or refitted)["misfit_over_floor"]
+    assert ratio <= 1.2 and diagnosis["explained"], diagnosis["verdict"]
