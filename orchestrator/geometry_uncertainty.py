@@ -194,12 +194,6 @@ def covariance_of(columns: np.ndarray, weights) -> np.ndarray:
     return (columns * np.array(weights)) @ columns.T
 
 
-def geometry_covariance(setup, theta: Sequence[float], measurements, **options) -> tuple[np.ndarray, dict]:
-    """C_geo of the module text (mm^2, interleaved like the measurements) and what made it (`geometry_columns`)."""
-    columns, weights, info = geometry_columns(setup, theta, measurements, **options)
-    return covariance_of(columns, weights), info
-
-
 def write(run_dir: Path, covariance: np.ndarray, info: dict, level: int = 1, columns: np.ndarray | None = None,
           weights=None) -> None:
     """C_geo of garment level `level` and what made it; with `columns` and `weights` (a case of several levels) also

@@ -220,14 +220,15 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                     columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options)
                     kept = (columns, weights) if setup.case.levels else ()
                     write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
-            fits_again, best = fit_from([estimated_at], setup.objective_of(setup.level_measurements(source)),
+            weighed = setup.level_measurements(source)   # with the skin's uncertainty just written
+            fits_again, best = fit_from([estimated_at], setup.objective_of(weighed),
                                         "identify again, with the skin's uncertainty")
             passes.append(fits_again)
             moved = np.abs(setup.model.space.to_x(best.theta) - setup.model.space.to_x(estimated_at))
             if np.max(moved) <= SKIN_SETTLED_X:
                 break
         fits = [first] + [fit for fits_again in passes for fit in fits_again]
-        measured = setup.level_measurements(source)
+        measured = weighed
         geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured[0]))[1],
                         measurement_share_of_variance=_measurement_share(measured), passes=len(passes),
                         settled=bool(np.max(moved) <= SKIN_SETTLED_X))
