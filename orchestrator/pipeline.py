@@ -26,8 +26,8 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import (ALPHA, diagnose, level_maps, patch_elements, refit, refit_verdict, residual_maps, settle_ties,
-                       summarize_fit, weigh_local)
+from .diagnose import (ALPHA, diagnose, level_maps, local_refit_unneeded, patch_elements, refit, refit_verdict,
+                       residual_maps, settle_ties, summarize_fit, weigh_local)
 from .digits import interval_uncertainty, rounded, with_uncertainty
 from .discretization import discretization_check, discretization_line
 from .effects import effect
@@ -510,11 +510,17 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     local = None
     if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
         patch = diagnosis.patches[0]
-        fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
-        local = weigh_local(diagnosis, patch, before, fit, after)
-        after.append(fit)
-        after_maps.append(residual_maps(objective.positions_mm, residual, frame))
-        after_level_maps.append(level_maps(objective, residual, frame))
+        unneeded = local_refit_unneeded(diagnosis, patch)
+        if unneeded:
+            diagnosis.verdict += f"; {unneeded}"
+            local = {"patch": asdict(patch), "refitted": False, "explains": False, "reason": unneeded,
+                     "verdict": diagnosis.verdict}
+        else:
+            fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
+            local = weigh_local(diagnosis, patch, before, fit, after)
+            after.append(fit)
+            after_maps.append(residual_maps(objective.positions_mm, residual, frame))
+            after_level_maps.append(level_maps(objective, residual, frame))
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]

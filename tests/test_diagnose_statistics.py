@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose import (design_effect, information_criteria, neighbour_correlation, residual_maps,
-                                  score_effect, settled)
+from orchestrator.diagnose import (design_effect, information_criteria, local_refit_unneeded, neighbour_correlation,
+                                  residual_maps, score_effect, settled)
 from orchestrator.forward import ParameterSpace, annulus_mesh
 from orchestrator.measure import Measurements
 from orchestrator.objectives import DisplacementResidualObjective
@@ -176,3 +176,29 @@ def test_a_refit_is_settled_at_the_noise_floor_inside_its_box():
     assert not settled(model, record([0.5, -0.05], noise), objective)         # a constant on its lower bound
     assert not settled(model, record([4.5, 0.2], noise), objective)           # an effect on its upper bound
     assert not settled(model, {"status": "failed", "theta": [4.5, 0.0], "message": "diverged"}, objective)
+
+
+def test_the_local_change_is_refitted_only_when_it_could_rival_the_catalog():
+    """`local_refit_unneeded` compares the local change and the explaining catalog effect on the same linearization
+    (exact on a linear model): the refit is left out when the catalog effect is predicted better on BIC, the place's
+    choice counted, and is run when the local change could win or when nothing explained the residual."""
+    rng, J, g = _linear_problem(seed=5)
+    local = rng.normal(size=(len(J), 1))
+    n = len(J)
+
+    def screened(catalog_share, places, explained=True):
+        data = catalog_share * 0.6 * g[:, 0] + (1.0 - catalog_share) * 0.6 * local[:, 0] + rng.normal(size=n)
+        r = J @ np.linalg.lstsq(J, data, rcond=None)[0] - data
+        chi2 = float(r @ r)
+        catalog, patch = (score_effect(r, J, column, 1.0, 1.0) for column in (g, local))
+        ranking = [SimpleNamespace(effect="drainage", dof=1, predicted_misfit=chi2 - catalog["predicted_reduction"])]
+        diagnosis = SimpleNamespace(explained=explained, ranking=ranking, misfit=chi2, chi2=chi2, n_residuals=n,
+                                    noise_floor=float(n))
+        place = SimpleNamespace(place="muscle, posterior sector", places_tried=places,
+                                predicted_misfit=chi2 - patch["predicted_reduction"])
+        return local_refit_unneeded(diagnosis, place)
+
+    reason = screened(1.0, places=40)
+    assert reason and "not refitted" in reason and "drainage" in reason
+    assert screened(0.0, places=40) is None                  # the local change is the better explanation
+    assert screened(1.0, places=40, explained=False) is None  # nothing explained: the local change is the lead
