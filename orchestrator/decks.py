@@ -108,6 +108,9 @@ class StepEffects:
     fourier_profile: (k, a_k, b_k) of the garment tension factor 1 + sum a_k cos k theta + b_k sin k theta
     (`*TENSION PROFILE, TYPE=FOURIER`);
     sensitivities: data lines of `*SENSITIVITY` (du/dtheta of the converged state, engine-computed);
+    combined_sensitivities: (name, ((data line, weight), ...)) of `*SENSITIVITY, NAME=name` blocks, each one parameter
+    t moving every line's parameter by weight x t (a fitted constant shared by several material groups: one column
+    of the engine's, not one per group; through friction each column is carried along the put-on);
     reference_share: alpha, the share of the garment's pressure taken from the curvature of the unloaded contour
     (`*LAPLACE PRESSURE, REFERENCE=alpha`; 0 is Laplace's law on the deformed contour);
     band_volume_changes: (band sector set, dv) pairs of the explicit band's natural state, `*VOLUME CHANGE` ramped in
@@ -120,6 +123,7 @@ class StepEffects:
     rigid_motions: tuple[tuple[str, float, float, float], ...] = ()
     fourier_profile: tuple[tuple[int, float, float], ...] = ()
     sensitivities: tuple[str, ...] = ()
+    combined_sensitivities: tuple[tuple[str, tuple[tuple[str, float], ...]], ...] = ()
     reference_share: float = 0.0
     band_volume_changes: tuple[tuple[str, float], ...] = ()
 
@@ -167,7 +171,9 @@ def _tissue_effect_lines(effects: StepEffects) -> dict:
     return dict(volume_changes=[(elset, f"{float(dv):.10g}") for elset, dv in effects.volume_changes],
                 axial_stretch=None if effects.axial_stretch is None else f"{float(effects.axial_stretch):.10g}",
                 rigid_motions=[(nset, numbers((ux, uy, angle))) for nset, ux, uy, angle in effects.rigid_motions],
-                sensitivities=list(effects.sensitivities))
+                sensitivities=list(effects.sensitivities),
+                combined_sensitivities=[(name, [(line, f"{float(weight):.17g}") for line, weight in lines])
+                                        for name, lines in effects.combined_sensitivities])
 
 
 def disk_deck(law: str, constants: Sequence[float], pressure_MPa: float, outer_faces: Sequence[tuple[int, int]], *,

@@ -422,16 +422,17 @@ class LegModel:
 
         state = self.deck_state(theta)
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm
-        lines = sorted({line for name in self.space.names for line, _ in state.sensitivity.get(name, [])})
-        own = lines if self.engine_sensitivities and own_sensitivities else []
-        lines = [line for line in own + [line for line in extra_sensitivities if line not in own]
-                 if self.engine_differentiates(line)] if sensitivities else []
+        # each parameter of theta is one engine parameter, its lines weighted (`sensitivity_map`)
+        own = (tuple((name, tuple(terms)) for name, terms in self._engine_terms(state).items() if terms)
+               if self.engine_sensitivities and own_sensitivities and sensitivities else ())
+        lines = (list(dict.fromkeys(line for line in extra_sensitivities if self.engine_differentiates(line)))
+                 if sensitivities else [])
         if any(line.startswith("PROFILE") for line in extra_sensitivities) and not self.tension_profile:
             state.fourier_profile.setdefault(1, (0.0, 0.0))
         effects = StepEffects(tuple(state.volume_changes.items()), state.axial_stretch,
                               tuple((n, *m) for n, m in state.rigid_motions.items()),
                               tuple((k, a, b) for k, (a, b) in sorted(state.fourier_profile.items())),
-                              tuple(lines), state.reference_share, tuple(state.band_volume_changes.items()))
+                              tuple(lines), own, state.reference_share, tuple(state.band_volume_changes.items()))
         stiffening = "stiffening" in self._all_effects   # C20 written, even at 0
         materials = {elset: deck_material(state.laws[elset], c, stiffening) for elset, c in state.constants.items()}
         if self.band is not None:
@@ -448,16 +449,22 @@ class LegModel:
         """The band's friction coefficient at theta: fitted (the friction effect's mu) or fixed."""
         return float(theta[self.space.names.index("mu")]) if "friction" in self.effects else self.friction_mu
 
-    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]] | None]:
-        """Parameter name -> (engine sensitivity name, factor) pairs: du/dtheta_j = sum factor * du/d(line); None
-        for a parameter whose sensitivity the engine does not give on this model (differenced instead)."""
-        state = self.deck_state(theta)
+    def _engine_terms(self, state) -> dict[str, list[tuple[str, float]] | None]:
+        """Parameter name -> its `*SENSITIVITY` lines and their weights (du/dtheta_j = sum weight x du/d(line)), or
+        None where the engine does not differentiate every line on this model (the parameter is differenced)."""
         out = {}
         for name in self.space.names:
             terms = state.sensitivity.get(name)
             out[name] = (None if terms is None or not all(self.engine_differentiates(line) for line, _ in terms)
-                         else [(line.replace(", ", ":"), f) for line, f in terms])
+                         else list(terms))
         return out
+
+    def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]] | None]:
+        """Parameter name -> (engine sensitivity name, factor) pairs: du/dtheta_j = sum factor * du/d(name); None
+        for a parameter whose sensitivity the engine does not give on this model (differenced instead). The deck
+        asks for each parameter as one `*SENSITIVITY, NAME=<parameter>` block of its weighted lines (`deck`)."""
+        return {name: None if terms is None else [(name, 1.0)] if terms else []
+                for name, terms in self._engine_terms(self.deck_state(theta)).items()}
 
 
 def annulus_mesh(inner_radius_mm: float = 10.0, outer_radius_mm: float = 40.0, rings: int = 6,

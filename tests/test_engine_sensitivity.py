@@ -379,6 +379,12 @@ MALFORMED = {
     "gap profile without *GAP PROFILE": ("*SENSITIVITY\nGAP PROFILE, SKIN, A2\n", "add *GAP PROFILE, SLAVE=SKIN"),
     "shape of a loaded surface": ("*SENSITIVITY\nSHAPE, SKIN, A2\n", "carry face loads"),
     "shape B0": ("*SENSITIVITY\nSHAPE, ALSO, B0\n", "shape coefficient B0 is not valid"),
+    "named block without weights": ("*SENSITIVITY, NAME=BOTH\nTENSION\n", "followed by its weight"),
+    "named block, bad weight": ("*SENSITIVITY, NAME=BOTH\nTENSION, SKIN, heavy\n", "the parameter's weight"),
+    "named block, zero weight": ("*SENSITIVITY, NAME=BOTH\nTENSION, SKIN, 0\n", "must be a nonzero number"),
+    "named block, bad name": ("*SENSITIVITY, NAME=A/B\nTENSION, SKIN, 1\n", "a name of letters"),
+    "named block, a name twice": ("*SENSITIVITY, NAME=TENSION:SKIN\nMATERIAL, RUBBER, C10, 1\n*SENSITIVITY\n"
+                                  "TENSION, SKIN\n", "listed twice"),
 }
 
 
@@ -413,7 +419,7 @@ def test_malformed_sensitivity(tmp_path, case):
                         "*SURFACE, NAME=ALSO, TYPE=ELEMENT\n1, S1\n*NSET, NSET=TOP\n3, 4\n*TENSION PROFILE, NAME=GARMENT")
     text = base + addition
     # the error names the offending data line (the last), or the keyword line for keyword-level faults
-    keyword_level = case in ("no data line", "bad PRESSURE", "unknown parameter")
+    keyword_level = case in ("no data line", "bad PRESSURE", "unknown parameter", "named block, bad name")
     line = len(base.splitlines()) + 1 if keyword_level else len(text.splitlines())
     _expect_error(tmp_path, text, line, fragment)
 
@@ -576,6 +582,46 @@ def test_sensitivities_through_friction_along_the_loading_path(tmp_path, frictio
     report = _band_sensitivities_against_differences(tmp_path, 3e-5, friction_mu, hybrid, effects,
                                                      GARMENT_PARAMETERS + list(BAND_EFFECTS_ABSENT))
     _check_report(f"leg under the explicit garment band, friction {friction_mu}{', CPE6H' if hybrid else ''}", report)
+
+
+# one parameter moving several: MATERIAL, VOLUME CHANGE and AXIAL STRETCH lines with their weights (D1 and dv differenced)
+COMBINED = {"MATERIAL:FAT:C10": 1.7, "MATERIAL:MUSCLE:C10": -0.4, "MATERIAL:MUSCLE:D1": 30.0,
+            "VOLUME CHANGE:MUSCLE": 0.05, "AXIAL STRETCH": -0.02}
+
+
+@pytest.mark.parametrize("friction_mu", [0.0, 0.3], ids=["frictionless", "mu0.3"])
+def test_a_named_block_is_one_parameter_the_weighted_sum_of_its_lines(tmp_path, friction_mu):
+    """`*SENSITIVITY, NAME=` makes its lines, each with a weight w_i, one parameter t moving every member by w_i t:
+    du/dt = sum_i w_i du/dtheta_i in one column (a fitted constant shared by many material groups is one right-hand
+    side carried along the frictional path, not one per group). Against the members' own columns of the same run, on
+    the leg under the band (u/p elements; frictionless, and at mu = 0.3 carried along the put-on), displacements and
+    pressures."""
+    from dataclasses import replace
+
+    from orchestrator.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
+    from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
+
+    leg = leg_slice_mesh(400, order=2)
+    band = garment_band(leg)
+    tissues = {elset: (law, constants) for elset, (law, constants) in DEFAULT_MATERIALS.items()}
+    text = leg_garment_deck(tissues, replace(band), leg, friction_mu=friction_mu,
+                            effects=StepEffects(volume_changes=(("MUSCLE", -0.03),), axial_stretch=1.02))
+    lines = {name: ", ".join(name.split(":")) for name in COMBINED}
+    text += ("*SENSITIVITY, PRESSURE=YES\n" + "\n".join(lines.values()) + "\n*SENSITIVITY, NAME=TISSUES\n"
+             + "\n".join(f"{lines[name]}, {weight}" for name, weight in COMBINED.items()) + "\n")
+    (tmp_path / MESH_INCLUDE_NAME).write_text(band.include_text(leg).replace("*ELEMENT, TYPE=CPE6, ELSET=EALL",
+                                                                              "*ELEMENT, TYPE=CPE6H, ELSET=EALL", 1))
+    (tmp_path / "leg.inp").write_text(text)
+    result = run_engine(None, tmp_path, "leg", deck_path=tmp_path / "leg.inp")
+    assert result.returncode == 0, result.stderr
+    results = EngineResults(result.outdir)
+    assert [e["name"] for e in results.sensitivity_parameters] == list(COMBINED) + ["TISSUES"]
+    du, dp = results.sensitivities(), results.pressure_sensitivities()
+    du_sum = sum(weight * du[name] for name, weight in COMBINED.items())
+    dp_sum = sum(weight * dp[name] for name, weight in COMBINED.items())
+    assert np.abs(du_sum).max() > 1e-3
+    assert np.abs(du["TISSUES"] - du_sum).max() <= 1e-6 * np.abs(du_sum).max()
+    assert np.abs(dp["TISSUES"] - dp_sum).max() <= 1e-5 * np.abs(dp_sum).max()
 
 
 @pytest.mark.parametrize("friction_mu", [0.0, 0.3], ids=["frictionless", "mu0.3"])

@@ -44,7 +44,14 @@ private:
   bool in_step_ = false;
   bool step_has_static_ = false;
   LoadState loads_;                 // state carried from step to step
-  std::vector<DataLine> sensitivity_lines_;  // resolved once the whole model is known
+  // *SENSITIVITY lines, resolved once the whole model is known: one parameter each, or, in a NAME= block, the
+  // block's lines with their weights as one parameter (`combine_sensitivity_parameters`)
+  struct PendingSensitivity {
+    std::string combined_name;  // empty: the one line is the parameter
+    SourceLocation where;
+    std::vector<std::pair<DataLine, double>> lines;
+  };
+  std::vector<PendingSensitivity> sensitivity_entries_;
   int current_interaction_ = -1;  // the *SURFACE INTERACTION that *SURFACE BEHAVIOR and *FRICTION refine
   std::map<int, double> model_bcs_;  // *BOUNDARY given before the first step
 

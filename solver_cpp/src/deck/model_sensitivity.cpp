@@ -3,6 +3,7 @@
 #include "deck/model_builder.hpp"
 #include "model/parameters.hpp"
 
+#include <cctype>
 #include <set>
 #include <string>
 #include <utility>
@@ -12,14 +13,33 @@ namespace calfit::deck_building {
 // Model or step data alike: the parameters are resolved against the whole model (and
 // the last step) in finish().
 void ModelBuilder::sensitivity(const KeywordBlock& b) {
-  b.allow_only({"PRESSURE"});
+  b.allow_only({"PRESSURE", "NAME"});
   needs_data(b);
   const std::string pressure = upper(b.value("PRESSURE").value_or("NO"));
   if (pressure != "YES" && pressure != "NO") throw DeckError(b.where, "PRESSURE must be YES or NO");
   if (!model_.sensitivity.requested) model_.sensitivity.where = b.where;
   model_.sensitivity.requested = true;
   model_.sensitivity.pressure = model_.sensitivity.pressure || pressure == "YES";
-  sensitivity_lines_.insert(sensitivity_lines_.end(), b.data.begin(), b.data.end());
+  if (!b.find("NAME")) {
+    for (const DataLine& line : b.data) sensitivity_entries_.push_back({"", line.where, {{line, 1.0}}});
+    return;
+  }
+  // one parameter from the block's lines, each `<parameter line>, <weight>`
+  const std::string name = b.required("NAME");
+  for (char c : name)
+    if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == ':' || c == '.' || c == '-'))
+      throw DeckError(b.where, "*SENSITIVITY, NAME=" + name + ": a name of letters, digits and _ : . - (it names "
+                               "the output files' columns)");
+  PendingSensitivity entry{name, b.where, {}};
+  for (const DataLine& line : b.data) {
+    if (line.fields.size() < 2)
+      throw DeckError(line.where, "*SENSITIVITY, NAME=" + name + ": each line is a parameter line followed by its "
+                                  "weight, e.g. MATERIAL, FAT, C10, 1.5");
+    DataLine member = line;
+    member.fields.pop_back();
+    entry.lines.emplace_back(member, to_double(line.fields.back(), line.where, "the parameter's weight"));
+  }
+  sensitivity_entries_.push_back(std::move(entry));
 }
 
 void ModelBuilder::resolve_sensitivities() {
@@ -44,15 +64,26 @@ void ModelBuilder::resolve_sensitivities() {
     }
     return false;
   };
-  std::set<std::string> names;
-  for (const DataLine& line : sensitivity_lines_) {
+  auto resolved = [&](const DataLine& line) {
     SensitivityParameter p = resolve_sensitivity_parameter(model_, line);
-    if (!names.insert(p.name).second) throw DeckError(line.where, "parameter " + p.name + " is listed twice");
     if (friction && (!p.scope.faces.empty() || p.scope.prescribed || before_last_step(p)))
       throw DeckError(line.where, "with *FRICTION on a *CONTACT PAIR, *SENSITIVITY carries along the loading path "
                                   "material constants, the volume change or axial stretch of the last step and "
-                                  "GAP PROFILE coefficients only, not " + p.name + ": difference runs of the deck for it, or remove "
-                                  "*FRICTION");
+                                  "GAP PROFILE and SHAPE coefficients only, not " + p.name + ": difference runs of the "
+                                  "deck for it, or remove *FRICTION");
+    return p;
+  };
+  std::set<std::string> names;
+  for (const PendingSensitivity& entry : sensitivity_entries_) {
+    SensitivityParameter p;
+    if (entry.combined_name.empty()) {
+      p = resolved(entry.lines.front().first);
+    } else {
+      std::vector<std::pair<SensitivityParameter, double>> members;
+      for (const auto& [line, weight] : entry.lines) members.emplace_back(resolved(line), weight);
+      p = combine_sensitivity_parameters(model_, entry.combined_name, entry.where, members);
+    }
+    if (!names.insert(p.name).second) throw DeckError(entry.where, "parameter " + p.name + " is listed twice");
     model_.sensitivity.parameters.push_back(std::move(p));
   }
 }

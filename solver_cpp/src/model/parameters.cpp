@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <limits>
 #include <set>
 
 namespace calfit {
@@ -409,6 +410,39 @@ SensitivityParameter resolve_sensitivity_parameter(const Model& model, const Dat
                                     " (calfit-fe knows " + known + ")");
   }
   return it->second(model, line);
+}
+
+SensitivityParameter combine_sensitivity_parameters(const Model& model, const std::string& name, const SourceLocation& where,
+                                                    const std::vector<std::pair<SensitivityParameter, double>>& members) {
+  if (members.empty()) throw DeckError(where, "*SENSITIVITY, NAME=" + name + " lists no parameter");
+  SensitivityParameter c;
+  c.name = name;
+  c.where = where;
+  c.affine = true;
+  // The step t moves member i by w_i t: the largest step that moves no member by more than its own step
+  c.scale = std::numeric_limits<double>::infinity();
+  const ParameterState base = model.parameter_state();
+  std::set<int> elements;
+  for (const auto& [p, weight] : members) {
+    if (p.gap_surface >= 0 || !p.shape.empty())
+      throw DeckError(p.where, p.name + " acts through the contact elements and cannot be combined with other "
+                               "parameters: give it in a *SENSITIVITY block of its own (without NAME=)");
+    if (!(weight != 0.0) || !std::isfinite(weight))
+      throw DeckError(p.where, "the weight of " + p.name + " in *SENSITIVITY, NAME=" + name + " must be a nonzero number");
+    c.affine = c.affine && p.affine;
+    c.scope.prescribed = c.scope.prescribed || p.scope.prescribed;
+    elements.insert(p.scope.elements.begin(), p.scope.elements.end());
+    c.scope.faces.insert(c.scope.faces.end(), p.scope.faces.begin(), p.scope.faces.end());
+    const double value = std::abs(p.get(base));
+    c.scale = std::min(c.scale, (value > 0.0 ? value : p.scale) / std::abs(weight));
+  }
+  c.scope.elements.assign(elements.begin(), elements.end());
+  sort_unique(c.scope.faces);
+  c.get = [](const ParameterState&) { return 0.0; };
+  c.set = [members](ParameterState& s, double t) {
+    for (const auto& [p, weight] : members) p.set(s, p.get(s) + weight * t);
+  };
+  return c;
 }
 
 }  // namespace calfit

@@ -16,6 +16,7 @@
 //                                      absent: the set must then be clamped by *BOUNDARY)
 //
 // A new kind is one resolver function in parameters.cpp and one row in its table.
+// A *SENSITIVITY, NAME= block combines its lines, each ending with a weight, into one parameter.
 #pragma once
 
 #include "deck/deck_reader.hpp"
@@ -25,5 +26,13 @@ namespace calfit {
 
 // Throws DeckError naming the line when the line names nothing the model has.
 SensitivityParameter resolve_sensitivity_parameter(const Model& model, const DataLine& line);
+
+// *SENSITIVITY, NAME=<name>: one parameter t that moves every member i by w_i t from the deck's values, so that
+// du/dt = sum_i w_i du/dtheta_i in one column (a fitted constant shared by many material groups, a stiffness factor
+// of a region: one right-hand side carried along a frictional path instead of one per group). Its value is 0; the
+// difference step moves no member by more than its own. GAP PROFILE and SHAPE members are refused.
+SensitivityParameter combine_sensitivity_parameters(const Model& model, const std::string& name,
+                                                    const SourceLocation& where,
+                                                    const std::vector<std::pair<SensitivityParameter, double>>& members);
 
 }  // namespace calfit
