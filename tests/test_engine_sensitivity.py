@@ -31,6 +31,10 @@ tissues' constants and the band's C10; and through Coulomb friction, carried alo
 path, with the last step's volume change and axial stretch. With *FRICTION, *SENSITIVITY of a
 load on faces or of a prescribed motion exits 2.
 
+A `*SENSITIVITY, NAME=` block (weighted lines as one parameter) against the weighted sum of
+its members' own columns of the same run, through frictionless contact and along a frictional
+put-on.
+
 Also: the pressure sensitivities (PRESSURE=YES) against the same differences of the
 element pressures; the reader EngineResults.sensitivities on a synthetic output folder;
 malformed *SENSITIVITY lines and FOURIER profiles exit 2 with FILE:LINE.
