@@ -436,6 +436,14 @@ def test_sensitivity_of_a_load_refused_with_friction(tmp_path):
     _expect_error(tmp_path, text, len(text.splitlines()), "not TENSION:SKIN: difference runs of the deck for it")
 
 
+def test_a_contact_parameter_is_refused_in_a_named_block(tmp_path):
+    text = BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
+                        "1000.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n*CONTACT PAIR, INTERACTION=TOUCH\n"
+                        "OTHER, SKIN\n*GAP PROFILE, SLAVE=OTHER\n*BOUNDARY")
+    text += "*SENSITIVITY, NAME=BOTH\nMATERIAL, RUBBER, C10, 1\nGAP PROFILE, OTHER, A1, 1\n"
+    _expect_error(tmp_path, text, len(text.splitlines()), "cannot be combined with other parameters")
+
+
 GARMENT_PARAMETERS = ["MATERIAL:FAT:C10", "MATERIAL:MUSCLE:C10", "MATERIAL:MUSCLE:D1", "MATERIAL:GARMENT:C10"]
 
 

@@ -4,8 +4,8 @@
 
 #include <algorithm>
 #include <cmath>
-#include <map>
 #include <limits>
+#include <map>
 #include <set>
 
 namespace calfit {
@@ -412,7 +412,8 @@ SensitivityParameter resolve_sensitivity_parameter(const Model& model, const Dat
   return it->second(model, line);
 }
 
-SensitivityParameter combine_sensitivity_parameters(const Model& model, const std::string& name, const SourceLocation& where,
+SensitivityParameter combine_sensitivity_parameters(const Model& model, const std::string& name,
+                                                    const SourceLocation& where,
                                                     const std::vector<std::pair<SensitivityParameter, double>>& members) {
   if (members.empty()) throw DeckError(where, "*SENSITIVITY, NAME=" + name + " lists no parameter");
   SensitivityParameter c;
