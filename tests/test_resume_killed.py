@@ -64,8 +64,8 @@ def uninterrupted(identified, tmp_path_factory):
     return result_of
 
 
-# The diagnosis runs about 220 evaluations (ranking, the drainage refit, the local patch refit): slow; a second
-# draw of the Monte-Carlo's kill point too.
+# The diagnosis runs tens of evaluations (the ranking, the drainage refit from two starts, the local change's refit
+# when it could rival drainage's): slow; a second draw of the Monte-Carlo's kill point too.
 @pytest.mark.parametrize("stage, seed", [("montecarlo", 1), pytest.param("montecarlo", 2, marks=pytest.mark.slow),
                                          pytest.param("diagnose", 1, marks=pytest.mark.slow),
                                          pytest.param("diagnose", 2, marks=pytest.mark.slow)])
