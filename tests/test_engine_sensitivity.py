@@ -428,19 +428,22 @@ def test_malformed_sensitivity(tmp_path, case):
     _expect_error(tmp_path, text, line, fragment)
 
 
+def _with_contact(friction: str = "", after: str = "") -> str:
+    """BASE with a penalty contact pair (OTHER, element 2's third face, against SKIN), `friction` lines and
+    `after` keywords before *BOUNDARY."""
+    return BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
+                        f"1000.0\n{friction}*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n"
+                        f"*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n{after}*BOUNDARY")
+
+
 def test_sensitivity_of_a_load_refused_with_friction(tmp_path):
-    text = BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
-                        "1000.0\n*FRICTION\n0.3, 100.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n"
-                        "*CONTACT PAIR, INTERACTION=TOUCH\nOTHER, SKIN\n*BOUNDARY")
-    text += "*SENSITIVITY\nTENSION, SKIN\n"
+    text = _with_contact(friction="*FRICTION\n0.3, 100.0\n") + "*SENSITIVITY\nTENSION, SKIN\n"
     _expect_error(tmp_path, text, len(text.splitlines()), "not TENSION:SKIN: difference runs of the deck for it")
 
 
 def test_a_contact_parameter_is_refused_in_a_named_block(tmp_path):
-    text = BASE.replace("*BOUNDARY", "*SURFACE INTERACTION, NAME=TOUCH\n*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR\n"
-                        "1000.0\n*SURFACE, NAME=OTHER, TYPE=ELEMENT\n2, S3\n*CONTACT PAIR, INTERACTION=TOUCH\n"
-                        "OTHER, SKIN\n*GAP PROFILE, SLAVE=OTHER\n*BOUNDARY")
-    text += "*SENSITIVITY, NAME=BOTH\nMATERIAL, RUBBER, C10, 1\nGAP PROFILE, OTHER, A1, 1\n"
+    text = (_with_contact(after="*GAP PROFILE, SLAVE=OTHER\n")
+            + "*SENSITIVITY, NAME=BOTH\nMATERIAL, RUBBER, C10, 1\nGAP PROFILE, OTHER, A1, 1\n")
     _expect_error(tmp_path, text, len(text.splitlines()), "cannot be combined with other parameters")
 
 
