@@ -177,14 +177,20 @@ TIMEOUT_COLUMNS_PER_RUN = 40
 
 def run_timeout(deck_text: str, timeout_s: float) -> float:
     """The timeout of a run of this deck: timeout_s, and more where the engine carries sensitivities along the
-    loading path (*FRICTION with *SENSITIVITY): one run's worth per TIMEOUT_COLUMNS_PER_RUN columns."""
+    loading path (*FRICTION with *SENSITIVITY): one run's worth per TIMEOUT_COLUMNS_PER_RUN columns (a data line of
+    a plain *SENSITIVITY block each, a `NAME=` block one)."""
     if "*FRICTION" not in deck_text or "*SENSITIVITY" not in deck_text:
         return timeout_s
-    columns = 0
-    for line in deck_text.split("*SENSITIVITY", 1)[1].splitlines()[1:]:
-        if line.startswith("*") and not line.startswith("**"):
-            break
-        columns += bool(line.strip()) and not line.startswith("**")
+    columns, block = 0, None     # block: None outside *SENSITIVITY, "plain" or "named" inside
+    for line in deck_text.splitlines():
+        if line.startswith("**") or not line.strip():
+            continue
+        if line.startswith("*"):
+            keyword = line.upper()
+            block = None if not keyword.startswith("*SENSITIVITY") else "named" if "NAME=" in keyword else "plain"
+            columns += block == "named"
+        elif block == "plain":
+            columns += 1
     return timeout_s * (1.0 + columns / TIMEOUT_COLUMNS_PER_RUN)
 
 

@@ -65,8 +65,16 @@ def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
     assert "*FRICTION\n0.2, 0.1\n" in with_friction and "mu = 0.2" in with_friction
     # through friction the engine carries the constants' sensitivities along the path; mu's column is differenced
     def sensitivity_lines(deck: str) -> list[str]:
-        block = deck.split("*SENSITIVITY\n")[1].splitlines()
-        return block[:next(k for k, line in enumerate(block) if line.startswith("*"))]
+        """The parameter lines of every *SENSITIVITY block (a NAME= block's without their weights)."""
+        lines, named = [], None
+        for line in deck.splitlines():
+            if line.startswith("**"):
+                continue
+            if line.startswith("*"):
+                named = "NAME=" in line if line.startswith("*SENSITIVITY") else None
+            elif named is not None and line.strip():
+                lines.append(line.rsplit(", ", 1)[0] if named else line)
+        return lines
 
     lines = sensitivity_lines(with_friction)
     assert lines and all(line.startswith("MATERIAL, ") for line in lines)
