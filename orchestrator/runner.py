@@ -173,6 +173,10 @@ def run_engine(
 # second paper's leg (2,000 CPE6H, 23 increments) 281 columns added 59 s to an 18 s run, 1/86 of the run each. A
 # run's timeout, a guard against a hung engine, grows by twice that per column.
 TIMEOUT_COLUMNS_PER_RUN = 40
+# A hung engine is one that runs far longer than runs of the same run folder have taken to finish: the timeout is at
+# least this many times the longest of them (the second paper's band on 3,990 elements, four processes on two cores:
+# runs of 100-345 s, and the differences of a refit's Jacobian stopped at the 120 s default, failing the refit).
+HANG_FACTOR = 3.0
 
 
 def run_timeout(deck_text: str, timeout_s: float) -> float:
@@ -589,6 +593,9 @@ class Evaluator:
         self.label, self.cost_is_misfit, self.verbose = label, cost_is_misfit, verbose
         self.launched = 0
         self.replayed = 0
+        # the longest run of this folder that finished (`HANG_FACTOR`)
+        self._longest_s = max((float(r.get("time_s") or 0.0) for r in self.log.records.values() if r["status"] == OK),
+                              default=0.0)
         self._display: Progress | None = None   # one for the evaluator's whole stage, not one per batch
         self._pool = None
         self._client = None
@@ -638,7 +645,8 @@ class Evaluator:
                     "finished_at": time.time()}
         joined = LEVEL_SEPARATOR.join(text) if isinstance(text, tuple) else text
         key = deck_key(joined, self.model.mesh_sha, self.objective.fingerprint)
-        timeout = max(run_timeout(deck, self.timeout_s) for deck in (text if isinstance(text, tuple) else (text,)))
+        timeout = max(max(run_timeout(deck, self.timeout_s) for deck in (text if isinstance(text, tuple) else (text,))),
+                      HANG_FACTOR * self._longest_s)
         return EngineTask(key, theta, options, tag, text, self.model.mesh_text, self.model.mesh_sha,
                           str(self.run_dir / "jobs"), timeout, self.threads, self.keep_jobs, self.verbose)
 
@@ -667,6 +675,8 @@ class Evaluator:
             for record in self._submit(list(todo.values())):
                 self.launched += 1
                 self.log.append(record)
+                if record["status"] == OK:
+                    self._longest_s = max(self._longest_s, float(record.get("time_s") or 0.0))
                 display.advance(record)
         except BaseException:
             display.close()   # the stage ends here (an error, Ctrl-C): its last line stays, the cursor comes back

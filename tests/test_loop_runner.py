@@ -26,8 +26,8 @@ from orchestrator.engine import find_engine
 from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel
 from orchestrator.meshing import leg_slice_mesh
 from orchestrator.objectives import DisplacementResidualObjective
-from orchestrator.runner import (BAD_DECK, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT, TIMEOUT_COLUMNS_PER_RUN, Evaluator,
-                                 run_timeout)
+from orchestrator.runner import (BAD_DECK, HANG_FACTOR, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT, TIMEOUT_COLUMNS_PER_RUN,
+                                 EvaluationLog, Evaluator, run_timeout)
 
 SLEEP_MARKER = "** calfit-test: sleep"
 
@@ -166,6 +166,25 @@ def test_verbose_streams_every_engine_log_and_each_job_keeps_it(leg_model, tmp_p
     with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "quiet", progress=False) as evaluator:
         assert evaluator.evaluate([TABLE2_CENTRAL_KPA])[0]["status"] == OK
     assert "iterations, residual" not in capfd.readouterr().err     # not without --verbose
+
+
+def test_the_hang_guard_grows_with_the_runs_that_finished(leg_model, tmp_path):
+    """A run is taken for hung only past HANG_FACTOR times the longest run of its folder that finished: on a loaded
+    machine, or on a finer mesh, every run is slower (a refit's differences under the band stopped at the 120 s
+    default where the runs before them had taken up to 345 s). A run that failed or was stopped does not count."""
+    log = EvaluationLog(tmp_path / LOG_NAME)
+    for key, status, seconds in (("finished", OK, 100.0), ("stopped", TIMEOUT, 900.0)):
+        log.append({"key": key, "theta": [1.0], "options": {}, "tag": "", "status": status, "cost": 1.0,
+                    "outputs": {}, "message": "", "newton_iterations": 3, "time_s": seconds, "finished_at": 0.0})
+    log.close()
+    theta = list(TABLE2_CENTRAL_KPA)
+    with Evaluator(leg_model, skin_objective(leg_model), tmp_path, timeout_s=120.0, progress=False) as evaluator:
+        assert evaluator.task(theta).timeout_s == pytest.approx(HANG_FACTOR * 100.0)
+    with Evaluator(leg_model, skin_objective(leg_model), tmp_path, timeout_s=600.0, progress=False) as evaluator:
+        assert evaluator.task(theta).timeout_s == 600.0                  # the user's, when longer
+    with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "fresh", timeout_s=120.0,
+                   progress=False) as evaluator:
+        assert evaluator.task(theta).timeout_s == 120.0                  # nothing finished yet
 
 
 def test_a_run_carrying_sensitivities_through_friction_gets_the_time_they_take(leg_model):
