@@ -43,7 +43,7 @@ TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)
 def _gap_profile_sensitivities(model, count: int) -> dict:
     """du/d(a_k, b_k) of the band's *GAP PROFILE of the skin, k = 1 .. count, at TRUTH_KPA."""
     from orchestrator.forward import write_mesh_include
-    from orchestrator.results import EngineResults
+    from orchestrator.results import EngineResults, sensitivity_name
     from orchestrator.runner import run_engine
 
     lines = [f"GAP PROFILE, SKIN, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
@@ -52,7 +52,7 @@ def _gap_profile_sensitivities(model, count: int) -> dict:
         deck = Path(scratch) / "deck.inp"
         deck.write_text(model.deck(TRUTH_KPA, extra_sensitivities=lines, own_sensitivities=False))
         found = EngineResults(run_engine(deck, Path(scratch) / "out", threads=None).outdir).sensitivities()
-    return {line: found[line.replace(", ", ":")] for line in lines}
+    return {line: found[sensitivity_name(line)] for line in lines}
 
 
 def main() -> None:

@@ -571,7 +571,7 @@ def grouped_sensitivities(args, root: Path) -> None:
     blocks: wall time of the whole run (the path carries every column through friction) and
     max |du_combined - sum w du_line| / max |du|."""
     from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel
-    from orchestrator.results import EngineResults
+    from orchestrator.results import EngineResults, sensitivity_name
 
     mesh = leg_slice_mesh(args.garment_elements, order=2)
     for effect in ("local", "heterogeneity"):
@@ -597,7 +597,7 @@ def grouped_sensitivities(args, root: Path) -> None:
             outputs[label] = EngineResults(root / f"{name}{args.runs - 1}" / "out").sensitivities()
             _report(label, times, last, mesh.n_dof)
         combined, single = outputs.values()
-        worst = max(np.abs(combined[name] - sum(w * single[line.replace(", ", ":")] for line, w in parts)).max()
+        worst = max(np.abs(combined[name] - sum(w * single[sensitivity_name(line)] for line, w in parts)).max()
                     / max(np.abs(combined[name]).max(), 1e-300) for name, parts in terms.items())
         first, second = medians.values()
         print(f"  per line / combined: {second / first:.2f} x the wall time; the combined columns against the "

@@ -119,7 +119,7 @@ def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> di
     """du/d(mode) of the skin's modes k = 1 .. count (`skin_mode_lines`; nodal (M, 2) each) of the model at theta,
     from one engine run (only these lines: the model's own are not needed here)."""
     from .forward import write_mesh_include
-    from .results import EngineResults
+    from .results import EngineResults, sensitivity_name
     from .runner import DEFAULT_TIMEOUT_S, run_engine, run_timeout
 
     lines = skin_mode_lines(model, count)
@@ -132,7 +132,7 @@ def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> di
         if not outcome.converged:
             raise RuntimeError(f"the engine did not converge at {list(theta)} for the skin's sensitivities")
         found = EngineResults(outcome.outdir).sensitivities()
-    return {line: found[line.replace(", ", ":")] for line in lines}
+    return {line: found[sensitivity_name(line)] for line in lines}
 
 
 def _model_on(setup, mesh, effects, tension_N_per_mm):

@@ -38,6 +38,7 @@ swelling have not been measured.
 from __future__ import annotations
 
 import re
+from functools import partial
 
 import pytest
 from hidden_physics import OEDEMA_SECTOR_DEG, assert_found_or_nothing, identified_and_diagnosed, oedema
@@ -55,6 +56,9 @@ HIDDEN = {
     "compartments": {"dC10_COMPARTMENT5": -0.6, "dC10_COMPARTMENT6": 2.0, "dC10_COMPARTMENT7": -0.6},
 }
 CASES = [*HIDDEN, "control", "oedema"]
+# Smaller than the Laplace cases' 0.15: the band barely compresses the incompressible muscle, and 0.15 in one sector
+# of fat left the loaded leg 1.0 % larger than the unloaded one, which calfit refuses as swapped images.
+OEDEMA_DV = 0.05
 
 
 @pytest.fixture(scope="module", params=[pytest.param(name, marks=pytest.mark.slow) for name in CASES])
@@ -65,7 +69,7 @@ def second_paper(request, tmp_path_factory):
                                 points_spacing_mm=None, garment="explicit", friction_mu=0.3, hybrid=True,
                                 tissues=SECOND_PAPER_TISSUES, effects={name: HIDDEN[name]} if name in HIDDEN else None,
                                 labels="compartments" if name == "compartments" else "segmented",
-                                edit_deck=oedema if name == "oedema" else None)
+                                edit_deck=partial(oedema, dv=OEDEMA_DV) if name == "oedema" else None)
     return name, identified_and_diagnosed(case, folder / "run", name, SECOND_PAPER_FIT_TABLES)
 
 
