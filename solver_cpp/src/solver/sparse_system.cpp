@@ -260,6 +260,13 @@ bool SparseSystem::solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x, dou
 bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
   if (!lu_) {
     lu_ = std::make_unique<Eigen::UmfPackLU<Eigen::SparseMatrix<double>>>();
+    // The pattern is symmetric by construction (element and contact blocks are square), the values nearly so
+    // (friction's and the follower pressure's skew parts are small): UMFPACK's symmetric strategy (AMD on A + A',
+    // diagonal pivots preferred, threshold partial pivoting kept). Its automatic choice reads the hybrid elements'
+    // zero pressure diagonals (10.5 % of the unknowns of the CPE6H leg under the band) as a sign of an unsymmetric
+    // matrix and orders A^T A by COLAMD instead: on that leg with friction (20.5k unknowns) 6.4 times the flops
+    // (2.25e9 against 3.5e8) and 3.3 times the factor's entries, and the run took twice the CPU time.
+    lu_->umfpackControl()(UMFPACK_STRATEGY) = UMFPACK_STRATEGY_SYMMETRIC;
     lu_->analyzePattern(matrix_);
   }
   lu_->factorize(matrix_);
