@@ -342,7 +342,8 @@ bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, boo
   if (saddle_point_ && is_symmetric && choice_ != Choice::Lu) {
     // CHOLMOD's LDL^T (simplicial, no pivoting: valid for the quasi-definite D1 > 0 systems, and checked by its
     // residual) took half the time of UMFPACK's LU at 1.5e7 flops and 85 % at 3.7e8 (CPE6H leg slices of 4.6k
-    // and 25k unknowns, analysis included), the gap closing as fl^0.17: past kLdltFlopLimit LU is used. Counted,
+    // and 25k unknowns, analysis included; UMFPACK then ran its automatic strategy, with the symmetric one of
+    // solve_lu the two are level at 25k), the gap closing as fl^0.17: past kLdltFlopLimit LU is used. Counted,
     // not timed, so that the choice, and with it the last digits of a result, does not depend on the load.
     constexpr double kLdltFlopLimit = 1e9;
     if ((choice_ == Choice::Ldlt || ldlt_flops() <= kLdltFlopLimit) && solve_ldlt(b, x)) {
