@@ -46,7 +46,8 @@
    check asked for): median wall time, Newton iterations and factorizations. Every Newton iteration there is an LU
    of an unsymmetric saddle-point matrix; with UMFPACK's symmetric strategy (solver_cpp/src/solver/sparse_system.cpp)
    a run of a diagnosis's deck (20.5k unknowns, 120 factorizations) took 18.9 s of CPU against 37.7 s with its
-   automatic choice (the same engine otherwise, beside two other jobs; displacements equal to 3e-12 mm).
+   automatic choice (the same engine otherwise, beside two other jobs; displacements equal to 3e-12 mm), and this
+   section 34.9 s against 66.7 s with the engine before it (CALFIT_FE, the same load).
 5. Scaling from 1k to 200k DOF: wall time and peak resident memory of each calfit-fe
    process (os.wait4 resource usage of that child, i.e. /usr/bin/time -v's "Maximum
    resident set size"; target: under 1 GiB at 200k DOF). After the table: the exponent p
