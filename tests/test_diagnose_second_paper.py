@@ -40,7 +40,9 @@ the fat's sum 2.400 (-0.02 %); the local change's refit left out (11.9 x against
 **passes** (47 min 27 s): baseline 96.5 x, no catalog effect explains it (out_of_plane first, refitted 78.2 x;
 drainage second), the residual largest in the fat, sector 240-270 deg, 0-5 mm under the skin (the swelling's
 sector 210-300 deg); the local change there (fat, 240-300 deg, stiffness x0.14) refitted to 94.1 x, no explanation
-either.
+either. Then, uninterrupted, the band's prestretch profile **passes** (35 min 17 s; the same ranking and refit as
+the resumed run: 0.92 x its own floor, band_a1 0.0498, band_b1 -0.0299) and the control (10 min 35 s; 0.89 x, nothing
+significant, bone_motion p 0.05 the lowest).
 """
 
 from __future__ import annotations
