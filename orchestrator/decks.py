@@ -257,6 +257,28 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
                   **_tissue_effect_lines(effects))
 
 
+def sensitivity_blocks(deck_text: str) -> list[tuple[str | None, list[str]]]:
+    """The `*SENSITIVITY` blocks of a deck, in order: the NAME= of a combined block (None for a plain one) and its
+    data lines as written (a combined block's with their weights), comment and blank lines left out."""
+    blocks: list[tuple[str | None, list[str]]] = []
+    lines = None   # the data lines of the block being read, None outside *SENSITIVITY
+    for line in deck_text.splitlines():
+        if line.startswith("**") or not line.strip():
+            continue
+        if not line.startswith("*"):
+            if lines is not None:
+                lines.append(line.strip())
+            continue
+        keyword, *options = (part.strip() for part in line.split(","))
+        lines = None
+        if keyword.upper() == "*SENSITIVITY":
+            name = next((option.split("=", 1)[1].strip() for option in options
+                         if option.upper().startswith("NAME=")), None)
+            lines = []
+            blocks.append((name, lines))
+    return blocks
+
+
 def text_sha256(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 

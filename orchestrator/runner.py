@@ -28,7 +28,7 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .decks import DeckError, deck_key
+from .decks import DeckError, deck_key, sensitivity_blocks
 from .engine import find_engine
 from .results import EngineResults
 
@@ -185,16 +185,7 @@ def run_timeout(deck_text: str, timeout_s: float) -> float:
     a plain *SENSITIVITY block each, a `NAME=` block one)."""
     if "*FRICTION" not in deck_text or "*SENSITIVITY" not in deck_text:
         return timeout_s
-    columns, block = 0, None     # block: None outside *SENSITIVITY, "plain" or "named" inside
-    for line in deck_text.splitlines():
-        if line.startswith("**") or not line.strip():
-            continue
-        if line.startswith("*"):
-            keyword = line.upper()
-            block = None if not keyword.startswith("*SENSITIVITY") else "named" if "NAME=" in keyword else "plain"
-            columns += block == "named"
-        elif block == "plain":
-            columns += 1
+    columns = sum(1 if name else len(lines) for name, lines in sensitivity_blocks(deck_text))
     return timeout_s * (1.0 + columns / TIMEOUT_COLUMNS_PER_RUN)
 
 
@@ -229,6 +220,7 @@ class EvaluationLog:
         self.path = Path(path)
         self.sensitivity_dir = self.path.parent / SENSITIVITY_DIR
         self.records: dict[str, dict] = {}
+        self.longest_finished_s = 0.0   # the longest run that finished (`HANG_FACTOR`)
         if self.path.is_file():
             data = self.path.read_bytes()
             complete = data[: data.rfind(b"\n") + 1]
@@ -241,7 +233,7 @@ class EvaluationLog:
                         record = json.loads(line)
                     except json.JSONDecodeError:
                         raise ValueError(f"{self.path}:{number}: not a JSON line; remove that line or the run folder") from None
-                    self.records[record["key"]] = record
+                    self._keep(record)
         self._stream = None   # opened on the first append
 
     def append(self, record: dict) -> None:
@@ -255,7 +247,12 @@ class EvaluationLog:
             self._write_sensitivity(record["key"], np.array([sensitivity[line] for line in sensitivity], float))
         self._stream.write(json.dumps({**record, "outputs": outputs}, separators=(",", ":")) + "\n")
         self._stream.flush()
+        self._keep(record)
+
+    def _keep(self, record: dict) -> None:
         self.records[record["key"]] = record
+        if record["status"] == OK:
+            self.longest_finished_s = max(self.longest_finished_s, float(record.get("time_s") or 0.0))
 
     def get(self, key: str) -> dict:
         """The record of a key, its sensitivities read back from their file when they are not in memory."""
@@ -593,9 +590,6 @@ class Evaluator:
         self.label, self.cost_is_misfit, self.verbose = label, cost_is_misfit, verbose
         self.launched = 0
         self.replayed = 0
-        # the longest run of this folder that finished (`HANG_FACTOR`)
-        self._longest_s = max((float(r.get("time_s") or 0.0) for r in self.log.records.values() if r["status"] == OK),
-                              default=0.0)
         self._display: Progress | None = None   # one for the evaluator's whole stage, not one per batch
         self._pool = None
         self._client = None
@@ -646,7 +640,7 @@ class Evaluator:
         joined = LEVEL_SEPARATOR.join(text) if isinstance(text, tuple) else text
         key = deck_key(joined, self.model.mesh_sha, self.objective.fingerprint)
         timeout = max(max(run_timeout(deck, self.timeout_s) for deck in (text if isinstance(text, tuple) else (text,))),
-                      HANG_FACTOR * self._longest_s)
+                      HANG_FACTOR * self.log.longest_finished_s)
         return EngineTask(key, theta, options, tag, text, self.model.mesh_text, self.model.mesh_sha,
                           str(self.run_dir / "jobs"), timeout, self.threads, self.keep_jobs, self.verbose)
 
@@ -675,8 +669,6 @@ class Evaluator:
             for record in self._submit(list(todo.values())):
                 self.launched += 1
                 self.log.append(record)
-                if record["status"] == OK:
-                    self._longest_s = max(self._longest_s, float(record.get("time_s") or 0.0))
                 display.advance(record)
         except BaseException:
             display.close()   # the stage ends here (an error, Ctrl-C): its last line stays, the cursor comes back

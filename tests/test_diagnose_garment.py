@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from orchestrator.decks import sensitivity_blocks
 from orchestrator.diagnose import candidate_effects, garment_model, refit_model
 from orchestrator.forward import LegModel
 from orchestrator.imaging.frame import RigidMotion
@@ -66,15 +67,8 @@ def test_the_band_model_fits_the_friction_coefficient(leg_mesh):
     # through friction the engine carries the constants' sensitivities along the path; mu's column is differenced
     def sensitivity_lines(deck: str) -> list[str]:
         """The parameter lines of every *SENSITIVITY block (a NAME= block's without their weights)."""
-        lines, named = [], None
-        for line in deck.splitlines():
-            if line.startswith("**"):
-                continue
-            if line.startswith("*"):
-                named = "NAME=" in line if line.startswith("*SENSITIVITY") else None
-            elif named is not None and line.strip():
-                lines.append(line.rsplit(", ", 1)[0] if named else line)
-        return lines
+        return [line.rsplit(", ", 1)[0] if name else line
+                for name, lines in sensitivity_blocks(deck) for line in lines]
 
     lines = sensitivity_lines(with_friction)
     assert lines and all(line.startswith("MATERIAL, ") for line in lines)
