@@ -17,32 +17,22 @@ the put-on's path through friction), then diagnosed:
 Every case is slow (a run of the band with friction on the 3,990 elements the discretization check asks for takes
 30-40 s, the diagnosis's probe of every group's stiffness about 3 minutes beside other jobs): `make test-slow`.
 
-Measured (one sock, this machine). Drainage **passes** (stop 42, 2 h 6 min beside other jobs): meshed again (the
-default 1,999 elements: chi^2 of the discretization 142 against 35) with 3,990, where the check passes; baseline
-9,194 x the floor (the skin's uncertainty through the band, `SHAPE` columns, settled in its third pass); drainage
-ranked first (tied by the score with out_of_plane, their refits deciding), refitted to 1.08 x its own floor (1.10 x
-the baseline's) with dv -0.0501 (truth -0.05), C10 of muscle +0.5 %, the fat's sum -2.9 %; out_of_plane's refit
-207 x; the local change's refit left out (linearized 8,526 x against drainage's 1,785 x), where stop 41 spent 24 runs
-of two minutes on it. The control passes (stop 41, 20 min beside another case): meshed again to 3,990 elements, 0.89
-x the floor, the skin's uncertainty settled in one pass, nothing significant (bone_motion p 0.05 the lowest), C10 of
-muscle -0.2 %, the fat's sum +3.9 %. The band's prestretch profile (stop 42): baseline 222 x with the fat on its
-upper bounds (30 kPa) and muscle at 0.51; band_profile's refit first failed when its Jacobian's differences (no
-engine sensitivity through friction) ran past the 120 s default beside three other processes (the hang guard now
-grows with the folder's runs, `runner.HANG_FACTOR`); the diagnosis resumed from the run folder then met every
-assertion of this test: band_profile first (statistic 8,055, p 0; heterogeneity second, 5,810), refitted to 0.92 x
-its own floor (1.02 x the baseline's), band_a1 0.0498, band_b1 -0.0299 (truth 0.05, -0.03), C10 of muscle -0.5 %,
-the fat's sum -1.3 %; the local change's refit left out (156 x against 98 x linearized). Stop 43, after UMFPACK's
-symmetric strategy halved a run of this model (benchmarks/engine.py --only second-paper), each beside the other and
-other jobs: the compartments **pass** (43 min 54 s): meshed again (4,071 elements), baseline 42.1 x the floor,
-compartments first (statistic 2,761, heterogeneity 2,378), refitted to 0.94 x its own floor (0.95 x the
-baseline's) with dC10 of compartments 5, 6, 7 -0.574, 1.915, -0.616 (truth -0.6, 2.0, -0.6), C10 of muscle +2.3 %,
-the fat's sum 2.400 (-0.02 %); the local change's refit left out (11.9 x against 2.25 x linearized). The swelling
-**passes** (47 min 27 s): baseline 96.5 x, no catalog effect explains it (out_of_plane first, refitted 78.2 x;
-drainage second), the residual largest in the fat, sector 240-270 deg, 0-5 mm under the skin (the swelling's
-sector 210-300 deg); the local change there (fat, 240-300 deg, stiffness x0.14) refitted to 94.1 x, no explanation
-either. Then, uninterrupted, the band's prestretch profile **passes** (35 min 17 s; the same ranking and refit as
-the resumed run: 0.92 x its own floor, band_a1 0.0498, band_b1 -0.0299) and the control (10 min 35 s; 0.89 x, nothing
-significant, bone_motion p 0.05 the lowest).
+Measured (one sock, this machine, beside other jobs; every case meshed again by the discretization check to about
+4,000 elements, the skin's uncertainty through the band, `SHAPE` columns, settled in 1-3 passes):
+- drainage **passes** (stop 42, the engine before UMFPACK's symmetric strategy halved a run: 2 h 6 min): baseline
+  9,194 x the floor, drainage first (tied by the score with out_of_plane, their refits deciding), refitted to 1.08 x
+  its own floor, dv -0.0501 (truth -0.05), C10 of muscle +0.5 %, the fat's sum -2.9 %;
+- band_profile **passes** (stop 43, 35 min): baseline 222 x with the fat on its upper bounds (30 kPa), band_profile
+  first (statistic 8,055; heterogeneity 5,810), refitted to 0.92 x its own floor, band_a1 0.0498, band_b1 -0.0299
+  (truth 0.05, -0.03), C10 of muscle -0.5 %, the fat's sum -1.3 %;
+- compartments **pass** (stop 43, 44 min): baseline 42.1 x, compartments first (statistic 2,761; heterogeneity
+  2,378), refitted to 0.94 x its own floor, dC10 of compartments 5, 6, 7 -0.574, 1.915, -0.616 (truth -0.6, 2.0,
+  -0.6), C10 of muscle +2.3 %, the fat's sum -0.02 %;
+- the control **passes** (stop 43, 11 min): 0.89 x the floor, nothing significant (bone_motion p 0.05 the lowest);
+- the swelling **passes** (stop 43, 47 min): baseline 96.5 x, no catalog effect explains it (out_of_plane's refit
+  78.2 x), the residual largest in the fat, sector 240-270 deg, 0-5 mm under the skin (the swelling's sector
+  210-300 deg); the local change there (stiffness x0.14) refitted to 94.1 x, no explanation either.
+In every case with a catalog effect the local change's refit was left out (`diagnose.local_refit_unneeded`).
 """
 
 from __future__ import annotations
