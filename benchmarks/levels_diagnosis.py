@@ -3,6 +3,7 @@ side, when the same slice is diagnosed from one loaded image or from two under g
 
     .venv/bin/python benchmarks/levels_diagnosis.py [--effects drainage compartments] [--seed 4]
         [--model laplace|band|second-paper] [--data points|dic] [--second-tension 0.32] [--workers 2] [--keep DIR]
+        [--resume]
 
 For each hidden effect, a phantom calf is made by the engine at a truth drawn in physiological ranges (not the fit's
 start; `phantom.truths.random_truth(seed)`), on the phantom's own 8,000-element mesh, with scanner motion, under
@@ -18,6 +19,9 @@ once. Models:
 Printed per effect: one sock and two socks, the hidden effect's rank, score statistic and p-value, the best effect,
 the design effect D of the residual's correlation (the statistic is the chi^2 reduction over D), the misfit over the
 floor before and after the refit (and each level's own after it), and the wall times.
+
+With the second paper's model a case takes about 45 minutes a level set on two cores: `--keep DIR --resume` goes
+on from the cases and runs an interrupted benchmark left in DIR (the pipeline replays the engine runs it logged).
 """
 
 from __future__ import annotations
@@ -105,7 +109,11 @@ def main() -> None:
     parser.add_argument("--second-tension", type=float, default=0.32)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--keep", type=Path, help="keep the cases and runs in this folder")
+    parser.add_argument("--resume", action="store_true",
+                        help="go on from the cases and runs that an interrupted benchmark left in --keep's folder")
     arguments = parser.parse_args()
+    if arguments.resume and arguments.keep is None:
+        parser.error("--resume goes on from the folder of an earlier --keep: give it")
     if "band_profile" in arguments.effects and arguments.model != "second-paper":
         parser.error("band_profile is the band's own and needs friction: --model second-paper")
     if "tension_profile" in arguments.effects and arguments.model != "laplace":
@@ -115,13 +123,18 @@ def main() -> None:
         root = arguments.keep or Path(scratch)
         for effect in arguments.effects:
             folder = root / f"{arguments.model}-{effect}"
-            if folder.exists():
-                shutil.rmtree(folder)
-            began = time.perf_counter()
-            two = make_case(folder / "two-socks", arguments.model, effect, arguments.seed, arguments.second_tension,
-                            arguments.data)
-            one = first_level_only(two, folder / "one-sock")
-            print(f"{effect}: phantom made in {time.perf_counter() - began:.0f} s", flush=True)
+            made = folder / "cases-made"
+            two, one = folder / "two-socks", folder / "one-sock"
+            if arguments.resume and made.is_file():
+                print(f"{effect}: the cases and runs of {folder} taken up again", flush=True)
+            else:
+                if folder.exists():
+                    shutil.rmtree(folder)
+                began = time.perf_counter()
+                two = make_case(two, arguments.model, effect, arguments.seed, arguments.second_tension, arguments.data)
+                one = first_level_only(two, one)
+                made.write_text(f"seed {arguments.seed}, second tension {arguments.second_tension:g} N/mm\n")
+                print(f"{effect}: phantom made in {time.perf_counter() - began:.0f} s", flush=True)
             pair = {}
             for label, case in (("one sock", one), ("two socks", two)):
                 pair[label] = summary(effect, identify_and_diagnose(case, folder / f"run-{case.name}", arguments.data,
