@@ -45,7 +45,7 @@ from .imaging.dic import correlate, grid_centres, roi_centres
 from .imaging.frame import RigidMotion, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
-from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model, residual_bound
+from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
 from .imaging.windows import WindowOperators
 from .runfiles import write_json
 
@@ -327,9 +327,8 @@ def residual_excess(result, edge_variance_px2: float, residual_noise: float, pre
     for k, window in enumerate(result.edge_residuals):
         if window.count == 0:
             continue
-        ratio = window.residual_ratio(edge_variance_px2, residual_noise)
-        if ratio > residual_bound(window, prefilter, RESIDUAL_ALPHA):
-            excess[k] = ratio
+        if window.unpredicted(edge_variance_px2, residual_noise, prefilter, RESIDUAL_ALPHA):
+            excess[k] = max(1.0, window.residual_ratio(edge_variance_px2, residual_noise))
     return excess
 
 

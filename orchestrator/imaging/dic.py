@@ -472,11 +472,14 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
     confidence = _raw_zncc(pair, r0, c0, size, displacement, prior, warp) if pair.raw_spline is not None else zncc
     if signal_hessian is None:   # the window's texture does not rise above the noise
         return _Match.unmeasured(displacement, confidence), zncc
-    edges = EdgeResiduals()
-    edges.add((g_hat - f_hat.ravel()) * f_norm, pair.edge_q[window].ravel(), variance * pair.noise_q[window].ravel())
     # p = H_s^-1 S^T (G * e) for raw noise e of variance s_e^2 rho: Cov p = s_e^2 H_s^-1 (G * S)^T rho (G * S) H_s^-1
     # (`prefilter`), and the part of an error of the edges' position per unit s_edge^2 likewise
     spread = pair.prefilter.spread(steepest_raw.T.reshape(6, size, size)).reshape(6, -1)
+    edge_raw = pair.around(pair.edge_raw, r0, c0, size).ravel()
+    edge_q = pair.edge_q[window].ravel()
+    unabsorbed = 1.0 - _absorbed_edge_share(pair.prefilter, spread, hessian_raw, f_hat, edge_raw, edge_q.sum())
+    edges = EdgeResiduals()
+    edges.add((g_hat - f_hat.ravel()) * f_norm, unabsorbed * edge_q, variance * pair.noise_q[window].ravel())
     inverse = np.linalg.inv(signal_hessian)
     translation = np.ix_([0, 3], [0, 3])
 
@@ -484,9 +487,27 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
         return (inverse @ ((spread * weights.ravel()) @ spread.T) @ inverse)[translation]
 
     noise_sandwich = sandwich(pair.around(pair.rho_raw, r0, c0, size))
-    edge_sandwich = sandwich(pair.around(pair.edge_raw, r0, c0, size))
+    edge_sandwich = sandwich(edge_raw)
     return (_Match(displacement, confidence, variance * noise_sandwich, variance, warp[:2, :2] - np.eye(2), edges,
                    edge_sandwich), zncc)
+
+
+def _absorbed_edge_share(prefilter: Prefilter, spread: np.ndarray, hessian: np.ndarray, f_hat: np.ndarray,
+                         edge_raw: np.ndarray, edge_total: float) -> float:
+    """tr(P C_e) / tr(C_e): the share of the edges' error that a window's own fit takes into its parameters, and
+    so leaves out of its residual (`prefilter`, module text). P projects the prefiltered window onto what its match
+    adjusts: the six affine directions S (projected, `zero_normalised_steepest_descent`; H = S^T S), the mean and
+    the template f^ that the zero-normalised SSD removes; C_e = G diag(|grad I0|^2) G^T is the edges' error per
+    unit s_edge^2, so tr(P C_e) = tr(H^-1 (G * S)^T diag (G * S)) + the same for 1 / sqrt(n) and f^ (orthogonal to
+    S and to each other). The error of an edge lies where the steepest-descent images are largest, so a window takes
+    a larger share of it than of the noise, which is spread over every pixel and loses 8 of n values."""
+    if edge_total <= 0.0:
+        return 0.0
+    f_hat = np.asarray(f_hat, float)
+    normalisation = prefilter.spread(np.stack([np.full(f_hat.shape, 1.0 / np.sqrt(f_hat.size)), f_hat])).reshape(2, -1)
+    taken = (np.trace(np.linalg.solve(hessian, (spread * edge_raw) @ spread.T))
+             + float(np.sum(normalisation ** 2 * edge_raw)))
+    return float(np.clip(taken / edge_total, 0.0, 1.0))
 
 
 def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, warp: np.ndarray | None = None) -> float:
