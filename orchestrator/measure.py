@@ -279,7 +279,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence)
     edge_variance, residual_noise = fit_error_model([result.edge_residuals[k] for k in np.flatnonzero(matched)],
                                                     prefilter, RESIDUAL_ALPHA)
-    noise_scale = residual_noise
+    noise_scale = residual_noise / prefilter.residual_share(window_px)
     excess = residual_excess(result, edge_variance, residual_noise, prefilter)
     result = result.calibrated(edge_variance, noise_scale, excess)
     status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, excess > MAX_RESIDUAL_EXCESS)

@@ -475,52 +475,39 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
     # p = H_s^-1 S^T (G * e) for raw noise e of variance s_e^2 rho: Cov p = s_e^2 H_s^-1 (G * S)^T rho (G * S) H_s^-1
     # (`prefilter`), and the part of an error of the edges' position per unit s_edge^2 likewise
     spread = pair.prefilter.spread(steepest_raw.T.reshape(6, size, size)).reshape(6, -1)
-    edge_raw, rho_raw = pair.around(pair.edge_raw, r0, c0, size).ravel(), pair.around(pair.rho_raw, r0, c0, size).ravel()
-    kept = _ResidualVariance(pair.prefilter, steepest_raw, spread, hessian_raw, f_hat)
+    edge_raw = pair.around(pair.edge_raw, r0, c0, size).ravel()
+    edge_q = pair.edge_q[window].ravel()
+    unabsorbed = 1.0 - _absorbed_edge_share(pair.prefilter, spread, hessian_raw, f_hat, edge_raw, edge_q.sum())
     edges = EdgeResiduals()
-    edges.add((g_hat - f_hat.ravel()) * f_norm, kept(edge_raw, pair.edge_q[window]),
-              variance * kept(rho_raw, pair.noise_q[window]))
+    edges.add((g_hat - f_hat.ravel()) * f_norm, unabsorbed * edge_q, variance * pair.noise_q[window].ravel())
     inverse = np.linalg.inv(signal_hessian)
     translation = np.ix_([0, 3], [0, 3])
 
     def sandwich(weights: np.ndarray) -> np.ndarray:
         return (inverse @ ((spread * weights.ravel()) @ spread.T) @ inverse)[translation]
 
-    noise_sandwich = sandwich(rho_raw)
+    noise_sandwich = sandwich(pair.around(pair.rho_raw, r0, c0, size))
     edge_sandwich = sandwich(edge_raw)
     return (_Match(displacement, confidence, variance * noise_sandwich, variance, warp[:2, :2] - np.eye(2), edges,
                    edge_sandwich), zncc)
 
 
-class _ResidualVariance:
-    """What a window's residual keeps of an error of its raw pixels once the match has fitted it (`prefilter`,
-    module text): for raw pixel variances w (a map on the window grown by the prefilter's radius), the diagonal of
-    (I - P) C (I - P), C = G diag(w) G^T the error of the prefiltered window. P projects onto what the match adjusts:
-    the six affine directions S (projected, `zero_normalised_steepest_descent`; H = S^T S), the mean and the
-    template f^ that the zero-normalised SSD removes, orthonormal as A = [S H^-1/2, 1 / sqrt(n), f^]; then
-    diag = diag C - 2 rowsum(A * (C A)) + rowsum((A W) * A) with W = A^T C A, and C A is G applied to the spread
-    columns of A weighted by w (`Prefilter.restrict`). The match takes the most where the steepest-descent images are
-    largest: on the edges, for the noise as for an error of the edges' position."""
-
-    def __init__(self, prefilter: Prefilter, steepest: np.ndarray, spread: np.ndarray, hessian: np.ndarray,
-                 f_hat: np.ndarray):
-        self.prefilter = prefilter
-        self.grown = f_hat.shape[0] + 2 * prefilter.radius
-        whiten = np.linalg.inv(np.linalg.cholesky(hessian)).T      # S whiten is orthonormal
-        normalisation = np.stack([np.full(f_hat.size, 1.0 / np.sqrt(f_hat.size)), np.ravel(f_hat)])
-        self.basis = np.vstack([(steepest @ whiten).T, normalisation])
-        self.basis_spread = np.vstack([whiten.T @ spread,
-                                       prefilter.spread(normalisation.reshape(2, *f_hat.shape)).reshape(2, -1)])
-
-    def __call__(self, raw_variance: np.ndarray, prefiltered_variance: np.ndarray) -> np.ndarray:
-        """(n,) the residual's variance at each pixel of the window, for raw_variance w on the grown window and
-        prefiltered_variance = diag C = G^2 * w on the window."""
-        weighted = self.basis_spread * np.ravel(raw_variance)
-        c_basis = self.prefilter.restrict(weighted.reshape(len(weighted), self.grown, self.grown)).reshape(len(weighted), -1)
-        inner = weighted @ self.basis_spread.T
-        left = (np.ravel(prefiltered_variance) - 2.0 * np.sum(self.basis * c_basis, axis=0)
-                + np.sum((inner @ self.basis) * self.basis, axis=0))
-        return np.maximum(left, 0.0)
+def _absorbed_edge_share(prefilter: Prefilter, spread: np.ndarray, hessian: np.ndarray, f_hat: np.ndarray,
+                         edge_raw: np.ndarray, edge_total: float) -> float:
+    """tr(P C_e) / tr(C_e): the share of the edges' error that a window's own fit takes into its parameters, and
+    so leaves out of its residual (`prefilter`, module text). P projects the prefiltered window onto what its match
+    adjusts: the six affine directions S (projected, `zero_normalised_steepest_descent`; H = S^T S), the mean and
+    the template f^ that the zero-normalised SSD removes; C_e = G diag(|grad I0|^2) G^T is the edges' error per
+    unit s_edge^2, so tr(P C_e) = tr(H^-1 (G * S)^T diag (G * S)) + the same for 1 / sqrt(n) and f^ (orthogonal to
+    S and to each other). The error of an edge lies where the steepest-descent images are largest, so a window takes
+    a larger share of it than of the noise, which is spread over every pixel and loses 8 of n values."""
+    if edge_total <= 0.0:
+        return 0.0
+    f_hat = np.asarray(f_hat, float)
+    normalisation = prefilter.spread(np.stack([np.full(f_hat.shape, 1.0 / np.sqrt(f_hat.size)), f_hat])).reshape(2, -1)
+    taken = (np.trace(np.linalg.solve(hessian, (spread * edge_raw) @ spread.T))
+             + float(np.sum(normalisation ** 2 * edge_raw)))
+    return float(np.clip(taken / edge_total, 0.0, 1.0))
 
 
 def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, warp: np.ndarray | None = None) -> float:

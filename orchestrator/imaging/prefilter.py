@@ -21,19 +21,17 @@ the prefilter, and
     Cov(p_i, p_j) = sum_y B~_i(y) [s_i s_j rho(y) + s_edge^2 |grad I(y)|^2] B~_j(y)^T.
 
 s^2 comes from each image's own noise (`dic.estimate_noise_sigma`, on the raw images); s_edge^2 is calibrated on
-the user's images, from the residual r of every converged window. The match has fitted its parameters to the errors
-too, so the residual keeps of an error of raw variance w only the diagonal of (I - P) C_w (I - P), C_w = G diag(w) G^T
-and P the projection onto what the match adjusts (`dic._ResidualVariance`): E[r(x)^2] = s^2 v(x) + s_edge^2 q(x),
-v the kept part of the noise (w = rho) and q of the edges' error (w = |grad I|^2). Both are computed per pixel: the
-match takes the most where the steepest-descent images are largest, on the edges, and an estimate that used
-G^2 * w with one share for the whole window (the noise's 8 of n values) came out a third low. `EdgeResiduals` pools
-the windows' residuals into the least-squares line r^2 / v = kappa + s_edge^2 q / v (s_edge^2 zero on a band-limited
-image, where the spline is exact), without the windows whose residual the line does not predict (`fit_error_model`,
-by a bound that counts an edge's few independent values, `residual_bound`). On images that carry exactly the
-modelled error (tests/test_edge_error_model.py) the estimate is within a few per cent. The intercept kappa says how
-much noise the residuals hold against the images' own estimate of it: s^2 was estimated from each image's pixels,
-where a texture as fine as a pixel passes partly for noise (1.4 times the variance on the second phantom's muscle),
-so the windows' noise is rescaled by kappa.
+the user's images: the residual of every converged window has the expectation
+E[r(x)^2] = s^2 (G^2 * rho)(x) + s_edge^2 (1 - a_e) (G^2 * |grad I|^2)(x), and `EdgeResiduals` pools the windows'
+residuals into its least-squares estimate (zero on a band-limited image, where the spline is exact). a_e is the share
+of the edges' error that the window's own match takes into its parameters (`dic._absorbed_edge_share`): an edge's
+error lies where the steepest-descent images are largest, so the match takes more of it than of the noise. Windows
+whose residual the model does not predict are left out of the estimate (`fit_error_model`), by a bound that counts
+an edge's few independent values (`residual_bound`). On images carrying exactly the modelled error
+(tests/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and that bound). The same line's intercept
+says how much noise the residuals hold: s^2 was estimated from each image's own pixels, where a texture as fine as a
+pixel passes partly for noise (1.4 times the variance on the second phantom's muscle), so the windows' noise is
+rescaled to what their residuals show (`Prefilter.residual_share`: a window's fit takes some of it).
 """
 
 from __future__ import annotations
@@ -46,6 +44,7 @@ from scipy import ndimage, special, stats
 
 PREFILTER_SIGMA_PX = 1.0
 TRUNCATE = 4.0   # the kernel's half-width in standard deviations (scipy's default)
+WINDOW_FIT_DOF = 8   # what a window's match fits: the six affine parameters, and the mean and scale it normalises
 
 
 def _spline_derivative_response(frequencies: np.ndarray) -> np.ndarray:
@@ -96,17 +95,6 @@ class Prefilter:
             padded = ndimage.correlate1d(padded, self._kernel, axis=axis, mode="constant")
         return padded
 
-    def restrict(self, maps: np.ndarray) -> np.ndarray:
-        """G * maps for maps (..., s + 2r, s + 2r) on a window grown by the kernel's radius r, on the s x s window
-        itself: the adjoint of `spread`."""
-        maps = np.asarray(maps, float)
-        if self.sigma_px == 0.0:
-            return maps.copy()
-        r = self.radius
-        for axis in (-2, -1):
-            maps = ndimage.correlate1d(maps, self._kernel, axis=axis, mode="constant")
-        return maps[..., r:maps.shape[-2] - r, r:maps.shape[-1] - r]
-
     @cached_property
     def noise_gain(self) -> float:
         """sum G^2: the variance of a prefiltered pixel of unit white noise (1 / the pixels one independent value
@@ -128,6 +116,11 @@ class Prefilter:
         value of a prefiltered image spreads over (1 without a prefilter)."""
         autocorrelation = np.convolve(self._kernel, self._kernel)
         return float(np.sum((autocorrelation / autocorrelation.max()) ** 2) ** 2)
+
+    def residual_share(self, window_px: int, fitted: int = WINDOW_FIT_DOF) -> float:
+        """The share of a window's prefiltered noise that its residual keeps once the match has fitted `fitted`
+        degrees of freedom: each takes about one independent value, `correlated_pixels` pixels' worth."""
+        return 1.0 - fitted * self.correlated_pixels / window_px ** 2
 
     def squared_kernel_response(self, image: np.ndarray) -> np.ndarray:
         """G^2 * image: what a map of raw-pixel variances becomes in the variance of prefiltered pixels."""
@@ -166,9 +159,10 @@ def rician_variance_ratio(image: np.ndarray, noise_sigma: float, smoothing_px: f
 @dataclass
 class EdgeResiduals:
     """Sufficient statistics, pooled over converged windows, of the least-squares line through their residuals,
-    r(x)^2 / v = kappa + s_edge^2 q(x) / v, with v and q what each pixel's residual keeps of the noise and, per unit
-    s_edge^2, of the edges' error once the window's match has fitted them (module text). kappa is 1 when the images'
-    own noise estimate holds."""
+    r(x)^2 / v = kappa + s_edge^2 q(x) / v, with v = s^2 sum G^2 the variance of a prefiltered pixel of noise and
+    q = G^2 * |grad I|^2 (module text). kappa, the share of the noise left in the residual, is a little below 1:
+    each window's fit absorbs its parameters' share of the noise, more so when the prefilter correlates the pixels
+    of a small window."""
 
     count: int = 0
     z: float = 0.0     # sum q / v
@@ -210,7 +204,7 @@ class EdgeResiduals:
 
     @property
     def residual_over_noise(self) -> float:
-        """kappa: the windows' squared residual where there is no edge, over what the images' noise predicts of it."""
+        """kappa: the windows' squared residual where there is no edge, over what the images' noise predicts."""
         if self.count == 0:
             return float("nan")
         return (self.y - self.edge_variance_px2 * self.z) / self.count
