@@ -28,10 +28,14 @@ of the edges' error that the window's own match takes into its parameters (`dic.
 error lies where the steepest-descent images are largest, so the match takes more of it than of the noise. Windows
 whose residual the model does not predict are left out of the estimate (`fit_error_model`), by a bound that counts
 an edge's few independent values (`residual_bound`). On images carrying exactly the modelled error
-(tests/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and that bound). The same line's intercept
-says how much noise the residuals hold: s^2 was estimated from each image's own pixels, where a texture as fine as a
-pixel passes partly for noise (1.4 times the variance on the second phantom's muscle), so the windows' noise is
-rescaled to what their residuals show (`Prefilter.residual_share`: a window's fit takes some of it).
+(tests/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and that bound): the match
+takes the most on the edge's own pixels, and the line is fitted pixel by pixel. The kept part computed per pixel,
+diag((I - P) C (I - P)), recovers it within a few per cent, but then the windows of the second phantom were
+over-predicted (its control at 0.81 x the floor): the error left is in how the pixels' errors add up in a window,
+not in this line. The same line's intercept says how much noise the residuals hold: s^2 was estimated from each
+image's own pixels, where a texture as fine as a pixel passes partly for noise (1.4 times the variance on the
+second phantom's muscle), so the windows' noise is rescaled to what their residuals show (`Prefilter.residual_share`:
+a window's fit takes some of it).
 """
 
 from __future__ import annotations
@@ -229,7 +233,8 @@ def residual_bound(window: EdgeResiduals, prefilter: Prefilter, alpha: float, ed
     the calibration then dropped the windows whose edge error happened to be large, and s_edge^2 came out 30 % low on
     images carrying exactly the modelled error (tests/test_edge_error_model.py)."""
     total = kappa * window.count + edge_variance_px2 * window.z
-    squares = kappa ** 2 * window.count + 2.0 * kappa * edge_variance_px2 * window.z + edge_variance_px2 ** 2 * window.zz
+    squares = (kappa ** 2 * window.count + 2.0 * kappa * edge_variance_px2 * window.z
+               + edge_variance_px2 ** 2 * window.zz)
     independent = total ** 2 / squares / prefilter.correlated_pixels
     return float(stats.chi2.ppf(1.0 - alpha, independent) / independent)
 
