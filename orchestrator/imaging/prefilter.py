@@ -214,17 +214,21 @@ class EdgeResiduals:
         return (self.y - self.edge_variance_px2 * self.z) / self.count
 
 
+    def expected(self, edge_variance_px2: float, kappa: float) -> float:
+        """sum mu: the squared residual (over v) the error model predicts for the window, noise and edges together."""
+        return kappa * self.count + edge_variance_px2 * self.z
+
     def unpredicted(self, edge_variance_px2: float, kappa: float, prefilter: Prefilter, alpha: float) -> bool:
         """Whether the window's squared residual exceeds what the error model predicts for it, noise and edges
         together, beyond the 1 - alpha quantile of its independent values (`residual_bound`)."""
         if self.count == 0:
             return False
-        expected = kappa * self.count + edge_variance_px2 * self.z
-        return self.y / expected > residual_bound(self, prefilter, alpha, edge_variance_px2, kappa)
+        return self.y / self.expected(edge_variance_px2, kappa) > residual_bound(self, prefilter, alpha,
+                                                                                edge_variance_px2, kappa)
 
 
-def residual_bound(window: EdgeResiduals, prefilter: Prefilter, alpha: float, edge_variance_px2: float = 0.0,
-                   kappa: float = 1.0) -> float:
+def residual_bound(window: EdgeResiduals, prefilter: Prefilter, alpha: float, edge_variance_px2: float,
+                   kappa: float) -> float:
     """The largest squared residual, over what the error model predicts, that a window's independent values reach
     with probability 1 - alpha under the model (chi^2). A pixel's expected share is mu = kappa + s_edge^2 q / v: on
     an edge it is far above the noise's, and a few such pixels carry the window's sum, so the independent values
@@ -232,7 +236,7 @@ def residual_bound(window: EdgeResiduals, prefilter: Prefilter, alpha: float, ed
     over them without edges). Counting every pixel alike instead set the bound too low for windows across an edge:
     the calibration then dropped the windows whose edge error happened to be large, and s_edge^2 came out 30 % low on
     images carrying exactly the modelled error (tests/test_edge_error_model.py)."""
-    total = kappa * window.count + edge_variance_px2 * window.z
+    total = window.expected(edge_variance_px2, kappa)
     squares = (kappa ** 2 * window.count + 2.0 * kappa * edge_variance_px2 * window.z
                + edge_variance_px2 ** 2 * window.zz)
     independent = total ** 2 / squares / prefilter.correlated_pixels
