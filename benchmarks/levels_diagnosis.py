@@ -125,7 +125,12 @@ def main() -> None:
             folder = root / f"{arguments.model}-{effect}"
             made = folder / "cases-made"
             two, one = folder / "two-socks", folder / "one-sock"
+            made_with = (f"seed {arguments.seed}, second tension {arguments.second_tension:g} N/mm, "
+                         f"data {arguments.data}\n")
             if arguments.resume and made.is_file():
+                if made.read_text() != made_with:
+                    parser.error(f"{folder} holds cases made with {made.read_text().strip()}, not {made_with.strip()}: "
+                                 "give those options or leave out --resume")
                 print(f"{effect}: the cases and runs of {folder} taken up again", flush=True)
             else:
                 if folder.exists():
@@ -133,7 +138,7 @@ def main() -> None:
                 began = time.perf_counter()
                 two = make_case(two, arguments.model, effect, arguments.seed, arguments.second_tension, arguments.data)
                 one = first_level_only(two, one)
-                made.write_text(f"seed {arguments.seed}, second tension {arguments.second_tension:g} N/mm\n")
+                made.write_text(made_with)
                 print(f"{effect}: phantom made in {time.perf_counter() - began:.0f} s", flush=True)
             pair = {}
             for label, case in (("one sock", one), ("two socks", two)):
