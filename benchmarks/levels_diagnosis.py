@@ -21,7 +21,9 @@ the design effect D of the residual's correlation (the statistic is the chi^2 re
 floor before and after the refit (and each level's own after it), and the wall times.
 
 With the second paper's model a case takes about 45 minutes a level set on two cores: `--keep DIR --resume` goes
-on from the cases and runs an interrupted benchmark left in DIR (the pipeline replays the engine runs it logged).
+on from the cases and runs an interrupted benchmark left in DIR. A level set that ended is not run again (its row,
+with the wall times it took, is kept in DIR); one that was interrupted goes on where it stopped (the pipeline
+replays the engine runs it logged), and its wall times are then those of the resumed run.
 """
 
 from __future__ import annotations
@@ -142,8 +144,17 @@ def main() -> None:
                 print(f"{effect}: phantom made in {time.perf_counter() - began:.0f} s", flush=True)
             pair = {}
             for label, case in (("one sock", one), ("two socks", two)):
+                finished = folder / f"summary-{case.name}.json"
+                if arguments.resume and finished.is_file():
+                    # a level set that ended is not run again: its row keeps the wall times it took
+                    pair[label] = json.loads(finished.read_text())
+                    print(f"  {label}, finished earlier: {json.dumps(pair[label])}", flush=True)
+                    continue
                 pair[label] = summary(effect, identify_and_diagnose(case, folder / f"run-{case.name}", arguments.data,
                                                                     arguments.workers))
+                partial = finished.with_suffix(".part")
+                partial.write_text(json.dumps(pair[label]))
+                partial.replace(finished)
                 print(f"  {label}: {json.dumps(pair[label])}", flush=True)
             rows.append((effect, pair))
     print()
