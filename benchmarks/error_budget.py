@@ -1,0 +1,264 @@
+"""Where the DIC windows' error comes from, on cases whose true field is known (issue 28). Prints figures, asserts
+nothing.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/error_budget.py --foreign DIR [--renderers]
+
+DIR holds case folders made by another program, DIR/truth/<case>.npz their true fields and DIR/answers.json their
+scanner motions (`scanner_motion_image_frame`); --renderers adds one engine-made case of each of calfit's renderers.
+Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, error model calibrated), then:
+
+- The true images' error. The loaded image, prefiltered, is pulled back through the true field and the scanner motion
+  onto I0's pixels: D = (G * I1)(M(X + u(X))) - G * I0 is what the images hold besides the motion (noise, and how
+  each image was rendered or acquired). Through a window's own linearised map, e = H^-1 S^T D (`dic`: S the
+  zero-normalised steepest-descent images of the prefiltered reference) is that window's error as the images make
+  it. Per band: sum e^2 over what the calibrated error model predicts for the same windows (noise and edges), which
+  reproduces the band's chi^2/n when the window's error is the images' (the linearised observation is exact to
+  0.01 of chi^2/n on the other program's drainage case: a DIC of I0 warped by the true field agrees with it); the
+  same over the noise's part alone; and the edges' share of the prediction.
+- The measured errors, whitened window by window, along the radius (across the skin and the fascia) and around it.
+- The images' own error of position per kind of structure: D^2 - f v regressed on G^2 * (|grad I0|^2 on each kind)
+  (v the calibrated noise of a prefiltered pixel, f the ratio D^2 / v where there is no structure: the spline's
+  sampling of the prefiltered noise), for the skin and air, the inner boundaries (fat, muscle, bone), the fat's
+  texture and the muscle's; against the one value the windows' residuals calibrate (`prefilter`).
+- Over the other program's cases (one anatomy, one noiseless I0, independent noise): the correlation between cases
+  of the same window's normalised error. Independent errors give 0; a part of the error that the anatomy's rendering
+  fixes, the same in every case, gives more, and no noise draw averages it out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+from functools import cached_property
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+from skimage import io
+
+from orchestrator.imaging.case import BONE, FAT, MUSCLE
+from orchestrator.imaging.dic import edge_strength, spline_gradient, zero_normalised_steepest_descent
+from orchestrator.imaging.frame import RigidMotion
+from orchestrator.imaging.prefilter import Prefilter, rician_variance_ratio
+from orchestrator.phantom import CalfPhantom, MRIPhantom
+from orchestrator.phantom.truths import random_truth
+from orchestrator.pipeline import run_measure
+from orchestrator.study import load_run, make_phantom_case
+from orchestrator.verification import band_masks, errors_against, field_from_mesh_file, symmetric_roots
+
+RENDERER_MOTION = RigidMotion(-1.2, (1.1, 0.7), (75.6, 75.6))
+SKIN_REACH_PX = 3        # pixels of the air and the leg counted as the skin's edge
+BOUNDARY_REACH_PX = 2    # pixels either side of a boundary between tissues
+QUIET_SHARE = 0.1        # the share of the leg's pixels with the least structure, where D is noise alone
+
+
+def structure_kinds(labels: np.ndarray) -> dict[str, np.ndarray]:
+    """Masks of the raw pixels by the kind of structure they show (module text)."""
+    leg = labels > 0
+    skin = (ndimage.binary_dilation(~leg, iterations=SKIN_REACH_PX)
+            & ndimage.binary_dilation(leg, iterations=SKIN_REACH_PX))
+    tissues = [labels == FAT, labels == MUSCLE, labels == BONE]
+    boundary = np.zeros_like(leg)
+    for a, b in combinations(tissues, 2):
+        boundary |= (ndimage.binary_dilation(a, iterations=BOUNDARY_REACH_PX)
+                     & ndimage.binary_dilation(b, iterations=BOUNDARY_REACH_PX))
+    boundary &= ~skin
+    return {"skin and air": skin, "inner boundaries": boundary, "fat texture": tissues[0] & ~boundary & ~skin,
+            "muscle texture": tissues[1] & ~boundary & ~skin}
+
+
+class Case:
+    """One measured case with its true field and scanner motion."""
+
+    def __init__(self, name: str, case: Path, run: Path, field, motion: RigidMotion, labels: np.ndarray | None = None):
+        self.name = name
+        run_measure(case, run)
+        self.setup = load_run(run)
+        self.measured = self.setup.measurements("dic")
+        self.meta = json.loads((run / "measurements.json").read_text())
+        table = np.load(run / "measurements.npz")
+        self.centres = table["centres_rc"][table["status"] == "kept"]
+        self.reference = self.setup.case.unloaded.astype(float)
+        self.pixel = self.setup.case.pixel_size_mm
+        self.field = field(self.reference.shape, self.pixel)
+        self.motion = motion
+        self.labels = labels if labels is not None else self.setup.labels_unloaded
+        self.prefilter = Prefilter(self.meta["prefilter_px"])
+        self.bands = band_masks(self.measured, self.setup.frame())
+
+    def pulled_back_difference(self) -> np.ndarray:
+        loaded = self.setup.case.loaded.astype(float)
+        dy, dx = self.pixel
+        rows, cols = np.indices(self.reference.shape, dtype=float)
+        x = (cols + 0.5) * dx + np.nan_to_num(self.field[0])
+        y = (rows + 0.5) * dy + np.nan_to_num(self.field[1])
+        xs, ys = self.motion.apply(x, y)
+        spline = ndimage.spline_filter(self.prefilter(loaded), order=3)
+        back = ndimage.map_coordinates(spline, [ys / dy - 0.5, xs / dx - 0.5], order=3, prefilter=False,
+                                       mode="nearest")
+        return back - self.prefilter(self.reference)
+
+    def window_budget(self, difference: np.ndarray) -> np.ndarray:
+        """(N, 3) per kept window: e.e of the images' error through its map, the noise's and the edges' predicted
+        variance (px^2), calibrated as the measurement was."""
+        smooth = self.prefilter(self.reference)
+        grad_rows, grad_cols = spline_gradient(smooth)
+        size, reach = self.meta["window_px"], self.prefilter.radius
+        edges = np.pad(edge_strength(self.reference), reach, mode="edge")
+        rho = np.pad(rician_variance_ratio(self.reference, self.meta["noise_sigma"][0]), reach, mode="edge")
+        noise = float(np.sum(np.square(self.meta["noise_sigma"])))
+        rows = []
+        for row, col in self.centres:
+            r0, c0 = row - size // 2, col - size // 2
+            window = (slice(r0, r0 + size), slice(c0, c0 + size))
+            steepest, hessian = zero_normalised_steepest_descent(smooth[window], grad_cols[window], grad_rows[window])
+            fit = np.linalg.solve(hessian, steepest.T)[[0, 3]]
+            error = fit @ difference[window].ravel()
+            spread = self.prefilter.spread(fit.reshape(2, size, size)).reshape(2, -1) ** 2
+            grown = (slice(r0, r0 + size + 2 * reach), slice(c0, c0 + size + 2 * reach))
+            rows.append((error @ error if np.all(np.isfinite(error)) else np.nan,
+                         noise * float(np.sum(spread @ rho[grown].ravel())),
+                         self.meta["edge_variance_px2"] * float(np.sum(spread @ edges[grown].ravel()))))
+        return np.array(rows)
+
+    @cached_property
+    def errors(self) -> np.ndarray:
+        """(N, 2) measured less what the windows see of the truth, the bones' rigid motion removed as the fit does."""
+        errors = errors_against(self.measured, None, self.field)
+        whiten, _ = symmetric_roots(np.asarray(self.measured.covariance_mm2, float), "the measurement covariance")
+        columns = self.measured.rigid_columns(self.measured.position_mm.mean(axis=0))
+        motion, *_ = np.linalg.lstsq(whiten @ columns, whiten @ errors, rcond=None)
+        return (errors - columns @ motion).reshape(-1, 2)
+
+    def radial_tangential(self, errors: np.ndarray) -> np.ndarray:
+        """(N, 2) each window's error along the radius from the leg's centre and around it, over its predicted sd."""
+        covariance = np.asarray(self.measured.covariance_mm2, float)
+        position = self.measured.position_mm
+        radial = position - position.mean(axis=0)
+        radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+        out = np.empty((len(errors), 2))
+        for k, direction in enumerate(radial):
+            block = covariance[2 * k:2 * k + 2, 2 * k:2 * k + 2]
+            for j, d in enumerate((direction, np.array([-direction[1], direction[0]]))):
+                out[k, j] = (d @ errors[k]) / np.sqrt(d @ block @ d)
+        return out
+
+    def position_error_by_kind(self, difference: np.ndarray) -> dict[str, float]:
+        """s_edge^2 (px^2) of each kind of structure from the true images (module text)."""
+        leg = ndimage.binary_erosion(np.isfinite(self.field[0]), iterations=2)
+        edges = edge_strength(self.reference)
+        q = {kind: self.prefilter.squared_kernel_response(edges * mask)
+             for kind, mask in structure_kinds(self.labels).items()}
+        noise = (float(np.sum(np.square(self.meta["noise_sigma"])))
+                 * self.prefilter.squared_kernel_response(rician_variance_ratio(self.reference,
+                                                                                self.meta["noise_sigma"][0])))
+        total = sum(q.values())
+        quiet = leg & (total <= np.quantile(total[leg], QUIET_SHARE))
+        sampling = float(np.mean(difference[quiet] ** 2) / np.mean(noise[quiet]))
+        design = np.column_stack([q[kind][leg] for kind in q])
+        slopes, *_ = np.linalg.lstsq(design, difference[leg] ** 2 - sampling * noise[leg], rcond=None)
+        return {"D^2 / v where quiet": sampling, **dict(zip(q, slopes))}
+
+
+def report(title: str, cases: list[Case]) -> None:
+    print(f"\n{title}")
+    budgets, directions, errors = {}, {}, {}
+    for case in cases:
+        difference = case.pulled_back_difference()
+        budget = case.window_budget(difference)
+        measured = case.errors
+        errors[case.name] = measured
+        along = case.radial_tangential(measured)
+        kinds = case.position_error_by_kind(difference)
+        print(f"  {case.name}: the windows calibrated s_edge^2 {case.meta['edge_variance_px2']:.4f} px^2; the true "
+              f"images per kind: " + ", ".join(f"{k} {v:.4f}" for k, v in list(kinds.items())[1:])
+              + f" (D^2 / v where quiet {kinds['D^2 / v where quiet']:.2f})")
+        for band, mask in case.bands.items():
+            budgets.setdefault(band, []).append(budget[mask])
+            directions.setdefault(band, []).append(along[mask])
+    print("  per band, pooled:  the images' error through the windows' maps / predicted (/ its noise part; the edges' "
+          "share of the prediction)  |  measured chi^2 along the radius, around it")
+    for band in budgets:
+        b = np.vstack(budgets[band])
+        b = b[np.isfinite(b[:, 0])]
+        d = np.vstack(directions[band])
+        print(f"    {band:<28s} n {len(b):4d}: {b[:, 0].sum() / (b[:, 1] + b[:, 2]).sum():.2f} "
+              f"(/ noise {b[:, 0].sum() / b[:, 1].sum():.2f}; edges {b[:, 2].sum() / (b[:, 1] + b[:, 2]).sum():.2f})"
+              f"  |  {np.mean(d[:, 0] ** 2):.2f}, {np.mean(d[:, 1] ** 2):.2f}")
+
+
+def shared_between_cases(cases: list[Case]) -> None:
+    """The correlation between cases of the normalised errors of the windows they share (module text)."""
+    print("  between cases, the same window's normalised error (0 when independent): mean correlation over pairs")
+    for band in cases[0].bands:
+        normalised = []
+        for case in cases:
+            sd = np.sqrt(np.diagonal(np.asarray(case.measured.covariance_mm2, float))).reshape(-1, 2)
+            mask = case.bands[band]
+            key = [tuple(np.round(p, 2)) for p in case.measured.position_mm[mask]]
+            normalised.append(dict(zip(key, (case.errors[mask] / sd[mask]))))
+        common = sorted(set(normalised[0]).intersection(*normalised[1:]))
+        if len(common) < 5:
+            continue
+        values = np.array([[table[k] for k in common] for table in normalised]).reshape(len(cases), -1)
+        pairs = [np.corrcoef(values[i], values[j])[0, 1] for i, j in combinations(range(len(cases)), 2)]
+        print(f"    {band:<28s} {len(common)} windows: {np.mean(pairs):+.2f} (pairs {min(pairs):+.2f} to "
+              f"{max(pairs):+.2f})")
+
+
+def foreign_cases(folder: Path, scratch: Path) -> list[Case]:
+    answers = json.loads((folder / "answers.json").read_text())
+    cases = []
+    for case in sorted(p for p in folder.iterdir() if (p / "case.toml").is_file()):
+        truth = folder / "truth" / f"{case.name}.npz"
+        if not truth.is_file() or case.name not in answers:
+            continue
+        images_only = scratch / case.name
+        images_only.mkdir()
+        for item in case.iterdir():
+            if item.name != "points.csv":
+                shutil.copy(item, images_only / item.name)
+        motion = answers[case.name]["scanner_motion_image_frame"]
+        labels = io.imread(case / "labels.png") if (case / "labels.png").is_file() else None
+        cases.append(Case(case.name, images_only, scratch / f"run-{case.name}",
+                          lambda shape, pixel, truth=truth: field_from_mesh_file(truth, shape, pixel),
+                          RigidMotion(motion["rotation_deg"], tuple(motion["shift_mm"]), tuple(motion["about_mm"])),
+                          labels))
+    return cases
+
+
+def renderer_cases(scratch: Path, seed: int = 3) -> list[Case]:
+    cases = []
+    for name, phantom in (("CalfPhantom", CalfPhantom()), ("MRIPhantom", MRIPhantom.at_resolution(0.36))):
+        case, truth = make_phantom_case(scratch / name, phantom=phantom, theta_kPa=random_truth(seed), n_elements=4000,
+                                        labels=None, points_spacing_mm=None, noise_seeds=(10, 20),
+                                        rigid=RENDERER_MOTION)
+        cases.append(Case(name, case, scratch / f"run-{name}",
+                          lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy"), RENDERER_MOTION))
+    return cases
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--foreign", type=Path, help="case folders of another program, with truth/ and answers.json")
+    parser.add_argument("--renderers", action="store_true", help="one engine-made case of each of calfit's renderers")
+    arguments = parser.parse_args()
+    if arguments.foreign is None and not arguments.renderers:
+        parser.error("give --foreign DIR, --renderers or both")
+    with tempfile.TemporaryDirectory(prefix="calfit-bench-budget-") as scratch:
+        scratch = Path(scratch)
+        if arguments.foreign:
+            cases = foreign_cases(arguments.foreign, scratch)
+            report(f"The other program's {len(cases)} cases", cases)
+            if len(cases) > 1:
+                shared_between_cases(cases)
+        if arguments.renderers:
+            for case in renderer_cases(scratch):
+                report(f"calfit's {case.name}, one case", [case])
+
+
+if __name__ == "__main__":
+    main()
