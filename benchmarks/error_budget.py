@@ -1,10 +1,11 @@
 """Where the DIC windows' error comes from, on cases whose true field is known (issue 28). Prints figures, asserts
 nothing.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/error_budget.py --foreign DIR [--renderers]
+    PYTHONPATH=. .venv/bin/python benchmarks/error_budget.py [--foreign DIR [--renderers]]
 
 DIR holds case folders made by another program, DIR/truth/<case>.npz their true fields and DIR/answers.json their
-scanner motions (`scanner_motion_image_frame`); --renderers adds one engine-made case of each of calfit's renderers.
+scanner motions (`scanner_motion_image_frame`). Without --foreign, or with --renderers, one engine-made case of each
+of calfit's renderers.
 Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, error model calibrated), then:
 
 - The true images' error. The loaded image, prefiltered, is pulled back through the true field and the scanner motion
@@ -29,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import tempfile
 from functools import cached_property
 from itertools import combinations
@@ -216,14 +216,10 @@ def foreign_cases(folder: Path, scratch: Path) -> list[Case]:
         truth = folder / "truth" / f"{case.name}.npz"
         if not truth.is_file() or case.name not in answers:
             continue
-        images_only = scratch / case.name
-        images_only.mkdir()
-        for item in case.iterdir():
-            if item.name != "points.csv":
-                shutil.copy(item, images_only / item.name)
         motion = answers[case.name]["scanner_motion_image_frame"]
         labels = io.imread(case / "labels.png") if (case / "labels.png").is_file() else None
-        cases.append(Case(case.name, images_only, scratch / f"run-{case.name}",
+        # measured from the two images (and the case's labels, as `benchmarks/imaging.py` does); points.csv unused
+        cases.append(Case(case.name, case, scratch / f"run-{case.name}",
                           lambda shape, pixel, truth=truth: field_from_mesh_file(truth, shape, pixel),
                           RigidMotion(motion["rotation_deg"], tuple(motion["shift_mm"]), tuple(motion["about_mm"])),
                           labels))
@@ -244,10 +240,10 @@ def renderer_cases(scratch: Path, seed: int = 3) -> list[Case]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--foreign", type=Path, help="case folders of another program, with truth/ and answers.json")
-    parser.add_argument("--renderers", action="store_true", help="one engine-made case of each of calfit's renderers")
+    parser.add_argument("--renderers", action="store_true",
+                        help="with --foreign, also a case of each of calfit's renderers (the default without it)")
     arguments = parser.parse_args()
-    if arguments.foreign is None and not arguments.renderers:
-        parser.error("give --foreign DIR, --renderers or both")
+    arguments.renderers |= arguments.foreign is None
     with tempfile.TemporaryDirectory(prefix="calfit-bench-budget-") as scratch:
         scratch = Path(scratch)
         if arguments.foreign:
