@@ -16,7 +16,9 @@ Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, e
   reproduces the band's chi^2/n when the window's error is the images' (the linearised observation is exact to
   0.01 of chi^2/n on the other program's drainage case: a DIC of I0 warped by the true field agrees with it); the
   same over the noise's part alone; and the edges' share of the prediction.
-- The measured errors, whitened window by window, along the radius (across the skin and the fascia) and around it.
+- The measured errors, whitened window by window, along the radius (across the skin and the fascia) and around it;
+  and the windows' residual over what the error model predicts (`measurements.csv`): an error the windows take
+  whole into their displacement leaves none there.
 - The images' own error of position per kind of structure: D^2 - f v regressed on G^2 * (|grad I0|^2 on each kind)
   (v the calibrated noise of a prefiltered pixel, f the ratio D^2 / v where there is no structure: the spline's
   sampling of the prefiltered noise), for the skin and air, the inner boundaries (fat, muscle, bone), the fat's
@@ -80,7 +82,9 @@ class Case:
         self.measured = self.setup.measurements("dic")
         self.meta = json.loads((run / "measurements.json").read_text())
         table = np.load(run / "measurements.npz")
-        self.centres = table["centres_rc"][table["status"] == "kept"]
+        kept = table["status"] == "kept"
+        self.centres = table["centres_rc"][kept]
+        self.residual_over_model = table["residual_over_model"][kept]
         self.reference = self.setup.case.unloaded.astype(float)
         self.pixel = self.setup.case.pixel_size_mm
         self.field = field(self.reference.shape, self.pixel)
@@ -165,13 +169,11 @@ class Case:
 
 def report(title: str, cases: list[Case]) -> None:
     print(f"\n{title}")
-    budgets, directions, errors = {}, {}, {}
+    budgets, directions, residuals = {}, {}, {}
     for case in cases:
         difference = case.pulled_back_difference()
         budget = case.window_budget(difference)
-        measured = case.errors
-        errors[case.name] = measured
-        along = case.radial_tangential(measured)
+        along = case.radial_tangential(case.errors)
         kinds = case.position_error_by_kind(difference)
         print(f"  {case.name}: the windows calibrated s_edge^2 {case.meta['edge_variance_px2']:.4f} px^2; the true "
               f"images per kind: " + ", ".join(f"{k} {v:.4f}" for k, v in list(kinds.items())[1:])
@@ -179,15 +181,18 @@ def report(title: str, cases: list[Case]) -> None:
         for band, mask in case.bands.items():
             budgets.setdefault(band, []).append(budget[mask])
             directions.setdefault(band, []).append(along[mask])
+            residuals.setdefault(band, []).append(case.residual_over_model[mask])
     print("  per band, pooled:  the images' error through the windows' maps / predicted (/ its noise part; the edges' "
-          "share of the prediction)  |  measured chi^2 along the radius, around it")
+          "share of the prediction)  |  measured chi^2 along the radius, around it  |  the windows' residual over "
+          "the model")
     for band in budgets:
         b = np.vstack(budgets[band])
         b = b[np.isfinite(b[:, 0])]
         d = np.vstack(directions[band])
         print(f"    {band:<28s} n {len(b):4d}: {b[:, 0].sum() / (b[:, 1] + b[:, 2]).sum():.2f} "
               f"(/ noise {b[:, 0].sum() / b[:, 1].sum():.2f}; edges {b[:, 2].sum() / (b[:, 1] + b[:, 2]).sum():.2f})"
-              f"  |  {np.mean(d[:, 0] ** 2):.2f}, {np.mean(d[:, 1] ** 2):.2f}")
+              f"  |  {np.mean(d[:, 0] ** 2):.2f}, {np.mean(d[:, 1] ** 2):.2f}"
+              f"  |  {np.nanmean(np.concatenate(residuals[band])):.2f}")
 
 
 def shared_between_cases(cases: list[Case]) -> None:

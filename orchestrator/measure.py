@@ -88,6 +88,9 @@ class WindowTable:
     tissue: list[str]             # tissue of I0 under the centre
     status: list[str]
     prior_offset_mm: np.ndarray | None = None   # (N, 2) prior at the centre less what the window sees of it
+    # (N,) the window's squared residual over what the calibrated error model predicts for it (`imaging.prefilter`:
+    # 1 where the model holds, NaN where the window did not match)
+    residual_over_model: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
@@ -295,8 +298,11 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
+    residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise) if window.count else np.nan
+                                    for window in result.edge_residuals])
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
-                        result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset)
+                        result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
+                        residual_over_model)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
                                     edge_variance)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
@@ -422,17 +428,20 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
     run_dir = Path(run_dir)
     files = level_files(level)
     temporary = run_dir / f".{files['arrays']}.tmp.npz"
+    residual_over_model = (np.full(len(table.status), np.nan) if table.residual_over_model is None
+                           else table.residual_over_model)
     np.savez_compressed(temporary, centres_rc=table.centres_rc, kind=np.array(table.kind), position_mm=table.position_mm,
                         displacement_mm=table.displacement_mm, covariance_mm2=table.covariance_mm2,
                         confidence=table.confidence, intensity_variance=table.intensity_variance,
                         tissue=np.array(table.tissue), status=np.array(table.status),
-                        prior_offset_mm=table.prior_offset_mm)
+                        prior_offset_mm=table.prior_offset_mm, residual_over_model=residual_over_model)
     temporary.replace(run_dir / files["arrays"])
-    rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,offset_x_mm,offset_y_mm,kind,tissue,status"]
+    rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,residual_over_model,offset_x_mm,"
+            "offset_y_mm,kind,tissue,status"]
     for k in range(len(table.status)):
         c = table.covariance_mm2[k]
         values = [*table.position_mm[k], *table.displacement_mm[k], c[0, 0], c[1, 1], c[0, 1], table.confidence[k],
-                  *table.prior_offset_mm[k]]
+                  residual_over_model[k], *table.prior_offset_mm[k]]
         rows.append(",".join(f"{v:.6g}" for v in values) + f",{table.kind[k]},{table.tissue[k]},{table.status[k]}")
     temporary = run_dir / f".{files['table']}.tmp"
     temporary.write_text("\n".join(rows) + "\n", encoding="utf-8")
@@ -450,5 +459,6 @@ def read_window_table(run_dir: Path, level: int = 1) -> WindowTable | None:
         return WindowTable(arrays["centres_rc"], [str(v) for v in arrays["kind"]], arrays["position_mm"],
                            arrays["displacement_mm"], arrays["covariance_mm2"], arrays["confidence"],
                            arrays["intensity_variance"], [str(v) for v in arrays["tissue"]],
-                           [str(v) for v in arrays["status"]], arrays["prior_offset_mm"])
+                           [str(v) for v in arrays["status"]], arrays["prior_offset_mm"],
+                           arrays["residual_over_model"] if "residual_over_model" in arrays.files else None)
 

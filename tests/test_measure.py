@@ -145,11 +145,14 @@ def test_calfit_measure_writes_the_table_the_picture_and_a_json_summary(measured
     with open(run / FILES["table"], newline="") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == summary["windows"] and sum(row["status"] == "kept" for row in rows) == summary["kept"]
-    assert {"x_mm", "ux_mm", "var_x_mm2", "cov_xy_mm2", "confidence", "kind", "tissue", "status"} <= set(rows[0])
+    assert {"x_mm", "ux_mm", "var_x_mm2", "cov_xy_mm2", "confidence", "residual_over_model", "kind", "tissue",
+            "status"} <= set(rows[0])
     assert summary["kept"] > 0.6 * summary["windows"] and summary["kinds"]["skin"] > 10
     # relative to the bones: the scanner motion (1.5 deg, 0.9 mm) is gone, what is left is the compression
     true_field = np.load(truth / "displacement_mm.npy")
     kept = [row for row in rows if row["status"] == "kept"]
+    # the error model is calibrated on these windows' residuals: a kept window's residual is what it predicts
+    assert 0.8 < np.median([float(row["residual_over_model"]) for row in kept]) < 1.25
     position = np.array([[float(r["x_mm"]), float(r["y_mm"])] for r in kept])
     measured = np.array([[float(r["ux_mm"]), float(r["uy_mm"])] for r in kept])
     rows_px, cols_px = position[:, 1] / 0.36 - 0.5, position[:, 0] / 0.36 - 0.5
