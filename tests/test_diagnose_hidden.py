@@ -8,9 +8,8 @@ identified by Levenberg-Marquardt, then diagnosed.
 For each hidden effect: the baseline misfit is far above the noise floor (lack of fit p < 1e-6), the hidden
 effect ranks first and is significant, the refit with it comes within 1.2x the floor, and a refit with a wrong
 effect lowers the misfit far less (at most a third of the hidden effect's drop; see WRONG_EFFECT_SHARE) with a BIC
-that says so. A
-control case (no hidden effect) reports nothing significant; a case with a local swelling of the fat (outside
-the catalog) is reported as not explained by any catalog effect, with the residual located in its sector.
+that says so. A control case (no hidden effect) reports nothing significant; a case with a local swelling of the fat
+(outside the catalog) is reported as not explained by any catalog effect, with the residual located in its sector.
 
 The effect sizes are those of a calf under a garment: 5 % fluid loss of the muscle, 5 % axial elongation,
 0.2 mm of fibular motion, 8 % and 5 % first harmonics of the garment tension, C20 of 3 and 6 MPa (strain
@@ -38,12 +37,13 @@ from hidden_physics import OEDEMA_SECTOR_DEG, oedema
 from renderers import RENDERERS, phantom
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
-# How much of the hidden effect's drop in misfit (and in BIC) a wrong effect may take. DIC measures relative to the bones found in
-# the images, so its fit profiles out a rigid motion of the whole field (`measure.Measurements.rigid_nuisance`), and
-# with that freedom the fibula's motion mimics part of a drainage even on exact data: on the first renderer's
-# cases with the true field at points every 6 mm (0.02 mm noise), bone_motion takes 29.9 % of a hidden drainage's
-# drop and drainage 26.7 % of a hidden bone motion's with the rigid nuisance, 3.4 % and 7.8 % without it. A quarter,
-# chosen when these tests ran on points without it, is beyond what any measurement of these cases could show.
+# How much of the hidden effect's drop in misfit (and in BIC) a wrong effect may take. DIC measures relative to the
+# bones found in the images, so its fit profiles out a rigid motion of the whole field (`measure.Measurements.
+# rigid_nuisance`), and with that freedom the fibula's motion mimics part of a drainage even on exact data: on the
+# first renderer's cases with the true field at points every 6 mm (0.02 mm noise), bone_motion takes 29.9 % of a
+# hidden drainage's drop and drainage 26.7 % of a hidden bone motion's with the rigid nuisance, 3.4 % and 7.8 %
+# without it. A quarter, chosen when these tests ran on points without it, is beyond what any measurement of these
+# cases could show.
 WRONG_EFFECT_SHARE = 1.0 / 3.0
 SECTOR_DEG = 360.0 / SECTORS            # the width of the diagnosis' sectors (`diagnose.residual_maps`)
 CLEAR_LACK_OF_FIT_P = 1e-6
