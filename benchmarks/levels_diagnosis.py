@@ -40,6 +40,7 @@ from levels import first_level_only
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES, random_truth
 from orchestrator.pipeline import run_diagnose, run_identify
+from orchestrator.runfiles import write_json
 from orchestrator.study import make_phantom_case
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
@@ -152,9 +153,7 @@ def main() -> None:
                     continue
                 pair[label] = summary(effect, identify_and_diagnose(case, folder / f"run-{case.name}", arguments.data,
                                                                     arguments.workers))
-                partial = finished.with_suffix(".part")
-                partial.write_text(json.dumps(pair[label]))
-                partial.replace(finished)
+                write_json(finished, pair[label])
                 print(f"  {label}: {json.dumps(pair[label])}", flush=True)
             rows.append((effect, pair))
     print()

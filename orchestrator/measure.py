@@ -298,7 +298,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
-    residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise) if window.count else np.nan
+    residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise)
                                     for window in result.edge_residuals])
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
