@@ -59,16 +59,24 @@ def errors_against(measurements, mesh_or_observation, true_nodal_or_field) -> np
     return measured - measurements.observation(mesh_or_observation) @ np.asarray(true_nodal_or_field, float).ravel()
 
 
+def without_rigid_motion(measurements, errors: np.ndarray, whiten: np.ndarray) -> np.ndarray:
+    """(2N,) the errors less the bones' residual rigid motion, fitted by generalised least squares as the fit removes
+    it (module text; `whiten` the inverse square root of the measurements' covariance); unchanged for measurements
+    without that nuisance (points)."""
+    errors = np.asarray(errors, float)
+    if not measurements.rigid_nuisance:
+        return errors.copy()
+    columns = measurements.rigid_columns(measurements.position_mm.mean(axis=0))
+    motion, *_ = np.linalg.lstsq(whiten @ columns, whiten @ errors, rcond=None)
+    return errors - columns @ motion
+
+
 def band_errors(measurements, errors: np.ndarray, frame) -> tuple[list[BandError], float]:
     """Per band and overall (chi^2/n over every value, full covariance) once the bones' residual rigid motion is
     removed by generalised least squares (module text)."""
     covariance = np.asarray(measurements.covariance_mm2, float)
-    errors = np.asarray(errors, float).copy()
     whiten, _ = symmetric_roots(covariance, "the measurement covariance")
-    if measurements.rigid_nuisance:
-        columns = measurements.rigid_columns(measurements.position_mm.mean(axis=0))
-        motion, *_ = np.linalg.lstsq(whiten @ columns, whiten @ errors, rcond=None)
-        errors -= columns @ motion
+    errors = without_rigid_motion(measurements, errors, whiten)
     whitened = whiten @ errors
     rows = []
     for band, mask in band_masks(measurements, frame).items():
