@@ -282,9 +282,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence)
     edge_variance, residual_noise = fit_error_model([result.edge_residuals[k] for k in np.flatnonzero(matched)],
                                                     prefilter, RESIDUAL_ALPHA)
-    noise_scale = residual_noise / prefilter.residual_share(window_px)
     excess = residual_excess(result, edge_variance, residual_noise, prefilter)
-    result = result.calibrated(edge_variance, noise_scale, excess)
+    result = result.calibrated(edge_variance, residual_noise, excess)
     status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, excess > MAX_RESIDUAL_EXCESS)
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
@@ -307,7 +306,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                                     edge_variance)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "edge_variance_px2": edge_variance,
-               "residual_over_noise": residual_noise, "noise_scale": noise_scale,
+               "residual_over_noise": residual_noise, "noise_scale": residual_noise,
                "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
                "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},

@@ -4,7 +4,7 @@ An image pair is made whose edges carry exactly the modelled error: an error of 
 every raw pixel with standard deviation s_edge, i.e. an intensity error delta(y) |grad I0(y)| (`prefilter`, module
 text), on top of white noise. The pooled line through the converged windows' residuals (`fit_error_model`) must give
 s_edge^2 back. A window's own match takes part of the edges' error into its parameters, more than of the noise
-(`dic._absorbed_edge_share`), and a window across an edge has fewer independent values than pixels
+(`dic._absorbed_share`), and a window across an edge has fewer independent values than pixels
 (`prefilter.residual_bound`): an estimate that forgot either came out a third low on these images.
 """
 

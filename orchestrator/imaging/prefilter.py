@@ -22,20 +22,20 @@ the prefilter, and
 
 s^2 comes from each image's own noise (`dic.estimate_noise_sigma`, on the raw images); s_edge^2 is calibrated on
 the user's images: the residual of every converged window has the expectation
-E[r(x)^2] = s^2 (G^2 * rho)(x) + s_edge^2 (1 - a_e) (G^2 * |grad I|^2)(x), and `EdgeResiduals` pools the windows'
-residuals into its least-squares estimate (zero on a band-limited image, where the spline is exact). a_e is the share
-of the edges' error that the window's own match takes into its parameters (`dic._absorbed_edge_share`): an edge's
-error lies where the steepest-descent images are largest, so the match takes more of it than of the noise. Windows
-whose residual the model does not predict are left out of the estimate (`fit_error_model`), by a bound that counts
-an edge's few independent values (`residual_bound`). On images carrying exactly the modelled error
-(tests/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and that bound): the match
-takes the most on the edge's own pixels, and the line is fitted pixel by pixel. The kept part computed per pixel,
-diag((I - P) C (I - P)), recovers it within a few per cent, but then the windows of the second phantom were
-over-predicted (its control at 0.81 x the floor): the error left is in how the pixels' errors add up in a window,
-not in this line. The same line's intercept says how much noise the residuals hold: s^2 was estimated from each
-image's own pixels, where a texture as fine as a pixel passes partly for noise (1.4 times the variance on the
-second phantom's muscle), so the windows' noise is rescaled to what their residuals show (`Prefilter.residual_share`:
-a window's fit takes some of it).
+E[r(x)^2] = s^2 (1 - a_n) (G^2 * rho)(x) + s_edge^2 (1 - a_e) (G^2 * |grad I|^2)(x),
+and `EdgeResiduals` pools the windows' residuals into its least-squares estimate (zero on a band-limited image, where
+the spline is exact). a_e and a_n are the shares of the edges' error and of the noise that the window's own match takes
+into its parameters (`dic._absorbed_share`): an edge's error lies where the steepest-descent images are largest, so the
+match takes more of it than of the noise. Windows whose residual the model does not predict are left out of the estimate
+(`fit_error_model`), by a bound that counts an edge's few independent values (`residual_bound`). On images carrying
+exactly the modelled error (tests/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and
+that bound): the match takes the most on the edge's own pixels, and the line is fitted pixel by pixel. The kept part
+computed per pixel, diag((I - P) C (I - P)), recovers it within a few per cent, but then the windows of the second
+phantom were over-predicted (its control at 0.81 x the floor): the error left is in how the pixels' errors add up in a
+window, not in this line. The same line's intercept says how much noise the residuals hold: s^2 was estimated from each
+image's own pixels, where a texture as fine as a pixel passes partly for noise (1.4 times the variance on the second
+phantom's muscle), so the windows' noise is rescaled to what their residuals show (a_n is 5-7 % of a 32-pixel window's
+noise).
 """
 
 from __future__ import annotations
@@ -48,7 +48,6 @@ from scipy import ndimage, special, stats
 
 PREFILTER_SIGMA_PX = 1.0
 TRUNCATE = 4.0   # the kernel's half-width in standard deviations (scipy's default)
-WINDOW_FIT_DOF = 8   # what a window's match fits: the six affine parameters, and the mean and scale it normalises
 
 
 def _spline_derivative_response(frequencies: np.ndarray) -> np.ndarray:
@@ -120,11 +119,6 @@ class Prefilter:
         value of a prefiltered image spreads over (1 without a prefilter)."""
         autocorrelation = np.convolve(self._kernel, self._kernel)
         return float(np.sum((autocorrelation / autocorrelation.max()) ** 2) ** 2)
-
-    def residual_share(self, window_px: int, fitted: int = WINDOW_FIT_DOF) -> float:
-        """The share of a window's prefiltered noise that its residual keeps once the match has fitted `fitted`
-        degrees of freedom: each takes about one independent value, `correlated_pixels` pixels' worth."""
-        return 1.0 - fitted * self.correlated_pixels / window_px ** 2
 
     def squared_kernel_response(self, image: np.ndarray) -> np.ndarray:
         """G^2 * image: what a map of raw-pixel variances becomes in the variance of prefiltered pixels."""
