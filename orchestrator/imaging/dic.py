@@ -59,9 +59,10 @@ What each window reports (as DICe does: users see what was trusted):
   gradients of the noisy reference, whose noise looks like texture: its
   expectation is H_s + s_f^2 g^2 M (H_s of the noiseless image, g^2 the noise
   gain of the spline derivative of the prefiltered image, M the moments of the
-  affine basis), hence H_s = H - s_f^2 g^2 M (errors in variables; without it
-  the predicted variance is 30-70 % short on texture as weak as muscle's in
-  T1). The error of the images' edges (`prefilter`) is added by
+  affine basis weighted by rho), hence H_s = H - s_f^2 g^2 M (errors in
+  variables; without it the predicted variance is 30-70 % short on texture as
+  weak as muscle's in T1; with M unweighted, windows half in air over-predicted
+  the variance along the skin 1.6 times, tests/test_window_noise.py). The error of the images' edges (`prefilter`) is added by
   `DICResult.with_edge_variance` once the windows' residuals have calibrated it;
 - `uncertainty_px`, `anisotropy`: the largest standard deviation and the ratio
   of the largest to the smallest (large along a lone edge: the aperture problem).
@@ -445,7 +446,8 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
     steepest_raw, hessian_raw = zero_normalised_steepest_descent(template, pair.grad_cols[window], pair.grad_rows[window])
     if np.linalg.cond(hessian_raw) > 1e10:
         return None
-    signal_hessian = denoised_hessian(hessian_raw, size, pair.noise_sigma[0], pair.prefilter.derivative_noise_gain)
+    signal_hessian = denoised_hessian(hessian_raw, size, pair.noise_sigma[0], pair.prefilter.derivative_noise_gain,
+                                      pair.noise_q[window] / pair.prefilter.noise_gain)
     steepest, hessian = steepest_raw / f_norm, hessian_raw / f_norm ** 2
     centre_row, centre_col = r0 + (size - 1) / 2.0, c0 + (size - 1) / 2.0
     offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
@@ -535,22 +537,27 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
     return float(f_hat @ g_hat) if f_norm > 0 and g_norm > 0 else 0.0
 
 
-def affine_moments(size: int) -> np.ndarray:
-    """M = sum over a square window of X^T X, X = [1, dx, dy] per pixel, for both displacement components (6x6)."""
-    offsets = np.arange(size, dtype=float) - (size - 1) / 2.0
-    second = float(np.sum(offsets ** 2)) * size
-    block = np.diag([float(size * size), second, second])
+def affine_moments(size: int, weights: np.ndarray | None = None) -> np.ndarray:
+    """M = sum over a square window of w X^T X, X = [1, dx, dy] per pixel (w = 1 by default, else the (size, size)
+    `weights`), for both displacement components (6x6)."""
+    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
+    basis = np.stack([np.ones(size * size), offset_cols.ravel(), offset_rows.ravel()])
+    weights = np.ones(size * size) if weights is None else np.asarray(weights, float).ravel()
     moments = np.zeros((6, 6))
-    moments[:3, :3] = moments[3:, 3:] = block
+    moments[:3, :3] = moments[3:, 3:] = (basis * weights) @ basis.T
     return moments
 
 
 def denoised_hessian(hessian: np.ndarray, size: int, reference_noise_sigma: float,
-                     derivative_noise_gain: float = SPLINE_DERIVATIVE_NOISE_GAIN) -> np.ndarray | None:
-    """H_s = H - s_f^2 g^2 M, the Gauss-Newton matrix of the noiseless reference (module text; g^2 the gradient
-    noise gain of the prefiltered image, `prefilter.Prefilter.derivative_noise_gain`); None when it is not
+                     derivative_noise_gain: float = SPLINE_DERIVATIVE_NOISE_GAIN,
+                     noise_ratio: np.ndarray | None = None) -> np.ndarray | None:
+    """H_s = H - s_f^2 g^2 M_rho, the Gauss-Newton matrix of the noiseless reference (module text; g^2 the gradient
+    noise gain of the prefiltered image, `prefilter.Prefilter.derivative_noise_gain`; M_rho the affine moments
+    weighted by each pixel's share rho of the noise variance, (size, size) `noise_ratio`, 1 if not given: the
+    Rician noise of the air beside the skin is 0.43 of the tissue's, and a window half in air subtracted with the
+    tissue's noise everywhere took a third too much from the direction along the skin); None when it is not
     positive definite, i.e. the window holds less texture than noise."""
-    signal = hessian - reference_noise_sigma ** 2 * derivative_noise_gain * affine_moments(size)
+    signal = hessian - reference_noise_sigma ** 2 * derivative_noise_gain * affine_moments(size, noise_ratio)
     try:
         np.linalg.cholesky(signal)
     except np.linalg.LinAlgError:

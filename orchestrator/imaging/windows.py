@@ -56,6 +56,9 @@ class WindowOperators:
         self._reference = reference
         self.reference_noise_sigma = float(reference_noise_sigma)
         size, reach = self.window_px, self.prefilter.radius
+        # each prefiltered pixel's noise variance over the tissue's, as `dic.correlate` weighs it
+        noise_ratio = (self.prefilter.squared_kernel_response(rician_variance_ratio(reference, reference_noise_sigma))
+                       / self.prefilter.noise_gain)
         local_rows, local_cols = np.mgrid[0:size, 0:size]
         spread_rows, spread_cols = np.mgrid[-reach:size + reach, -reach:size + reach]
         self.pixels = []        # flat pixel indices of each window
@@ -69,7 +72,8 @@ class WindowOperators:
                 raise ValueError(f"the window centred at row {row}, column {col} does not fit in the image")
             fx, fy = grad_cols[rows, cols], grad_rows[rows, cols]
             steepest, hessian = zero_normalised_steepest_descent(smooth[rows, cols], fx, fy)
-            signal = denoised_hessian(hessian, size, reference_noise_sigma, self.prefilter.derivative_noise_gain)
+            signal = denoised_hessian(hessian, size, reference_noise_sigma, self.prefilter.derivative_noise_gain,
+                                      noise_ratio[rows, cols])
             if signal is None:
                 raise ValueError(f"the window centred at row {row}, column {col} holds less texture than noise")
             self.pixels.append((rows * self.shape[1] + cols).ravel())
