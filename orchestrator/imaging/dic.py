@@ -62,7 +62,8 @@ What each window reports (as DICe does: users see what was trusted):
   affine basis weighted by rho), hence H_s = H - s_f^2 g^2 M (errors in
   variables; without it the predicted variance is 30-70 % short on texture as
   weak as muscle's in T1; with M unweighted, windows half in air over-predicted
-  the variance along the skin 1.6 times, tests/test_window_noise.py). The error of the images' edges (`prefilter`) is added by
+  the variance along the skin 1.6 times, tests/test_window_noise.py). The
+  error of the images' edges (`prefilter`) is added by
   `DICResult.with_edge_variance` once the windows' residuals have calibrated it;
 - `uncertainty_px`, `anisotropy`: the largest standard deviation and the ratio
   of the largest to the smallest (large along a lone edge: the aperture problem).
@@ -554,8 +555,8 @@ def denoised_hessian(hessian: np.ndarray, size: int, reference_noise_sigma: floa
     """H_s = H - s_f^2 g^2 M_rho, the Gauss-Newton matrix of the noiseless reference (module text; g^2 the gradient
     noise gain of the prefiltered image, `prefilter.Prefilter.derivative_noise_gain`; M_rho the affine moments
     weighted by each pixel's share rho of the noise variance, (size, size) `noise_ratio`, 1 if not given: the
-    Rician noise of the air beside the skin is 0.43 of the tissue's, and a window half in air subtracted with the
-    tissue's noise everywhere took a third too much from the direction along the skin); None when it is not
+    Rician noise of the air beside the skin is 0.43 of the tissue's, and a window half in air, the tissue's noise
+    taken away everywhere, over-predicted the variance along the skin 1.6 times); None when it is not
     positive definite, i.e. the window holds less texture than noise."""
     signal = hessian - reference_noise_sigma ** 2 * derivative_noise_gain * affine_moments(size, noise_ratio)
     try:
