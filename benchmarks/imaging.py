@@ -188,7 +188,7 @@ def _print_bands(title: str, case: Path, run: Path, true_field) -> list:
     field = true_field(setup.case.unloaded.shape, setup.case.pixel_size_mm)
     rows, overall = band_errors(measured, errors_against(measured, None, field), setup.frame())
     print(f"  {title}: {summary['kept']} of {summary['windows']} windows kept, edge position sigma "
-          f"{np.sqrt(summary['edge_variance_px2']):.3f} px, residual / noise {summary['residual_over_noise']:.2f}; "
+          f"{np.sqrt(summary['edge_variance_px2']):.3f} px, residual / noise {summary['noise_scale']:.2f}; "
           f"chi2/n overall {overall:.2f}")
     for row in rows:
         print(f"    {row.line()}")

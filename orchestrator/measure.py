@@ -306,7 +306,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                                     edge_variance)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "edge_variance_px2": edge_variance,
-               "residual_over_noise": residual_noise, "noise_scale": residual_noise,
+               "noise_scale": residual_noise,
                "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
                "status": table.counts(), "kinds": {k: int(sum(1 for x in kinds if x == k)) for k in KINDS},

@@ -303,7 +303,7 @@ def floor_calibration(run_dir: Path) -> dict:
     return {"prefilter_px": summary.get("prefilter_px", 0.0), "image_noise_sigma": summary["noise_sigma"],
             "image_noise_sigma_estimated": summary.get("noise_sigma_estimated", summary["noise_sigma"]),
             "edge_position_sigma_px": float(np.sqrt(summary.get("edge_variance_px2", 0.0))),
-            "residual_over_predicted": summary.get("residual_over_noise"), "windows": summary["windows"],
+            "residual_over_predicted": summary.get("noise_scale"), "windows": summary["windows"],
             "kept": summary["kept"], "status": summary["status"]}
 
 

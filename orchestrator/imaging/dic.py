@@ -447,8 +447,9 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
     steepest_raw, hessian_raw = zero_normalised_steepest_descent(template, pair.grad_cols[window], pair.grad_rows[window])
     if np.linalg.cond(hessian_raw) > 1e10:
         return None
+    noise_q = pair.noise_q[window]
     signal_hessian = denoised_hessian(hessian_raw, size, pair.noise_sigma[0], pair.prefilter.derivative_noise_gain,
-                                      pair.noise_q[window] / pair.prefilter.noise_gain)
+                                      noise_q / pair.prefilter.noise_gain)
     steepest, hessian = steepest_raw / f_norm, hessian_raw / f_norm ** 2
     centre_row, centre_col = r0 + (size - 1) / 2.0, c0 + (size - 1) / 2.0
     offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
@@ -480,13 +481,12 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
     spread = pair.prefilter.spread(steepest_raw.T.reshape(6, size, size)).reshape(6, -1)
     edge_raw = pair.around(pair.edge_raw, r0, c0, size).ravel()
     edge_q = pair.edge_q[window].ravel()
-    noise_raw = pair.around(pair.rho_raw, r0, c0, size)
-    noise_q = pair.noise_q[window].ravel()
+    noise_raw = pair.around(pair.rho_raw, r0, c0, size).ravel()
     # what the residual keeps of each error: the match takes a larger share of the edges' than of the noise's
     edge_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, edge_raw, edge_q.sum())
-    noise_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, noise_raw.ravel(), noise_q.sum())
+    noise_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, noise_raw, noise_q.sum())
     edges = EdgeResiduals()
-    edges.add((g_hat - f_hat.ravel()) * f_norm, edge_kept * edge_q, variance * noise_kept * noise_q)
+    edges.add((g_hat - f_hat.ravel()) * f_norm, edge_kept * edge_q, variance * noise_kept * noise_q.ravel())
     inverse = np.linalg.inv(signal_hessian)
     translation = np.ix_([0, 3], [0, 3])
 
