@@ -12,8 +12,8 @@ from finite differences (issue 7: at most 15 runs with sensitivities), and
 3 s), (4) Levenberg-Marquardt with 4, 6 and 8 free parameters on a phantom made with the 8 (the base
 four, C20 of fat and muscle: `stiffening`, the garment's first tension harmonic: `tension_profile`):
 iterations, engine solves, wall time, errors (issue 13), and (5) the images-first path: a case folder
-with two images only -> identified parameters and diagnosis (target under 60 s). Every measurement
-starts from an empty run folder (no cache).
+with two images only -> identified parameters and diagnosis (target under 30 s, issue 28). Every
+measurement starts from an empty run folder (no cache).
 """
 
 from __future__ import annotations
@@ -113,7 +113,7 @@ def parameter_counts(scratch: Path) -> None:
 def images_first(scratch: Path) -> None:
     """Case folder (two images, case.toml) -> identified parameters + diagnosis, as `calfit identify` and
     `calfit diagnose` run it: segmentation, bone alignment, meshing, DIC, Levenberg-Marquardt, the skin's
-    uncertainty and the second fit, then the effect ranking. Target: 60 s on this 2-core machine."""
+    uncertainty and the second fit, then the effect ranking. Target: 30 s on this 2-core machine (issue 28)."""
     truth = (3.6, 12.4, 92.0, 74.0)
     case, _ = make_phantom_case(scratch / "images-case", scratch / "images-case.truth", theta_kPa=truth, labels=None,
                                 points_spacing_mm=None, rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)))
@@ -126,7 +126,7 @@ def images_first(scratch: Path) -> None:
     measured = read_json(run / "measurements.json", "calfit measure")
     theta = np.array(identification["best"]["theta"])
     print(f"images first, case folder (two 420x420 images) -> parameters + diagnosis: {done - began:.1f} s "
-          f"(target 60 s) = identify {identified - began:.1f} s (of which DIC {measured['wall_time_s']:.1f} s, "
+          f"(target 30 s) = identify {identified - began:.1f} s (of which DIC {measured['wall_time_s']:.1f} s, "
           f"{identification['engine_runs_total']} engine runs in the log) + diagnose {done - identified:.1f} s "
           f"({diagnosis['engine_runs']} runs for the ranking, {len(diagnosis['refits'])} refits)")
     print(f"  error {np.round(100 * (theta - np.array(truth)) / np.array(truth), 1)} %, misfit "

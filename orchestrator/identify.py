@@ -70,6 +70,9 @@ class FitResult:
     converged: bool
     message: str = ""
     history: list[float] = field(default_factory=list)
+    # the standard error of each x at the fit, sqrt(diag (J^T J)^-1) times s >= 1 (`linearised_standard_errors`),
+    # None for one the data do not see; empty where the method has no Jacobian (Nelder-Mead)
+    standard_error_x: list[float | None] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -245,6 +248,7 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
     chi2, history = float(r @ r), [float(current["cost"])]
     accepted_chi2 = [chi2]
     evaluations, converged, message, iteration = 1, False, "maximum number of iterations reached", 0
+    J = None
     for iteration in range(1, max_iterations + 1):
         J, missing = jacobian_in_x(evaluator, current, x, steps_into_box(space, x), tag="lm-jacobian",
                                    label=f"LM Jacobian {iteration}")
@@ -287,9 +291,25 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
             converged, message = True, (f"chi^2 fell by less than {STALL_CHI2:g} of its variance per degree of "
                                         f"freedom over {STALL_ITERATIONS} iterations (stalled)")
             break
+    # the last Jacobian, at the fit or one step before it: the curvature that sets the step sets the error too
     return FitResult("levenberg-marquardt", list(map(float, start)), _from_x(space, x).tolist(), float(current["cost"]),
                      iteration, evaluations, evaluator.launched - launched0, evaluator.replayed - replayed0,
-                     time.perf_counter() - began, converged, message, history)
+                     time.perf_counter() - began, converged, message, history,
+                     [] if J is None else [float(e) if np.isfinite(e) else None
+                                           for e in linearised_standard_errors(J, chi2, len(r) - p)])
+
+
+def linearised_standard_errors(jacobian: np.ndarray, chi2: float, dof: int) -> np.ndarray:
+    """(p,) sqrt(diag (J^T J)^-1) of whitened residuals (r.r = chi^2, J = dr/dx): the standard error of each x at a
+    least-squares fit, times s = sqrt(chi^2 / dof) where that exceeds 1 (the residual's own variance, as the noise
+    Monte-Carlo inflates it where the model lacks something). A direction the data do not see (an eigenvalue of
+    J^T J below 1e-12 of the largest) gives its parameters an infinite error rather than the pseudo-inverse's zero."""
+    information = jacobian.T @ jacobian
+    eigenvalues, vectors = np.linalg.eigh(information)
+    seen = eigenvalues > 1e-12 * max(float(eigenvalues.max()), 1e-300)
+    variance = (vectors[:, seen] ** 2) @ (1.0 / eigenvalues[seen])
+    variance[np.any(np.abs(vectors[:, ~seen]) > 1e-6, axis=1)] = np.inf
+    return np.sqrt(variance * max(1.0, chi2 / max(dof, 1)))
 
 
 def table1_starts(central: Sequence[float], spread: float = 0.1, extra: Sequence[Sequence[float]] = ()) -> list[list[float]]:

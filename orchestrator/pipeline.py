@@ -53,9 +53,12 @@ from .study import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
 OBJECTIVES = ("contour", "displacement")
 REFINEMENT_JSON = "refinement.json"   # a run meshed again: the finer mesh's size, its start, the coarser mesh's fit
 # the skin's uncertainty is estimated again where the fit it weighs ends, at most SKIN_PASSES times, until that fit
-# moves no parameter by more than SKIN_SETTLED_X in the fit's coordinates (ln theta: 5 %)
+# moves no parameter by more than SKIN_SETTLED_X in the fit's coordinates (ln theta: 5 %) or by more than
+# SKIN_SETTLED_SE of its own standard error there: an effect's share is additive, and a move of 0.01 in a share
+# known to +-0.1 (a foreign control at 0.54 mm pixels, fitted at 1.01 x the floor) is no move
 SKIN_PASSES = 3
 SKIN_SETTLED_X = 0.05
+SKIN_SETTLED_SE = 0.2
 OBJECTIVE_ALIASES = {"mismatch": "contour"}   # the name runs written before the images-first path used
 # (elements, order) of the identification mesh: measured displacements resolve more than the 400 T3 of Avril et
 # al. (sec. 2.2.1), which the contour mismatch keeps. 1,000 CPE6 reach the phantom's fine solution to a fifth of
@@ -225,13 +228,13 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                                         "identify again, with the skin's uncertainty")
             passes.append(fits_again)
             moved = np.abs(setup.model.space.to_x(best.theta) - setup.model.space.to_x(estimated_at))
-            if np.max(moved) <= SKIN_SETTLED_X:
+            if _settled(moved, best):
                 break
         fits = [first] + [fit for fits_again in passes for fit in fits_again]
         measured = weighed
         geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured[0]))[1],
                         measurement_share_of_variance=_measurement_share(measured), passes=len(passes),
-                        settled=bool(np.max(moved) <= SKIN_SETTLED_X))
+                        settled=_settled(moved, best))
     scorer = setup.objective_of(measured) if measured is not None else setup.mismatch_objective()
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
               "data": {"source": source if measured is not None else "contours",
@@ -248,8 +251,9 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         if not geometry["settled"]:
             result["setup_lines"].append(
                 f"skin's uncertainty: estimated {geometry['passes']} times where the fit it weighed ended, and that fit "
-                f"still moved (by over {100 * SKIN_SETTLED_X:.0f} % of a parameter): the floor holds the last "
-                "estimate's; a model this far from the data is lacking something (calfit diagnose)")
+                f"still moved (a parameter by over {100 * SKIN_SETTLED_X:.0f} % and over {SKIN_SETTLED_SE:g} of its "
+                "standard error): the floor holds the last estimate's; a model this far from the data is lacking "
+                "something (calfit diagnose)")
     if measured is not None:
         result["noise_floor"] = scorer.noise_floor(setup.model.space.size)
         result["misfit_over_floor"] = best.cost / result["noise_floor"]
@@ -321,6 +325,14 @@ def floor_sentence(calibration: dict) -> str:
             + (f" (their noise {agreement:.2f} times the images' estimate)" if agreement is not None else "")
             + f"; {calibration['kept']} of {calibration['windows']} windows kept"
             + (f" ({rejected})" if rejected else "") + ".")
+
+
+def _settled(moved_x: np.ndarray, fit) -> bool:
+    """Whether a fit weighed by the skin's uncertainty ended where that uncertainty was estimated: no parameter moved
+    (|x change|, `moved_x`) by more than SKIN_SETTLED_X, or each that did by less than SKIN_SETTLED_SE of its standard
+    error at the fit (`identify.FitResult.standard_error_x`; None, unseen by the data, counts as infinite)."""
+    errors = np.array([np.inf if e is None else e for e in fit.standard_error_x] or np.zeros(len(moved_x)), float)
+    return bool(np.all((moved_x <= SKIN_SETTLED_X) | (moved_x <= SKIN_SETTLED_SE * errors)))
 
 
 def _measurement_share(measured) -> float:
@@ -621,9 +633,13 @@ def sum_only_lines(montecarlo: dict) -> list[str]:
             for a, b in [total["names"]]]
 
 
-def fit_summary(fit: dict, names: Sequence[str]) -> str:
-    values = ", ".join(f"{n} = {v:.3f}" for n, v in zip(names, fit["theta"]))
-    return (f"{fit['method']}: {values} kPa; misfit {fit['cost']:.5g}; {fit['iterations']} iterations, "
+def fit_summary(fit: dict, names: Sequence[str], units: Sequence[str] | None = None) -> str:
+    """One line per fit: each parameter with its unit (`identification.json`'s unit_of; kPa for all when not given,
+    none for a dimensionless share), the misfit and the cost."""
+    units = units or ["kPa"] * len(names)
+    values = ", ".join(f"{n} = {v:.3f}" + ("" if unit == "1" else f" {unit}")
+                       for n, v, unit in zip(names, fit["theta"], units))
+    return (f"{fit['method']}: {values}; misfit {fit['cost']:.5g}; {fit['iterations']} iterations, "
             f"{fit['evaluations']} evaluations, {fit['engine_runs']} engine runs ({fit['from_log']} from the log), "
             f"{fit['wall_time_s']:.1f} s")
 

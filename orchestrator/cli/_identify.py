@@ -69,9 +69,9 @@ def run(args: argparse.Namespace) -> int:
                               skin_sigma_mm=args.skin_uncertainty, **parallel_options(args))
     except (CaseError, ImagingError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
-    lines = [fit_summary(fit, result["parameters"]) for fit in result["fits"]]
+    lines = [fit_summary(fit, result["parameters"], result.get("unit_of")) for fit in result["fits"]]
     lines.append(f"best ({result['objective']}, {result['data']['description']}): "
-                 + fit_summary(result["best"], result["parameters"]))
+                 + fit_summary(result["best"], result["parameters"], result.get("unit_of")))
     if "noise_floor" in result:
         lines.append(f"misfit {result['misfit_over_floor']:.2f} x its noise floor {result['noise_floor']:.4g} mm^2")
     if "floor_calibration" in result:
