@@ -26,6 +26,12 @@ Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, e
   (v the calibrated noise of a prefiltered pixel, f the ratio D^2 / v where there is no structure: the spline's
   sampling of the prefiltered noise), for the skin and air, the inner boundaries (fat, muscle, bone), the fat's
   texture and the muscle's; against the one value the windows' residuals calibrate (`prefilter`).
+- Where the images draw a boundary against where the truth puts it: D against the derivative of the prefiltered I0
+  across the boundary (its normal from the labels) gives, per 45 degree sector, the offset delta of the boundary in
+  I1 pulled back (D ~ -delta dI/dn), for the fascia (fat | muscle) and the skin (air | fat). Its RMS over the sectors
+  is set against the same estimate on D rolled by 40 pixels eight ways (the noise's alone, no boundary under it):
+  what exceeds it, sqrt(RMS^2 - null^2), is an offset steady over a sector, which a window takes whole for a
+  displacement.
 - Over the other program's cases (one anatomy, one noiseless I0, independent noise): the correlation between cases
   of the same window's normalised error. Independent errors give 0; a part of the error that the anatomy's rendering
   fixes, the same in every case, gives more, and no noise draw averages it out.
@@ -60,6 +66,9 @@ RENDERER_MOTION = RigidMotion(-1.2, (1.1, 0.7), (75.6, 75.6))
 SKIN_REACH_PX = 3        # pixels of the air and the leg counted as the skin's edge
 BOUNDARY_REACH_PX = 2    # pixels either side of a boundary between tissues
 QUIET_SHARE = 0.1        # the share of the leg's pixels with the least structure, where D is noise alone
+BOUNDARY_BAND_PX = 3     # pixels either side of a boundary in which its offset is read
+SECTOR_DEG = 45          # the boundary's offset is read per sector of this angle about the leg's centre
+NULL_ROLL_PX = 40        # D rolled this far (eight ways) has no boundary under it: the offset's noise alone
 
 
 def structure_kinds(labels: np.ndarray) -> dict[str, np.ndarray]:
@@ -172,6 +181,33 @@ class Case:
         return {"D^2 / v where quiet": sampling, **dict(zip(q, slopes))}
 
 
+    def boundary_offsets(self, difference: np.ndarray) -> dict[str, tuple[float, float]]:
+        """(RMS over the sectors of the boundary's offset, that of the noise alone) in px, for the fascia and the skin
+        (module text)."""
+        smooth = self.prefilter(self.reference)
+        grad_rows, grad_cols = spline_gradient(smooth)
+        difference = np.nan_to_num(difference)
+        leg, fat = self.labels > 0, self.labels == FAT
+        rows, cols = np.indices(self.reference.shape)
+        angle = np.degrees(np.arctan2(-(rows - rows[leg].mean()), cols - cols[leg].mean())) % 360.0
+        out = {}
+        for name, inner, outer in (("fascia", self.labels == MUSCLE, fat), ("skin", fat, ~leg)):
+            near = (ndimage.binary_dilation(inner, iterations=BOUNDARY_BAND_PX)
+                    & ndimage.binary_dilation(outer, iterations=BOUNDARY_BAND_PX))
+            normal_rows, normal_cols = np.gradient(ndimage.gaussian_filter(outer.astype(float), 2.0))
+            across = (grad_rows * normal_rows + grad_cols * normal_cols) / (np.hypot(normal_rows, normal_cols) + 1e-12)
+            sectors = [near & (angle >= start) & (angle < start + SECTOR_DEG) for start in range(0, 360, SECTOR_DEG)]
+
+            def rms_offset(d: np.ndarray) -> float:
+                return float(np.sqrt(np.mean([(np.sum(d[m] * across[m]) / np.sum(across[m] ** 2)) ** 2
+                                              for m in sectors if m.any()])))
+
+            null = [rms_offset(np.roll(difference, (dr * NULL_ROLL_PX, dc * NULL_ROLL_PX), axis=(0, 1)))
+                    for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+            out[name] = (rms_offset(difference), float(np.sqrt(np.mean(np.square(null)))))
+        return out
+
+
 def report(title: str, cases: list[Case]) -> None:
     print(f"\n{title}")
     budgets, directions, residuals = {}, {}, {}
@@ -184,9 +220,13 @@ def report(title: str, cases: list[Case]) -> None:
         budget = np.column_stack([case.window_budget(difference), (case.errors ** 2) @ to_px2, covariance @ to_px2])
         along = case.radial_tangential(case.errors)
         kinds = case.position_error_by_kind(difference)
+        offsets = case.boundary_offsets(difference)
         print(f"  {case.name}: the windows calibrated s_edge^2 {case.meta['edge_variance_px2']:.4f} px^2; the true "
               f"images per kind: " + ", ".join(f"{k} {v:.4f}" for k, v in list(kinds.items())[1:])
               + f" (D^2 / v where quiet {kinds['D^2 / v where quiet']:.2f})")
+        print("    boundaries drawn off the truth, RMS over 45 degree sectors (px): " + ", ".join(
+            f"{name} {rms:.4f} (noise alone {null:.4f}; beyond it {np.sqrt(max(rms ** 2 - null ** 2, 0.0)):.4f})"
+            for name, (rms, null) in offsets.items()))
         for band, mask in case.bands.items():
             budgets.setdefault(band, []).append(budget[mask])
             directions.setdefault(band, []).append(along[mask])
