@@ -55,7 +55,7 @@ REFINEMENT_JSON = "refinement.json"   # a run meshed again: the finer mesh's siz
 # the skin's uncertainty is estimated again where the fit it weighs ends, at most SKIN_PASSES times, until that fit
 # moves no parameter by more than SKIN_SETTLED_X in the fit's coordinates (ln theta: 5 %) or by more than
 # SKIN_SETTLED_SE of its own standard error there: an effect's share is additive, and a move of 0.01 in a share
-# known to +-0.1 (a foreign control at 0.54 mm pixels, fitted at 1.01 x the floor) is no move
+# known to +-0.18 (a foreign control at 0.54 mm pixels, fitted at 1.01 x the floor) is no move
 SKIN_PASSES = 3
 SKIN_SETTLED_X = 0.05
 SKIN_SETTLED_SE = 0.2
