@@ -228,13 +228,14 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                                         "identify again, with the skin's uncertainty")
             passes.append(fits_again)
             moved = np.abs(setup.model.space.to_x(best.theta) - setup.model.space.to_x(estimated_at))
-            if _settled(moved, best):
+            settled = _settled(moved, best)
+            if settled:
                 break
         fits = [first] + [fit for fits_again in passes for fit in fits_again]
         measured = weighed
         geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured[0]))[1],
                         measurement_share_of_variance=_measurement_share(measured), passes=len(passes),
-                        settled=_settled(moved, best))
+                        settled=settled)
     scorer = setup.objective_of(measured) if measured is not None else setup.mismatch_objective()
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
               "data": {"source": source if measured is not None else "contours",
