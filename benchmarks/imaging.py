@@ -5,8 +5,10 @@
 The last section holds `calfit measure` against the true field, per band of tissue (fat within 5 mm of the skin,
 other fat, muscle): the RMS error, the predicted sigma and chi^2/n of the errors whitened by the predicted
 covariance (`orchestrator.verification`), on engine-made cases of both phantom renderers (`CalfPhantom`, k-space
-band-limited; `MRIPhantom`, partial volume; two truths, three noise draws each, pooled) and, with --foreign, on case folders made by another program: DIR holds
-case folders (their points.csv is ignored) and DIR/truth/<case>.npz their true fields (nodes_mm, cells, u_mm).
+band-limited; `MRIPhantom`, partial volume; two truths, three noise draws each, pooled) and, with --foreign, on case
+folders made by another program, measured twice: whole windows (the default) and windows inside the leg that leave
+out its outline (`calfit measure --respect-outline`). DIR holds case folders (their points.csv is ignored) and
+DIR/truth/<case>.npz their true fields (nodes_mm, cells, u_mm).
 
 Lines: phantom rendering, segmentation (segment_t1), bone alignment, one warp
 + contour mismatch evaluation (the inner loop of the identification, first
@@ -165,7 +167,7 @@ def measurement_error_by_band(foreign: Path | None, seeds=(3, 4), noise_draws=(0
                                                scratch / f"run-{name}-{seed}-{draw}",
                                                lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy")))
             _print_pooled(f"{name}, {len(pooled)} cases", pooled)
-        pooled = []
+        pooled, pooled_outline = [], []
         for case in sorted(p for p in (foreign.iterdir() if foreign else ()) if (p / "case.toml").is_file()):
             truth_file = foreign / "truth" / f"{case.name}.npz"
             if not truth_file.is_file():
@@ -175,14 +177,22 @@ def measurement_error_by_band(foreign: Path | None, seeds=(3, 4), noise_draws=(0
             for item in case.iterdir():
                 if item.name != "points.csv":
                     shutil.copy(item, images_only / item.name)
+
+            def truth(shape, pixel, truth_file=truth_file):
+                return field_from_mesh_file(truth_file, shape, pixel)
+
             pooled.append(_print_bands(f"{case.name} (another program)", images_only, scratch / f"run-{case.name}",
-                                       lambda shape, pixel, truth_file=truth_file: field_from_mesh_file(truth_file, shape, pixel)))
+                                       truth))
+            pooled_outline.append(_print_bands(f"{case.name} (another program), windows inside the leg leaving out its "
+                                               "outline (--respect-outline)", images_only,
+                                               scratch / f"run-{case.name}-outline", truth, respect_outline=True))
         if pooled:
             _print_pooled(f"the other program's {len(pooled)} cases", pooled)
+            _print_pooled(f"the other program's {len(pooled)} cases, leaving out the outline", pooled_outline)
 
 
-def _print_bands(title: str, case: Path, run: Path, true_field) -> list:
-    summary = run_measure(case, run)
+def _print_bands(title: str, case: Path, run: Path, true_field, respect_outline: bool = False) -> list:
+    summary = run_measure(case, run, respect_outline=respect_outline)
     setup = load_run(run)
     measured = setup.measurements("dic")
     field = true_field(setup.case.unloaded.shape, setup.case.pixel_size_mm)

@@ -16,6 +16,19 @@ the tissue relative to the bones between them (Bouten and Drapier sec. 2.2 and 3
 4. the kept windows' full covariance, overlaps included (`imaging.windows`), and the operator that observes
    a model's displacement field as the windows do (so the fit compares like with like).
 
+Windows that respect the tissue (`respect_outline`, `window_pixel_masks`; `calfit measure --respect-outline`). A
+grid window centred within half a window of the skin spans the leg's outline and the air beyond, and so measures
+the skin's edge as well as the tissue at its centre. Where the outline differs between the two images by more than
+the tissue's motion (a garment that shows in the loaded image; a sharp outline drawn afresh in each image, whose
+staircase does not move with the tissue), that error reaches those windows. With respect_outline, a window centred
+more than a margin inside the outline (the prefilter's radius + 1 pixel: the smoothing spreads the edge that far)
+matches only the pixels at least that far inside; the windows on the outline keep it. Its operators and covariance
+follow the same pixels. Measured (README, "From the images to the displacements"): on the other program's four
+cases the deep fat's chi^2/n against the true field falls from 1.26 to 1.18 (the skin band 0.97 -> 0.96), but the
+parameters' standard errors grow by 3-38 % and the windows near the skin are less accurate (deep fat, radial: 0.026
+-> 0.057 px RMS): the outline's edge is the most precise feature those windows see. So it is not the default; it is
+the remedy for images whose outline does not follow the tissue (a garment visible in the loaded slice).
+
 `Measurements` is the same object for points.csv (points, diagonal covariance from sigma_mm, the model
 read at the points) and for DIC (windows, full covariance, the model observed through the windows, and three
 nuisance degrees of freedom for the residual rigid motion between the two images' bones, which the fit
@@ -225,6 +238,20 @@ def window_centres(labels: np.ndarray, pixel_size_mm, window_px: int, step_px: i
     return np.array(centres, dtype=int).reshape(-1, 2), kinds
 
 
+def window_pixel_masks(labels: np.ndarray, centres_rc: np.ndarray, window_px: int, margin_px: int) -> list:
+    """Per window, None (it matches its whole square) or the (window_px, window_px) pixels it matches: a window
+    centred more than margin_px inside the leg's outline leaves out the pixels within margin_px of the outline and
+    the air beyond (module text, windows that respect the tissue); windows on the outline keep it."""
+    inside = ndimage.distance_transform_edt(np.asarray(labels) > 0) > margin_px
+    masks = []
+    for row, col in np.asarray(centres_rc, int).reshape(-1, 2):
+        r0, c0 = row - window_px // 2, col - window_px // 2
+        block = inside[max(r0, 0):r0 + window_px, max(c0, 0):c0 + window_px]
+        masks.append(None if not inside[row, col] or block.shape != (window_px, window_px) or block.all()
+                     else block.copy())
+    return masks
+
+
 def vessel_landmarks(landmarks: dict[str, tuple[float, float]]) -> list[tuple[float, float]]:
     """The landmarks that name a vessel (a vein, artery, saphenous...): DIC windows go there too."""
     return [tuple(xy) for name, xy in landmarks.items() if any(word in name.lower() for word in VESSEL_WORDS)]
@@ -257,10 +284,10 @@ def normalised_median_outliers(positions_mm: np.ndarray, displacement_px: np.nda
 def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm, motion: RigidMotion, *,
                 landmarks: dict | None = None, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, min_confidence: float = MIN_CONFIDENCE,
-                max_uncertainty_px: float = MAX_UNCERTAINTY_PX,
-                prefilter_px: float = PREFILTER_SIGMA_PX) -> tuple[Measurements, WindowTable, dict]:
+                max_uncertainty_px: float = MAX_UNCERTAINTY_PX, prefilter_px: float = PREFILTER_SIGMA_PX,
+                respect_outline: bool = False) -> tuple[Measurements, WindowTable, dict]:
     """DIC between the two images (module text). Returns the kept windows as Measurements, every window tried,
-    and a summary."""
+    and a summary. respect_outline: windows inside the leg leave out its outline (`window_pixel_masks`)."""
     if window_px not in WINDOW_CHOICES:
         raise ValueError(f"the DIC window must be one of {WINDOW_CHOICES} pixels, not {window_px}")
     began = time.perf_counter()
@@ -272,11 +299,15 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     centres, kinds = window_centres(labels, pixel_size_mm, window_px, step_px, roi_spacing_mm, vessels)
     if len(centres) == 0:
         raise ValueError("the segmentation holds no fat or muscle where a DIC window could sit")
-    first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion, prefilter=prefilter)
+    # the outline's margin: the prefilter spreads the edge's error that far inside
+    margin_px = prefilter.radius + 1 if respect_outline else None
+    masks = window_pixel_masks(labels, centres, window_px, margin_px) if respect_outline else None
+    first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion, prefilter=prefilter,
+                      pixel_masks=masks)
     trusted = _checks(first, min_confidence, max_uncertainty_px, step_px * pixel) == KEPT
     prior = prior_field(first.position_mm[trusted], first.displacement_mm[trusted], unloaded.shape, pixel_size_mm)
     result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion,
-                       prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter)
+                       prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter, pixel_masks=masks)
     # the error model calibrated on the residuals of the windows that matched (`prefilter`): the edges' error of
     # position, and the noise the images hold
     matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence)
@@ -293,7 +324,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         # what the windows see of the prior is not the prior at their centres: the data the model is compared with
         # are the displacements less that difference (measure_dic text)
         seen = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0],
-                               prefilter=prefilter).observe(prior)
+                               prefilter=prefilter,
+                               pixel_masks=None if masks is None else [masks[k] for k in np.flatnonzero(kept)]).observe(prior)
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
@@ -303,9 +335,9 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
                         residual_over_model)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
-                                    edge_variance)
+                                    edge_variance, labels, margin_px)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
-               "prefilter_px": prefilter_px, "edge_variance_px2": edge_variance,
+               "prefilter_px": prefilter_px, "outline_margin_px": margin_px, "edge_variance_px2": edge_variance,
                "noise_scale": residual_noise,
                "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
                "search_px": result.search_px, "windows": len(centres), "kept": int(table.kept.sum()),
@@ -370,15 +402,19 @@ def prior_field(positions_mm: np.ndarray, displacement_mm: np.ndarray, shape, pi
 
 
 def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, pixel_size_mm,
-                     reference_noise_sigma: float, prefilter_px: float, edge_variance_px2: float) -> Measurements:
+                     reference_noise_sigma: float, prefilter_px: float, edge_variance_px2: float,
+                     labels: np.ndarray | None = None, outline_margin_px: int | None = None) -> Measurements:
     """The kept windows of a table as Measurements (operators and covariance rebuilt from I0, prefiltered as the
-    windows were correlated, with the error of the images' edges)."""
+    windows were correlated, over the pixels they matched (`window_pixel_masks` of labels, when the measurement
+    left out the outline), with the error of the images' edges)."""
     kept = table.kept
     if kept.sum() < 10:
         raise ValueError(f"only {int(kept.sum())} DIC windows passed the checks ({table.counts()}); the images do "
                          "not correlate: check that both slices show the same level of the leg")
+    masks = (None if labels is None or outline_margin_px is None
+             else window_pixel_masks(labels, table.centres_rc[kept], window_px, outline_margin_px))
     operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
-                                prefilter=Prefilter(prefilter_px))
+                                prefilter=Prefilter(prefilter_px), pixel_masks=masks)
     covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]

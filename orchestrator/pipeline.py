@@ -118,7 +118,7 @@ def _setup(case_dir, run_dir: Path, n_elements: int | None, order: int | None, o
 @holds_run_folder(create=True)
 def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, n_elements: int | None = None, order: int | None = None,
-                prefilter_px: float = PREFILTER_SIGMA_PX) -> dict:
+                prefilter_px: float = PREFILTER_SIGMA_PX, respect_outline: bool = False) -> dict:
     """Measure the displacements from the two images by DIC (`measure.measure_dic`, both images smoothed by a
     Gaussian of prefilter_px first) into the run folder (measurements.csv, .npz, .json, .png); returns the summary."""
     run_dir = Path(run_dir)
@@ -126,7 +126,8 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     case = setup.case
     _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
                                     landmarks=case.landmarks, window_px=window_px, step_px=step_px,
-                                    roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px)
+                                    roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px,
+                                    respect_outline=respect_outline)
     summary["window_mm"] = window_px * min(case.pixel_size_mm)
     summary["setup_lines"] = setup.setup_lines()
     for level, motion in zip(case.levels, setup.level_motions):
@@ -134,7 +135,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
         _, level_table, level_summary = measure_dic(case.unloaded, level.image, setup.labels_unloaded,
                                                     case.pixel_size_mm, motion, landmarks=case.landmarks,
                                                     window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm,
-                                                    prefilter_px=prefilter_px)
+                                                    prefilter_px=prefilter_px, respect_outline=respect_outline)
         level_summary.update(window_mm=summary["window_mm"], level=level.number, image=level.path.name,
                              tension_N_per_mm=level.tension_N_per_mm)
         write_measurements(run_dir, level_table, level_summary, case.unloaded, case.pixel_size_mm, level.number)

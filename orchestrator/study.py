@@ -208,7 +208,8 @@ class RunSetup:
         # measurements made before the prefilter and the edges' error model were neither prefiltered nor had one
         measured = dic_measurements(self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm,
                                     summary["noise_sigma"][0], summary.get("prefilter_px", 0.0),
-                                    summary.get("edge_variance_px2", 0.0))
+                                    summary.get("edge_variance_px2", 0.0), self.labels_unloaded,
+                                    summary.get("outline_margin_px"))
         geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level) if with_geometry else None
         if geometry is None:
             return measured

@@ -19,7 +19,7 @@ from orchestrator.cli import main
 from orchestrator.imaging.dic import correlate, estimate_noise_sigma, grid_centres
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.imaging.windows import WindowOperators
-from orchestrator.measure import FILES, measure_dic, normalised_median_outliers
+from orchestrator.measure import FILES, measure_dic, normalised_median_outliers, window_pixel_masks
 from orchestrator.phantom import CalfPhantom, MRIPhantom, bone_clamped_compression, make_loaded_image, render_unloaded
 from orchestrator.regions import LegFrame
 from orchestrator.verification import band_errors, errors_against
@@ -88,6 +88,44 @@ def test_the_calibrated_error_model_holds_on_partial_volume_images():
     assert summary["noise_scale"] < 0.9        # the residuals found less noise than the images' own estimate
     assert 0.8 < overall < 1.25
     assert all(row.count > 20 and 0.7 < row.chi2_per_value < 1.4 for row in rows)
+
+
+def test_windows_that_respect_the_outline_measure_the_tissue_not_a_garment_beyond_it(phantom_pair):
+    """A garment appears around the leg in I1 only (a textured band 0-4 mm outside the skin), as a real compression
+    sock does: the grid windows centred inside the leg whose square reaches beyond the skin match it too, and are
+    wrong; with `window_pixel_masks` they leave out the outline and the air and measure the tissue's shift within
+    their own predicted covariance (the prefilter's reach + 1 px of margin). Measured: chi^2/n of those 67 windows
+    whole 152, leaving out the outline 1.09."""
+    phantom, unloaded, shifted = phantom_pair
+    labels = phantom.labels()
+    outside_mm = ndimage.distance_transform_edt(labels == 0) * phantom.pixel_size_mm[0]
+    band = (outside_mm > 0) & (outside_mm < 4.0)
+    weave = ndimage.gaussian_filter(np.random.default_rng(3).standard_normal(labels.shape), 1.5)
+    with_garment = shifted + band * (0.15 + weave) * np.percentile(unloaded, 99)
+    window = 32
+    centres = grid_centres(unloaded.shape, window, window // 2, mask=np.isin(labels, (1, 2)))
+    masks = window_pixel_masks(labels, centres, window, margin_px=5)
+    near_outline = np.array([mask is not None for mask in masks])
+    assert near_outline.sum() > 30
+    chi2, matched = {}, {}
+    for name, pixel_masks in (("whole", None), ("outline left out", masks)):
+        result = correlate(unloaded, with_garment, centres[near_outline], phantom.pixel_size_mm, window_px=window,
+                           pixel_masks=None if pixel_masks is None else [m for m in pixel_masks if m is not None])
+        kept = np.all(np.isfinite(result.covariance_mm2), axis=(1, 2))
+        operators = WindowOperators(unloaded, centres[near_outline][kept], window, phantom.pixel_size_mm,
+                                    result.noise_sigma[0],
+                                    pixel_masks=None if pixel_masks is None else
+                                    [m for m, k in zip([m for m in pixel_masks if m is not None], kept) if k])
+        covariance = operators.covariance(result.intensity_variance[kept])
+        error = (result.displacement_mm[kept] - np.array(SHIFT_MM)).ravel()
+        whitened = linalg.solve_triangular(np.linalg.cholesky(covariance), error, lower=True)
+        chi2[name] = float(whitened @ whitened) / len(whitened)
+        matched[name] = int(kept.sum())
+    print(f"{near_outline.sum()} windows reach the outline: " + ", ".join(f"{k} {matched[k]} matched, chi2/n {v:.2f}"
+                                                                        for k, v in chi2.items()))
+    assert matched["outline left out"] > 0.9 * near_outline.sum()
+    assert 0.7 < chi2["outline left out"] < 1.3
+    assert chi2["whole"] > 3.0 * chi2["outline left out"]
 
 
 def wavy(x, y):
@@ -160,6 +198,40 @@ def test_calfit_measure_writes_the_table_the_picture_and_a_json_summary(measured
     error = np.linalg.norm(measured - true, axis=1)
     print(f"median error {np.median(error):.4f} mm over {len(kept)} windows")
     assert np.median(error) < 0.02
+
+
+def test_a_run_measured_leaving_out_the_outline_is_read_back_with_the_same_windows(measured_case, capsys):
+    """`calfit measure --respect-outline`: the run folder says so, and the fit's measurements rebuilt from it
+    (`study.RunSetup.measurements`: operators and covariance made again from I0 and the labels) use the pixels the
+    correlation used: the variances rebuilt agree with those the correlation reported (measured: median 0.02 % over
+    the 63 windows that leave out the outline); rebuilt over whole squares, they would be off by a median 18 %."""
+    from orchestrator.measure import dic_measurements, read_window_table
+    from orchestrator.study import load_run
+
+    case, _, run = measured_case
+    outline_run = run.parent / "run-outline"
+    assert main(["measure", str(case), "--out", str(outline_run), "--respect-outline", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["outline_margin_px"] == 5        # the one-pixel prefilter reaches 4 pixels
+    setup = load_run(outline_run)
+    measured = setup.measurements("dic", with_geometry=False)
+    masked = np.array([pixels.size < 32 * 32 for pixels in measured.operators.pixels])
+    assert 10 < masked.sum() < len(masked)
+    table = read_window_table(outline_run)
+    reported = table.covariance_mm2[table.kept][:, [0, 1], [0, 1]]
+
+    def relative_difference(measurements):
+        rebuilt = np.stack([np.diagonal(measurements.covariance_mm2)[2 * k:2 * k + 2] for k in range(len(measurements))])
+        return np.abs(rebuilt - reported) / reported
+
+    same_pixels = relative_difference(measured)
+    whole_squares = relative_difference(dic_measurements(setup.case.unloaded, table, 32, setup.case.pixel_size_mm,
+                                                         summary["noise_sigma"][0], summary["prefilter_px"],
+                                                         summary["edge_variance_px2"]))
+    print(f"{masked.sum()} windows leave out the outline: variances rebuilt within median "
+          f"{np.median(same_pixels[masked]):.4f} (whole squares {np.median(whole_squares[masked]):.4f})")
+    assert np.median(same_pixels[masked]) < 0.01 and np.median(same_pixels[~masked]) < 0.01
+    assert np.median(whole_squares[masked]) > 5 * np.median(same_pixels[masked])
 
 
 def test_a_window_size_outside_the_choices_is_refused(measured_case, capsys):

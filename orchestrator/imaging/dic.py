@@ -220,7 +220,7 @@ class _Pair:
 def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_size_mm, *, window_px: int = 16,
               search_factor: int = SEARCH_FACTOR, prior: RigidMotion | None = None,
               prior_field_mm: np.ndarray | None = None, noise_sigma: tuple[float, float] | None = None,
-              prefilter: Prefilter | None = None) -> DICResult:
+              prefilter: Prefilter | None = None, pixel_masks=None) -> DICResult:
     """Correlate square windows of `window_px` centred at integer pixels `centres_rc` ((N, 2) rows, columns).
 
     prior: the rigid motion M of the bones (`align_on_bones`: I1(M(x)) ~ I0(x)), composed into every warp, so
@@ -229,7 +229,9 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     deformation); the displacement returned is the prior's at the centre plus the affine correction.
     noise_sigma: the raw image noise of (reference, deformed); default: estimated from each image where it has
     signal. prefilter: the Gaussian both images are smoothed with first (default `prefilter.Prefilter()`, one
-    pixel; `Prefilter(0)` for none)."""
+    pixel; `Prefilter(0)` for none). pixel_masks: per window, None (every pixel of the square) or a (window_px,
+    window_px) boolean array of the pixels it matches (`measure.window_pixel_masks`: a window inside the tissue
+    leaves out the leg's outline)."""
     reference = np.asarray(reference, float)
     deformed = np.asarray(deformed, float)
     if reference.shape != deformed.shape:
@@ -257,8 +259,9 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     gradient = np.full((len(centres), 2, 2), np.nan)
     edges = [EdgeResiduals() for _ in range(len(centres))]
     edge_covariance = np.zeros((len(centres), 2, 2))
+    pixel_sets = window_pixel_sets(pixel_masks, len(centres), window_px)
     for k, (row, col) in enumerate(centres):
-        match = _correlate_window(pair, row, col, window_px, search_px, prior_px)
+        match = _correlate_window(pair, row, col, window_px, search_px, prior_px, pixel_sets[k])
         if match is not None:
             displacement[k], confidence[k], covariance[k] = match.displacement, match.confidence, match.covariance
             variance[k], gradient[k], edges[k], edge_covariance[k] = (match.variance, match.gradient, match.edges,
@@ -363,8 +366,9 @@ class _Match:
                    np.zeros((2, 2)))
 
 
-def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px=None) -> _Match | None:
-    """One window's `_Match`, or None if it does not fit or is flat."""
+def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, used: np.ndarray) -> _Match | None:
+    """One window's `_Match`, or None if it does not fit or is flat. used: the pixels it matches (flat boolean over
+    its square, `window_pixel_sets`); the integer search that starts Gauss-Newton uses the whole square."""
     height, width = pair.reference.shape
     r0, c0 = row - window_px // 2, col - window_px // 2
     if r0 < 0 or c0 < 0 or r0 + window_px > height or c0 + window_px > width:
@@ -382,10 +386,10 @@ def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px=None
                       peak_row + _parabola_offset(score[:, peak_col], peak_row) - margin])
     window_prior = (prior_cols[margin:margin + window_px, margin:margin + window_px].ravel(),
                     prior_rows[margin:margin + window_px, margin:margin + window_px].ravel())
-    found = _inverse_compositional(pair, template, r0, c0, start, window_prior)
+    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used)
     peak_score = float(score[peak_row, peak_col])
     if found is None or np.max(np.abs(found[0].displacement - start)) > MAX_REFINEMENT_PX or found[1] < peak_score - ZNCC_SLACK:
-        return _Match.unmeasured(start, _raw_zncc(pair, r0, c0, window_px, start, window_prior))
+        return _Match.unmeasured(start, _raw_zncc(pair, r0, c0, window_px, start, window_prior, used=used))
     return found[0]
 
 
@@ -410,19 +414,40 @@ def _affine(p: np.ndarray) -> np.ndarray:
     return np.array([[1.0 + ux, uy, u], [vx, 1.0 + vy, v], [0.0, 0.0, 1.0]])
 
 
-def zero_normalised_steepest_descent(template: np.ndarray, grad_cols: np.ndarray,
-                                     grad_rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def zero_normalised_steepest_descent(template: np.ndarray, grad_cols: np.ndarray, grad_rows: np.ndarray,
+                                     used: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(P S, (P S)^T (P S)): the steepest-descent images of a window with the window's mean and its own grey levels
     f^ projected out, P = I - 11^T/n - f^ f^T, and the Gauss-Newton matrix they make. The zero-normalised SSD
     compares mean-free, unit-norm windows, so a change of the deformed image along a constant or along f itself
     does not move the match: linearised at the match, the parameters' error is (S^T P S)^-1 S^T P e for image noise
     e, and what the window sees of a field u is (S^T P S)^-1 S^T P (grad f . u) (`windows`). Without P, a window
     across a bright edge (net gradient, brighter on one side) had its errors' correlation with its neighbours
-    predicted 50 % too high (half-overlapping 16-pixel windows: 0.47 against 0.30 measured over 300 noise draws)."""
+    predicted 50 % too high (half-overlapping 16-pixel windows: 0.47 against 0.30 measured over 300 noise draws).
+    used: the window's pixels (flat boolean over the square, all by default); the rows are theirs."""
     steepest = steepest_descent(grad_cols, grad_rows)
-    f_hat, _ = _normalise(np.asarray(template, float).ravel())
+    values = np.asarray(template, float).ravel()
+    if used is not None:
+        steepest, values = steepest[used], values[used]
+    f_hat, _ = _normalise(values)
     projected = steepest - steepest.mean(axis=0) - np.outer(f_hat, f_hat @ steepest)
     return projected, projected.T @ projected
+
+
+def window_pixel_sets(pixel_masks, count: int, window_px: int) -> list[np.ndarray]:
+    """The pixels each of `count` windows matches, flat booleans over its square: all of them where pixel_masks
+    (a sequence of None or (window_px, window_px) booleans, `measure.window_pixel_masks`) is None or gives None."""
+    masks = [None] * count if pixel_masks is None else list(pixel_masks)
+    if len(masks) != count:
+        raise ValueError(f"{len(masks)} pixel masks for {count} windows")
+    return [np.ones(window_px * window_px, bool) if mask is None else np.asarray(mask, bool).ravel() for mask in masks]
+
+
+def on_window_square(rows_of_used: np.ndarray, used: np.ndarray, size: int) -> np.ndarray:
+    """(k, size, size) maps holding (k, n_used) values at a window's pixels `used` and zero elsewhere."""
+    rows_of_used = np.atleast_2d(rows_of_used)
+    full = np.zeros((rows_of_used.shape[0], size * size))
+    full[:, used] = rows_of_used
+    return full.reshape(-1, size, size)
 
 
 def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray) -> np.ndarray:
@@ -435,37 +460,40 @@ def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray) -> np.ndarray
     return np.stack([fx, fx * dxs, fx * dys, fy, fy * dxs, fy * dys], axis=1)
 
 
-def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple[_Match, float] | None:
+def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np.ndarray) -> tuple[_Match, float] | None:
     """IC-GN with a first-order (affine) window shape function on the zero-normalised SSD of the prefiltered images,
     the deformed image sampled through the prior motion and the prior field (`prior`: (d_col, d_row) px at the
-    window's pixels). Returns the window's `_Match` (module text) and the ZNCC of the prefiltered images there."""
-    f_hat, f_norm = _normalise(template)
+    window's pixels), over the window's pixels `used` (flat boolean). Returns the window's `_Match` (module text) and
+    the ZNCC of the prefiltered images there."""
+    f_hat, f_norm = _normalise(template.ravel()[used])
     if f_norm == 0.0:
         return None
     size = template.shape[0]
     window = (slice(r0, r0 + size), slice(c0, c0 + size))
-    steepest_raw, hessian_raw = zero_normalised_steepest_descent(template, pair.grad_cols[window], pair.grad_rows[window])
+    steepest_raw, hessian_raw = zero_normalised_steepest_descent(template, pair.grad_cols[window], pair.grad_rows[window],
+                                                                 used)
     if np.linalg.cond(hessian_raw) > 1e10:
         return None
-    noise_q = pair.noise_q[window]
+    noise_q = np.where(used.reshape(size, size), pair.noise_q[window], 0.0)
     signal_hessian = denoised_hessian(hessian_raw, size, pair.noise_sigma[0], pair.prefilter.derivative_noise_gain,
                                       noise_q / pair.prefilter.noise_gain)
     steepest, hessian = steepest_raw / f_norm, hessian_raw / f_norm ** 2
     centre_row, centre_col = r0 + (size - 1) / 2.0, c0 + (size - 1) / 2.0
     offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
-    points = np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])
+    points = np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])[:, used]
+    prior_used = (prior[0][used], prior[1][used])
     warp = _affine(np.array([start[0], 0.0, 0.0, start[1], 0.0, 0.0]))
 
     def sample(warp):
         moved = warp @ points
-        return _normalise(_sample(pair.spline, pair.to_deformed, centre_col + moved[0] + prior[0],
-                                  centre_row + moved[1] + prior[1]))
+        return _normalise(_sample(pair.spline, pair.to_deformed, centre_col + moved[0] + prior_used[0],
+                                  centre_row + moved[1] + prior_used[1]))
 
     for _ in range(GAUSS_NEWTON_ITERATIONS):
         g_hat, g_norm = sample(warp)
         if g_norm == 0.0:
             return None
-        step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat.ravel()))
+        step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
         warp = warp @ np.linalg.inv(_affine(step))
         if max(abs(step[0]), abs(step[3])) < GAUSS_NEWTON_TOLERANCE_PX and np.max(np.abs(step[[1, 2, 4, 5]])) < 1e-5:
             break
@@ -473,20 +501,21 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
     displacement, zncc = np.array([warp[0, 2], warp[1, 2]]), float(f_hat.ravel() @ g_hat)
     # the raw noise of the two images as it enters the normalised difference (the deformed one scaled to the reference)
     variance = pair.noise_sigma[0] ** 2 + (f_norm / g_norm * pair.noise_sigma[1]) ** 2
-    confidence = _raw_zncc(pair, r0, c0, size, displacement, prior, warp) if pair.raw_spline is not None else zncc
+    confidence = (_raw_zncc(pair, r0, c0, size, displacement, prior, warp, used) if pair.raw_spline is not None
+                  else zncc)
     if signal_hessian is None:   # the window's texture does not rise above the noise
         return _Match.unmeasured(displacement, confidence), zncc
     # p = H_s^-1 S^T (G * e) for raw noise e of variance s_e^2 rho: Cov p = s_e^2 H_s^-1 (G * S)^T rho (G * S) H_s^-1
     # (`prefilter`), and the part of an error of the edges' position per unit s_edge^2 likewise
-    spread = pair.prefilter.spread(steepest_raw.T.reshape(6, size, size)).reshape(6, -1)
+    spread = pair.prefilter.spread(on_window_square(steepest_raw.T, used, size)).reshape(6, -1)
     edge_raw = pair.around(pair.edge_raw, r0, c0, size).ravel()
-    edge_q = pair.edge_q[window].ravel()
+    edge_q = pair.edge_q[window].ravel()[used]
     noise_raw = pair.around(pair.rho_raw, r0, c0, size).ravel()
     # what the residual keeps of each error: the match takes a larger share of the edges' than of the noise's
-    edge_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, edge_raw, edge_q.sum())
-    noise_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, noise_raw, noise_q.sum())
+    edge_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, edge_raw, edge_q.sum(), used)
+    noise_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, noise_raw, noise_q.sum(), used)
     edges = EdgeResiduals()
-    edges.add((g_hat - f_hat.ravel()) * f_norm, edge_kept * edge_q, variance * noise_kept * noise_q.ravel())
+    edges.add((g_hat - f_hat) * f_norm, edge_kept * edge_q, variance * noise_kept * noise_q.ravel()[used])
     inverse = np.linalg.inv(signal_hessian)
     translation = np.ix_([0, 3], [0, 3])
 
@@ -500,7 +529,7 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior) -> tuple
 
 
 def _absorbed_share(prefilter: Prefilter, spread: np.ndarray, hessian: np.ndarray, f_hat: np.ndarray,
-                    variance_raw: np.ndarray, total: float) -> float:
+                    variance_raw: np.ndarray, total: float, used: np.ndarray) -> float:
     """tr(P C) / tr(C): the share of an error of the raw pixels (variance map `variance_raw`, C = G diag(w) G^T
     once prefiltered, `total` = tr(C) over the window) that a window's own fit takes into its parameters, and so
     leaves out of its residual (`prefilter`, module text). P projects the prefiltered window onto what its match
@@ -509,17 +538,21 @@ def _absorbed_share(prefilter: Prefilter, spread: np.ndarray, hessian: np.ndarra
     same for 1 / sqrt(n) and f^ (orthogonal to S and to each other). For the edges' error (w = |grad I0|^2 per unit
     s_edge^2) it is large, since that error lies where the steepest-descent images are largest; for the noise
     (w = rho) it is 5-7 % of a 32-pixel window on the phantoms and the other program's images, which a count of
-    8 fitted values times the pixels one prefiltered value spreads over put at 4.9 %."""
+    8 fitted values times the pixels one prefiltered value spreads over put at 4.9 %. f_hat is over the window's
+    pixels `used` (flat boolean over its square)."""
     if total <= 0.0:
         return 0.0
     f_hat = np.asarray(f_hat, float)
-    normalisation = prefilter.spread(np.stack([np.full(f_hat.shape, 1.0 / np.sqrt(f_hat.size)), f_hat])).reshape(2, -1)
+    size = int(round(np.sqrt(used.size)))
+    directions = np.stack([np.full(f_hat.shape, 1.0 / np.sqrt(f_hat.size)), f_hat])
+    normalisation = prefilter.spread(on_window_square(directions, used, size)).reshape(2, -1)
     taken = (np.trace(np.linalg.solve(hessian, (spread * variance_raw) @ spread.T))
              + float(np.sum(normalisation ** 2 * variance_raw)))
     return float(np.clip(taken / total, 0.0, 1.0))
 
 
-def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, warp: np.ndarray | None = None) -> float:
+def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, warp: np.ndarray | None = None,
+              used: np.ndarray | None = None) -> float:
     """The ZNCC of the raw (not prefiltered) windows at the match: the quality the user reads. Smoothed noise
     correlates by chance (a 16-pixel window of air prefiltered by one pixel holds some 40 independent values, and
     the best of a search's 4,000 positions reaches a ZNCC of 0.9); raw noise does not."""
@@ -529,11 +562,12 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
         spline, reference = pair.raw_spline, pair.raw_reference
     if warp is None:
         warp = _affine(np.array([displacement[0], 0.0, 0.0, displacement[1], 0.0, 0.0]))
+    used = np.ones(size * size, bool) if used is None else used
     offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
-    moved = warp @ np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])
-    deformed = _sample(spline, pair.to_deformed, c0 + (size - 1) / 2.0 + moved[0] + prior[0],
-                       r0 + (size - 1) / 2.0 + moved[1] + prior[1])
-    f_hat, f_norm = _normalise(reference[r0:r0 + size, c0:c0 + size].ravel())
+    moved = warp @ np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])[:, used]
+    deformed = _sample(spline, pair.to_deformed, c0 + (size - 1) / 2.0 + moved[0] + np.asarray(prior[0])[used],
+                       r0 + (size - 1) / 2.0 + moved[1] + np.asarray(prior[1])[used])
+    f_hat, f_norm = _normalise(reference[r0:r0 + size, c0:c0 + size].ravel()[used])
     g_hat, g_norm = _normalise(deformed)
     return float(f_hat @ g_hat) if f_norm > 0 and g_norm > 0 else 0.0
 

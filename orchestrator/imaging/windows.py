@@ -34,16 +34,18 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .dic import denoised_hessian, edge_strength, spline_gradient, zero_normalised_steepest_descent
+from .dic import (denoised_hessian, edge_strength, on_window_square, spline_gradient, window_pixel_sets,
+                  zero_normalised_steepest_descent)
 from .prefilter import Prefilter, rician_variance_ratio
 
 
 class WindowOperators:
     """The linear maps B~_i and K_i of a set of square windows on a reference image (module text), for windows
-    correlated on images smoothed by `prefilter` (default: `dic.correlate`'s)."""
+    correlated on images smoothed by `prefilter` (default: `dic.correlate`'s), each over the pixels it matched
+    (`pixel_masks`, as `dic.correlate` takes them; None: whole squares)."""
 
     def __init__(self, reference: np.ndarray, centres_rc, window_px: int, pixel_size_mm, reference_noise_sigma: float,
-                 gradients=None, prefilter: Prefilter | None = None):
+                 gradients=None, prefilter: Prefilter | None = None, pixel_masks=None):
         reference = np.asarray(reference, float)
         self.shape = tuple(np.shape(reference))
         self.centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
@@ -61,25 +63,25 @@ class WindowOperators:
                        / self.prefilter.noise_gain)
         local_rows, local_cols = np.mgrid[0:size, 0:size]
         spread_rows, spread_cols = np.mgrid[-reach:size + reach, -reach:size + reach]
-        self.pixels = []        # flat pixel indices of each window
-        self.K = []             # (2, 2, size^2) per window: centre displacement (px) per pixel displacement (px)
+        self.pixels = []        # flat indices of the pixels each window matched
+        self.K = []             # (2, 2, n) per window: centre displacement (px) per displacement (px) of its n pixels
         self.noise_pixels = []  # flat indices of the raw pixels whose error reaches each window (inside the image)
         self.B = []             # (2, len(noise_pixels)) per window: B~, px per raw intensity unit
-        for row, col in self.centres:
+        for (row, col), used in zip(self.centres, window_pixel_sets(pixel_masks, len(self.centres), size)):
             r0, c0 = row - size // 2, col - size // 2
             rows, cols = local_rows + r0, local_cols + c0
             if r0 < 0 or c0 < 0 or r0 + size > self.shape[0] or c0 + size > self.shape[1]:
                 raise ValueError(f"the window centred at row {row}, column {col} does not fit in the image")
             fx, fy = grad_cols[rows, cols], grad_rows[rows, cols]
-            steepest, hessian = zero_normalised_steepest_descent(smooth[rows, cols], fx, fy)
+            steepest, hessian = zero_normalised_steepest_descent(smooth[rows, cols], fx, fy, used)
             signal = denoised_hessian(hessian, size, reference_noise_sigma, self.prefilter.derivative_noise_gain,
-                                      noise_ratio[rows, cols])
+                                      np.where(used.reshape(size, size), noise_ratio[rows, cols], 0.0))
             if signal is None:
                 raise ValueError(f"the window centred at row {row}, column {col} holds less texture than noise")
-            self.pixels.append((rows * self.shape[1] + cols).ravel())
+            self.pixels.append((rows * self.shape[1] + cols).ravel()[used])
             fit = np.linalg.solve(hessian, steepest.T)[[0, 3]]
-            self.K.append(fit[:, None, :] * np.stack([fx.ravel(), fy.ravel()])[None, :, :])
-            spread = self.prefilter.spread(np.linalg.solve(signal, steepest.T)[[0, 3]].reshape(2, size, size))
+            self.K.append(fit[:, None, :] * np.stack([fx.ravel()[used], fy.ravel()[used]])[None, :, :])
+            spread = self.prefilter.spread(on_window_square(np.linalg.solve(signal, steepest.T)[[0, 3]], used, size))
             reach_rows, reach_cols = (spread_rows + r0).ravel(), (spread_cols + c0).ravel()
             inside = ((reach_rows >= 0) & (reach_rows < self.shape[0]) & (reach_cols >= 0)
                       & (reach_cols < self.shape[1]))
