@@ -320,12 +320,14 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
     kept = status == KEPT
     offset = np.full((len(centres), 2), np.nan)
+    operators = None
     if kept.any():
         # what the windows see of the prior is not the prior at their centres: the data the model is compared with
         # are the displacements less that difference (measure_dic text)
-        seen = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0],
-                               prefilter=prefilter,
-                               pixel_masks=None if masks is None else [masks[k] for k in np.flatnonzero(kept)]).observe(prior)
+        operators = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0],
+                                    prefilter=prefilter,
+                                    pixel_masks=None if masks is None else [masks[k] for k in np.flatnonzero(kept)])
+        seen = operators.observe(prior)
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
@@ -335,7 +337,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
                         residual_over_model)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
-                                    edge_variance, labels, margin_px)
+                                    edge_variance, operators=operators)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "outline_margin_px": margin_px, "edge_variance_px2": edge_variance,
                "noise_scale": residual_noise,
@@ -403,18 +405,21 @@ def prior_field(positions_mm: np.ndarray, displacement_mm: np.ndarray, shape, pi
 
 def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, pixel_size_mm,
                      reference_noise_sigma: float, prefilter_px: float, edge_variance_px2: float,
-                     labels: np.ndarray | None = None, outline_margin_px: int | None = None) -> Measurements:
+                     labels: np.ndarray | None = None, outline_margin_px: int | None = None,
+                     operators: WindowOperators | None = None) -> Measurements:
     """The kept windows of a table as Measurements (operators and covariance rebuilt from I0, prefiltered as the
     windows were correlated, over the pixels they matched (`window_pixel_masks` of labels, when the measurement
-    left out the outline), with the error of the images' edges)."""
+    left out the outline), with the error of the images' edges). operators: the kept windows' own, when the caller
+    has built them already (`measure_dic`)."""
     kept = table.kept
     if kept.sum() < 10:
         raise ValueError(f"only {int(kept.sum())} DIC windows passed the checks ({table.counts()}); the images do "
                          "not correlate: check that both slices show the same level of the leg")
-    masks = (None if labels is None or outline_margin_px is None
-             else window_pixel_masks(labels, table.centres_rc[kept], window_px, outline_margin_px))
-    operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
-                                prefilter=Prefilter(prefilter_px), pixel_masks=masks)
+    if operators is None:
+        masks = (None if labels is None or outline_margin_px is None
+                 else window_pixel_masks(labels, table.centres_rc[kept], window_px, outline_margin_px))
+        operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
+                                    prefilter=Prefilter(prefilter_px), pixel_masks=masks)
     covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]

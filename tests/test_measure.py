@@ -107,15 +107,14 @@ def test_windows_that_respect_the_outline_measure_the_tissue_not_a_garment_beyon
     masks = window_pixel_masks(labels, centres, window, margin_px=5)
     near_outline = np.array([mask is not None for mask in masks])
     assert near_outline.sum() > 30
+    outline_masks = [mask for mask in masks if mask is not None]
     chi2, matched = {}, {}
-    for name, pixel_masks in (("whole", None), ("outline left out", masks)):
+    for name, pixel_masks in (("whole", [None] * len(outline_masks)), ("outline left out", outline_masks)):
         result = correlate(unloaded, with_garment, centres[near_outline], phantom.pixel_size_mm, window_px=window,
-                           pixel_masks=None if pixel_masks is None else [m for m in pixel_masks if m is not None])
+                           pixel_masks=pixel_masks)
         kept = np.all(np.isfinite(result.covariance_mm2), axis=(1, 2))
         operators = WindowOperators(unloaded, centres[near_outline][kept], window, phantom.pixel_size_mm,
-                                    result.noise_sigma[0],
-                                    pixel_masks=None if pixel_masks is None else
-                                    [m for m, k in zip([m for m in pixel_masks if m is not None], kept) if k])
+                                    result.noise_sigma[0], pixel_masks=[m for m, k in zip(pixel_masks, kept) if k])
         covariance = operators.covariance(result.intensity_variance[kept])
         error = (result.displacement_mm[kept] - np.array(SHIFT_MM)).ravel()
         whitened = linalg.solve_triangular(np.linalg.cholesky(covariance), error, lower=True)
