@@ -35,6 +35,19 @@ Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, e
 - Over the other program's cases (one anatomy, one noiseless I0, independent noise): the correlation between cases
   of the same window's normalised error. Independent errors give 0; a part of the error that the anatomy's rendering
   fixes, the same in every case, gives more, and no noise draw averages it out.
+- With --splice, which pixels of the other program's loaded image carry the error. The same leg is warped instead:
+  the mean of the other cases' I0 (one anatomy, independent noise) sampled at the material points of the loaded
+  pixels (the truth and the scanner motion, `phantom.material_points`), with fresh Rician noise of the loaded
+  image's sigma; it moves every structure exactly with the tissue. Loaded images spliced from the two along the
+  boundaries between the labels (air, fat, muscle, bone; their pixels within SPLICE_REACH_PX, pulled into the
+  loaded frame) are measured as `calfit measure` does: per band chi^2/n against the truth for the warped image, for
+  it with the loaded image's boundaries, for the loaded image with the warped boundaries, and for the loaded image.
+  The windows are linear in the image, so a window's error on the loaded image less that on the warped one is the
+  sum of what its boundaries and the rest add (printed: the RMS of that non-linearity); their correlation over the
+  deep-fat windows, along the radius, says whether the two parts of the loaded image share one error (> 0) or add
+  independent ones (0). The same with a second noise draw of the warped image in place of the loaded one is the
+  control: independent noise in disjoint pixels gives 0. More noise draws of the warped image (--draws) show how far
+  a band's chi^2/n scatters where the images move exactly with the tissue: the yardstick for the loaded image's.
 """
 
 from __future__ import annotations
@@ -54,13 +67,14 @@ from orchestrator.imaging.case import BONE, FAT, MUSCLE
 from orchestrator.imaging.dic import edge_strength, spline_gradient, zero_normalised_steepest_descent
 from orchestrator.imaging.frame import RigidMotion
 from orchestrator.imaging.prefilter import Prefilter, rician_variance_ratio
-from orchestrator.phantom import CalfPhantom, MRIPhantom
+from orchestrator.phantom import CalfPhantom, MRIPhantom, as_displacement_fn, material_points
+from orchestrator.phantom.appearance import add_rician_noise
 from orchestrator.phantom.truths import random_truth
 from orchestrator.pipeline import run_measure
 from orchestrator.study import load_run, make_phantom_case
 from orchestrator.measure import read_window_table
-from orchestrator.verification import (band_masks, errors_against, field_from_mesh_file, symmetric_roots,
-                                      without_rigid_motion)
+from orchestrator.verification import (band_errors, band_masks, errors_against, field_from_mesh_file,
+                                      symmetric_roots, without_rigid_motion)
 
 RENDERER_MOTION = RigidMotion(-1.2, (1.1, 0.7), (75.6, 75.6))
 SKIN_REACH_PX = 3        # pixels of the air and the leg counted as the skin's edge
@@ -69,6 +83,8 @@ QUIET_SHARE = 0.1        # the share of the leg's pixels with the least structur
 BOUNDARY_BAND_PX = 3     # pixels either side of a boundary in which its offset is read
 SECTOR_DEG = 45          # the boundary's offset is read per sector of this angle about the leg's centre
 NULL_ROLL_PX = 40        # D rolled this far (eight ways) has no boundary under it: the offset's noise alone
+SPLICE_REACH_PX = 1      # pixels either side of a boundary between labels taken from the other image in a splice
+DEEP_FAT = "other fat"   # the band whose excess the splices take apart
 
 
 def structure_kinds(labels: np.ndarray) -> dict[str, np.ndarray]:
@@ -91,6 +107,7 @@ class Case:
 
     def __init__(self, name: str, case: Path, run: Path, field, motion: RigidMotion, labels: np.ndarray | None = None):
         self.name = name
+        self.case_dir = case
         run_measure(case, run)
         self.setup = load_run(run)
         self.measured = self.setup.measurements("dic")
@@ -265,6 +282,111 @@ def shared_between_cases(cases: list[Case]) -> None:
               f"{max(pairs):+.2f})")
 
 
+class Splicer:
+    """One case's loaded image, the same leg warped by the truth instead, and splices of the two (module text)."""
+
+    def __init__(self, case: Case, others: list[Case], seed: int):
+        dy, dx = case.pixel
+        rows, cols = np.indices(case.reference.shape, dtype=float)
+        x, y = material_points((cols + 0.5) * dx, (rows + 0.5) * dy,
+                               as_displacement_fn(np.nan_to_num(case.field), case.pixel), case.motion)
+        at_material = [y / dy - 0.5, x / dx - 0.5]
+        anatomy = np.mean([other.reference for other in others], axis=0)
+        self.noiseless = ndimage.map_coordinates(anatomy, at_material, order=3, mode="nearest")
+        self.sigma = float(case.meta["noise_sigma"][1])
+        self.rng = np.random.default_rng(seed)
+        self.case = case
+        self.loaded = case.setup.case.loaded.astype(float)
+        self.warped, self.warped_again = self.warped_draw(), self.warped_draw()
+        labels = ndimage.map_coordinates(case.labels, at_material, order=0, mode="nearest")
+        values = np.unique(labels)
+        self.boundaries = np.zeros(labels.shape, bool)
+        for a, b in combinations(values, 2):
+            self.boundaries |= (ndimage.binary_dilation(labels == a, iterations=SPLICE_REACH_PX)
+                                & ndimage.binary_dilation(labels == b, iterations=SPLICE_REACH_PX))
+
+    def warped_draw(self) -> np.ndarray:
+        """The warped leg with a fresh draw of Rician noise of the loaded image's sigma."""
+        return add_rician_noise(self.noiseless, self.sigma, self.rng)
+
+    def splice(self, rest: np.ndarray, boundaries: np.ndarray) -> np.ndarray:
+        return np.where(self.boundaries, boundaries, rest)
+
+    def measure(self, loaded: np.ndarray, folder: Path) -> tuple[dict[str, float], dict[tuple, np.ndarray]]:
+        """`calfit measure` on the case with this loaded image: (chi^2/n per band, {window position: its error
+        (px), the bones' rigid motion removed}) against the truth."""
+        source = self.case.case_dir
+        folder.mkdir(parents=True)
+        for item in source.iterdir():
+            if item.is_file() and item.name not in ("points.csv", "loaded.png"):
+                (folder / item.name).write_bytes(item.read_bytes())
+        io.imsave(folder / "loaded.png", np.clip(np.round(loaded), 0, 65535).astype(np.uint16), check_contrast=False)
+        run = folder.with_name(folder.name + "-run")
+        run_measure(folder, run)
+        setup = load_run(run)
+        measured = setup.measurements("dic")
+        errors = errors_against(measured, None, self.case.field)
+        rows, _ = band_errors(measured, errors, setup.frame())
+        whiten, _ = symmetric_roots(np.asarray(measured.covariance_mm2, float), "the measurement covariance")
+        errors = without_rigid_motion(measured, errors, whiten).reshape(-1, 2) / np.array(self.case.pixel[::-1])
+        return ({row.band: (row.chi2_per_value, row.count) for row in rows},
+                {tuple(np.round(p, 2)): e for p, e in zip(measured.position_mm, errors)})
+
+
+def spliced(cases: list[Case], scratch: Path, draws: int) -> None:
+    """Which pixels of the other program's loaded image carry the windows' excess, and how far a band's chi^2/n of
+    the warped leg scatters over `draws` more noise draws (module text)."""
+    kinds = {"warped": lambda s: s.warped,
+             "warped, its boundaries from the loaded image": lambda s: s.splice(s.warped, s.loaded),
+             "loaded, its boundaries from the warped image": lambda s: s.splice(s.loaded, s.warped),
+             "loaded": lambda s: s.loaded,
+             "control: a second draw of the warped image": lambda s: s.warped_again,
+             "control: warped, boundaries from the second draw": lambda s: s.splice(s.warped, s.warped_again),
+             "control: second draw, boundaries from the first": lambda s: s.splice(s.warped_again, s.warped)}
+    chi2 = {kind: {} for kind in kinds}
+    radial = {kind: [] for kind in kinds}
+    scatter = {}   # band -> (draws, 2) sums of chi^2 and of values over the cases
+    for index, case in enumerate(cases):
+        splicer = Splicer(case, [other for other in cases if other is not case], seed=index)
+        centre = case.measured.position_mm.mean(axis=0)
+        errors = {}
+        for number, (kind, image) in enumerate(kinds.items()):
+            bands, errors[kind] = splicer.measure(image(splicer), scratch / f"splice-{case.name}-{number}")
+            for band, (value, count) in bands.items():
+                chi2[kind].setdefault(band, []).append((value * count, count))
+        for draw in range(draws):
+            bands, _ = splicer.measure(splicer.warped_draw(), scratch / f"splice-{case.name}-draw-{draw}")
+            for band, (value, count) in bands.items():
+                scatter.setdefault(band, np.zeros((draws, 2)))[draw] += (value * count, count)
+        deep = {tuple(np.round(p, 2)) for p, m in zip(case.measured.position_mm, case.bands[DEEP_FAT]) if m}
+        shared = sorted(deep.intersection(*[set(e) for e in errors.values()]))
+        for kind in kinds:
+            direction = np.array(shared) - centre
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            radial[kind].append(np.einsum("ij,ij->i", np.array([errors[kind][k] for k in shared]), direction))
+    print("  the loaded image spliced with the same leg warped by the truth: chi^2/n per band, pooled over the cases")
+    for kind, bands in chi2.items():
+        print(f"    {kind:<52s} " + "  ".join(f"{band} {sum(v for v, _ in rows) / sum(n for _, n in rows):.2f}"
+                                                for band, rows in bands.items()))
+    if draws:
+        print(f"  the warped image over {draws} more noise draws, pooled over the cases: " + "  ".join(
+            f"{band} {np.mean(v[:, 0] / v[:, 1]):.2f} (sd {np.std(v[:, 0] / v[:, 1], ddof=1) if draws > 1 else 0:.2f}, "
+            f"{np.min(v[:, 0] / v[:, 1]):.2f}-{np.max(v[:, 0] / v[:, 1]):.2f})" for band, v in scatter.items()))
+    print(f"  the {DEEP_FAT} windows along the radius (px): what the boundaries and the rest of an image add to the "
+          "warped image's error")
+    for image, (rest, edges) in (("loaded", ("loaded, its boundaries from the warped image",
+                                             "warped, its boundaries from the loaded image")),
+                                 ("control: a second draw of the warped image",
+                                  ("control: second draw, boundaries from the first",
+                                   "control: warped, boundaries from the second draw"))):
+        base, whole = np.concatenate(radial["warped"]), np.concatenate(radial[image])
+        from_rest, from_edges = np.concatenate(radial[rest]) - base, np.concatenate(radial[edges]) - base
+        print(f"    {image:<52s} boundaries {np.sqrt(np.mean(from_edges ** 2)):.4f}, the rest "
+              f"{np.sqrt(np.mean(from_rest ** 2)):.4f}, both {np.sqrt(np.mean((whole - base) ** 2)):.4f} (non-linearity "
+              f"{np.sqrt(np.mean((whole - base - from_rest - from_edges) ** 2)):.4f}); their correlation "
+              f"{np.corrcoef(from_edges, from_rest)[0, 1]:+.2f} over {len(base)} windows")
+
+
 def foreign_cases(folder: Path, scratch: Path) -> list[Case]:
     answers = json.loads((folder / "answers.json").read_text())
     cases = []
@@ -298,6 +420,12 @@ def main() -> None:
     parser.add_argument("--foreign", type=Path, help="case folders of another program, with truth/ and answers.json")
     parser.add_argument("--renderers", action="store_true",
                         help="with --foreign, also a case of each of calfit's renderers (the default without it)")
+    parser.add_argument("--splice", action="store_true",
+                        help="with --foreign, splice each loaded image with the same leg warped by the truth (module "
+                             "text; about 7 minutes for four cases)")
+    parser.add_argument("--draws", type=int, default=6,
+                        help="with --splice, more noise draws of the warped leg, for the scatter of a band's chi^2/n "
+                             "(default 6, a minute each for four cases)")
     arguments = parser.parse_args()
     arguments.renderers |= arguments.foreign is None
     with tempfile.TemporaryDirectory(prefix="calfit-bench-budget-") as scratch:
@@ -307,6 +435,8 @@ def main() -> None:
             report(f"The other program's {len(cases)} cases", cases)
             if len(cases) > 1:
                 shared_between_cases(cases)
+            if arguments.splice and len(cases) > 1:
+                spliced(cases, scratch, arguments.draws)
         if arguments.renderers:
             for case in renderer_cases(scratch):
                 report(f"calfit's {case.name}, one case", [case])
