@@ -87,17 +87,21 @@ SPLICE_REACH_PX = 1      # pixels either side of a boundary between labels taken
 DEEP_FAT = "other fat"   # the band whose excess the splices take apart
 
 
+def boundaries_between(masks: list[np.ndarray], reach_px: int) -> np.ndarray:
+    """The pixels within reach_px of two of the masks at once: the boundaries between them."""
+    grown = [ndimage.binary_dilation(mask, iterations=reach_px) for mask in masks]
+    out = np.zeros(grown[0].shape, bool)
+    for a, b in combinations(grown, 2):
+        out |= a & b
+    return out
+
+
 def structure_kinds(labels: np.ndarray) -> dict[str, np.ndarray]:
     """Masks of the raw pixels by the kind of structure they show (module text)."""
     leg = labels > 0
-    skin = (ndimage.binary_dilation(~leg, iterations=SKIN_REACH_PX)
-            & ndimage.binary_dilation(leg, iterations=SKIN_REACH_PX))
+    skin = boundaries_between([~leg, leg], SKIN_REACH_PX)
     tissues = [labels == FAT, labels == MUSCLE, labels == BONE]
-    boundary = np.zeros_like(leg)
-    for a, b in combinations(tissues, 2):
-        boundary |= (ndimage.binary_dilation(a, iterations=BOUNDARY_REACH_PX)
-                     & ndimage.binary_dilation(b, iterations=BOUNDARY_REACH_PX))
-    boundary &= ~skin
+    boundary = boundaries_between(tissues, BOUNDARY_REACH_PX) & ~skin
     return {"skin and air": skin, "inner boundaries": boundary, "fat texture": tissues[0] & ~boundary & ~skin,
             "muscle texture": tissues[1] & ~boundary & ~skin}
 
@@ -299,11 +303,7 @@ class Splicer:
         self.loaded = case.setup.case.loaded.astype(float)
         self.warped, self.warped_again = self.warped_draw(), self.warped_draw()
         labels = ndimage.map_coordinates(case.labels, at_material, order=0, mode="nearest")
-        values = np.unique(labels)
-        self.boundaries = np.zeros(labels.shape, bool)
-        for a, b in combinations(values, 2):
-            self.boundaries |= (ndimage.binary_dilation(labels == a, iterations=SPLICE_REACH_PX)
-                                & ndimage.binary_dilation(labels == b, iterations=SPLICE_REACH_PX))
+        self.boundaries = boundaries_between([labels == value for value in np.unique(labels)], SPLICE_REACH_PX)
 
     def warped_draw(self) -> np.ndarray:
         """The warped leg with a fresh draw of Rician noise of the loaded image's sigma."""

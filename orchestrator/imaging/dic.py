@@ -511,43 +511,50 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
     edge_raw = pair.around(pair.edge_raw, r0, c0, size).ravel()
     edge_q = pair.edge_q[window].ravel()[used]
     noise_raw = pair.around(pair.rho_raw, r0, c0, size).ravel()
+    # (G * S)^T diag(w) (G * S) of each error, for the share the match takes and for the parameters' covariance
+    edge_gram, noise_gram = ((spread * weights) @ spread.T for weights in (edge_raw, noise_raw))
+    normalisation = _normalisation_spread(pair.prefilter, f_hat, used, size)
     # what the residual keeps of each error: the match takes a larger share of the edges' than of the noise's
-    edge_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, edge_raw, edge_q.sum(), used)
-    noise_kept = 1.0 - _absorbed_share(pair.prefilter, spread, hessian_raw, f_hat, noise_raw, noise_q.sum(), used)
+    edge_kept = 1.0 - _absorbed_share(hessian_raw, edge_gram, normalisation, edge_raw, edge_q.sum())
+    noise_kept = 1.0 - _absorbed_share(hessian_raw, noise_gram, normalisation, noise_raw, noise_q.sum())
     edges = EdgeResiduals()
     edges.add((g_hat - f_hat) * f_norm, edge_kept * edge_q, variance * noise_kept * noise_q.ravel()[used])
     inverse = np.linalg.inv(signal_hessian)
     translation = np.ix_([0, 3], [0, 3])
 
-    def sandwich(weights: np.ndarray) -> np.ndarray:
-        return (inverse @ ((spread * weights.ravel()) @ spread.T) @ inverse)[translation]
+    def sandwich(gram: np.ndarray) -> np.ndarray:
+        return (inverse @ gram @ inverse)[translation]
 
-    noise_sandwich = sandwich(noise_raw)
-    edge_sandwich = sandwich(edge_raw)
+    noise_sandwich = sandwich(noise_gram)
+    edge_sandwich = sandwich(edge_gram)
     return (_Match(displacement, confidence, variance * noise_sandwich, variance, warp[:2, :2] - np.eye(2), edges,
                    edge_sandwich), zncc)
 
 
-def _absorbed_share(prefilter: Prefilter, spread: np.ndarray, hessian: np.ndarray, f_hat: np.ndarray,
-                    variance_raw: np.ndarray, total: float, used: np.ndarray) -> float:
+def _normalisation_spread(prefilter: Prefilter, f_hat: np.ndarray, used: np.ndarray, size: int) -> np.ndarray:
+    """(2, m) the two directions the zero-normalised SSD removes from a window, its mean 1 / sqrt(n) and its template
+    f^ (over the window's pixels `used`, flat boolean over its size x size square), spread by the prefilter as the
+    steepest-descent images are (`_absorbed_share`)."""
+    f_hat = np.asarray(f_hat, float)
+    directions = np.stack([np.full(f_hat.shape, 1.0 / np.sqrt(f_hat.size)), f_hat])
+    return prefilter.spread(on_window_square(directions, used, size)).reshape(2, -1)
+
+
+def _absorbed_share(hessian: np.ndarray, gram: np.ndarray, normalisation: np.ndarray, variance_raw: np.ndarray,
+                    total: float) -> float:
     """tr(P C) / tr(C): the share of an error of the raw pixels (variance map `variance_raw`, C = G diag(w) G^T
     once prefiltered, `total` = tr(C) over the window) that a window's own fit takes into its parameters, and so
     leaves out of its residual (`prefilter`, module text). P projects the prefiltered window onto what its match
     adjusts: the six affine directions S (projected, `zero_normalised_steepest_descent`; H = S^T S), the mean and
     the template f^ that the zero-normalised SSD removes, so tr(P C) = tr(H^-1 (G * S)^T diag(w) (G * S)) + the
-    same for 1 / sqrt(n) and f^ (orthogonal to S and to each other). For the edges' error (w = |grad I0|^2 per unit
+    same for 1 / sqrt(n) and f^ (orthogonal to S and to each other). gram: (G * S)^T diag(w) (G * S);
+    normalisation: G * (1 / sqrt(n), f^) (`_normalisation_spread`). For the edges' error (w = |grad I0|^2 per unit
     s_edge^2) it is large, since that error lies where the steepest-descent images are largest; for the noise
     (w = rho) it is 5-7 % of a 32-pixel window on the phantoms and the other program's images, which a count of
-    8 fitted values times the pixels one prefiltered value spreads over put at 4.9 %. f_hat is over the window's
-    pixels `used` (flat boolean over its square)."""
+    8 fitted values times the pixels one prefiltered value spreads over put at 4.9 %."""
     if total <= 0.0:
         return 0.0
-    f_hat = np.asarray(f_hat, float)
-    size = int(round(np.sqrt(used.size)))
-    directions = np.stack([np.full(f_hat.shape, 1.0 / np.sqrt(f_hat.size)), f_hat])
-    normalisation = prefilter.spread(on_window_square(directions, used, size)).reshape(2, -1)
-    taken = (np.trace(np.linalg.solve(hessian, (spread * variance_raw) @ spread.T))
-             + float(np.sum(normalisation ** 2 * variance_raw)))
+    taken = np.trace(np.linalg.solve(hessian, gram)) + float(np.sum(normalisation ** 2 * variance_raw))
     return float(np.clip(taken / total, 0.0, 1.0))
 
 
