@@ -48,6 +48,18 @@ Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, e
   independent ones (0). The same with a second noise draw of the warped image in place of the loaded one is the
   control: independent noise in disjoint pixels gives 0. More noise draws of the warped image (--draws) show how far
   a band's chi^2/n scatters where the images move exactly with the tissue: the yardstick for the loaded image's.
+- With --sampling S, how a renderer that averages S x S samples per pixel draws the skin and the fascia in both
+  images, against where the true mesh puts them (the other program's cases say they were made so, S = 3; their truth
+  holds the mesh). Each pixel's coverage by air (or bone), fat and muscle is counted on S x S samples and on
+  SAMPLED_FINE x SAMPLED_FINE (taken as exact; 30 changes the figures by <= 0.01), in I0 through the mesh and in I1
+  through the mesh moved by the truth and the scanner motion; the difference times the tissues' median grey levels
+  is the error with which the renderer draws each image's boundaries: a function of where the boundary crosses the
+  pixel, the same for every boundary that crosses alike. A window's error from it is B~ (dI0 - dI1 o phi) (`windows`:
+  B~ its map, dI1 pulled back to I0's pixels; IC-GN composes the inverse of its step, hence the signs), the bones'
+  rigid motion removed as the fit does. Per band: chi^2/n as measured, with that error taken out, of that error
+  alone, and its correlation with the measured error. Where a boundary runs along the pixel grid, its pixels cross
+  alike and their errors add up over a window instead of averaging out; the window takes them for motion, and its
+  residual, on which calfit calibrates s_edge^2, does not show them. The same with S - 1 and S + 1 is the control.
 """
 
 from __future__ import annotations
@@ -60,6 +72,7 @@ from itertools import combinations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.tri import Triangulation
 from scipy import ndimage
 from skimage import io
 
@@ -85,6 +98,8 @@ SECTOR_DEG = 45          # the boundary's offset is read per sector of this angl
 NULL_ROLL_PX = 40        # D rolled this far (eight ways) has no boundary under it: the offset's noise alone
 SPLICE_REACH_PX = 1      # pixels either side of a boundary between labels taken from the other image in a splice
 DEEP_FAT = "other fat"   # the band whose excess the splices take apart
+SAMPLED_FINE = 15        # samples per pixel side taken as a pixel's exact coverage by each tissue
+BONE_MARGIN_PX = 3       # pixels near a bone left out of the sampled edges' error (the mesh has holes there)
 
 
 def boundaries_between(masks: list[np.ndarray], reach_px: int) -> np.ndarray:
@@ -387,6 +402,96 @@ def spliced(cases: list[Case], scratch: Path, draws: int) -> None:
               f"{np.corrcoef(from_edges, from_rest)[0, 1]:+.2f} over {len(base)} windows")
 
 
+class SampledEdges:
+    """How a renderer that averages S x S samples per pixel draws a case's skin and fascia, against the true mesh's
+    boundaries (module text)."""
+
+    def __init__(self, case: Case, truth: Path):
+        mesh = np.load(truth)
+        nodes, corners = mesh["nodes_mm"], mesh["cells"][:, :3]
+        self.tissue = np.where(mesh["material"] == "FAT", 1, 2)   # 0: outside the mesh (air, bone)
+        self.reference = Triangulation(nodes[:, 0], nodes[:, 1], corners)
+        moved = nodes + mesh["u_mm"]
+        self.deformed = Triangulation(moved[:, 0], moved[:, 1], corners)
+        self.case = case
+        labels = case.labels
+        levels = [np.median(case.reference[ndimage.binary_erosion(labels == value, iterations=3)])
+                  for value in (0, FAT, MUSCLE)]
+        self.levels = np.array(levels)
+        self.near_bone = ndimage.binary_dilation(labels == BONE, iterations=BONE_MARGIN_PX)
+
+    def coverage(self, mesh: Triangulation, rows, cols, samples: int, to_mesh) -> np.ndarray:
+        """(n, 3) the share of each pixel's samples x samples points outside the mesh, in fat, in muscle."""
+        dy, dx = self.case.pixel
+        offsets = (np.arange(samples) + 0.5) / samples
+        sub_rows, sub_cols = (a.ravel() for a in np.meshgrid(offsets, offsets, indexing="ij"))
+        x, y = to_mesh(((cols[:, None] + sub_cols) * dx).ravel(), ((rows[:, None] + sub_rows) * dy).ravel())
+        triangle = mesh.get_trifinder()(x, y)
+        tissue = np.where(triangle >= 0, self.tissue[triangle], 0).reshape(len(rows), -1)
+        return np.stack([(tissue == value).mean(axis=1) for value in range(3)], axis=1)
+
+    def drawing_error(self, mesh: Triangulation, to_mesh, samples: int) -> np.ndarray:
+        """The grey-level error of an image drawn with samples x samples per pixel, on the pixels its boundaries cross."""
+        shape = self.case.reference.shape
+        rows, cols = (a.ravel() for a in np.indices(shape))
+        coarse = self.coverage(mesh, rows, cols, samples, to_mesh).reshape(*shape, 3)
+        crossed = ndimage.binary_dilation(coarse.max(axis=2) < 1.0)
+        rows, cols = np.nonzero(crossed)
+        error = np.zeros(shape)
+        error[rows, cols] = (coarse[rows, cols] - self.coverage(mesh, rows, cols, SAMPLED_FINE, to_mesh)) @ self.levels
+        return error
+
+    def window_errors(self, samples: int) -> np.ndarray:
+        """(2N,) mm: each window's error from how both images draw their boundaries, the bones' motion removed."""
+        case = self.case
+        reference = self.drawing_error(self.reference, lambda x, y: (x, y), samples)
+        loaded = self.drawing_error(self.deformed, case.motion.inverse().apply, samples)
+        dy, dx = case.pixel
+        rows, cols = np.indices(reference.shape, dtype=float)
+        xs, ys = case.motion.apply((cols + 0.5) * dx + np.nan_to_num(case.field[0]),
+                                   (rows + 0.5) * dy + np.nan_to_num(case.field[1]))
+        pulled_back = ndimage.map_coordinates(loaded, [ys / dy - 0.5, xs / dx - 0.5], order=1, mode="constant")
+        difference = np.where(self.near_bone, 0.0, reference - pulled_back).ravel()
+        operators = case.measured.operators
+        errors = np.concatenate([(B @ difference[pixels]) * (dx, dy)
+                                 for B, pixels in zip(operators.B, operators.noise_pixels)])
+        whiten, _ = symmetric_roots(np.asarray(case.measured.covariance_mm2, float), "the measurement covariance")
+        return without_rigid_motion(case.measured, errors, whiten)
+
+
+def sampled_edges(cases: list[Case], folder: Path, samples: int) -> None:
+    """What the boundaries drawn with samples x samples per pixel make of each band's chi^2/n (module text); the same
+    with one sample less and one more per side is the control: another renderer's error, which the images do not
+    carry, raises the bands instead."""
+    print("  the skin and the fascia drawn with S x S samples per pixel, against the true mesh: chi^2/n per band, "
+          "pooled over the cases; measured, less the drawn boundaries' error (that error alone; its correlation with "
+          "the measured error)")
+    drawings = [SampledEdges(case, folder / "truth" / f"{case.name}.npz") for case in cases]
+    for count in [samples] + [s for s in (samples - 1, samples + 1) if s > 1]:
+        pooled = {}
+        for case, drawing in zip(cases, drawings):
+            drawn = drawing.window_errors(count)
+            measured = case.errors.ravel()
+            covariance = np.asarray(case.measured.covariance_mm2, float)
+            for band, mask in case.bands.items():
+                values = np.repeat(mask, 2)
+                if not values.any():
+                    continue
+                block = covariance[np.ix_(values, values)]
+                row = pooled.setdefault(band, {"sums": np.zeros(3), "n": 0, "measured": [], "drawn": []})
+                row["sums"] += [e @ np.linalg.solve(block, e) for e in (measured[values],
+                                                                         measured[values] - drawn[values],
+                                                                         drawn[values])]
+                row["n"] += int(values.sum())
+                row["measured"].append(measured[values])
+                row["drawn"].append(drawn[values])
+        label = f"S = {count}" + ("" if count == samples else " (control)")
+        print(f"    {label:<14s} " + "  ".join(
+            f"{band} {row['sums'][0] / row['n']:.2f} -> {row['sums'][1] / row['n']:.2f} ({row['sums'][2] / row['n']:.2f};"
+            f" {np.corrcoef(np.concatenate(row['measured']), np.concatenate(row['drawn']))[0, 1]:+.2f})"
+            for band, row in pooled.items()))
+
+
 def foreign_cases(folder: Path, scratch: Path) -> list[Case]:
     answers = json.loads((folder / "answers.json").read_text())
     cases = []
@@ -426,6 +531,9 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=6,
                         help="with --splice, more noise draws of the warped leg, for the scatter of a band's chi^2/n "
                              "(default 6, a minute each for four cases)")
+    parser.add_argument("--sampling", type=int, metavar="S",
+                        help="with --foreign, the error of the skin and the fascia drawn with S x S samples per pixel "
+                             "in both images, from the true mesh (module text; the other program's cases: S = 3)")
     arguments = parser.parse_args()
     arguments.renderers |= arguments.foreign is None
     with tempfile.TemporaryDirectory(prefix="calfit-bench-budget-") as scratch:
@@ -435,6 +543,8 @@ def main() -> None:
             report(f"The other program's {len(cases)} cases", cases)
             if len(cases) > 1:
                 shared_between_cases(cases)
+            if arguments.sampling:
+                sampled_edges(cases, arguments.foreign, arguments.sampling)
             if arguments.splice and len(cases) > 1:
                 spliced(cases, scratch, arguments.draws)
         if arguments.renderers:
