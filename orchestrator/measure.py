@@ -55,7 +55,8 @@ from scipy.spatial import cKDTree
 
 from .imaging.case import DisplacementPoints
 from .imaging.dic import correlate, grid_centres, roi_centres
-from .imaging.frame import RigidMotion, pixel_centres_mm
+from .imaging.drawing import detect_point_sampling, drawn_boundaries_factor
+from .imaging.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
 from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
@@ -72,6 +73,8 @@ MEDIAN_NEIGHBOURS = 8
 RESIDUAL_ALPHA = 1e-3   # a window's residual beyond what the error model allows at this level raises its own noise
 MAX_RESIDUAL_EXCESS = 5.0   # and beyond this many times the model the window is not trusted (a failed match)
 PRIOR_SMOOTHING = 1e-3      # thin-plate smoothing of the first pass (it only has to bend the windows, not fit noise)
+DRAWING_DRAWS = 64          # sub-pixel placements of the leg over which a point-sampled drawing's error is spread
+#                             (`imaging.drawing`; 16 / 64 / 128 give the other program's bands within 0.05)
 VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
 KINDS = ("grid", "skin", "fascia", "vessel")
 KEPT = "kept"
@@ -104,6 +107,9 @@ class WindowTable:
     # (N,) the window's squared residual over what the calibrated error model predicts for it (`imaging.prefilter`:
     # 1 where the model holds, NaN where the window did not match)
     residual_over_model: np.ndarray | None = None
+    # (2 K, D) for the K kept windows: F with F F^T the covariance (mm^2) of their error from boundaries that a
+    # point-sampling renderer drew (`imaging.drawing`), None for images not drawn so
+    drawing_factor_mm: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
@@ -331,11 +337,22 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
+    # boundaries drawn by point samples (a renderer's, not a scanner's) carry an error that the residuals cannot show
+    to_loaded = loaded_index_map(prior, motion, pixel_size_mm)
+    point_sampling = detect_point_sampling(unloaded, labels, loaded, to_loaded)
+    drawing_factor = None
+    if point_sampling is not None and operators is not None:
+        drawing_factor = drawn_boundaries_factor(unloaded, labels, point_sampling.samples, to_loaded, operators,
+                                                 operators.to_mm, DRAWING_DRAWS)
     residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise)
                                     for window in result.edge_residuals])
-    table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, result.covariance_mm2,
+    covariance = result.covariance_mm2.copy()
+    if drawing_factor is not None:
+        drawn = np.einsum("ik,jk->ij", drawing_factor, drawing_factor)
+        covariance[kept] += np.stack([drawn[2 * k:2 * k + 2, 2 * k:2 * k + 2] for k in range(int(kept.sum()))])
+    table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, covariance,
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
-                        residual_over_model)
+                        residual_over_model, drawing_factor)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
                                     edge_variance, operators=operators)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
@@ -349,6 +366,11 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                "rigid_motion": {"angle_deg": motion.angle_deg, "translation_mm": list(motion.translation_mm),
                                 "centre_mm": list(motion.centre_mm)},
                "min_confidence": min_confidence, "max_uncertainty_px": max_uncertainty_px,
+               "point_sampling": None if point_sampling is None else {
+                   "samples_per_side": point_sampling.samples, "p_value": point_sampling.p_value,
+                   "coverages": point_sampling.pixels, "draws": DRAWING_DRAWS,
+                   "share_of_variance": (None if drawing_factor is None else
+                                         float(np.sum(drawing_factor ** 2) / np.trace(measurements.covariance_mm2)))},
                "wall_time_s": time.perf_counter() - began}
     return measurements, table, summary
 
@@ -389,6 +411,19 @@ def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: f
     return status
 
 
+def loaded_index_map(field_mm: np.ndarray, motion: RigidMotion, pixel_size_mm):
+    """The map from reference indices (M, 2) (rows, columns) to where the loaded image shows them: moved by the
+    displacement field (2, H, W) (mm, relative to the bones) and then by the bones' motion."""
+    def to_loaded(indices: np.ndarray) -> np.ndarray:
+        indices = np.asarray(indices, float)
+        x, y = index_to_mm(indices[:, 0], indices[:, 1], pixel_size_mm)
+        ux, uy = (ndimage.map_coordinates(field_mm[c], indices.T, order=1, mode="nearest") for c in range(2))
+        rows, cols = mm_to_index(*motion.apply(x + ux, y + uy), pixel_size_mm)
+        return np.stack([rows, cols], axis=1)
+
+    return to_loaded
+
+
 def prior_field(positions_mm: np.ndarray, displacement_mm: np.ndarray, shape, pixel_size_mm,
                 smoothing: float = PRIOR_SMOOTHING) -> np.ndarray:
     """(2, H, W) thin-plate spline through the trusted first-pass displacements (mm), the prior by which the
@@ -421,6 +456,8 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
         operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
                                     prefilter=Prefilter(prefilter_px), pixel_masks=masks)
     covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
+    if table.drawing_factor_mm is not None:
+        covariance += table.drawing_factor_mm @ table.drawing_factor_mm.T
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]
     return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept] - offset, covariance, operators, True,
@@ -474,7 +511,8 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
                         displacement_mm=table.displacement_mm, covariance_mm2=table.covariance_mm2,
                         confidence=table.confidence, intensity_variance=table.intensity_variance,
                         tissue=np.array(table.tissue), status=np.array(table.status),
-                        prior_offset_mm=table.prior_offset_mm, residual_over_model=residual_over_model)
+                        prior_offset_mm=table.prior_offset_mm, residual_over_model=residual_over_model,
+                        **({} if table.drawing_factor_mm is None else {"drawing_factor_mm": table.drawing_factor_mm}))
     temporary.replace(run_dir / files["arrays"])
     rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,residual_over_model,offset_x_mm,"
             "offset_y_mm,kind,tissue,status"]
@@ -500,5 +538,6 @@ def read_window_table(run_dir: Path, level: int = 1) -> WindowTable | None:
                            arrays["displacement_mm"], arrays["covariance_mm2"], arrays["confidence"],
                            arrays["intensity_variance"], [str(v) for v in arrays["tissue"]],
                            [str(v) for v in arrays["status"]], arrays["prior_offset_mm"],
-                           arrays["residual_over_model"] if "residual_over_model" in arrays.files else None)
+                           arrays["residual_over_model"] if "residual_over_model" in arrays.files else None,
+                           arrays["drawing_factor_mm"] if "drawing_factor_mm" in arrays.files else None)
 

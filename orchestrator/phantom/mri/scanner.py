@@ -9,7 +9,9 @@ with an image formation of its own, unlike the first phantom's band-limited (k-s
 - partial volume: the slice is sampled `supersampling` x `supersampling` times per pixel (by default samples
   of at most SAMPLE_MM: 3 x 3 at 0.3-0.36 mm pixels, 4 x 4 at 0.45 mm, 5 x 5 at 0.6 mm), each sample's
   boundaries and lines drawn with the share of the sample they cover (so an edge moves continuously with the
-  tissue), and every pixel is the mean of its samples (box averaging over the pixel's own area);
+  tissue), and every pixel is the mean of its samples (box averaging over the pixel's own area); with
+  `anti_aliased` False each sample is wholly in one tissue instead, as a point-sampling renderer draws
+  (`imaging.drawing`: its boundaries move in steps of 1 / supersampling^2 of a pixel's coverage);
 - a receive-coil bias b(y) in the scanner frame: four surface coil elements around the field of view, each
   with the on-axis sensitivity of a loop, (1 + d^2 / a^2)^(-3/2) at distance d, combined as a root sum of
   squares, of mean 1 over the central disc where the leg lies and scaled to +- `bias_amplitude` over the field
@@ -35,6 +37,7 @@ from .structure import FatSepta, GradientNoise, MuscleStreaks, line_coverage
 
 SAMPLES_PER_CHUNK = 400_000      # scanner samples evaluated at once (memory: a few tens of arrays of this size)
 SAMPLE_MM = 0.125                # default sample size: well under the septa (0.3-0.6 mm) and the finest texture
+POINT_SAMPLE_MM = 1e-6           # a sample this small is wholly in one tissue (`anti_aliased` False)
 
 
 @dataclass(frozen=True)
@@ -71,6 +74,8 @@ class MRIPhantom:
     image_shape: tuple[int, int] = (420, 420)
     pixel_size_mm: tuple[float, float] = (0.36, 0.36)
     supersampling: int | None = None     # samples per pixel along each axis; None: samples of at most SAMPLE_MM
+    # False: each sample wholly in one tissue (a point-sampling renderer's images, `imaging.drawing`), not a scanner's
+    anti_aliased: bool = True
 
     def __post_init__(self):
         if self.supersampling is None:
@@ -102,7 +107,8 @@ class MRIPhantom:
     def description(self) -> dict:
         """What truth.json records of the phantom."""
         return {"renderer": "mri", "shape": dataclasses.asdict(self.geometry.shape),
-                "contrast": dataclasses.asdict(self.contrast), "supersampling": self.supersampling}
+                "contrast": dataclasses.asdict(self.contrast), "supersampling": self.supersampling,
+                "anti_aliased": self.anti_aliased}
 
     # -- appearance at material points ------------------------------------------
 
@@ -178,7 +184,7 @@ class MRIPhantom:
             rows = np.arange(first, min(height, first + rows_per_chunk))
             y_samples = ((rows[:, None] + within) * dy).ravel()
             X, Y = to_material(*np.meshgrid(x_samples, y_samples))
-            samples = self.intensity_at(X, Y, sample_mm=min(dx, dy) / n)
+            samples = self.intensity_at(X, Y, sample_mm=min(dx, dy) / n if self.anti_aliased else POINT_SAMPLE_MM)
             image[rows] = samples.reshape(len(rows), n, width, n).mean(axis=(1, 3))
         image *= self.coil_bias(*pixel_centres_mm(self.image_shape, self.pixel_size_mm))
         if noise_seed is None:
