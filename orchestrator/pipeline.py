@@ -310,7 +310,7 @@ def floor_calibration(run_dir: Path) -> dict:
             "image_noise_sigma_estimated": summary.get("noise_sigma_estimated", summary["noise_sigma"]),
             "edge_position_sigma_px": float(np.sqrt(summary.get("edge_variance_px2", 0.0))),
             "residual_over_predicted": summary.get("noise_scale"), "windows": summary["windows"],
-            "kept": summary["kept"], "status": summary["status"]}
+            "kept": summary["kept"], "status": summary["status"], "point_sampling": summary.get("point_sampling")}
 
 
 def floor_sentence(calibration: dict) -> str:
@@ -325,8 +325,20 @@ def floor_sentence(calibration: dict) -> str:
             + f"; both prefiltered by a Gaussian of {calibration['prefilter_px']:g} px; edges drawn within "
             f"{calibration['edge_position_sigma_px']:.3f} px, found in the same residuals"
             + (f" (their noise {agreement:.2f} times the images' estimate)" if agreement is not None else "")
+            + _point_sampling_clause(calibration.get("point_sampling"))
             + f"; {calibration['kept']} of {calibration['windows']} windows kept"
             + (f" ({rejected})" if rejected else "") + ".")
+
+
+def _point_sampling_clause(point_sampling: dict | None) -> str:
+    """What `floor_sentence` says of images a renderer point-sampled (`imaging.drawing`), nothing for a scanner's."""
+    if not point_sampling:
+        return ""
+    share = point_sampling.get("share_of_variance")
+    return (f"; the images' boundaries drawn with {point_sampling['samples_per_side']} x "
+            f"{point_sampling['samples_per_side']} point samples a pixel (p = {point_sampling['p_value']:.1e}), "
+            "a renderer's drawing, whose error where they run along the pixel grid adds "
+            + (f"{share:.0%} of the windows' variance" if share is not None else "to the windows' variance"))
 
 
 def _settled(moved_x: np.ndarray, fit) -> bool:

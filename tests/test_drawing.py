@@ -69,3 +69,33 @@ def test_point_sampled_outlines_are_told_from_anti_aliased_and_band_limited_ones
     assert verdict is not None and verdict.samples == 3 and verdict.p_value < 1e-6
     for other in (_disc_leg(None, seed=seed)[0], _disc_leg(None, blur_px=0.8, seed=seed)[0]):
         assert detect_point_sampling(other, labels) is None
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("anti_aliased", [False, True])
+def test_calfits_second_renderer_point_sampled_is_found_and_anti_aliased_is_not(tmp_path, anti_aliased):
+    """calfit's second renderer draws each of its 3 x 3 samples a pixel wholly in one tissue (anti_aliased False, a
+    renderer's drawing; the skin as bright as fat, so that the steps of 1/9 rise above the noise) or with the share it
+    covers (its default): `calfit measure` finds the first point-sampled, with 3 x 3 samples, and adds its drawing's
+    error to the windows' covariance, and leaves the second as it is."""
+    from orchestrator.imaging.frame import RigidMotion
+    from orchestrator.measure import read_window_table
+    from orchestrator.phantom import MRIPhantom
+    from orchestrator.phantom.mri.scanner import MRIContrast
+    from orchestrator.phantom.truths import random_truth
+    from orchestrator.pipeline import run_measure
+    from orchestrator.runfiles import read_json
+    from orchestrator.study import make_phantom_case
+
+    phantom = MRIPhantom.at_resolution(0.36, anti_aliased=anti_aliased, contrast=MRIContrast(skin=0.9))
+    case, _ = make_phantom_case(tmp_path / "case", phantom=phantom, theta_kPa=random_truth(5), n_elements=3000,
+                                labels=None, points_spacing_mm=None, noise_seeds=(11, 12),
+                                rigid=RigidMotion(-1.0, (0.8, 0.5), (75.0, 75.0)))
+    run_measure(case, tmp_path / "run")
+    found = read_json(tmp_path / "run" / "measurements.json", "calfit measure")["point_sampling"]
+    factor = read_window_table(tmp_path / "run").drawing_factor_mm
+    if anti_aliased:
+        assert found is None and factor is None
+    else:
+        assert found["samples_per_side"] == 3 and found["p_value"] < 1e-8
+        assert factor is not None and 0.01 < found["share_of_variance"] < 0.5

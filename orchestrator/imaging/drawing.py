@@ -18,7 +18,11 @@ point-sampled image puts those coverages on the comb k / S^2. The Rayleigh test 
 coverages within [1 / (2 S^2), 1 - 1 / (2 S^2)] (a whole number of the comb's periods, so a uniform spread of
 coverages has no power there) gives, for S = MIN_SAMPLES ... MAX_SAMPLES, p = exp(-n R^2), R the mean resultant
 length of the n phases, pooled over both images' outlines; the image is taken as point-sampled by the S of the smallest p when p < DETECTION_ALPHA / the number of S
-tried. Finer sampling than MAX_SAMPLES draws the boundaries within 1 / (MAX_SAMPLES sqrt(12)) px and is not tested;
+tried. Only the S whose steps 1 / S^2 are RESOLVED times the coverages' scatter (about 1.2 sigma / step, sigma the
+images' noise, step the outline's grey-level step) are tried: a finer comb drowns in the noise, and a spread of
+coverages that is merely not smooth (the image's own segmentation of an anti-aliased outline: power up to 10 at 25-36
+cycles, at 4-10 either side of them too) would pass for one. Finer sampling than MAX_SAMPLES draws the boundaries
+within 1 / (MAX_SAMPLES sqrt(12)) px and is not tested;
 S = 2 is not either: the grey levels across a band-limited edge spread smoothly but not evenly over the coverages, with
 as much power at 4 cycles as a weak comb (calfit's first phantom: z = sqrt(n) R = 2.9 there, 0.2-1.1 at 9-36 cycles;
 the other program's 3 x 3 images: 3.9-5.2 at 9 cycles from I0 alone).
@@ -47,9 +51,12 @@ from scipy.spatial import cKDTree
 from skimage import measure
 
 from .case import BONE, MUSCLE
+from .dic import estimate_noise_sigma
 
 MIN_SAMPLES, MAX_SAMPLES = 3, 6   # point samples per pixel side tested for (module text)
 DETECTION_ALPHA = 1e-4     # the comb test's level, over all the S tried
+RESOLVED = 3.0             # a comb is told only where its steps are this many times the coverages' scatter
+COVERAGE_NOISE_GAIN = 1.2  # that scatter over sigma / step (module text)
 REACH_PX = 2.5             # pixels this close to a boundary can be crossed by it
 CONTOUR_STEP_PX = 0.1      # spacing of the boundaries' points
 CONTOUR_SMOOTHING_PX = 1.5  # the labels' indicator smoothed this much before its 0.5 contour is taken
@@ -222,16 +229,25 @@ def outline_coverages(image: np.ndarray, outline: Boundary) -> np.ndarray:
 
 
 def detect_point_sampling(reference: np.ndarray, labels: np.ndarray, loaded: np.ndarray | None = None,
-                          to_loaded=None) -> PointSampling | None:
+                          to_loaded=None, noise_sigma: float | None = None) -> PointSampling | None:
     """Whether the images' outline is point-sampled, and how finely (module text); None when the test finds no
-    comb. The loaded image's outline (the reference's moved by to_loaded, `Boundary.moved`) adds its coverages."""
+    comb. The loaded image's outline (the reference's moved by to_loaded, `Boundary.moved`) adds its coverages.
+    noise_sigma: the images' raw noise (default: the reference's own estimate in the leg), which sets the finest comb that can
+    be told (module text)."""
     drawn = boundaries(labels, reference)
     if not drawn or drawn[0].points.size == 0:
         return None
     coverage = outline_coverages(reference, drawn[0])
     if loaded is not None and to_loaded is not None:
         coverage = np.concatenate([coverage, outline_coverages(loaded, drawn[0].moved(to_loaded))])
-    tried = range(MIN_SAMPLES, MAX_SAMPLES + 1)
+    sigma = estimate_noise_sigma(reference, np.asarray(labels) > 0) if noise_sigma is None else float(noise_sigma)
+    # a coverage read from three noisy grey levels (the pixel's, and the two levels' means of two) scatters by about
+    # 1.2 sigma / step: a comb whose steps are not RESOLVED times that apart cannot be told from a smooth spread
+    scatter = COVERAGE_NOISE_GAIN * sigma / max(abs(drawn[0].step), 1e-300)
+    finest = int(np.floor(np.sqrt(1.0 / (RESOLVED * scatter)))) if scatter > 0 else MAX_SAMPLES
+    tried = range(MIN_SAMPLES, min(MAX_SAMPLES, finest) + 1)
+    if len(tried) == 0:
+        return None
     best = None
     for samples in tried:
         period = samples * samples
