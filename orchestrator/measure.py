@@ -351,9 +351,9 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise)
                                     for window in result.edge_residuals])
     covariance = result.covariance_mm2.copy()
-    if drawing_factor is not None:
-        drawn = np.einsum("ik,jk->ij", drawing_factor, drawing_factor)
-        covariance[kept] += np.stack([drawn[2 * k:2 * k + 2, 2 * k:2 * k + 2] for k in range(int(kept.sum()))])
+    if drawing_factor is not None:   # each kept window's own 2 x 2 block of F F^T
+        per_window = drawing_factor.reshape(-1, 2, drawing_factor.shape[1])
+        covariance[kept] += np.einsum("kad,kbd->kab", per_window, per_window)
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, covariance,
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
                         residual_over_model, drawing_factor)

@@ -13,19 +13,23 @@ program's calf cases (a 3 x 3 renderer) that error, computed from their true mes
 anti-alias their samples (calfit's two phantoms); only point-sampled renders do.
 
 Detection (`detect_point_sampling`). The coverage of each pixel the leg's outline crosses is read from its grey level
-between the levels either side of it along the normal (air outside, 2.5-3.5 px away; the tissue inside), and a
+between the levels either side of it along the normal (air outside, LEVEL_DEPTH_PX away; the tissue inside), and a
 point-sampled image puts those coverages on the comb k / S^2. The Rayleigh test of the phases 2 pi S^2 c over the
-coverages within [1 / (2 S^2), 1 - 1 / (2 S^2)] (a whole number of the comb's periods, so a uniform spread of
-coverages has no power there) gives, for S = MIN_SAMPLES ... MAX_SAMPLES, p = exp(-n R^2), R the mean resultant
-length of the n phases, pooled over both images' outlines; the image is taken as point-sampled by the S of the smallest p when p < DETECTION_ALPHA / the number of S
-tried. Only the S whose steps 1 / S^2 are RESOLVED times the coverages' scatter (about 1.2 sigma / step, sigma the
-images' noise, step the outline's grey-level step) are tried: a finer comb drowns in the noise, and a spread of
-coverages that is merely not smooth (the image's own segmentation of an anti-aliased outline: power up to 10 at 25-36
-cycles, at 4-10 either side of them too) would pass for one. Finer sampling than MAX_SAMPLES draws the boundaries
-within 1 / (MAX_SAMPLES sqrt(12)) px and is not tested;
-S = 2 is not either: the grey levels across a band-limited edge spread smoothly but not evenly over the coverages, with
-as much power at 4 cycles as a weak comb (calfit's first phantom: z = sqrt(n) R = 2.9 there, 0.2-1.1 at 9-36 cycles;
-the other program's 3 x 3 images: 3.9-5.2 at 9 cycles from I0 alone).
+coverages within [1.5 / S^2, 1 - 1.5 / S^2] (a whole number of the comb's periods, so a uniform spread of coverages
+has no power there; the first and last steps are left out, where the flat ends of a band-limited edge's profile and
+the air's Rician bias pile coverages up: calfit's first phantom reached n R^2 = 9.4 at 9 cycles with them, one case
+in six, and 0.4-2.7 without), pooled over both images' outlines, gives p = exp(-n R^2), R the mean resultant length
+of the n phases; the images are taken as point-sampled by the S of the smallest p when p < DETECTION_ALPHA / the
+number of S tried. Only the S from MIN_SAMPLES to MAX_SAMPLES whose steps 1 / S^2 stand RESOLVED times above the
+coverages' scatter (about COVERAGE_NOISE_GAIN sigma / step, sigma the images' noise, step the outline's grey-level
+step) are tried: a finer comb drowns in the noise, and a spread of coverages that is merely not smooth would pass for
+one (the image's own segmentation of an anti-aliased bright outline: n R^2 up to 10 at 25-36 cycles, 4-10 beside
+them). S = 2 is not tried: the grey levels across a band-limited edge spread smoothly but unevenly over the coverages,
+with as much power at 4 cycles as a weak comb (calfit's first phantom: n R^2 = 8 there). Finer sampling than
+MAX_SAMPLES draws the boundaries within 1 / (MAX_SAMPLES sqrt(12)) px. Measured: the other program's four cases S = 3
+at p = 1e-14 to 1e-21; calfit's two phantoms, and its second drawn anti-aliased with a bright skin, none; its second
+point-sampled (`MRIPhantom(anti_aliased=False)`) S = 3 with a bright skin (p < 1e-14), none with its grey skin, whose
+steps of 1/9 are under three times the scatter (tests/test_drawing.py, README).
 
 The windows' error (`drawn_boundaries_factor`). The boundaries are the labels' contours (the leg's outline and the
 muscle's boundary, leaving out the bones, which do not move), smoothed along their arc over ALONG_ARC_PX so that the
@@ -52,10 +56,12 @@ from skimage import measure
 
 from .case import BONE, MUSCLE
 from .dic import estimate_noise_sigma
+from .mismatch import tissue_mask
 
 MIN_SAMPLES, MAX_SAMPLES = 3, 6   # point samples per pixel side tested for (module text)
 DETECTION_ALPHA = 1e-4     # the comb test's level, over all the S tried
 RESOLVED = 3.0             # a comb is told only where its steps are this many times the coverages' scatter
+END_STEPS = 1.5            # the coverages within this many steps of 0 and 1 are left out of the test (module text)
 COVERAGE_NOISE_GAIN = 1.2  # that scatter over sigma / step (module text)
 REACH_PX = 2.5             # pixels this close to a boundary can be crossed by it
 CONTOUR_STEP_PX = 0.1      # spacing of the boundaries' points
@@ -107,7 +113,7 @@ def boundaries(labels: np.ndarray, reference: np.ndarray) -> list[Boundary]:
     reference = np.asarray(reference, float)
     near_bone = ndimage.binary_dilation(labels == BONE, iterations=BONE_MARGIN_PX)
     out = []
-    for region in (labels > 0, labels == MUSCLE):
+    for region in (labels > 0, tissue_mask(labels, MUSCLE)):
         if not region.any() or region.all():
             continue
         inside = ndimage.binary_erosion(region, iterations=1) & ~ndimage.binary_erosion(region, iterations=4)
@@ -251,7 +257,7 @@ def detect_point_sampling(reference: np.ndarray, labels: np.ndarray, loaded: np.
     best = None
     for samples in tried:
         period = samples * samples
-        within = coverage[(coverage > 0.5 / period) & (coverage < 1.0 - 0.5 / period)]
+        within = coverage[(coverage > END_STEPS / period) & (coverage < 1.0 - END_STEPS / period)]
         if len(within) < 50:
             continue
         resultant = abs(np.mean(np.exp(2j * np.pi * period * within)))
