@@ -431,7 +431,8 @@ class SampledEdges:
         return np.stack([(tissue == value).mean(axis=1) for value in range(3)], axis=1)
 
     def drawing_error(self, mesh: Triangulation, to_mesh, samples: int) -> np.ndarray:
-        """The grey-level error of an image drawn with samples x samples per pixel, on the pixels its boundaries cross."""
+        """The grey-level error of an image drawn with samples x samples per pixel, on the pixels its boundaries
+        cross."""
         shape = self.case.reference.shape
         rows, cols = (a.ravel() for a in np.indices(shape))
         coarse = self.coverage(mesh, rows, cols, samples, to_mesh).reshape(*shape, 3)
@@ -487,8 +488,9 @@ def sampled_edges(cases: list[Case], folder: Path, samples: int) -> None:
                 row["drawn"].append(drawn[values])
         label = f"S = {count}" + ("" if count == samples else " (control)")
         print(f"    {label:<14s} " + "  ".join(
-            f"{band} {row['sums'][0] / row['n']:.2f} -> {row['sums'][1] / row['n']:.2f} ({row['sums'][2] / row['n']:.2f};"
-            f" {np.corrcoef(np.concatenate(row['measured']), np.concatenate(row['drawn']))[0, 1]:+.2f})"
+            f"{band} {row['sums'][0] / row['n']:.2f} -> {row['sums'][1] / row['n']:.2f} "
+            f"({row['sums'][2] / row['n']:.2f}; "
+            f"{np.corrcoef(np.concatenate(row['measured']), np.concatenate(row['drawn']))[0, 1]:+.2f})"
             for band, row in pooled.items()))
 
 

@@ -17,18 +17,18 @@ between the levels either side of it along the normal (air outside, LEVEL_DEPTH_
 point-sampled image puts those coverages on the comb k / S^2. The Rayleigh test of the phases 2 pi S^2 c over the
 coverages within [1.5 / S^2, 1 - 1.5 / S^2] (a whole number of the comb's periods, so a uniform spread of coverages
 has no power there; the first and last steps are left out, where the flat ends of a band-limited edge's profile and
-the air's Rician bias pile coverages up: calfit's first phantom reached n R^2 = 9.4 at 9 cycles with them, one case
-in six, and 0.4-2.7 without), pooled over both images' outlines, gives p = exp(-n R^2), R the mean resultant length
-of the n phases; the images are taken as point-sampled by the S of the smallest p when p < DETECTION_ALPHA / the
-number of S tried. Only the S from MIN_SAMPLES to MAX_SAMPLES whose steps 1 / S^2 stand RESOLVED times above the
-coverages' scatter (about COVERAGE_NOISE_GAIN sigma / step, sigma the images' noise, step the outline's grey-level
-step) are tried: a finer comb drowns in the noise, and a spread of coverages that is merely not smooth would pass for
-one (the image's own segmentation of an anti-aliased bright outline: n R^2 up to 10 at 25-36 cycles, 4-10 beside
-them). S = 2 is not tried: the grey levels across a band-limited edge spread smoothly but unevenly over the coverages,
-with as much power at 4 cycles as a weak comb (calfit's first phantom: n R^2 = 8 there). Finer sampling than
-MAX_SAMPLES draws the boundaries within 1 / (MAX_SAMPLES sqrt(12)) px. Measured: the other program's four cases S = 3
-at p = 1e-14 to 1e-21; calfit's two phantoms, and its second drawn anti-aliased with a bright skin, none; its second
-point-sampled (`MRIPhantom(anti_aliased=False)`) S = 3 with a bright skin (p < 1e-14), none with its grey skin, whose
+the air's Rician bias pile coverages up: calfit's first phantom reached n R^2 = 9.4 at 9 cycles with them, one case in
+six, and 0.4-2.7 without), pooled over both images' outlines, gives p = exp(-n R^2), R the mean resultant length of
+the n phases; the images are taken as point-sampled by the S of the smallest p when p < DETECTION_ALPHA / the number
+of S tried. Only the S from MIN_SAMPLES to MAX_SAMPLES whose steps 1 / S^2 stand RESOLVED times above the coverages'
+scatter (about COVERAGE_NOISE_GAIN sigma / step, sigma the images' noise, step the outline's grey-level step) are
+tried: a finer comb drowns in the noise, and a spread of coverages that is merely not smooth would pass for one (the
+image's own segmentation of an anti-aliased bright outline: n R^2 up to 10 at 25-36 cycles, 4-10 beside them). S = 2
+is not tried: the grey levels across a band-limited edge spread smoothly but unevenly over the coverages, with as much
+power at 4 cycles as a weak comb (calfit's first phantom: n R^2 = 8 there). Finer sampling than MAX_SAMPLES draws the
+boundaries within 1 / (MAX_SAMPLES sqrt(12)) px. Measured: the other program's four cases S = 3 at p = 6e-13 to 7e-20
+(both images); calfit's two phantoms, and its second drawn anti-aliased with a bright skin, none; its second
+point-sampled (`MRIPhantom(anti_aliased=False)`) S = 3 with a bright skin (p = 3e-13), none with its grey skin, whose
 steps of 1/9 are under three times the scatter (tests/test_drawing.py, README).
 
 The windows' error (`drawn_boundaries_factor`). The boundaries are the labels' contours (the leg's outline and the
@@ -83,13 +83,14 @@ class Boundary:
     normals: np.ndarray
     step: float
     drawn: np.ndarray
+    outline: bool = False   # the leg's outline (against air), not a boundary inside it
 
     def moved(self, to_loaded) -> "Boundary":
         """The same boundary in the loaded image: to_loaded maps (M, 2) reference indices to loaded ones."""
         points = to_loaded(self.points)
         normals = _normals(points)
         normals *= np.sign(np.sum(normals * self.normals, axis=1, keepdims=True))
-        return Boundary(points, normals, self.step, self.drawn)
+        return Boundary(points, normals, self.step, self.drawn, self.outline)
 
 
 @dataclass(frozen=True)
@@ -113,7 +114,7 @@ def boundaries(labels: np.ndarray, reference: np.ndarray) -> list[Boundary]:
     reference = np.asarray(reference, float)
     near_bone = ndimage.binary_dilation(labels == BONE, iterations=BONE_MARGIN_PX)
     out = []
-    for region in (labels > 0, tissue_mask(labels, MUSCLE)):
+    for outline, region in ((True, labels > 0), (False, tissue_mask(labels, MUSCLE))):
         if not region.any() or region.all():
             continue
         inside = ndimage.binary_erosion(region, iterations=1) & ~ndimage.binary_erosion(region, iterations=4)
@@ -139,7 +140,7 @@ def boundaries(labels: np.ndarray, reference: np.ndarray) -> list[Boundary]:
                          + ndimage.map_coordinates(grad_cols, points.T, order=1) * normals[:, 1])
             normals *= np.sign(np.sum(downhill)) or 1.0
             index = np.clip(np.round(points).astype(int), 0, np.array(labels.shape) - 1)
-            out.append(Boundary(points, normals, step, ~near_bone[index[:, 0], index[:, 1]]))
+            out.append(Boundary(points, normals, step, ~near_bone[index[:, 0], index[:, 1]], outline))
     return out
 
 
@@ -238,18 +239,19 @@ def detect_point_sampling(reference: np.ndarray, labels: np.ndarray, loaded: np.
                           to_loaded=None, noise_sigma: float | None = None) -> PointSampling | None:
     """Whether the images' outline is point-sampled, and how finely (module text); None when the test finds no
     comb. The loaded image's outline (the reference's moved by to_loaded, `Boundary.moved`) adds its coverages.
-    noise_sigma: the images' raw noise (default: the reference's own estimate in the leg), which sets the finest comb that can
-    be told (module text)."""
-    drawn = boundaries(labels, reference)
-    if not drawn or drawn[0].points.size == 0:
+    noise_sigma: the images' raw noise (default: the reference's own estimate in the leg), which sets the finest
+    comb that can be told (module text)."""
+    outlines = [boundary for boundary in boundaries(labels, reference) if boundary.outline]
+    if not outlines:
         return None
-    coverage = outline_coverages(reference, drawn[0])
+    outline = max(outlines, key=lambda boundary: len(boundary.points))
+    coverage = outline_coverages(reference, outline)
     if loaded is not None and to_loaded is not None:
-        coverage = np.concatenate([coverage, outline_coverages(loaded, drawn[0].moved(to_loaded))])
+        coverage = np.concatenate([coverage, outline_coverages(loaded, outline.moved(to_loaded))])
     sigma = estimate_noise_sigma(reference, np.asarray(labels) > 0) if noise_sigma is None else float(noise_sigma)
     # a coverage read from three noisy grey levels (the pixel's, and the two levels' means of two) scatters by about
     # 1.2 sigma / step: a comb whose steps are not RESOLVED times that apart cannot be told from a smooth spread
-    scatter = COVERAGE_NOISE_GAIN * sigma / max(abs(drawn[0].step), 1e-300)
+    scatter = COVERAGE_NOISE_GAIN * sigma / max(abs(outline.step), 1e-300)
     finest = int(np.floor(np.sqrt(1.0 / (RESOLVED * scatter)))) if scatter > 0 else MAX_SAMPLES
     tried = range(MIN_SAMPLES, min(MAX_SAMPLES, finest) + 1)
     if len(tried) == 0:
