@@ -142,6 +142,8 @@ class Measurements:
     model_columns_mm: np.ndarray | None = None   # (2N, m) G: the model part is G diag(model_weights) G^T (levels)
     model_weights: np.ndarray | None = None      # (m,) the variances of the model part's modes
     reference_noise_sigma: float | None = None   # DIC: the noise of I0 (intensity), shared by every garment level
+    # observation matrices already formed, by mesh (the same mesh is observed by every objective of a run)
+    _observed: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.position_mm)
@@ -169,7 +171,12 @@ class Measurements:
 
     def observation(self, mesh) -> sparse.csr_matrix:
         """Sparse (2N, 2M) map from the nodal displacement of `mesh` (interleaved) to what was measured."""
-        return self.observer()(mesh)
+        # keyed by the objects themselves (held in the entry, so that their ids are not reused): `replace` shares
+        # this cache between copies that keep the same places and windows
+        key = (id(mesh), id(self.position_mm), id(self.operators))
+        if key not in self._observed:
+            self._observed[key] = (mesh, self.position_mm, self.operators, self.observer()(mesh))
+        return self._observed[key][3]
 
     def with_model_covariance(self, covariance_mm2: np.ndarray, description: str, columns_mm: np.ndarray | None = None,
                               weights: np.ndarray | None = None) -> "Measurements":

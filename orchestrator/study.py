@@ -90,6 +90,9 @@ class RunSetup:
     level_motions: tuple = ()     # the bones' rigid motion of each more garment level's image (case.levels order)
     levels_aligned: tuple = ()    # each more garment level's image aligned on the bones of I0
     segmentation_warnings: dict = field(default_factory=dict)   # label map -> [SegmentationWarning], setup.json
+    # the DIC measurements of each garment level as `calfit measure` stored them, rebuilt once (their windows'
+    # operators and covariance take about a second); the geometry's part is read again at every call
+    _measured: dict = field(default_factory=dict, repr=False, compare=False)
 
     def setup_lines(self) -> list[str]:
         """What the user should know of how the images were read: the slice taken from a DICOM series, averaged
@@ -205,11 +208,14 @@ class RunSetup:
             raise RunFolderError(f"{self.run_dir} holds no DIC measurements{'' if level == 1 else f' of garment level {level}'}:"
                                  f" run `calfit measure CASE_DIR --out {self.run_dir}` first")
         summary = read_json(summary_path, "calfit measure")
-        # measurements made before the prefilter and the edges' error model were neither prefiltered nor had one
-        measured = dic_measurements(self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm,
-                                    summary["noise_sigma"][0], summary.get("prefilter_px", 0.0),
-                                    summary.get("edge_variance_px2", 0.0), self.labels_unloaded,
-                                    summary.get("outline_margin_px"))
+        stamp = tuple((self.run_dir / files[key]).stat().st_mtime_ns for key in ("arrays", "summary"))
+        if self._measured.get(level, (None,))[0] != stamp:
+            # measurements made before the prefilter and the edges' error model were neither prefiltered nor had one
+            self._measured[level] = (stamp, dic_measurements(
+                self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm, summary["noise_sigma"][0],
+                summary.get("prefilter_px", 0.0), summary.get("edge_variance_px2", 0.0), self.labels_unloaded,
+                summary.get("outline_margin_px")))
+        measured = self._measured[level][1]
         geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level) if with_geometry else None
         if geometry is None:
             return measured
