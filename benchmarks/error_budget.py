@@ -56,8 +56,9 @@ Each case is measured as `calfit measure` does (32-pixel windows, prefiltered, e
   is the error with which the renderer draws each image's boundaries: a function of where the boundary crosses the
   pixel, the same for every boundary that crosses alike. A window's error from it is B~ (dI0 - dI1 o phi) (`windows`:
   B~ its map, dI1 pulled back to I0's pixels; IC-GN composes the inverse of its step, hence the signs), the bones'
-  rigid motion removed as the fit does. Per band: chi^2/n as measured, with that error taken out, of that error
-  alone, and its correlation with the measured error. Where a boundary runs along the pixel grid, its pixels cross
+  rigid motion removed as the fit does. Per band, against the windows' error model without the drawing's own term
+  (which calfit adds when it finds the images point-sampled, `imaging.drawing`): chi^2/n as measured, with that error
+  taken out, of that error alone, and its correlation with the measured error. Where a boundary runs along the pixel grid, its pixels cross
   alike and their errors add up over a window instead of averaging out; the window takes them for motion, and its
   residual, on which calfit calibrates s_edge^2, does not show them. The same with S - 1 and S + 1 is the control.
 """
@@ -85,7 +86,7 @@ from orchestrator.phantom.appearance import add_rician_noise
 from orchestrator.phantom.truths import random_truth
 from orchestrator.pipeline import run_measure
 from orchestrator.study import load_run, make_phantom_case
-from orchestrator.measure import read_window_table
+from orchestrator.measure import loaded_index_map, read_window_table
 from orchestrator.verification import (band_errors, band_masks, errors_against, field_from_mesh_file,
                                       symmetric_roots, without_rigid_motion)
 
@@ -134,6 +135,7 @@ class Case:
         table = read_window_table(run)
         self.centres = table.centres_rc[table.kept]
         self.residual_over_model = table.residual_over_model[table.kept]
+        self.drawing_factor = table.drawing_factor_mm   # None unless the images were found point-sampled
         self.reference = self.setup.case.unloaded.astype(float)
         self.pixel = self.setup.case.pixel_size_mm
         self.field = field(self.reference.shape, self.pixel)
@@ -144,15 +146,14 @@ class Case:
 
     def pulled_back_difference(self) -> np.ndarray:
         loaded = self.setup.case.loaded.astype(float)
-        dy, dx = self.pixel
-        rows, cols = np.indices(self.reference.shape, dtype=float)
-        x = (cols + 0.5) * dx + np.nan_to_num(self.field[0])
-        y = (rows + 0.5) * dy + np.nan_to_num(self.field[1])
-        xs, ys = self.motion.apply(x, y)
         spline = ndimage.spline_filter(self.prefilter(loaded), order=3)
-        back = ndimage.map_coordinates(spline, [ys / dy - 0.5, xs / dx - 0.5], order=3, prefilter=False,
-                                       mode="nearest")
+        back = ndimage.map_coordinates(spline, self.loaded_grid(), order=3, prefilter=False, mode="nearest")
         return back - self.prefilter(self.reference)
+
+    def loaded_grid(self) -> np.ndarray:
+        """(2, H, W) where the loaded image shows each reference pixel (rows, columns)."""
+        shape = self.reference.shape
+        return self.to_loaded(np.indices(shape, dtype=float).reshape(2, -1).T).T.reshape(2, *shape)
 
     def window_budget(self, difference: np.ndarray) -> np.ndarray:
         """(N, 3) per kept window: e.e of the images' error through its map, the noise's and the edges' predicted
@@ -181,11 +182,20 @@ class Case:
         return np.array(rows)
 
     @cached_property
+    def whiten(self) -> np.ndarray:
+        """The inverse square root of the measurement covariance (`verification.symmetric_roots`)."""
+        return symmetric_roots(np.asarray(self.measured.covariance_mm2, float), "the measurement covariance")[0]
+
+    @cached_property
     def errors(self) -> np.ndarray:
         """(N, 2) measured less what the windows see of the truth, the bones' rigid motion removed as the fit does."""
-        whiten, _ = symmetric_roots(np.asarray(self.measured.covariance_mm2, float), "the measurement covariance")
         errors = errors_against(self.measured, None, self.field)
-        return without_rigid_motion(self.measured, errors, whiten).reshape(-1, 2)
+        return without_rigid_motion(self.measured, errors, self.whiten).reshape(-1, 2)
+
+    @cached_property
+    def to_loaded(self):
+        """Reference indices (M, 2) -> where the loaded image shows them, through the truth and the scanner motion."""
+        return loaded_index_map(np.nan_to_num(self.field), self.motion, self.pixel)
 
     def radial_tangential(self, errors: np.ndarray) -> np.ndarray:
         """(N, 2) each window's error along the radius from the leg's centre and around it, over its predicted sd."""
@@ -397,8 +407,8 @@ def spliced(cases: list[Case], scratch: Path, draws: int) -> None:
         base, whole = np.concatenate(radial["warped"]), np.concatenate(radial[image])
         from_rest, from_edges = np.concatenate(radial[rest]) - base, np.concatenate(radial[edges]) - base
         print(f"    {image:<52s} boundaries {np.sqrt(np.mean(from_edges ** 2)):.4f}, the rest "
-              f"{np.sqrt(np.mean(from_rest ** 2)):.4f}, both {np.sqrt(np.mean((whole - base) ** 2)):.4f} (non-linearity "
-              f"{np.sqrt(np.mean((whole - base - from_rest - from_edges) ** 2)):.4f}); their correlation "
+              f"{np.sqrt(np.mean(from_rest ** 2)):.4f}, both {np.sqrt(np.mean((whole - base) ** 2)):.4f} "
+              f"(non-linearity {np.sqrt(np.mean((whole - base - from_rest - from_edges) ** 2)):.4f}); their correlation "
               f"{np.corrcoef(from_edges, from_rest)[0, 1]:+.2f} over {len(base)} windows")
 
 
@@ -442,21 +452,17 @@ class SampledEdges:
         error[rows, cols] = (coarse[rows, cols] - self.coverage(mesh, rows, cols, SAMPLED_FINE, to_mesh)) @ self.levels
         return error
 
-    def window_errors(self, samples: int) -> np.ndarray:
-        """(2N,) mm: each window's error from how both images draw their boundaries, the bones' motion removed."""
+    def window_errors(self, samples: int, whiten: np.ndarray) -> np.ndarray:
+        """(2N,) mm: each window's error from how both images draw their boundaries, the bones' motion removed (by
+        generalised least squares with `whiten`)."""
         case = self.case
         reference = self.drawing_error(self.reference, lambda x, y: (x, y), samples)
         loaded = self.drawing_error(self.deformed, case.motion.inverse().apply, samples)
-        dy, dx = case.pixel
-        rows, cols = np.indices(reference.shape, dtype=float)
-        xs, ys = case.motion.apply((cols + 0.5) * dx + np.nan_to_num(case.field[0]),
-                                   (rows + 0.5) * dy + np.nan_to_num(case.field[1]))
-        pulled_back = ndimage.map_coordinates(loaded, [ys / dy - 0.5, xs / dx - 0.5], order=1, mode="constant")
+        pulled_back = ndimage.map_coordinates(loaded, case.loaded_grid(), order=1, mode="constant")
         difference = np.where(self.near_bone, 0.0, reference - pulled_back).ravel()
         operators = case.measured.operators
-        errors = np.concatenate([(B @ difference[pixels]) * (dx, dy)
+        errors = np.concatenate([(B @ difference[pixels]) * operators.to_mm
                                  for B, pixels in zip(operators.B, operators.noise_pixels)])
-        whiten, _ = symmetric_roots(np.asarray(case.measured.covariance_mm2, float), "the measurement covariance")
         return without_rigid_motion(case.measured, errors, whiten)
 
 
@@ -468,12 +474,20 @@ def sampled_edges(cases: list[Case], folder: Path, samples: int) -> None:
           "pooled over the cases; measured, less the drawn boundaries' error (that error alone; its correlation with "
           "the measured error)")
     drawings = [SampledEdges(case, folder / "truth" / f"{case.name}.npz") for case in cases]
+    # against the windows' error model without the drawing's own term (`imaging.drawing`), which calfit adds when it
+    # finds the images point-sampled: what the drawn error explains of that model's excess
+    models = []
+    for case in cases:
+        covariance = np.asarray(case.measured.covariance_mm2, float)
+        if case.drawing_factor is not None:
+            covariance = covariance - case.drawing_factor @ case.drawing_factor.T
+        whiten = symmetric_roots(covariance, "the measurement covariance")[0]
+        models.append((covariance, whiten, without_rigid_motion(case.measured, errors_against(case.measured, None,
+                                                                                               case.field), whiten)))
     for count in [samples] + [s for s in (samples - 1, samples + 1) if s > 1]:
         pooled = {}
-        for case, drawing in zip(cases, drawings):
-            drawn = drawing.window_errors(count)
-            measured = case.errors.ravel()
-            covariance = np.asarray(case.measured.covariance_mm2, float)
+        for case, drawing, (covariance, whiten, measured) in zip(cases, drawings, models):
+            drawn = drawing.window_errors(count, whiten)
             for band, mask in case.bands.items():
                 values = np.repeat(mask, 2)
                 if not values.any():

@@ -58,7 +58,7 @@ from scipy.spatial import cKDTree
 
 from .imaging.case import DisplacementPoints
 from .imaging.dic import correlate, grid_centres, roi_centres
-from .imaging.drawing import detect_point_sampling, drawn_boundaries_factor
+from .imaging.drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
 from .imaging.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
@@ -349,11 +349,13 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         offset[kept] = centre_values - seen
     # boundaries drawn by point samples (a renderer's, not a scanner's) carry an error that the residuals cannot show
     to_loaded = loaded_index_map(prior, motion, pixel_size_mm)
+    drawn = boundaries(labels, unloaded)
     point_sampling = detect_point_sampling(unloaded, labels, loaded, to_loaded,
-                                           noise_sigma=float(np.sqrt(np.mean(np.square(first.noise_sigma)))))
+                                           noise_sigma=float(np.sqrt(np.mean(np.square(first.noise_sigma)))),
+                                           drawn=drawn)
     drawing_factor = None
     if point_sampling is not None and operators is not None:
-        drawing_factor = drawn_boundaries_factor(unloaded, labels, point_sampling.samples, to_loaded, operators,
+        drawing_factor = drawn_boundaries_factor(drawn, unloaded.shape, point_sampling.samples, to_loaded, operators,
                                                  operators.to_mm, DRAWING_DRAWS)
     residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise)
                                     for window in result.edge_residuals])

@@ -236,12 +236,14 @@ def outline_coverages(image: np.ndarray, outline: Boundary) -> np.ndarray:
 
 
 def detect_point_sampling(reference: np.ndarray, labels: np.ndarray, loaded: np.ndarray | None = None,
-                          to_loaded=None, noise_sigma: float | None = None) -> PointSampling | None:
+                          to_loaded=None, noise_sigma: float | None = None,
+                          drawn: list[Boundary] | None = None) -> PointSampling | None:
     """Whether the images' outline is point-sampled, and how finely (module text); None when the test finds no
     comb. The loaded image's outline (the reference's moved by to_loaded, `Boundary.moved`) adds its coverages.
     noise_sigma: the images' raw noise (default: the reference's own estimate in the leg), which sets the finest
-    comb that can be told (module text)."""
-    outlines = [boundary for boundary in boundaries(labels, reference) if boundary.outline]
+    comb that can be told (module text); drawn: `boundaries(labels, reference)` when the caller has them."""
+    drawn = boundaries(labels, reference) if drawn is None else drawn
+    outlines = [boundary for boundary in drawn if boundary.outline]
     if not outlines:
         return None
     outline = max(outlines, key=lambda boundary: len(boundary.points))
@@ -271,13 +273,12 @@ def detect_point_sampling(reference: np.ndarray, labels: np.ndarray, loaded: np.
     return best
 
 
-def drawn_boundaries_factor(reference: np.ndarray, labels: np.ndarray, samples: int, to_loaded, operators, to_mm,
-                            draws: int, seed: int = 0) -> np.ndarray:
-    """(2N, draws) F with F F^T the covariance (mm^2) of the windows' error from boundaries point-sampled samples x
-    samples times per pixel in both images (module text). to_loaded maps (M, 2) reference indices (rows, columns)
-    to the loaded image's; operators: the windows' `WindowOperators`; to_mm: (2,) mm per pixel along x and y."""
-    shape = np.shape(reference)
-    drawn = boundaries(labels, reference)
+def drawn_boundaries_factor(drawn: list[Boundary], shape, samples: int, to_loaded, operators, to_mm, draws: int,
+                            seed: int = 0) -> np.ndarray:
+    """(2N, draws) F with F F^T the covariance (mm^2) of the windows' error from the reference's boundaries
+    (`boundaries`) point-sampled samples x samples times per pixel in both images of `shape` (module text).
+    to_loaded maps (M, 2) reference indices (rows, columns) to the loaded image's; operators: the windows'
+    `WindowOperators`; to_mm: (2,) mm per pixel along x and y."""
     reference_crossings = crossings(shape, drawn)
     loaded_crossings = crossings(shape, [boundary.moved(to_loaded) for boundary in drawn])
     grid = np.indices(shape, dtype=float).reshape(2, -1).T
