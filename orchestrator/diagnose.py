@@ -74,6 +74,7 @@ seen not to.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from typing import Sequence
 
@@ -87,7 +88,7 @@ from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_ca
 from .identify import FitResult, jacobian_in_x, levenberg_marquardt, steps_into_box
 from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
-from .runner import OK, Evaluator
+from .runner import OK, Evaluator, Progress
 
 ALPHA = 0.01
 REFIT_FTOL = 1e-5            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)
@@ -364,29 +365,78 @@ def garment_model(model: LegModel, effects: Sequence[str] = ()) -> LegModel:
                         effects=tuple(model.effects) + (("friction",) if "friction" in effects else ()))
 
 
-def garment_columns(evaluator_factory, model: LegModel, theta: Sequence[float], r: np.ndarray,
-                    names: Sequence[str]) -> tuple[dict[str, np.ndarray], int]:
-    """G of the garment's effects at theta (module text). On a Laplace-law model, bridging is a switch s from
-    Laplace's law (s = 0) to the band (s = 1), linearized as r + s (r_band - r); friction adds to it dr/dmu at
-    mu = 0 by a forward difference of step FRICTION_PROBE_MU (friction has no engine sensitivity): its two columns
-    nest bridging's one, so that their p-values decide between them. On the band's model, friction is that
+class GarmentRuns:
+    """The explicit band's runs that give the garment's effects their columns (`garment_columns`): the band at
+    theta (on a Laplace-law model) and, for friction, the band at FRICTION_PROBE_MU more. They do not depend on the
+    fitted model's residual, so with side_by_side (the run may use more than one engine at a time) they start at
+    once, in threads beside the ranking's probe: a friction run is most of a diagnosis (the release in twentieths:
+    7-9 s of the images-first path's 12 s on calfit's phantom). Each thread's evaluator runs its engine itself
+    (one worker: no process forked from a thread) and silently (one stage line at a time); `records` shows the
+    wait for those still running as a stage of its own. Without side_by_side they run one after the other when
+    their records are asked for, each its own stage, as any evaluation.
+
+    evaluator_factory(model, progress=None, workers=None) -> Evaluator (None: as the run's)."""
+
+    def __init__(self, evaluator_factory, model: LegModel, theta: Sequence[float], names: Sequence[str],
+                 side_by_side: bool = False):
+        self.model, self.names = model, list(names)
+        runs = {}
+        if self.names and model.garment != "explicit":
+            runs["band"] = (garment_model(model), list(theta))
+        if "friction" in self.names:
+            runs["sliding"] = (garment_model(model, ("friction",)), list(theta) + [model.friction_mu + FRICTION_PROBE_MU])
+        self._thetas = {label: point for label, (_, point) in runs.items()}
+        self._pool = ThreadPoolExecutor(max_workers=len(runs)) if side_by_side and runs else None
+        quiet = {"progress": False, "workers": 1} if self._pool else {}
+        self.evaluators = {label: evaluator_factory(m, **quiet) for label, (m, _) in runs.items()}
+        self._started = {label: self._pool.submit(self.evaluators[label], point)
+                         for label, point in self._thetas.items()} if self._pool else {}
+
+    def records(self, progress: bool = True) -> dict[str, dict]:
+        """Every run's record: waited for, or run now."""
+        display = Progress("diagnose, the garment band", progress and bool(self._started))
+        display.begin_batch(len(self._started))
+        try:
+            records = {}
+            for label, point in self._thetas.items():
+                started = self._started.get(label)
+                records[label] = started.result() if started else self.evaluators[label](point)
+                display.advance(records[label])
+        finally:
+            display.close()
+        return records
+
+    @property
+    def launched(self) -> int:
+        return sum(e.launched for e in self.evaluators.values())
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        for evaluator in self.evaluators.values():
+            evaluator.close()
+
+    def __enter__(self) -> "GarmentRuns":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def garment_columns(runs: GarmentRuns, r: np.ndarray, progress: bool = True) -> tuple[dict[str, np.ndarray], int]:
+    """G of the garment's effects at theta (module text) from the band's runs. On a Laplace-law model, bridging is
+    a switch s from Laplace's law (s = 0) to the band (s = 1), linearized as r + s (r_band - r); friction adds to it
+    dr/dmu at mu = 0 by a forward difference of step FRICTION_PROBE_MU (friction has no engine sensitivity): its two
+    columns nest bridging's one, so that their p-values decide between them. On the band's model, friction is that
     difference alone, from the band's own coefficient (0, or the one the model fixed, which its refit frees).
     Returns the columns and the engine runs they took."""
-    runs = 0
-    if model.garment == "explicit":
-        band = r
-    else:
-        with evaluator_factory(garment_model(model)) as evaluator:
-            band = _residuals(evaluator(list(theta)))
-            runs = evaluator.launched
+    records = runs.records(progress)
+    band = _residuals(records["band"]) if "band" in records else r
     columns = {"bridging": (band - r)[:, None]}
-    if "friction" in names:
-        with evaluator_factory(garment_model(model, ("friction",))) as evaluator:
-            sliding = _residuals(evaluator(list(theta) + [model.friction_mu + FRICTION_PROBE_MU]))
-            runs += evaluator.launched
-        slope = (sliding - band) / FRICTION_PROBE_MU
-        columns["friction"] = slope[:, None] if model.garment == "explicit" else np.column_stack([band - r, slope])
-    return {name: columns[name] for name in names}, runs
+    if "friction" in runs.names:
+        slope = (_residuals(records["sliding"]) - band) / FRICTION_PROBE_MU
+        columns["friction"] = slope[:, None] if runs.model.garment == "explicit" else np.column_stack([band - r, slope])
+    return {name: columns[name] for name in runs.names}, runs.launched
 
 
 def garment_parameters(model: LegModel, name: str) -> list[str]:
@@ -421,12 +471,15 @@ def probe_jacobian(evaluator: Evaluator, theta: Sequence[float]) -> tuple[np.nda
 
 
 def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objective, frame: LegFrame, *,
-             alpha: float = ALPHA, engine_sensitivities: bool = True) -> Diagnosis:
+             alpha: float = ALPHA, engine_sensitivities: bool = True, progress: bool = True,
+             side_by_side: bool = False) -> Diagnosis:
     """Rank the catalog effects missing from `model` fitted at theta (module text).
 
-    evaluator_factory(model) -> Evaluator: evaluations go through the run's log like any other; objective: the
-    `DisplacementResidualObjective` of the measurements (its floor, its nuisance, its residual in mm); frame:
-    how regions are named."""
+    evaluator_factory(model, progress=None, workers=None) -> Evaluator: evaluations go through the run's log like
+    any other (None: the run's settings); objective: the `DisplacementResidualObjective` of the measurements (its
+    floor, its nuisance, its residual in mm); frame: how regions are named; progress: show the wait for the
+    garment band's runs; side_by_side: the run may use more than one engine at a time, so the band's runs go beside
+    the ranking's probe (`GarmentRuns`)."""
     began = time.perf_counter()
     candidates, skipped = candidate_effects(model)
     # friction and bridging are not written into a deck state (no sensitivity): the band's own runs give their columns
@@ -441,9 +494,21 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
     probe_sets = list(model.mesh.element_sets()) + [group.name for group in probe.groups]
     p = model.space.size
     theta_probe = list(map(float, theta)) + [0.0] * (probe.space.size - p)
-    with evaluator_factory(probe) as evaluator:
-        r, jacobian, source = probe_jacobian(evaluator, theta_probe)
-        runs = evaluator.launched
+    # beside the probe only when the engine gives its columns (one run, in this process: no pool forked from a
+    # process whose threads run the band)
+    with GarmentRuns(evaluator_factory, model, theta, garment_effects,
+                     side_by_side and engine_sensitivities) as band_runs:
+        with evaluator_factory(probe) as evaluator:
+            r, jacobian, source = probe_jacobian(evaluator, theta_probe)
+            runs = evaluator.launched
+        columns = {}
+        if garment_effects:
+            try:
+                columns, garment_runs = garment_columns(band_runs, r, progress)
+                runs += garment_runs
+            except RuntimeError as error:   # the band does not go on at these constants: said, the rest is ranked
+                skipped.update({name: f"the explicit band was not solved at the fitted constants ({error})"
+                                for name in garment_effects})
     n = len(r)
     chi2 = float(r @ r)
     residual_mm = objective.residual_mm(r)
@@ -468,14 +533,6 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         ranking.append(EffectScore(name, parameters, score["statistic"], q, float(stats.chi2.sf(score["statistic"], q)),
                                    score["predicted_reduction"], misfit - score["predicted_reduction"],
                                    score["orthogonal_fraction"], score["step"]))
-    columns = {}
-    if garment_effects:
-        try:
-            columns, garment_runs = garment_columns(evaluator_factory, model, theta, r, garment_effects)
-            runs += garment_runs
-        except RuntimeError as error:   # the band does not go on at these constants: said, the rest is ranked
-            skipped.update({name: f"the explicit band was not solved at the fitted constants ({error})"
-                            for name in garment_effects})
     for name, G in columns.items():
         score = score_effect(r, J, G, chi2_to_misfit, deff)
         q = G.shape[1]

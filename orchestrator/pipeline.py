@@ -474,6 +474,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     is significant, with those the score cannot tell from it), "none", effect names, or "auto" and names.
     Writes and returns diagnosis.json."""
     run_dir = Path(run_dir)
+    shown = progress
     setup = load_run(run_dir)
     identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
     if identification["objective"] != "displacement":
@@ -483,18 +484,19 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     model = setup.fit_model(identification.get("effects", ()), sensitivities=engine_sensitivities)
     objective = setup.displacement_objective(identified_data(identification))
 
-    def evaluator_for(m):
+    def evaluator_for(m, progress=None, workers=workers):
         # the ranking probes every candidate effect at once; a refit adds one or two
         added = [name for name in m.effects if name not in model.effects]
         stage = ("diagnose" if not added else f"diagnose + {', '.join(added)}" if len(added) <= 2
                  else "diagnose, ranking the candidate effects")
         return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                         progress=progress, verbose=verbose, label=stage)
+                         progress=shown if progress is None else progress and shown, verbose=verbose, label=stage)
 
     theta = identification["best"]["theta"]
     frame = setup.frame()
     diagnosis = diagnose(evaluator_for, model, theta, objective, frame, alpha=alpha,
-                         engine_sensitivities=engine_sensitivities)
+                         engine_sensitivities=engine_sensitivities, progress=shown,
+                         side_by_side=bool(scheduler) or workers > 1)
     with evaluator_for(model) as evaluator:
         before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), objective)
     requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)

@@ -216,6 +216,8 @@ class EvaluationLog:
     line is, and are read back when the record is asked for: a resumed Levenberg-Marquardt gets the same
     Jacobians, takes the same steps and launches nothing it had finished."""
 
+    _appending = threading.Lock()   # one for every log: appends of whole lines, whichever thread writes them
+
     def __init__(self, path: str | Path):
         self.path = Path(path)
         self.sensitivity_dir = self.path.parent / SENSITIVITY_DIR
@@ -245,8 +247,10 @@ class EvaluationLog:
         if sensitivity:
             outputs[SENSITIVITY_LINES] = list(sensitivity)
             self._write_sensitivity(record["key"], np.array([sensitivity[line] for line in sensitivity], float))
-        self._stream.write(json.dumps({**record, "outputs": outputs}, separators=(",", ":")) + "\n")
-        self._stream.flush()
+        line = json.dumps({**record, "outputs": outputs}, separators=(",", ":")) + "\n"
+        with self._appending:   # evaluators of one run in threads side by side (`diagnose.GarmentRuns`): whole lines
+            self._stream.write(line)
+            self._stream.flush()
         self._keep(record)
 
     def _keep(self, record: dict) -> None:
@@ -600,7 +604,9 @@ class Evaluator:
         """Yield the records of tasks as they finish."""
         if self.scheduler:
             yield from self._submit_dask(tasks)
-        elif self.workers == 1:
+        elif self.workers == 1 or (len(tasks) == 1 and self._pool is None):
+            # one task gains nothing from the pool (a Levenberg-Marquardt step, a diagnosis's probe): run here,
+            # without starting the pool's processes and sending the record back through a pipe
             for task in tasks:
                 yield execute_task(task, self.objective)
         else:
