@@ -27,7 +27,7 @@ from typing import Sequence
 import numpy as np
 
 from .imaging.compartments import find_compartments
-from .meshing.labels import mesh_from_labels
+from .meshing.labels import mesh_tissue_curves
 from .objectives import DisplacementResidualObjective
 from .runner import OK, Evaluator
 
@@ -43,8 +43,7 @@ def discretization_check(setup, theta: Sequence[float], measurements, run_dir, *
 
     mesh = setup.mesh
     pixel = setup.case.pixel_size_mm
-    finer = mesh_from_labels(setup.labels_unloaded, pixel, n_elements=FINER_FACTOR * len(mesh.elements),
-                             order=mesh.order, image=setup.case.unloaded)
+    finer = mesh_tissue_curves(setup.tissue_curves(), n_elements=FINER_FACTOR * len(mesh.elements), order=mesh.order)
     if setup.compartments.get("source") == "image":   # the muscle's compartments, found in I0 as the setup found them
         finer = assign_compartments(finer, find_compartments(setup.case.unloaded, setup.labels_unloaded, pixel).labels,
                                     pixel)

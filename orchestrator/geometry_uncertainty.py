@@ -146,11 +146,11 @@ def _model_on(setup, mesh, effects, tension_N_per_mm):
 
 def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
     """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
-    from .meshing import mesh_from_labels
+    from .meshing import mesh_tissue_curves
     from .runner import solve_once
 
-    mesh = mesh_from_labels(setup.labels_unloaded, setup.case.pixel_size_mm, n_elements=len(setup.mesh.elements),
-                            order=setup.mesh.order, image=setup.case.unloaded, interface_offsets=offsets)
+    mesh = mesh_tissue_curves(setup.tissue_curves(), n_elements=len(setup.mesh.elements), order=setup.mesh.order,
+                              interface_offsets=offsets)
     model = _model_on(setup, mesh, effects, tension_N_per_mm)
     displacement = solve_once(model, model.deck(theta, sensitivities=False),
                               f"the engine did not converge on a shifted interface at {list(theta)}")

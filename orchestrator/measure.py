@@ -301,9 +301,10 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                 landmarks: dict | None = None, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, min_confidence: float = MIN_CONFIDENCE,
                 max_uncertainty_px: float = MAX_UNCERTAINTY_PX, prefilter_px: float = PREFILTER_SIGMA_PX,
-                respect_outline: bool = False) -> tuple[Measurements, WindowTable, dict]:
+                respect_outline: bool = False, workers: int = 1) -> tuple[Measurements, WindowTable, dict]:
     """DIC between the two images (module text). Returns the kept windows as Measurements, every window tried,
-    and a summary. respect_outline: windows inside the leg leave out its outline (`window_pixel_masks`)."""
+    and a summary. respect_outline: windows inside the leg leave out its outline (`window_pixel_masks`); workers:
+    local processes the windows are matched in (`imaging.dic.correlate`: the same matches as in one)."""
     if window_px not in WINDOW_CHOICES:
         raise ValueError(f"the DIC window must be one of {WINDOW_CHOICES} pixels, not {window_px}")
     began = time.perf_counter()
@@ -319,11 +320,12 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     margin_px = prefilter.radius + 1 if respect_outline else None
     masks = window_pixel_masks(labels, centres, window_px, margin_px) if respect_outline else None
     first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion, prefilter=prefilter,
-                      pixel_masks=masks)
+                      pixel_masks=masks, workers=workers)
     trusted = _checks(first, min_confidence, max_uncertainty_px, step_px * pixel) == KEPT
     prior = prior_field(first.position_mm[trusted], first.displacement_mm[trusted], unloaded.shape, pixel_size_mm)
     result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion,
-                       prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter, pixel_masks=masks)
+                       prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter, pixel_masks=masks,
+                       workers=workers)
     # the error model calibrated on the residuals of the windows that matched (`prefilter`): the edges' error of
     # position, and the noise the images hold
     matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence)

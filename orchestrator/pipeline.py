@@ -118,16 +118,17 @@ def _setup(case_dir, run_dir: Path, n_elements: int | None, order: int | None, o
 @holds_run_folder(create=True)
 def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, n_elements: int | None = None, order: int | None = None,
-                prefilter_px: float = PREFILTER_SIGMA_PX, respect_outline: bool = False) -> dict:
+                prefilter_px: float = PREFILTER_SIGMA_PX, respect_outline: bool = False, workers: int = 1) -> dict:
     """Measure the displacements from the two images by DIC (`measure.measure_dic`, both images smoothed by a
-    Gaussian of prefilter_px first) into the run folder (measurements.csv, .npz, .json, .png); returns the summary."""
+    Gaussian of prefilter_px first, the windows matched in `workers` local processes) into the run folder
+    (measurements.csv, .npz, .json, .png); returns the summary."""
     run_dir = Path(run_dir)
     setup = _setup(case_dir, run_dir, n_elements, order)
     case = setup.case
     _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
                                     landmarks=case.landmarks, window_px=window_px, step_px=step_px,
                                     roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px,
-                                    respect_outline=respect_outline)
+                                    respect_outline=respect_outline, workers=workers)
     summary["window_mm"] = window_px * min(case.pixel_size_mm)
     summary["setup_lines"] = setup.setup_lines()
     for level, motion in zip(case.levels, setup.level_motions):
@@ -135,7 +136,8 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
         _, level_table, level_summary = measure_dic(case.unloaded, level.image, setup.labels_unloaded,
                                                     case.pixel_size_mm, motion, landmarks=case.landmarks,
                                                     window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm,
-                                                    prefilter_px=prefilter_px, respect_outline=respect_outline)
+                                                    prefilter_px=prefilter_px, respect_outline=respect_outline,
+                                                    workers=workers)
         level_summary.update(window_mm=summary["window_mm"], level=level.number, image=level.path.name,
                              tension_N_per_mm=level.tension_N_per_mm)
         write_measurements(run_dir, level_table, level_summary, case.unloaded, case.pixel_size_mm, level.number)
@@ -180,7 +182,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     if objective == "displacement":
         levels = range(1, len(setup.case.tensions) + 1)
         if source == "dic" and any(read_window_table(run_dir, level) is None for level in levels):
-            run_measure(case_dir, run_dir, window_px=window_px)
+            run_measure(case_dir, run_dir, window_px=window_px, workers=1 if scheduler else workers)
         if setup.case.levels:
             # skin uncertainties stored per level without their columns (before the levels' common skin error was
             # kept) cannot be joined: they are estimated again below

@@ -41,7 +41,7 @@ from .imaging.frame import RigidMotion
 from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
 from .materials import law_notes
-from .meshing import Mesh, mesh_from_labels
+from .meshing import Mesh, TissueCurves, mesh_from_labels, tissue_curves
 from .phantom.mesh import truth_mesh
 from .geometry_uncertainty import level_file as geometry_level_file
 from .geometry_uncertainty import read_columns as read_geometry_columns
@@ -93,6 +93,15 @@ class RunSetup:
     # the DIC measurements of each garment level as `calfit measure` stored them, rebuilt once (their windows'
     # operators and covariance take about a second); the geometry's part is read again at every call
     _measured: dict = field(default_factory=dict, repr=False, compare=False)
+    _tissue_curves: list = field(default_factory=list, repr=False, compare=False)   # `tissue_curves`, once made
+
+    def tissue_curves(self) -> TissueCurves:
+        """The interfaces of the unloaded labels snapped onto I0's edges, as the run's mesh was made from them
+        (`meshing.tissue_curves`): the discretization check and the skin's uncertainty mesh them again."""
+        if not self._tissue_curves:
+            self._tissue_curves.append(tissue_curves(self.labels_unloaded, self.case.pixel_size_mm,
+                                                     image=self.case.unloaded))
+        return self._tissue_curves[0]
 
     def setup_lines(self) -> list[str]:
         """What the user should know of how the images were read: the slice taken from a DICOM series, averaged

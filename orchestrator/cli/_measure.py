@@ -1,7 +1,7 @@
 """Measure the displacements of the tissue between the two images (digital image correlation).
 
     calfit measure CASE_DIR --out RUN_DIR [--window 16|32|64] [--step PX] [--roi-spacing MM] [--prefilter PX]
-                   [--respect-outline] [--json] [--quiet]
+                   [--respect-outline] [--workers N] [--json] [--quiet]
 
 Slices with pixels finer than 0.18 mm are first averaged over blocks of pixels (reported), so that a window spans
 several grains of the texture. Both images are smoothed by a Gaussian of --prefilter pixels (default 1; 0 for
@@ -17,13 +17,15 @@ the leg leave out the pixels next to its outline and the air beyond (the skin's 
 whose outline carries an error of its own (measured on another program's images: the deep fat's errors then match
 their model, at the cost of 3-38 % on the parameters' standard errors; not the default, README, "From the images to
 the displacements"). Writes RUN_DIR/measurements.csv (every window, kept or why not), measurements.png (the vectors
-on the image), measurements.json (summary) and measurements.npz.
+on the image), measurements.json (summary) and measurements.npz. The windows are matched in --workers processes
+(default: 2 or the core count), with the same results as in one.
 `calfit identify` runs this itself when the case has no points.csv.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 
 from ..imaging.errors import CaseError, ImagingError
 from ..imaging.prefilter import PREFILTER_SIGMA_PX
@@ -47,6 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--respect-outline", action="store_true",
                         help="windows centred inside the leg leave out its outline and the air beyond (skin windows "
                              "keep them): for an outline drawn with errors of its own")
+    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+                        help="processes the windows are matched in on this machine (default: 2 or the core count)")
     add_output_arguments(parser)
 
 
@@ -75,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = run_measure(args.case_dir, args.out, window_px=args.window, step_px=args.step,
                               roi_spacing_mm=args.roi_spacing, prefilter_px=args.prefilter,
-                              respect_outline=args.respect_outline)
+                              respect_outline=args.respect_outline, workers=args.workers)
     except (CaseError, ImagingError, ValueError) as error:
         return fail(str(error))
     emit(args, summary, summary_lines(summary, args.out))

@@ -75,6 +75,8 @@ windows; see its text.
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -220,7 +222,7 @@ class _Pair:
 def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_size_mm, *, window_px: int = 16,
               search_factor: int = SEARCH_FACTOR, prior: RigidMotion | None = None,
               prior_field_mm: np.ndarray | None = None, noise_sigma: tuple[float, float] | None = None,
-              prefilter: Prefilter | None = None, pixel_masks=None) -> DICResult:
+              prefilter: Prefilter | None = None, pixel_masks=None, workers: int = 1) -> DICResult:
     """Correlate square windows of `window_px` centred at integer pixels `centres_rc` ((N, 2) rows, columns).
 
     prior: the rigid motion M of the bones (`align_on_bones`: I1(M(x)) ~ I0(x)), composed into every warp, so
@@ -231,7 +233,7 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     signal. prefilter: the Gaussian both images are smoothed with first (default `prefilter.Prefilter()`, one
     pixel; `Prefilter(0)` for none). pixel_masks: per window, None (every pixel of the square) or a (window_px,
     window_px) boolean array of the pixels it matches (`measure.window_pixel_masks`: a window inside the tissue
-    leaves out the leg's outline)."""
+    leaves out the leg's outline). workers: local processes the windows are shared among (`_match_windows`)."""
     reference = np.asarray(reference, float)
     deformed = np.asarray(deformed, float)
     if reference.shape != deformed.shape:
@@ -260,8 +262,8 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     edges = [EdgeResiduals() for _ in range(len(centres))]
     edge_covariance = np.zeros((len(centres), 2, 2))
     pixel_sets = window_pixel_sets(pixel_masks, len(centres), window_px)
-    for k, (row, col) in enumerate(centres):
-        match = _correlate_window(pair, row, col, window_px, search_px, prior_px, pixel_sets[k])
+    matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets), workers)
+    for k, match in enumerate(matches):
         if match is not None:
             displacement[k], confidence[k], covariance[k] = match.displacement, match.confidence, match.covariance
             variance[k], gradient[k], edges[k], edge_covariance[k] = (match.variance, match.gradient, match.edges,
@@ -280,6 +282,38 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
                      (float(dy), float(dx)), pair.noise_sigma, variance,
                      to_mm @ gradient @ np.linalg.inv(to_mm), prefilter.sigma_px, edges,
                      to_mm @ edge_covariance @ to_mm)
+
+
+# Windows are independent: with workers > 1 they are shared among forked processes in this many chunks each (the
+# windows' costs differ, the skin's more than the muscle's), every window matched exactly as in one process. Fewer
+# windows than MIN_WINDOWS_PER_WORKER a process are matched here: forking costs more than they take.
+CHUNKS_PER_WORKER = 4
+MIN_WINDOWS_PER_WORKER = 50
+_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets)
+
+
+def _match_windows(job: tuple, workers: int) -> list:
+    """Every window's `_Match` (or None) of job = (pair, centres, window_px, search_px, prior_px, pixel_sets), in
+    order; in `workers` forked processes when the platform forks (the images reach them by the fork, not a pipe)."""
+    count = len(job[1])
+    workers = min(int(workers), count // MIN_WINDOWS_PER_WORKER)
+    if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+        return _match_chunk(range(count), job)
+    chunks = [chunk for chunk in np.array_split(np.arange(count), workers * CHUNKS_PER_WORKER) if len(chunk)]
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"), initializer=_hold_windows,
+                             initargs=(job,)) as pool:
+        return [match for part in pool.map(_match_chunk, chunks) for match in part]
+
+
+def _hold_windows(job: tuple) -> None:
+    global _WORKER_WINDOWS
+    _WORKER_WINDOWS = job
+
+
+def _match_chunk(indices, job: tuple | None = None) -> list:
+    pair, centres, window_px, search_px, prior_px, pixel_sets = _WORKER_WINDOWS if job is None else job
+    return [_correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k])
+            for k in indices]
 
 
 def _signal_noise(image: np.ndarray) -> float:

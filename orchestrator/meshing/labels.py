@@ -39,6 +39,7 @@ BONES, SKIN_NODES and tissue-interface node sets (e.g. FAT_MUSCLE); surface SKIN
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -54,24 +55,22 @@ SKIN_CUTOFF_MM = 8.0
 SNAP_PASSES = 8
 
 
-def mesh_from_labels(
-    labels: np.ndarray,
-    pixel_size_mm: Sequence[float],
-    n_elements: int = 400,
-    order: int = 1,
-    min_angle_deg: float = 25.0,
-    smoothing_pixels: float = 1.0,
-    min_component_pixels: int = 20,
-    skin_cutoff_mm: float = SKIN_CUTOFF_MM,
-    image: np.ndarray | None = None,
-    interface_offsets=None,
-) -> Mesh:
-    """Mesh the tissues of `labels` with about n_elements CPE3 (order 1) or CPE6 (order 2); with the `image` the
-    labels were segmented from, the interfaces are moved to the image's edges (`EdgeMap`). interface_offsets(curve)
-    -> normal moves (mm, one per point of the curve, positive to the left of its direction): a perturbed geometry.
+@dataclass(frozen=True)
+class TissueCurves:
+    """The interface curves of a label image (steps 1-2 of the module text: cleaned up, smoothed, snapped onto the
+    image's edges, the skin low-passed), ready to mesh at any size or with its interfaces moved. Snapping is most of
+    meshing's time, so a run that meshes the same labels again (the discretization check's finer mesh, the skin's
+    uncertainty's shifted interfaces) computes them once."""
 
-    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary).
-    """
+    regions: np.ndarray
+    curves: tuple[Curve, ...]
+    pixel_size: tuple[float, float]
+
+
+def tissue_curves(labels: np.ndarray, pixel_size_mm: Sequence[float], smoothing_pixels: float = 1.0,
+                  min_component_pixels: int = 20, skin_cutoff_mm: float = SKIN_CUTOFF_MM,
+                  image: np.ndarray | None = None) -> TissueCurves:
+    """The interfaces of `labels`; with the `image` they were segmented from, moved to its edges (`EdgeMap`)."""
     row_mm, col_mm = _pixel_size(pixel_size_mm)
     if image is not None and np.shape(image) != np.shape(labels):
         raise ValueError("the image and its labels must have the same shape")
@@ -85,14 +84,45 @@ def mesh_from_labels(
                       if is_edge(c.sides) else c for c, side in zip(curves, fat_sides)]
     curves = [Curve(lowpass_closed(c.points, skin_cutoff_mm), True, c.sides) if c.closed and c.sides[0] == 0 else c
               for c in curves]
+    return TissueCurves(regions, tuple(curves), (row_mm, col_mm))
+
+
+def mesh_tissue_curves(tissue: TissueCurves, n_elements: int = 400, order: int = 1, min_angle_deg: float = 25.0,
+                       interface_offsets=None) -> Mesh:
+    """Mesh `tissue`'s curves with about n_elements CPE3 (order 1) or CPE6 (order 2); interface_offsets(curve) ->
+    normal moves (mm, one per point of the curve, positive to the left of its direction): a perturbed geometry."""
+    curves = list(tissue.curves)
     if interface_offsets is not None:
         curves = [Curve(offset_points(c.points, c.closed, interface_offsets(c)), c.closed, c.sides) for c in curves]
-    rules = SpacingRules(min_spacing=min(row_mm, col_mm))
+    rules = SpacingRules(min_spacing=min(tissue.pixel_size))
 
     def classify(points: np.ndarray) -> np.ndarray:
-        return _lookup(regions, (row_mm, col_mm), points)
+        return _lookup(tissue.regions, tissue.pixel_size, points)
 
     return mesh_curves(curves, classify, n_elements, order=order, min_angle_deg=min_angle_deg, rules=rules)
+
+
+def mesh_from_labels(
+    labels: np.ndarray,
+    pixel_size_mm: Sequence[float],
+    n_elements: int = 400,
+    order: int = 1,
+    min_angle_deg: float = 25.0,
+    smoothing_pixels: float = 1.0,
+    min_component_pixels: int = 20,
+    skin_cutoff_mm: float = SKIN_CUTOFF_MM,
+    image: np.ndarray | None = None,
+    interface_offsets=None,
+) -> Mesh:
+    """Mesh the tissues of `labels` with about n_elements CPE3 (order 1) or CPE6 (order 2) (`tissue_curves`, then
+    `mesh_tissue_curves`); with the `image` the labels were segmented from, the interfaces are moved to the image's
+    edges (`EdgeMap`). interface_offsets(curve) -> normal moves (mm, one per point of the curve, positive to the left
+    of its direction): a perturbed geometry.
+
+    T6 mid-side nodes lie on the straight edges of the T3 mesh (also on the boundary).
+    """
+    tissue = tissue_curves(labels, pixel_size_mm, smoothing_pixels, min_component_pixels, skin_cutoff_mm, image)
+    return mesh_tissue_curves(tissue, n_elements, order, min_angle_deg, interface_offsets)
 
 
 def is_edge(sides) -> bool:
