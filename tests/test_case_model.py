@@ -24,6 +24,7 @@ import meshio
 import numpy as np
 import pytest
 
+from orchestrator.identify import MIN_NOISE_DRAWS
 from orchestrator.imaging.case import ModelChoice, read_model_choice
 from orchestrator.imaging.errors import CaseError
 from orchestrator.imaging.frame import RigidMotion
@@ -133,7 +134,7 @@ def test_the_band_is_shown_in_pressures_json_paraview_and_the_report(explicit_ru
     """Issue 29 item 4: the band's contact pressure, status and slip around the leg, its bridges and hoop force in
     pressures.json, as point data of the ParaView files (the band's cells after the leg's) and in the report."""
     run, _ = explicit_run
-    run_montecarlo(run, draws=12, progress=False)
+    run_montecarlo(run, draws=MIN_NOISE_DRAWS, progress=False)   # the intervals the pressures are drawn in
     pressures = run_pressures(run, draws=4, progress=False)
     band = pressures["band"]
     tension = band["hoop_tension_N_per_mm"]["mean"]

@@ -1,6 +1,6 @@
 """Mutated verification decks (`fuzz_decks.py`, fixed seed): calfit-fe never crashes or hangs, every rejection
 (exit 2) names the file and the line, and any other failure (exit 4) says which deck and why. `make fuzz` runs
-100,000 inputs; this runs 3,000."""
+100,000 inputs; this runs 2,000."""
 
 import re
 
@@ -9,7 +9,7 @@ import pytest
 from fuzz_decks import fuzz, mutate
 from orchestrator.engine import find_engine
 
-INPUTS = 3000
+INPUTS = 2000
 
 
 @pytest.fixture(scope="module")
