@@ -58,6 +58,7 @@ commands after `calfit identify`, which estimates them again (`discard_without_c
 from __future__ import annotations
 
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Sequence
 
@@ -159,10 +160,12 @@ def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) ->
 
 def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Sequence[str] = (),
                      skin_sigma_mm: float, interface_sigma_mm: float, cutoff_mm: float,
-                     tension_N_per_mm: float | None = None) -> tuple[np.ndarray, list[float], dict]:
+                     tension_N_per_mm: float | None = None, workers: int = 1) -> tuple[np.ndarray, list[float], dict]:
     """The columns g of C_geo (module text: what is measured of each skin mode and interface shift, (2N, m) mm per
     unit), their variances w (the same at every garment level: they hold the segmentation, not the load) and what
-    made them, under the case's [garment] tension or `tension_N_per_mm` (another garment level's)."""
+    made them, under the case's [garment] tension or `tension_N_per_mm` (another garment level's). workers > 1: the
+    modes' run and the shifted interfaces' remeshes and solves go side by side in that many threads (an engine
+    solves while another interface is meshed), with the same results."""
     from .meshing.labels import interface_shift
 
     tension = setup.case.tension_N_per_mm if tension_N_per_mm is None else float(tension_N_per_mm)
@@ -170,15 +173,24 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
     perimeter = skin_perimeter_mm(model.mesh)
     # the band's model moves the skin itself; Laplace's law feels its curvature's change (module text)
     variances = (offset_variances if model.band is not None else mode_variances)(perimeter, skin_sigma_mm, cutoff_mm)
-    sensitivities = skin_pressure_sensitivities(model, theta, len(variances))
+    setup.tissue_curves()   # made once, before the threads mesh them
+    shifts = [(interface, sign) for interface in ("skin", "fascia") for sign in (1.0, -1.0)]
+
+    def shifted(interface: str, sign: float) -> np.ndarray:
+        return _observed(setup, measurements, theta, effects, interface_shift(
+            setup.labels_unloaded, setup.case.pixel_size_mm, interface, sign * SHIFT_STEP_MM), tension)
+
+    with ThreadPoolExecutor(max(1, int(workers))) as pool:
+        modes = pool.submit(skin_pressure_sensitivities, model, theta, len(variances))
+        observed = [pool.submit(shifted, *shift) for shift in shifts]
+        sensitivities = modes.result()
+        observed = [future.result() for future in observed]
     observation = measurements.observation(model.mesh)
     leg_nodes = len(model.mesh.nodes)   # a band's nodes come after the leg's
     columns = [observation @ sensitivities[line][:leg_nodes].ravel() for line in skin_mode_lines(model, len(variances))]
     weights = list(np.repeat(variances, 2))
-    for interface in ("skin", "fascia"):
-        plus, minus = (_observed(setup, measurements, theta, effects, interface_shift(
-            setup.labels_unloaded, setup.case.pixel_size_mm, interface, sign * SHIFT_STEP_MM), tension)
-            for sign in (1.0, -1.0))
+    for k in range(0, len(shifts), 2):
+        plus, minus = observed[k], observed[k + 1]
         columns.append((plus - minus) / (2 * SHIFT_STEP_MM))
         weights.append(interface_sigma_mm ** 2)
     info = {"skin_sigma_mm": skin_sigma_mm, "interface_sigma_mm": interface_sigma_mm, "cutoff_mm": cutoff_mm,

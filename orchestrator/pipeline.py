@@ -223,7 +223,8 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
             for level, level_measured in enumerate(measured, start=1):
                 stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
                 if stored is None or not np.allclose(stored[1]["theta"], estimated_at, rtol=1e-9):
-                    columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options)
+                    columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options,
+                                                                 1 if scheduler else workers)
                     kept = (columns, weights) if setup.case.levels else ()
                     write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
             weighed = setup.level_measurements(source)   # with the skin's uncertainty just written
@@ -572,10 +573,10 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     return result
 
 
-def _level_skin_columns(setup, theta, measured, level: int, options: dict):
+def _level_skin_columns(setup, theta, measured, level: int, options: dict, workers: int = 1):
     """`geometry_columns` of garment level `level`'s measurements, under that level's tension."""
     tension = None if level == 1 else setup.case.tensions[level - 1]
-    return geometry_columns(setup, theta, measured, tension_N_per_mm=tension, **options)
+    return geometry_columns(setup, theta, measured, tension_N_per_mm=tension, workers=workers, **options)
 
 
 def _refit_own_floor(setup, identification: dict, fit, residual_mm: np.ndarray) -> dict | None:
