@@ -176,3 +176,36 @@ def test_a_band_knitted_unevenly_is_found_on_the_band_with_friction(tmp_path):
     assert refitted["misfit_over_floor"] <= 1.2 and diagnosis["explained"]
     assert np.allclose(refitted["theta"][-2:], [0.05, -0.03], atol=0.005)
     assert np.all(np.abs(np.array(refitted["theta"][:4]) / truth - 1) < 0.05)
+
+
+def test_the_bands_runs_beside_the_probe_give_the_columns_they_give_one_after_the_other(leg_mesh, tmp_path):
+    """`GarmentRuns` side by side (threads, each its engine, one log between them) and one after the other: the same
+    bridging and friction columns to the last digit, two runs each, and every line of the shared log whole."""
+    import json
+
+    from orchestrator.diagnose import GarmentRuns, garment_columns
+    from orchestrator.imaging.case import DisplacementPoints
+    from orchestrator.measure import points_measurements
+    from orchestrator.objectives import DisplacementResidualObjective
+    from orchestrator.runner import Evaluator
+
+    places = leg_mesh.nodes[:: max(1, len(leg_mesh.nodes) // 40)]
+    measured = points_measurements(DisplacementPoints(places, np.zeros_like(places), np.full(len(places), 0.01)))
+    objective = DisplacementResidualObjective(leg_mesh, measured)
+    laplace = LegModel(leg_mesh, 0.16)
+    r = np.zeros(2 * len(places))
+    columns = {}
+    for side_by_side in (False, True):
+        folder = tmp_path / ("side-by-side" if side_by_side else "in-turn")
+
+        def factory(model, progress=None, workers=None):
+            return Evaluator(model, objective, folder, workers=workers or 2, progress=False)
+
+        with GarmentRuns(factory, laplace, TRUTH_KPA, ["bridging", "friction"], side_by_side) as runs:
+            columns[side_by_side], launched = garment_columns(runs, r, progress=False)
+        assert launched == 2
+        lines = (folder / "evaluations.jsonl").read_text().splitlines()
+        assert len(lines) == 2 and all(json.loads(line)["status"] == "ok" for line in lines)
+    for name in ("bridging", "friction"):
+        assert np.abs(columns[True][name]).max() > 0.0
+        assert np.array_equal(columns[True][name], columns[False][name]), name
