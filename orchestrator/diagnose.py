@@ -99,6 +99,12 @@ MAX_DESIGN_EFFECT = 100.0
 ORTHOGONAL_ROUNDOFF = 1e-8   # |g_perp| / |g| below this: the fitted parameters absorb the effect entirely
 FD_FRACTION = 1.0            # forward-difference step of an effect parameter, in units of its scale
 FRICTION_PROBE_MU = 0.05     # forward-difference step of the friction coefficient from a frictionless band
+# The probe from a frictionless band (a Laplace-law model's diagnosis) releases the band in tenths, not the fit's
+# twentieths: its reference, the frictionless band, does not depend on the path, and one probe needs no grid shared
+# with other points of a fit. On calfit's images-first phantom the probe took 6.5 s in tenths against 9.5 s, its
+# column of leg displacements 0.995 correlated with the twentieths' (11 % RMS apart; fifths: 4.0 s, 0.985, 20 %).
+# From a band with friction (its own model's diagnosis) the reference has a path, so the probe keeps its grid.
+FRICTION_PROBE_RELEASE_STATIC = (0.1, 1.0, 1e-5, 0.1)
 MIN_REGION_POINTS = 3        # a named region holds at least this many measurements
 PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 # the band's own variant that is not ranked on a model of the band, and why (said in diagnosis.json "not_ranked"); its
@@ -367,7 +373,8 @@ def garment_model(model: LegModel, effects: Sequence[str] = ()) -> LegModel:
 
 class GarmentRuns:
     """The explicit band's runs that give the garment's effects their columns (`garment_columns`): the band at
-    theta (on a Laplace-law model) and, for friction, the band at FRICTION_PROBE_MU more. They do not depend on the
+    theta (on a Laplace-law model) and, for friction, the band at FRICTION_PROBE_MU more (released in
+    FRICTION_PROBE_RELEASE_STATIC from a frictionless band). They do not depend on the
     fitted model's residual, so with side_by_side (the run may use more than one engine at a time) they start at
     once, in threads beside the ranking's probe: a friction run is most of a diagnosis (the release in twentieths:
     7-9 s of the images-first path's 12 s on calfit's phantom). Each thread's evaluator runs its engine itself
@@ -382,15 +389,17 @@ class GarmentRuns:
         self.model, self.names = model, list(names)
         runs = {}
         if self.names and model.garment != "explicit":
-            runs["band"] = (garment_model(model), list(theta))
+            runs["band"] = (garment_model(model), list(theta), {})
         if "friction" in self.names:
-            runs["sliding"] = (garment_model(model, ("friction",)), list(theta) + [model.friction_mu + FRICTION_PROBE_MU])
-        self._thetas = {label: point for label, (_, point) in runs.items()}
+            path = {"release_static": FRICTION_PROBE_RELEASE_STATIC} if model.friction_mu == 0.0 else {}
+            runs["sliding"] = (garment_model(model, ("friction",)), list(theta) + [model.friction_mu + FRICTION_PROBE_MU],
+                               path)
+        self._points = {label: (point, options) for label, (_, point, options) in runs.items()}
         self._pool = ThreadPoolExecutor(max_workers=len(runs)) if side_by_side and runs else None
         quiet = {"progress": False, "workers": 1} if self._pool else {}
-        self.evaluators = {label: evaluator_factory(m, **quiet) for label, (m, _) in runs.items()}
-        self._started = {label: self._pool.submit(self.evaluators[label], point)
-                         for label, point in self._thetas.items()} if self._pool else {}
+        self.evaluators = {label: evaluator_factory(m, **quiet) for label, (m, _, _) in runs.items()}
+        self._started = {label: self._pool.submit(self.evaluators[label], point, **options)
+                         for label, (point, options) in self._points.items()} if self._pool else {}
 
     def records(self, progress: bool = True) -> dict[str, dict]:
         """Every run's record: waited for, or run now."""
@@ -398,9 +407,9 @@ class GarmentRuns:
         display.begin_batch(len(self._started))
         try:
             records = {}
-            for label, point in self._thetas.items():
+            for label, (point, options) in self._points.items():
                 started = self._started.get(label)
-                records[label] = started.result() if started else self.evaluators[label](point)
+                records[label] = started.result() if started else self.evaluators[label](point, **options)
                 display.advance(records[label])
         finally:
             display.close()

@@ -413,11 +413,13 @@ class LegModel:
         return state
 
     def deck(self, theta: Sequence[float], tension_N_per_mm: float | None = None,
-             extra_sensitivities: Sequence[str] = (), sensitivities: bool = True, own_sensitivities: bool = True) -> str:
+             extra_sensitivities: Sequence[str] = (), sensitivities: bool = True, own_sensitivities: bool = True,
+             release_static: Sequence[float] | None = None) -> str:
         """The deck of theta; extra_sensitivities: more `*SENSITIVITY` lines (a `PROFILE` line defines the garment's
         Fourier profile, at zero, when the model has none; a `GAP PROFILE` line the band's `*GAP PROFILE` of the
         skin, at zero); sensitivities=False: none at all (a finite-difference probe needs the displacements alone);
-        own_sensitivities=False: the extra lines alone, not theta's."""
+        own_sensitivities=False: the extra lines alone, not theta's; release_static: the band's release increments
+        (`decks.leg_garment_deck`; default: the fit's, RELEASE_STATIC or FRICTION_RELEASE_STATIC)."""
         from .decks import StepEffects
 
         state = self.deck_state(theta)
@@ -440,7 +442,7 @@ class LegModel:
             mu = self.friction_at(theta)
             gap = () if any(line.startswith("GAP PROFILE") for line in extra_sensitivities) else None
             return leg_garment_deck(materials, band, self.mesh, friction_mu=mu, effects=effects, gap_profile=gap,
-                                    description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
+                                    release_static=release_static, description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
                                                 f"mu = {mu:g}")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
                                 description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")
