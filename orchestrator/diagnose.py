@@ -374,10 +374,10 @@ def garment_model(model: LegModel, effects: Sequence[str] = ()) -> LegModel:
 class GarmentRuns:
     """The explicit band's runs that give the garment's effects their columns (`garment_columns`): the band at
     theta (on a Laplace-law model) and, for friction, the band at FRICTION_PROBE_MU more (released in
-    FRICTION_PROBE_RELEASE_STATIC from a frictionless band). They do not depend on the
-    fitted model's residual, so with side_by_side (the run may use more than one engine at a time) they start at
-    once, in threads beside the ranking's probe: a friction run is most of a diagnosis (the release in twentieths:
-    7-9 s of the images-first path's 12 s on calfit's phantom). Each thread's evaluator runs its engine itself
+    FRICTION_PROBE_RELEASE_STATIC from a frictionless band). They do not depend on the fitted model's residual, so
+    with side_by_side (the run may use more than one engine at a time) they start at once, in threads beside the
+    ranking's probe: a friction run is most of a diagnosis (in twentieths, 7-9 s of the images-first path's 12 s on
+    calfit's phantom; in tenths, 6.5 s). Each thread's evaluator runs its engine itself
     (one worker: no process forked from a thread) and silently (one stage line at a time); `records` shows the
     wait for those still running as a stage of its own. Without side_by_side they run one after the other when
     their records are asked for, each its own stage, as any evaluation.
