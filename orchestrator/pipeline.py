@@ -178,11 +178,12 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         raise ValueError(f"the contour mismatch compares I0 with one loaded image, and {setup.case.files['toml']} has "
                          f"{len(setup.case.tensions)} garment levels to fit jointly: use --objective displacement")
     source = setup.data_source(data)
+    local_workers = 1 if scheduler else workers   # the DIC's processes and the skin's threads, on this machine
     measured = None   # the measurements of every garment level, the first level's first
     if objective == "displacement":
         levels = range(1, len(setup.case.tensions) + 1)
         if source == "dic" and any(read_window_table(run_dir, level) is None for level in levels):
-            run_measure(case_dir, run_dir, window_px=window_px, workers=1 if scheduler else workers)
+            run_measure(case_dir, run_dir, window_px=window_px, workers=local_workers)
         if setup.case.levels:
             # skin uncertainties stored per level without their columns (before the levels' common skin error was
             # kept) cannot be joined: they are estimated again below
@@ -224,7 +225,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                 stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
                 if stored is None or not np.allclose(stored[1]["theta"], estimated_at, rtol=1e-9):
                     columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options,
-                                                                 1 if scheduler else workers)
+                                                                 local_workers)
                     kept = (columns, weights) if setup.case.levels else ()
                     write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
             weighed = setup.level_measurements(source)   # with the skin's uncertainty just written

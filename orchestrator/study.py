@@ -7,7 +7,7 @@ compressed it (`imaging.field_checks`), cut the muscle into compartments at the 
 labels hold none (`imaging.compartments`, drawn in RUN_DIR/compartments.png for the user to check; each muscle
 element takes the compartment under its centroid, `assign_compartments`, and they share the muscle's constants
 until the `compartments` effect separates them), mesh the labels of I0 with their
-interfaces moved onto the edges of I0 (`meshing.mesh_from_labels`), and store the labels, the motion and the
+interfaces moved onto the edges of I0 (`meshing.tissue_curves`), and store the labels, the motion and the
 mesh in RUN_DIR/setup.npz + setup.json (written to temporary names, then renamed). `load_run` gives them back
 with the model and the objectives, so that `calfit identify`, `montecarlo`, `pressures` and `report` all see
 the same mesh. A case with more garment levels ([[garment.levels]]: loaded images of the slice under other tensions)
@@ -41,7 +41,7 @@ from .imaging.frame import RigidMotion
 from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
 from .materials import law_notes
-from .meshing import Mesh, TissueCurves, mesh_from_labels, tissue_curves
+from .meshing import Mesh, TissueCurves, mesh_tissue_curves, tissue_curves
 from .phantom.mesh import truth_mesh
 from .geometry_uncertainty import level_file as geometry_level_file
 from .geometry_uncertainty import read_columns as read_geometry_columns
@@ -93,15 +93,14 @@ class RunSetup:
     # the DIC measurements of each garment level as `calfit measure` stored them, rebuilt once (their windows'
     # operators and covariance take about a second); the geometry's part is read again at every call
     _measured: dict = field(default_factory=dict, repr=False, compare=False)
-    _tissue_curves: list = field(default_factory=list, repr=False, compare=False)   # `tissue_curves`, once made
+    _tissue_curves: TissueCurves | None = field(default=None, repr=False, compare=False)   # `tissue_curves`
 
     def tissue_curves(self) -> TissueCurves:
         """The interfaces of the unloaded labels snapped onto I0's edges, as the run's mesh was made from them
-        (`meshing.tissue_curves`): the discretization check and the skin's uncertainty mesh them again."""
-        if not self._tissue_curves:
-            self._tissue_curves.append(tissue_curves(self.labels_unloaded, self.case.pixel_size_mm,
-                                                     image=self.case.unloaded))
-        return self._tissue_curves[0]
+        (`meshing.tissue_curves`, made once): the discretization check and the skin's uncertainty mesh them again."""
+        if self._tissue_curves is None:
+            self._tissue_curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded)
+        return self._tissue_curves
 
     def setup_lines(self) -> list[str]:
         """What the user should know of how the images were read: the slice taken from a DICOM series, averaged
@@ -302,7 +301,8 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     compartment_info = {"source": "labels" if labels_unloaded.max() >= FIRST_COMPARTMENT else "none"}
-    mesh = mesh_from_labels(labels_unloaded, case.pixel_size_mm, n_elements=n_elements, order=order, image=case.unloaded)
+    curves = tissue_curves(labels_unloaded, case.pixel_size_mm, image=case.unloaded)
+    mesh = mesh_tissue_curves(curves, n_elements=n_elements, order=order)
     compartment_labels = labels_unloaded
     if compartments and compartment_info["source"] == "none":
         found = find_compartments(case.unloaded, labels_unloaded, case.pixel_size_mm)
@@ -326,7 +326,9 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
                                                                        "translation_mm": list(motion.translation_mm),
                                                                        "centre_mm": list(motion.centre_mm)}})
-    return load_run(run_dir)
+    setup = load_run(run_dir)
+    setup._tissue_curves = curves   # the same labels and I0 as load_run reads back: not snapped again
+    return setup
 
 
 def working_case(case_dir: str | Path) -> Case:
