@@ -171,6 +171,8 @@ class CalfGeometry:
     def dent(self, theta) -> np.ndarray:
         """The groove's factor on the skin radius (1 away from it)."""
         s = self.shape
+        if s.dent_depth == 0.0:   # the convex calf: the factor is 1 and its complex exponential the layers' main cost
+            return np.ones(np.shape(theta))
         offset = np.angle(np.exp(1j * (np.asarray(theta, float) - np.deg2rad(s.dent_angle_deg))))
         return 1.0 - s.dent_depth * np.exp(-((offset / np.deg2rad(s.dent_width_deg)) ** 2))
 
@@ -254,15 +256,23 @@ class CalfGeometry:
         a later layer covers an earlier one. The distance is radial for star-shaped parts (close to the normal
         distance for these round shapes), so renderers can draw boundaries with sub-sample precision."""
         x, y = np.asarray(x, float), np.asarray(y, float)
-        muscle = self.muscle_outer.radial_excess(x, y)
-        layers = [(Tissue.SKIN, self.skin.radial_excess(x, y)), (Tissue.FAT, self.skin_inner.radial_excess(x, y)),
-                  (Tissue.FASCIA, self.fascia.radial_excess(x, y)), (Tissue.MUSCLE, muscle),
-                  (Tissue.FASCIA, np.maximum(muscle, self._septum_distance(x, y) - self.shape.fascia_mm / 2))]
+        s = self.shape
+        # skin, its inner face, the fascia and the muscle share the leg's centre and the skin's radius (as
+        # __post_init__ builds them): one polar transform and one r(theta) for the four, the same numbers
+        rho, theta = self.skin.polar(x, y)
+        skin_radius = self.skin.radius(theta)
+        fascia_radius = skin_radius - self.fat_thickness(theta)
+        muscle = rho - (fascia_radius - s.fascia_mm)
+        layers = [(Tissue.SKIN, rho - skin_radius), (Tissue.FAT, rho - (skin_radius - s.skin_mm)),
+                  (Tissue.FASCIA, rho - fascia_radius), (Tissue.MUSCLE, muscle),
+                  (Tissue.FASCIA, np.maximum(muscle, self._septum_distance(x, y) - s.fascia_mm / 2))]
         for vein in self.veins:
             distance = np.hypot(x - vein.centre[0], y - vein.centre[1]) - vein.radius_mm
             layers.append((Tissue.SUPERFICIAL_VEIN if vein.superficial else Tissue.DEEP_VEIN, distance))
-        for bone, marrow in ((self.tibia, self.tibia_marrow), (self.fibula, self.fibula_marrow)):
-            layers += [(Tissue.CORTEX, bone.radial_excess(x, y)), (Tissue.MARROW, marrow.radial_excess(x, y))]
+        for bone, cortex_mm in ((self.tibia, s.tibia_cortex_mm), (self.fibula, s.fibula_cortex_mm)):
+            rho, theta = bone.polar(x, y)
+            bone_radius = bone.radius(theta)
+            layers += [(Tissue.CORTEX, rho - bone_radius), (Tissue.MARROW, rho - (bone_radius - cortex_mm))]
         return layers
 
     def tissue_at(self, x, y) -> np.ndarray:
