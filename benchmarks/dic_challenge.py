@@ -47,7 +47,15 @@ The published figures of the Challenge's codes on these images (code, subset, n,
 the paper's tables and figures were not reachable from where this script was written. Add them to PUBLISHED, each
 with its table or figure, to print them beside calfit's.
 
-About 1.5 minutes on a 2-core machine with the defaults (about 1,000 windows per size).
+A peer in the same run: pyvale's own DIC engine (`pyvale.dic.calculate_2d`, C++: subset DIC, ZNSSD, affine shape
+function, B-spline interpolation, reliability-guided scan from a seed, its 5-pixel Gaussian prefilter; pyvale's
+defaults otherwise, one thread as calfit's windows here) on the same row with odd subsets of one pixel more than
+calfit's windows (17 / 33 / 65 px: pyvale takes odd sizes only), so that its subsets are centred on the crest row
+itself. Both codes then go through the same metrics, which need nothing of either code's own error model: n the
+scatter of the measured v about its sliding 100-pixel mean where p >= 200 px, l10 and the plateau as above, MEI =
+n x l10, the time of the correlation; and their ratios, calfit / pyvale.
+
+About 2 minutes on a 2-core machine with the defaults (about 1,000 windows per size, pyvale's about twice as many).
 """
 
 from __future__ import annotations
@@ -55,6 +63,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -77,6 +86,55 @@ IMAGE_NAMES = ("DIC_Challenge_Star_Noise_Ref.tiff", "DIC_Challenge_Star_Noise_De
 # Published figures of the Challenge's codes on the same images, for the table: (code, subset px, n px, l10 px,
 # MEI px^2, where it comes from). Empty: none could be checked against the paper when this was written.
 PUBLISHED: tuple[tuple[str, int, float, float, float, str], ...] = ()
+
+
+def peer_step(subset: int, step: int) -> int:
+    """pyvale puts its subsets' corners at multiples of the step, so its centres at k step + subset // 2: the largest
+    step up to `step` that puts a row of them on the crest."""
+    return max(d for d in range(1, step + 1) if (CREST_ROW - subset // 2) % d == 0)
+
+
+def pyvale_crest(reference: np.ndarray, deformed: np.ndarray, subset: int, step: int, scratch: Path) -> dict:
+    """pyvale's DIC (`pyvale.dic.calculate_2d`, its defaults but the subset, the step, one thread and a 10-pixel
+    search) on the subsets centred on the crest row, from a seed at x = 3500 px (where the period is long, as in
+    pyvale's own example on these images): x, v, converged and the correlation's seconds."""
+    import pyvale.dic
+
+    step = peer_step(subset, step)
+    half = subset // 2
+    roi = np.zeros(reference.shape, dtype=bool)
+    roi[CREST_ROW - half - step:CREST_ROW + half + step + 1, 40:reference.shape[1] - 40] = True
+    out = scratch / f"pyvale-{subset}"
+    out.mkdir(parents=True, exist_ok=True)
+    began = time.perf_counter()
+    pyvale.dic.calculate_2d(reference=reference.astype(np.float32), deformed=deformed.astype(np.float32),
+                            roi_mask=roi, seed=[3500, CREST_ROW], subset_size=subset, subset_step=step,
+                            max_displacement=10, num_threads=1, output_basepath=out, print_level=0)
+    seconds = time.perf_counter() - began
+    path = next(out.glob("dic_results_*.csv"))
+    with open(path) as table:   # a quoted header whose lines, like the rows, end with a comma
+        names = [name.strip('"') for name in table.readline().strip().rstrip(",").split(",")]
+    columns = dict(zip(names, np.loadtxt(path, delimiter=",", skiprows=1, usecols=range(len(names)), ndmin=2).T))
+    crest = columns["subset_y"] == CREST_ROW
+    if not crest.any():
+        sys.exit(f"dic_challenge: pyvale put no {subset}-px subset on row {CREST_ROW}")
+    order = np.argsort(columns["subset_x"][crest])
+    converged = columns["converged"][crest][order] > 0
+    v = np.where(converged, columns["disp_v"][crest][order], np.nan)
+    return dict(subset=subset, step=step, x=columns["subset_x"][crest][order], v=v, failed=int((~converged).sum()),
+                seconds=seconds)
+
+
+def common_metrics(x: np.ndarray, y: float, v: np.ndarray, step: int) -> dict:
+    """The metrics both codes go through (module text): n about the sliding mean, l10, MEI, plateau."""
+    period = period_px(x)
+    span = max(SMOOTH_SPAN_PX // step, 1)
+    ratio = sliding_mean(v / commanded_v(x, y), span)
+    long = (period >= NOISE_MIN_PERIOD_PX) & np.isfinite(v)
+    noise = float(np.std((v - sliding_mean(v, span))[long]))
+    l10 = first_crossing(period, ratio)
+    return dict(period=period, ratio=ratio, noise=noise, l10=l10, mei=noise * l10,
+                plateau=float(np.nanmean(v[period >= PLATEAU_MIN_PERIOD_PX])))
 
 
 def period_px(x) -> np.ndarray:
@@ -210,7 +268,7 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     gap = np.abs(ratio_measured - ratio_seen)
     gap[period < 2 * window] = np.nan    # where the windows see almost nothing, the ratio is noise over a tiny signal
     worst = int(np.nanargmax(gap))
-    return dict(window=window, x=x, period=period, commanded=commanded, measured=measured, seen=seen, sigma=sigma,
+    return dict(window=window, step=step, x=x, y=y, period=period, commanded=commanded, measured=measured, seen=seen, sigma=sigma,
                 ratio_measured=ratio_measured, ratio_seen=ratio_seen, failed=int(failed.sum()), windows=len(x),
                 noise=noise, noise_predicted=noise_predicted, noise_sigma=result.noise_sigma[0], l10=l10,
                 l10_last=last_crossing(period, ratio_measured), l10_seen=first_crossing(period, ratio_seen),
@@ -268,7 +326,31 @@ def report(results: list[dict], floor_sigma: float) -> None:
         print(f"  calfit {r['window']:2d}px: n {r['noise']:.4f} px, l10 {r['l10']:.1f} px, MEI {r['mei']:.3f} px^2")
 
 
-def figure(results: list[dict], out: Path) -> None:
+def report_peer(results: list[dict], peers: list[dict]) -> list[dict]:
+    """Both codes through `common_metrics`, with calfit / pyvale ratios; returns pyvale's metrics for the figure."""
+    print("\nbeside pyvale's DIC engine (same images, same row, one thread each; the same metrics for both, which "
+          "need neither code's error model: n = scatter about the sliding 100-px mean where p >= "
+          f"{NOISE_MIN_PERIOD_PX:g} px)")
+    print(f"{'code':>8s} {'subset':>7s} {'step':>5s} {'windows':>8s} {'failed':>6s} {'n px':>7s} {'l10 px':>7s} "
+          f"{'MEI px2':>8s} {'plateau':>8s} {'DIC s':>6s}")
+    peer_metrics = []
+    for r, peer in zip(results, peers):
+        mine = common_metrics(r["x"], r["y"], r["measured"], r["step"])
+        theirs = common_metrics(peer["x"], CREST_ROW, peer["v"], peer["step"])
+        peer_metrics.append(theirs)
+        for code, size, step, count, failed, m, seconds in (
+                ("calfit", r["window"], r["step"], r["windows"], r["failed"], mine, r["seconds_dic"]),
+                ("pyvale", peer["subset"], peer["step"], len(peer["x"]), peer["failed"], theirs, peer["seconds"])):
+            print(f"{code:>8s} {size:5d}px {step:5d} {count:8d} {failed:6d} {m['noise']:7.4f} {m['l10']:7.1f} "
+                  f"{m['mei']:8.3f} {m['plateau']:8.4f} {seconds:6.1f}")
+        per_window = (r["seconds_dic"] / r["windows"]) / (peer["seconds"] / len(peer["x"]))
+        print(f"{'calfit / pyvale':>22s}: n {mine['noise'] / theirs['noise']:.2f} x, l10 "
+              f"{mine['l10'] / theirs['l10']:.2f} x, MEI {mine['mei'] / theirs['mei']:.2f} x, time per window "
+              f"{per_window:.2f} x")
+    return peer_metrics
+
+
+def figure(results: list[dict], out: Path, peers: list[dict], peer_metrics: list[dict]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -286,7 +368,8 @@ def figure(results: list[dict], out: Path) -> None:
     periods = top.secondary_xaxis("top", functions=(period_px, lambda p: (p - PERIOD_AT_0_PX) / PERIOD_SLOPE))
     periods.set_xlabel("period p (px)")
     top.legend(loc="lower right", fontsize=8, ncol=2)
-    top.set_title("calfit DIC on the DIC Challenge 2.0 Star images (crest row, amplitude 0.5 px)", fontsize=10)
+    top.set_title("calfit DIC on the DIC Challenge 2.0 Star images (crest row, amplitude 0.5 px); below, pyvale's "
+                  "beside it", fontsize=10)
 
     for r, colour in zip(results, colours):
         bottom.plot(r["period"], r["ratio_measured"], color=colour, lw=1.6,
@@ -294,6 +377,9 @@ def figure(results: list[dict], out: Path) -> None:
         bottom.plot(r["period"], r["ratio_seen"], color=colour, lw=1.2, ls="--",
                     label=f"{r['window']} px: observation operator, l10 = {r['l10_seen']:.0f} px")
         bottom.plot(r["period"], uniform_window(r["window"], r["period"]), color=colour, lw=0.8, ls=":")
+    for peer, metrics, colour in zip(peers, peer_metrics, colours):
+        bottom.plot(metrics["period"], metrics["ratio"], color=colour, lw=0.9, ls="-.",
+                    label=f"pyvale {peer['subset']} px subsets: measured, l10 = {metrics['l10']:.0f} px")
     bottom.plot([], [], color="grey", lw=0.8, ls=":", label="uniform affine window (textbook)")
     bottom.axhline(LEVEL, color="black", lw=0.8)
     bottom.text(295, LEVEL + 0.01, "10 % attenuation", ha="right", va="bottom", fontsize=8)
@@ -319,10 +405,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/figures/dic_challenge.png"))
     args = parser.parse_args()
 
-    reference, deformed = load_star(args.images)
+    full_reference, full_deformed = load_star(args.images)
     row0 = CREST_ROW - STRIP_HALF_ROWS
-    reference = reference[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
-    deformed = deformed[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
+    reference = full_reference[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
+    deformed = full_deformed[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
     rows, cols = np.mgrid[0:reference.shape[0], 0:reference.shape[1]]
     field = np.stack([np.zeros(reference.shape), commanded_v(cols, rows + row0)])   # (u_x, u_y), px = mm here
     gradients = spline_gradient(Prefilter()(reference))   # the windows' operators read the prefiltered reference
@@ -336,7 +422,11 @@ def main() -> None:
         print(f"  {window:2d} px: {r['windows']} windows, DIC {r['seconds_dic']:.1f} s, operator "
               f"{r['seconds_operator']:.1f} s", flush=True)
     report(results, floor_sigma)
-    figure(results, args.out)
+    with tempfile.TemporaryDirectory(prefix="calfit-pyvale-") as scratch:
+        peers = [pyvale_crest(full_reference, full_deformed, window + 1, args.step, Path(scratch))
+                 for window in args.windows]
+    peer_metrics = report_peer(results, peers)
+    figure(results, args.out, peers, peer_metrics)
 
 
 if __name__ == "__main__":

@@ -283,7 +283,8 @@ class LoadedSession:
         """Material points (X, Y) and height index of the loaded scanner points at slice-frame (x, y) of loaded
         slice `slice_index`: X + u(X, z) = p, by `render.undeform`'s fixed point."""
         px, py, height_index = self.unloaded_points(x, y, slice_index)
-        X, Y = undeform(px, py, lambda X, Y, active: self.displacement(X, Y, height_index[active]))
+        heights = np.ravel(height_index)
+        X, Y = undeform(px, py, lambda X, Y, index: self.displacement(X, Y, heights[index]))
         return X, Y, height_index
 
     def intensity_at(self, X, Y, height_index, edge_mm: float = 0.0) -> np.ndarray:
