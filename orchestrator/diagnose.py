@@ -85,7 +85,7 @@ from scipy.spatial import cKDTree
 from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
 from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
-from .identify import FitResult, jacobian_in_x, levenberg_marquardt, steps_into_box
+from .identify import IDENTIFIABLE_HALF_WIDTH, FitResult, jacobian_in_x, levenberg_marquardt, steps_into_box
 from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator, Progress
@@ -658,9 +658,24 @@ def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool
     settled = (f" (the score could not tell it from {', '.join(tie)}; their refits decided, by BIC)" if tie else "")
     if ratio <= EXPLAINED_FACTOR:
         return True, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; {best} explains it: "
-                      f"refitted with it, the misfit is {ratio:.2f} x the floor{floor}{settled}")
+                      f"refitted with it, the misfit is {ratio:.2f} x the floor{floor}{settled}"
+                      f"{unfixed_constants(diagnosis, done[0])}")
     return False, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; the best effect, {best}, "
                    f"refitted, leaves {ratio:.2f} x the floor{floor}: no catalog effect explains the residual")
+
+
+def unfixed_constants(diagnosis: Diagnosis, fit: "Refit") -> str:
+    """The verdict's words for the identified model's own parameters that the explaining refit leaves outside
+    identify's identifiability rule (their linearized 95 % interval): the effect added trades with them, so their
+    refitted values are not to be read as measured."""
+    intervals = fit.intervals or {}
+    loose = [(name, half) for name, half, ok in zip(fit.parameters, intervals.get("relative_half_width", []),
+                                                    intervals.get("identifiable", []))
+             if not ok and name in diagnosis.parameters]
+    if not loose:
+        return ""
+    return ("; in that refit the data do not fix " + ", ".join(
+        f"{name} (95 % interval {'unbounded' if half is None else f'+-{100 * half:.1f} %'})" for name, half in loose))
 
 
 def _verdict(ranking: list[EffectScore], misfit: float, floor: float, lack_of_fit: bool) -> tuple[bool, str]:
@@ -697,9 +712,49 @@ class Refit:
     # the misfit against the floor with the skin's uncertainty estimated again at this refit's parameters (DIC data;
     # the identification estimated it at the baseline fit's): {"misfit", "misfit_over_floor"}, or None
     own_floor: dict | None = None
+    # 95 % intervals of the parameters linearized at this fit (`linearized_intervals`), None without a Jacobian
+    intervals: dict | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+    def parameter_text(self) -> str:
+        """name = value for each parameter, with its 95 % interval when the fit has one; a parameter whose interval
+        is wider than identify's identifiability rule is marked: the refit moves it, the data do not fix it."""
+        if not self.intervals:
+            return ", ".join(f"{n}={v:.4g}" for n, v in zip(self.parameters, self.theta))
+        return ", ".join(f"{n}={v:.4g} [{low:.4g}, {high:.4g}]{'' if ok else ' not identifiable'}"
+                         for n, v, low, high, ok in zip(self.parameters, self.theta, self.intervals["lower"],
+                                                        self.intervals["upper"], self.intervals["identifiable"]))
+
+
+def linearized_intervals(model: LegModel, theta: Sequence[float], standard_error_x: Sequence[float | None],
+                         confidence: float = 0.95) -> dict | None:
+    """The parameters' intervals at a least-squares fit from the standard errors of x (ln theta, or theta / scale
+    for an additive effect parameter; `identify.linearised_standard_errors`: sqrt(diag (J^T J)^-1), inflated by the
+    residual's chi^2 / dof where that exceeds 1). Identifiable as `identify.noise_monte_carlo` says it: a relative
+    half width of at most IDENTIFIABLE_HALF_WIDTH, or, for an additive parameter, an interval that excludes zero. A
+    refit has no Monte-Carlo of its own; this says which of its numbers the data fix (a parameter that trades with
+    the effect just added can move far with little change of the misfit)."""
+    if standard_error_x is None or len(standard_error_x) == 0 or len(standard_error_x) != len(theta):
+        return None
+    space = model.space
+    z = float(stats.norm.ppf(0.5 + confidence / 2.0))
+    x = space.to_x(theta)
+    se = np.array([np.inf if e is None else float(e) for e in standard_error_x])
+    seen = np.isfinite(se)
+    lower = np.where(seen, space.from_x(x - z * np.where(seen, se, 0.0)), -np.inf)
+    upper = np.where(seen, space.from_x(x + z * np.where(seen, se, 0.0)), np.inf)
+    linear = np.array(space.linear)
+    theta = np.asarray(theta, float)
+    half = np.where(seen, (upper - lower) / (2.0 * np.maximum(np.abs(theta), 1e-300)), np.inf)
+    identifiable = np.where(linear, seen & ((lower > 0) | (upper < 0)), half <= IDENTIFIABLE_HALF_WIDTH)
+    finite = lambda values: [float(v) if np.isfinite(v) else None for v in values]   # noqa: E731 (JSON has no inf)
+    return {"confidence": confidence, "lower": finite(lower), "upper": finite(upper),
+            "relative_half_width": finite(half), "identifiable": [bool(v) for v in identifiable],
+            "not_identifiable": [n for n, ok in zip(space.names, identifiable) if not ok],
+            "method": "linearized at the fit: sqrt(diag (J^T J)^-1) of the whitened residual, inflated by chi^2/dof "
+                      "where above 1"}
 
 
 def refit_model(model: LegModel, effects: Sequence[str]) -> LegModel:
@@ -758,7 +813,8 @@ def summarize_fit(model: LegModel, fit: FitResult, record: dict, objective) -> R
     floor = objective.noise_floor(model.space.size)
     return Refit(list(model.effects), list(model.space.names), list(fit.theta), float(record["cost"]),
                  float(record["cost"]) / floor, chi2, criteria["aic"], criteria["bic"], fit.as_dict(),
-                 level_misfits(objective, r, model.space.size))
+                 level_misfits(objective, r, model.space.size),
+                 intervals=linearized_intervals(model, fit.theta, fit.standard_error_x))
 
 
 def weigh_local(diagnosis: Diagnosis, patch: PatchScore, before: Refit, after: Refit,
@@ -879,7 +935,7 @@ def comparison_lines(before: Refit, after: Sequence[Refit]) -> list[str]:
     lines = [f"{'model':<28}{'k':>3}{'misfit mm^2':>13}{'x floor':>9}{'AIC':>11}{'BIC':>11}  parameters"]
     for fit in (before, *after):
         label = model_label(fit.effects)
-        values = ", ".join(f"{n}={v:.4g}" for n, v in zip(fit.parameters, fit.theta))
+        values = fit.parameter_text()
         lines.append(f"{label:<28}{len(fit.parameters):>3}{fit.misfit:>13.4g}{fit.misfit_over_floor:>9.2f}"
                      f"{fit.aic:>11.1f}{fit.bic:>11.1f}  {values}")
     lines += [f"{model_label(fit.effects)}: {fit.own_floor['misfit_over_floor']:.2f} x the floor with the skin's "

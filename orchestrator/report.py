@@ -439,10 +439,10 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                        s["significant"]] for k, s in enumerate(diagnosis["ranking"], 1)])
     comparison = _table("comparison", "Before and after the refit",
                         ["model", "k", "misfit (mm^2)", "misfit / floor", "misfit / floor, the skin's uncertainty at "
-                         "this fit", "AIC", "BIC", "M (mm^2)", "parameters"],
+                         "this fit", "AIC", "BIC", "M (mm^2)", "parameters [95 % interval, linearized at the fit]"],
                         [[label, len(f["parameters"]), f["misfit"], f["misfit_over_floor"],
                           (f.get("own_floor") or {}).get("misfit_over_floor"), f["aic"], f["bic"], m,
-                          ", ".join(f"{n} = {v:.4g}" for n, v in zip(f["parameters"], f["theta"]))]
+                          Refit(**f).parameter_text()]
                          for label, f, m in zip(labels, fits, mismatch_values)])
     tables = [ranking, comparison]
     if diagnosis.get("levels"):

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose import (design_effect, information_criteria, local_refit_unneeded, neighbour_correlation,
+from orchestrator.diagnose import (Refit, design_effect, information_criteria, local_refit_unneeded, neighbour_correlation,
                                   residual_maps, score_effect, settled)
 from orchestrator.forward import ParameterSpace, annulus_mesh
+from orchestrator.identify import linearised_standard_errors
 from orchestrator.measure import Measurements
 from orchestrator.objectives import DisplacementResidualObjective
 from orchestrator.regions import LegFrame
@@ -202,3 +203,42 @@ def test_the_local_change_is_refitted_only_when_it_could_rival_the_catalog():
     assert reason and "not refitted" in reason and "drainage" in reason
     assert screened(0.0, places=40) is None                  # the local change is the better explanation
     assert screened(1.0, places=40, explained=False) is None  # nothing explained: the local change is the lead
+
+
+def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_what_the_data_do_not_fix():
+    """`linearized_intervals` at a least-squares fit of a linear model in x (ln theta for the two constants, theta /
+    scale for an additive effect parameter), whitened data of unit noise, 400 draws: each 95 % interval holds the
+    truth 95 +- 3.5 % of the time; the constant the data see weakly (a 25 % half width) is the one named not
+    identifiable, the additive parameter is identifiable because its interval excludes zero; a direction the data
+    do not see gives an unbounded interval. The verdict's words name the identified model's constants that the
+    refit leaves loose, not the effect's own parameters."""
+    from orchestrator.diagnose import linearized_intervals, unfixed_constants
+
+    rng = np.random.default_rng(3)
+    space = ParameterSpace(("C10_fat", "C10_muscle", "dv_muscle"), (0.1, 0.1, -1.0), (100.0, 100.0, 1.0),
+                           linear=(False, False, True), scale=(1.0, 1.0, 0.01))
+    model, truth = SimpleNamespace(space=space), np.array([4.5, 11.2, 0.02])
+    n = 60
+    jacobian = rng.normal(size=(n, 3)) * np.array([0.5, 40.0, 1.5])   # dr/dx: C10_fat barely seen
+    covered, loose = np.zeros(3), []
+    for _ in range(400):
+        data = jacobian @ space.to_x(truth) + rng.normal(size=n)
+        x, *_ = np.linalg.lstsq(jacobian, data, rcond=None)
+        r = data - jacobian @ x
+        intervals = linearized_intervals(model, space.from_x(x), linearised_standard_errors(jacobian, r @ r, n - 3))
+        covered += (np.array(intervals["lower"]) <= truth) & (truth <= np.array(intervals["upper"]))
+        loose.append(tuple(intervals["not_identifiable"]))
+    print("coverage", covered / 400)
+    assert np.all(np.abs(covered / 400 - 0.95) <= 0.035)
+    assert set(loose) == {("C10_fat",)}
+
+    unseen = linearized_intervals(model, truth, [0.01, None, 0.05])
+    assert unseen["lower"][1] is None and unseen["upper"][1] is None and not unseen["identifiable"][1]
+    assert linearized_intervals(model, truth, []) is None   # Nelder-Mead: no Jacobian, no interval
+
+    refit = Refit(["drainage"], list(space.names), truth.tolist(), 1e-3, 1.0, 100.0, 0.0, 0.0, {},
+                  intervals=linearized_intervals(model, truth, [0.2, 0.01, 5.0]))
+    words = unfixed_constants(SimpleNamespace(parameters=["C10_fat", "C10_muscle"]), refit)
+    assert words.startswith("; in that refit the data do not fix C10_fat (95 % interval +-")
+    assert "dv_muscle" not in words and "C10_muscle" not in words
+    assert "[" in refit.parameter_text() and "C10_fat=4.5 [" in refit.parameter_text()
