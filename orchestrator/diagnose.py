@@ -723,7 +723,10 @@ class Refit:
         is wider than identify's identifiability rule is marked: the refit moves it, the data do not fix it."""
         if not self.intervals:
             return ", ".join(f"{n}={v:.4g}" for n, v in zip(self.parameters, self.theta))
-        return ", ".join(f"{n}={v:.4g} [{low:.4g}, {high:.4g}]{'' if ok else ' not identifiable'}"
+        def bound(value: float | None, side: str) -> str:   # None: a direction the data do not see
+            return f"{side} unbounded" if value is None else f"{value:.4g}"
+
+        return ", ".join(f"{n}={v:.4g} [{bound(low, 'below')}, {bound(high, 'above')}]{'' if ok else ' not identifiable'}"
                          for n, v, low, high, ok in zip(self.parameters, self.theta, self.intervals["lower"],
                                                         self.intervals["upper"], self.intervals["identifiable"]))
 

@@ -235,6 +235,8 @@ def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_w
     unseen = linearized_intervals(model, truth, [0.01, None, 0.05])
     assert unseen["lower"][1] is None and unseen["upper"][1] is None and not unseen["identifiable"][1]
     assert linearized_intervals(model, truth, []) is None   # Nelder-Mead: no Jacobian, no interval
+    shown = Refit(["drainage"], list(space.names), truth.tolist(), 1e-3, 1.0, 100.0, 0.0, 0.0, {}, intervals=unseen)
+    assert "C10_muscle=11.2 [below unbounded, above unbounded] not identifiable" in shown.parameter_text()
 
     refit = Refit(["drainage"], list(space.names), truth.tolist(), 1e-3, 1.0, 100.0, 0.0, 0.0, {},
                   intervals=linearized_intervals(model, truth, [0.2, 0.01, 5.0]))
