@@ -121,12 +121,14 @@ def pyvale_crest(reference: np.ndarray, deformed: np.ndarray, subset: int, step:
     order = np.argsort(columns["subset_x"][crest])
     converged = columns["converged"][crest][order] > 0
     v = np.where(converged, columns["disp_v"][crest][order], np.nan)
-    return dict(subset=subset, step=step, x=columns["subset_x"][crest][order], v=v, failed=int((~converged).sum()),
-                seconds=seconds)
+    x = columns["subset_x"][crest][order]
+    return dict(subset=subset, step=step, x=x, v=v, failed=int((~converged).sum()), seconds=seconds,
+                **common_metrics(x, CREST_ROW, v, step))
 
 
-def common_metrics(x: np.ndarray, y: float, v: np.ndarray, step: int) -> dict:
-    """The metrics both codes go through (module text): n about the sliding mean, l10, MEI, plateau."""
+def common_metrics(x: np.ndarray, y, v: np.ndarray, step: int) -> dict:
+    """The metrics both codes go through (module text): the attenuation ratio along the period, n about the sliding
+    mean ("noise"; `analyse` keeps it as "noise_scatter" beside its own n), l10, MEI, plateau."""
     period = period_px(x)
     span = max(SMOOTH_SPAN_PX // step, 1)
     ratio = sliding_mean(v / commanded_v(x, y), span)
@@ -254,26 +256,27 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     measured = np.where(failed, np.nan, measured)
     sigma = np.sqrt(np.where(failed, np.nan, result.covariance_mm2[:, 1, 1]))   # pixel = 1 mm
 
-    span = max(SMOOTH_SPAN_PX // step, 1)
-    ratio_measured = sliding_mean(measured / commanded, span)
-    ratio_seen = sliding_mean(seen / commanded, span)
+    common = common_metrics(x, y, measured, step)
+    ratio_measured = common["ratio"]
+    ratio_seen = sliding_mean(seen / commanded, max(SMOOTH_SPAN_PX // step, 1))
     long = period >= NOISE_MIN_PERIOD_PX
     residual = (measured - seen)[long]
     residual = residual[np.isfinite(residual)]
     noise = float(np.std(residual))
     noise_predicted = float(np.sqrt(np.nanmean(sigma[long] ** 2)))
-    l10 = first_crossing(period, ratio_measured)
+    l10 = common["l10"]
     fine = np.linspace(period.min(), period.max(), 20000)
     plateau = period >= PLATEAU_MIN_PERIOD_PX
     gap = np.abs(ratio_measured - ratio_seen)
     gap[period < 2 * window] = np.nan    # where the windows see almost nothing, the ratio is noise over a tiny signal
     worst = int(np.nanargmax(gap))
-    return dict(window=window, step=step, x=x, y=y, period=period, commanded=commanded, measured=measured, seen=seen, sigma=sigma,
-                ratio_measured=ratio_measured, ratio_seen=ratio_seen, failed=int(failed.sum()), windows=len(x),
+    return dict(window=window, step=step, x=x, period=period, commanded=commanded, measured=measured, seen=seen,
+                sigma=sigma, noise_scatter=common["noise"], mei_scatter=common["mei"], ratio_measured=ratio_measured,
+                ratio_seen=ratio_seen, failed=int(failed.sum()), windows=len(x),
                 noise=noise, noise_predicted=noise_predicted, noise_sigma=result.noise_sigma[0], l10=l10,
                 l10_last=last_crossing(period, ratio_measured), l10_seen=first_crossing(period, ratio_seen),
                 l10_uniform=first_crossing(fine, uniform_window(window, fine)), mei=noise * l10,
-                plateau=float(np.nanmean(measured[plateau])), plateau_seen=float(np.mean(seen[plateau])),
+                plateau=common["plateau"], plateau_seen=float(np.mean(seen[plateau])),
                 gap=float(gap[worst]), gap_period=float(period[worst]), seconds_dic=seconds_dic,
                 seconds_operator=seconds_operator, zncc=float(np.median(result.confidence)))
 
@@ -326,31 +329,27 @@ def report(results: list[dict], floor_sigma: float) -> None:
         print(f"  calfit {r['window']:2d}px: n {r['noise']:.4f} px, l10 {r['l10']:.1f} px, MEI {r['mei']:.3f} px^2")
 
 
-def report_peer(results: list[dict], peers: list[dict]) -> list[dict]:
-    """Both codes through `common_metrics`, with calfit / pyvale ratios; returns pyvale's metrics for the figure."""
+def report_peer(results: list[dict], peers: list[dict]) -> None:
+    """Both codes' `common_metrics`, with calfit / pyvale ratios."""
     print("\nbeside pyvale's DIC engine (same images, same row, one thread each; the same metrics for both, which "
           "need neither code's error model: n = scatter about the sliding 100-px mean where p >= "
           f"{NOISE_MIN_PERIOD_PX:g} px)")
     print(f"{'code':>8s} {'subset':>7s} {'step':>5s} {'windows':>8s} {'failed':>6s} {'n px':>7s} {'l10 px':>7s} "
           f"{'MEI px2':>8s} {'plateau':>8s} {'DIC s':>6s}")
-    peer_metrics = []
     for r, peer in zip(results, peers):
-        mine = common_metrics(r["x"], r["y"], r["measured"], r["step"])
-        theirs = common_metrics(peer["x"], CREST_ROW, peer["v"], peer["step"])
-        peer_metrics.append(theirs)
+        mine = dict(noise=r["noise_scatter"], l10=r["l10"], mei=r["mei_scatter"], plateau=r["plateau"])
         for code, size, step, count, failed, m, seconds in (
                 ("calfit", r["window"], r["step"], r["windows"], r["failed"], mine, r["seconds_dic"]),
-                ("pyvale", peer["subset"], peer["step"], len(peer["x"]), peer["failed"], theirs, peer["seconds"])):
+                ("pyvale", peer["subset"], peer["step"], len(peer["x"]), peer["failed"], peer, peer["seconds"])):
             print(f"{code:>8s} {size:5d}px {step:5d} {count:8d} {failed:6d} {m['noise']:7.4f} {m['l10']:7.1f} "
                   f"{m['mei']:8.3f} {m['plateau']:8.4f} {seconds:6.1f}")
         per_window = (r["seconds_dic"] / r["windows"]) / (peer["seconds"] / len(peer["x"]))
-        print(f"{'calfit / pyvale':>22s}: n {mine['noise'] / theirs['noise']:.2f} x, l10 "
-              f"{mine['l10'] / theirs['l10']:.2f} x, MEI {mine['mei'] / theirs['mei']:.2f} x, time per window "
+        print(f"{'calfit / pyvale':>22s}: n {mine['noise'] / peer['noise']:.2f} x, l10 "
+              f"{mine['l10'] / peer['l10']:.2f} x, MEI {mine['mei'] / peer['mei']:.2f} x, time per window "
               f"{per_window:.2f} x")
-    return peer_metrics
 
 
-def figure(results: list[dict], out: Path, peers: list[dict], peer_metrics: list[dict]) -> None:
+def figure(results: list[dict], out: Path, peers: list[dict]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -377,9 +376,9 @@ def figure(results: list[dict], out: Path, peers: list[dict], peer_metrics: list
         bottom.plot(r["period"], r["ratio_seen"], color=colour, lw=1.2, ls="--",
                     label=f"{r['window']} px: observation operator, l10 = {r['l10_seen']:.0f} px")
         bottom.plot(r["period"], uniform_window(r["window"], r["period"]), color=colour, lw=0.8, ls=":")
-    for peer, metrics, colour in zip(peers, peer_metrics, colours):
-        bottom.plot(metrics["period"], metrics["ratio"], color=colour, lw=0.9, ls="-.",
-                    label=f"pyvale {peer['subset']} px subsets: measured, l10 = {metrics['l10']:.0f} px")
+    for peer, colour in zip(peers, colours):
+        bottom.plot(peer["period"], peer["ratio"], color=colour, lw=0.9, ls="-.",
+                    label=f"pyvale {peer['subset']} px subsets: measured, l10 = {peer['l10']:.0f} px")
     bottom.plot([], [], color="grey", lw=0.8, ls=":", label="uniform affine window (textbook)")
     bottom.axhline(LEVEL, color="black", lw=0.8)
     bottom.text(295, LEVEL + 0.01, "10 % attenuation", ha="right", va="bottom", fontsize=8)
@@ -425,8 +424,8 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="calfit-pyvale-") as scratch:
         peers = [pyvale_crest(full_reference, full_deformed, window + 1, args.step, Path(scratch))
                  for window in args.windows]
-    peer_metrics = report_peer(results, peers)
-    figure(results, args.out, peers, peer_metrics)
+    report_peer(results, peers)
+    figure(results, args.out, peers)
 
 
 if __name__ == "__main__":
