@@ -152,11 +152,9 @@ class CalfGeometry:
     def __post_init__(self):
         s = self.shape
         c = s.centre_mm
-        ellipse = ellipse_radius(s.half_width_mm, s.half_depth_mm)
-        self.skin = StarCurve(c, lambda t: ellipse(t) * (1.0 + s.posterior_bulge * np.sin(t)) * self.dent(t))
-        self.skin_inner = self.skin.shrunk(s.skin_mm)
-        self.fascia = StarCurve(c, lambda t: self.skin.radius(t) - self.fat_thickness(t))
-        self.muscle_outer = self.fascia.shrunk(s.fascia_mm)
+        self._ellipse = ellipse_radius(s.half_width_mm, s.half_depth_mm)
+        self.skin, self.skin_inner, self.fascia, self.muscle_outer = (
+            StarCurve(c, lambda t, k=k: self.leg_radii(t)[k]) for k in range(4))
         tibia_shape = lobed_radius(s.tibia_radius_mm, s.tibia_lobes, 3, -np.pi / 2)
         self.tibia = StarCurve(self._place_tibia(tibia_shape), tibia_shape)
         self.tibia_marrow = self.tibia.shrunk(s.tibia_cortex_mm)
@@ -167,6 +165,16 @@ class CalfGeometry:
         self._check_nesting()
 
     # -- construction -----------------------------------------------------
+
+    def leg_radii(self, theta) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """r(theta) (mm) of the four curves about the leg's centre, outside in: the skin (its ellipse, the posterior
+        bulge, the groove), the skin's inner face, the fascia (the fat/muscle interface: the skin less the fat and
+        skin's thickness) and the muscle's outer face. One place for their shapes; `layers` takes the four at once
+        on every sample of an image (the skin's radius once, not four times)."""
+        s = self.shape
+        skin = self._ellipse(theta) * (1.0 + s.posterior_bulge * np.sin(theta)) * self.dent(theta)
+        fascia = skin - self.fat_thickness(theta)
+        return skin, skin - s.skin_mm, fascia, fascia - s.fascia_mm
 
     def dent(self, theta) -> np.ndarray:
         """The groove's factor on the skin radius (1 away from it)."""
@@ -256,23 +264,17 @@ class CalfGeometry:
         a later layer covers an earlier one. The distance is radial for star-shaped parts (close to the normal
         distance for these round shapes), so renderers can draw boundaries with sub-sample precision."""
         x, y = np.asarray(x, float), np.asarray(y, float)
-        s = self.shape
-        # skin, its inner face, the fascia and the muscle share the leg's centre and the skin's radius (as
-        # __post_init__ builds them): one polar transform and one r(theta) for the four, the same numbers
+        # the leg's four curves share its centre (one polar transform) and `leg_radii` (one r(theta) of the skin)
         rho, theta = self.skin.polar(x, y)
-        skin_radius = self.skin.radius(theta)
-        fascia_radius = skin_radius - self.fat_thickness(theta)
-        muscle = rho - (fascia_radius - s.fascia_mm)
-        layers = [(Tissue.SKIN, rho - skin_radius), (Tissue.FAT, rho - (skin_radius - s.skin_mm)),
-                  (Tissue.FASCIA, rho - fascia_radius), (Tissue.MUSCLE, muscle),
-                  (Tissue.FASCIA, np.maximum(muscle, self._septum_distance(x, y) - s.fascia_mm / 2))]
+        skin, fat, fascia, muscle = (rho - radius for radius in self.leg_radii(theta))
+        layers = [(Tissue.SKIN, skin), (Tissue.FAT, fat), (Tissue.FASCIA, fascia), (Tissue.MUSCLE, muscle),
+                  (Tissue.FASCIA, np.maximum(muscle, self._septum_distance(x, y) - self.shape.fascia_mm / 2))]
         for vein in self.veins:
             distance = np.hypot(x - vein.centre[0], y - vein.centre[1]) - vein.radius_mm
             layers.append((Tissue.SUPERFICIAL_VEIN if vein.superficial else Tissue.DEEP_VEIN, distance))
-        for bone, cortex_mm in ((self.tibia, s.tibia_cortex_mm), (self.fibula, s.fibula_cortex_mm)):
-            rho, theta = bone.polar(x, y)
-            bone_radius = bone.radius(theta)
-            layers += [(Tissue.CORTEX, rho - bone_radius), (Tissue.MARROW, rho - (bone_radius - cortex_mm))]
+        for bone, marrow in ((self.tibia, self.tibia_marrow), (self.fibula, self.fibula_marrow)):
+            rho, theta = bone.polar(x, y)   # a bone and its marrow share their centre
+            layers += [(Tissue.CORTEX, rho - bone.radius(theta)), (Tissue.MARROW, rho - marrow.radius(theta))]
         return layers
 
     def tissue_at(self, x, y) -> np.ndarray:
