@@ -85,7 +85,7 @@ from scipy.spatial import cKDTree
 from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
 from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
-from .identify import IDENTIFIABLE_HALF_WIDTH, FitResult, jacobian_in_x, levenberg_marquardt, steps_into_box
+from .identify import FitResult, interval_identifiable, jacobian_in_x, levenberg_marquardt, steps_into_box
 from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
 from .runner import OK, Evaluator, Progress
@@ -735,8 +735,8 @@ def linearized_intervals(model: LegModel, theta: Sequence[float], standard_error
                          confidence: float = 0.95) -> dict | None:
     """The parameters' intervals at a least-squares fit from the standard errors of x (ln theta, or theta / scale
     for an additive effect parameter; `identify.linearised_standard_errors`: sqrt(diag (J^T J)^-1), inflated by the
-    residual's chi^2 / dof where that exceeds 1). Identifiable as `identify.noise_monte_carlo` says it: a relative
-    half width of at most IDENTIFIABLE_HALF_WIDTH, or, for an additive parameter, an interval that excludes zero. A
+    residual's chi^2 / dof where that exceeds 1). Identifiable as `identify.noise_monte_carlo` says it
+    (`identify.interval_identifiable`); a direction the data do not see gives an unbounded interval. A
     refit has no Monte-Carlo of its own; this says which of its numbers the data fix (a parameter that trades with
     the effect just added can move far with little change of the misfit)."""
     if standard_error_x is None or len(standard_error_x) == 0 or len(standard_error_x) != len(theta):
@@ -748,10 +748,7 @@ def linearized_intervals(model: LegModel, theta: Sequence[float], standard_error
     seen = np.isfinite(se)
     lower = np.where(seen, space.from_x(x - z * np.where(seen, se, 0.0)), -np.inf)
     upper = np.where(seen, space.from_x(x + z * np.where(seen, se, 0.0)), np.inf)
-    linear = np.array(space.linear)
-    theta = np.asarray(theta, float)
-    half = np.where(seen, (upper - lower) / (2.0 * np.maximum(np.abs(theta), 1e-300)), np.inf)
-    identifiable = np.where(linear, seen & ((lower > 0) | (upper < 0)), half <= IDENTIFIABLE_HALF_WIDTH)
+    half, identifiable = interval_identifiable(lower, upper, theta, np.array(space.linear))
     finite = lambda values: [float(v) if np.isfinite(v) else None for v in values]   # noqa: E731 (JSON has no inf)
     return {"confidence": confidence, "lower": finite(lower), "upper": finite(upper),
             "relative_half_width": finite(half), "identifiable": [bool(v) for v in identifiable],

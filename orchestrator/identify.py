@@ -299,6 +299,16 @@ def levenberg_marquardt(evaluator: Evaluator, start: Sequence[float], *, max_ite
                                            for e in linearised_standard_errors(J, chi2, len(r) - p)])
 
 
+def interval_identifiable(lower, upper, value, linear, half_width: float = IDENTIFIABLE_HALF_WIDTH
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """(relative half width, identifiable) of each parameter's interval [lower, upper] about its value: identifiable
+    when the half width is at most `half_width` of the value; an additive effect parameter (`linear`) has no
+    relative width, and is identifiable when its interval excludes zero. An unbounded interval is neither."""
+    lower, upper, value = (np.asarray(v, float) for v in (lower, upper, value))
+    half = (upper - lower) / (2.0 * np.maximum(np.abs(value), 1e-300))
+    return half, np.where(linear, (lower > 0) | (upper < 0), half <= half_width)
+
+
 def linearised_standard_errors(jacobian: np.ndarray, chi2: float, dof: int) -> np.ndarray:
     """(p,) sqrt(diag (J^T J)^-1) of whitened residuals (r.r = chi^2, J = dr/dx): the standard error of each x at a
     least-squares fit, times s = sqrt(chi^2 / dof) where that exceeds 1 (the residual's own variance, as the noise
@@ -570,10 +580,9 @@ def noise_monte_carlo(evaluator: Evaluator, best: Sequence[float], *, draws: int
     lower, upper = np.percentile(samples, [tail, 100.0 - tail], axis=0)
     lower, upper = np.where(undetermined, box_low, lower), np.where(undetermined, box_high, upper)
     central = np.median(samples, axis=0)
-    half = (upper - lower) / (2.0 * np.maximum(np.abs(best), 1e-300))
     linear = np.array(space.linear) if space is not None else np.zeros(p, bool)
-    # an additive effect parameter has no relative width: identifiable when its interval excludes zero
-    identifiable = np.where(linear, (lower > 0) | (upper < 0), half <= identifiable_half_width) & ~undetermined
+    half, identifiable = interval_identifiable(lower, upper, best, linear, identifiable_half_width)
+    identifiable &= ~undetermined
     names = list(space.names) if space is not None else [f"theta{j}" for j in range(p)]
     edge = np.mean(np.isclose(samples, box_low) | np.isclose(samples, box_high), axis=0) >= 0.2
     sums = []
