@@ -726,7 +726,8 @@ class Refit:
         def bound(value: float | None, side: str) -> str:   # None: a direction the data do not see
             return f"{side} unbounded" if value is None else f"{value:.4g}"
 
-        return ", ".join(f"{n}={v:.4g} [{bound(low, 'below')}, {bound(high, 'above')}]{'' if ok else ' not identifiable'}"
+        return ", ".join(f"{n}={v:.4g} [{bound(low, 'below')}, {bound(high, 'above')}]"
+                         f"{'' if ok else ' not identifiable'}"
                          for n, v, low, high, ok in zip(self.parameters, self.theta, self.intervals["lower"],
                                                         self.intervals["upper"], self.intervals["identifiable"]))
 

@@ -442,7 +442,8 @@ class LegModel:
             mu = self.friction_at(theta)
             gap = () if any(line.startswith("GAP PROFILE") for line in extra_sensitivities) else None
             return leg_garment_deck(materials, band, self.mesh, friction_mu=mu, effects=effects, gap_profile=gap,
-                                    release_static=release_static, description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
+                                    release_static=release_static,
+                                    description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm, "
                                                 f"mu = {mu:g}")
         return leg_laplace_deck(materials, tension, tension_profile=self.tension_profile, effects=effects,
                                 description=f"theta = {list(map(float, theta))}, T = {tension:.6g} N/mm")
