@@ -4,8 +4,8 @@ DIC measures the skin's motion to a few micrometres (a 32-pixel window on the sk
 the edge). The model cannot predict it that well, because its skin comes from a segmentation and the garment
 presses it by Laplace's law, p = T kappa (Avril et al. eq. 1): curvature amplifies short shape errors, and a
 bump of 0.01 mm over 15 mm of skin changes the local pressure by several percent. On the phantom calf, whose
-true shape is known, the skin `meshing.mesh_from_labels` takes from the image (edges snapped, low-pass at 8 mm)
-is off the true skin by 0.011 mm RMS at wavelengths over 8 mm, and that alone puts the model's predictions 0.2
+true shape is known, the skin `meshing.mesh_from_labels` took from the image (edges snapped, low-pass at a fixed
+8 mm) was off the true skin by 0.011 mm RMS at wavelengths over 8 mm, and that alone put the model's predictions 0.2
 times the DIC variance away from the truth's (the fascia and the bones, segmented as well, by under 0.05;
 moving the whole skin by 0.14 mm, by under 0.1). Ignored, it makes every fit look worse than the noise and
 every diagnosis find physics that is missing only from the outline.
@@ -15,9 +15,11 @@ Shape error as pressure error. A normal offset delta(theta) of a contour of radi
 changes the Laplace pressure by the relative amount a_k = (k^2 - 1) alpha_k / R: exactly a garment tension
 profile T (1 + sum a_k cos k theta + b_k sin k theta), whose sensitivities du/da_k the engine gives in one run
 (`*SENSITIVITY`, `PROFILE, GARMENT, A<k>`). With the skin offset modelled as white noise low-passed at the
-skin's cut-off wavelength (`meshing.labels.SKIN_CUTOFF_MM`, Butterworth H_k at the wavelength L / k, L the
-perimeter) and of RMS `skin_sigma_mm` (default `SKIN_UNCERTAINTY_PX` pixels), mode k has the variance
-v_k = sigma^2 H_k^2 / sum_j H_j^2 in each of alpha_k and beta_k, and the predictions the covariance
+skin's cut-off wavelength (where the skin's spectrum puts it, `meshing.labels`; Butterworth H_k at the wavelength
+L / k, L the perimeter) and of RMS `skin_sigma_mm`, mode k has the variance v_k = sigma^2 H_k^2 / sum_j H_j^2 in each
+of alpha_k and beta_k. The skin's own spectrum measures its error too (`meshing.curves.outline_error`: v per mode,
+white, from its modes of 6-12 mm, where a calf has no shape), which gives sigma^2 = v sum_j H_j^2 and v_k = v H_k^2
+(`measured_skin_sigma`); where it cannot, sigma is `SKIN_UNCERTAINTY_PX` pixels. The predictions get the covariance
 
     C_geo = sum_{k >= 2} (k^2 - 1)^2 v_k / R^2 (g_Ak g_Ak^T + g_Bk g_Bk^T),   g = O du/da (what is measured of it),
 
@@ -81,14 +83,24 @@ def skin_perimeter_mm(mesh) -> float:
     return float(np.sum(np.linalg.norm(np.diff(np.vstack([loop, loop[:1]]), axis=0), axis=1)))
 
 
-def offset_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
-    """Variance of the skin offset's Fourier coefficients alpha_k (= of beta_k), k = 1 .. K, mm^2, for an offset of
-    RMS skin_sigma_mm low-passed at cutoff_mm (module text); K is where the low-pass response falls below
-    RESPONSE_FLOOR."""
+def _responses(perimeter_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """The skin's low-pass response H_k at the wavelengths L / k, k = 1 .. K, K where it falls below RESPONSE_FLOOR."""
     last = int(np.ceil(perimeter_mm / cutoff_mm * (1.0 / RESPONSE_FLOOR - 1.0) ** (1.0 / (2 * order))))
     k = np.arange(1, max(last, 2) + 1, dtype=float)
-    response = 1.0 / (1.0 + (k * cutoff_mm / perimeter_mm) ** (2 * order))
+    return 1.0 / (1.0 + (k * cutoff_mm / perimeter_mm) ** (2 * order))
+
+
+def offset_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
+    """Variance of the skin offset's Fourier coefficients alpha_k (= of beta_k), k = 1 .. K, mm^2, for an offset of
+    RMS skin_sigma_mm low-passed at cutoff_mm (module text)."""
+    response = _responses(perimeter_mm, cutoff_mm, order)
     return skin_sigma_mm ** 2 * response ** 2 / np.sum(response ** 2)
+
+
+def measured_skin_sigma(perimeter_mm: float, mode_variance_mm2: float, cutoff_mm: float, order: int = 4) -> float:
+    """The RMS skin_sigma_mm of `offset_variances` for the skin's own error, white with `mode_variance_mm2` per
+    coefficient (`meshing.curves.outline_error`), low-passed at cutoff_mm: its modes then have v H_k^2."""
+    return float(np.sqrt(mode_variance_mm2 * np.sum(_responses(perimeter_mm, cutoff_mm, order) ** 2)))
 
 
 def mode_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:

@@ -36,11 +36,10 @@ from .garment_state import band_state
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_spreads, pressure_uncertainty, table1_starts)
 from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
-                                   discard_without_columns, geometry_columns)
+                                   discard_without_columns, geometry_columns, measured_skin_sigma, skin_perimeter_mm)
 from .geometry_uncertainty import read_covariance as read_geometry_covariance
 from .geometry_uncertainty import write as write_geometry
 from .imaging.case import read_model_choice
-from .meshing.labels import SKIN_CUTOFF_MM
 from .imaging.prefilter import PREFILTER_SIGMA_PX
 from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
 from .levels import AtTension
@@ -215,9 +214,12 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         # dragged far (a foreign case's, by a missing tension profile, to the bounds of C10 and Kv of fat, where the
         # skin's uncertainty came out 8 times what it is at the fit it then weighed)
         pixel = min(setup.case.pixel_size_mm)
-        options = dict(effects=setup.model.effects,
-                       skin_sigma_mm=SKIN_UNCERTAINTY_PX * pixel if skin_sigma_mm is None else skin_sigma_mm,
-                       interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=SKIN_CUTOFF_MM)
+        skin = setup.tissue_curves()
+        if skin_sigma_mm is None:   # the skin's error as its own spectrum measured it (geometry_uncertainty)
+            skin_sigma_mm = (SKIN_UNCERTAINTY_PX * pixel if skin.skin_error is None else measured_skin_sigma(
+                skin_perimeter_mm(setup.mesh), skin.skin_error.mode_variance_mm2, skin.skin_cutoff_mm))
+        options = dict(effects=setup.model.effects, skin_sigma_mm=skin_sigma_mm,
+                       interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=skin.skin_cutoff_mm)
         first, passes = best, []
         for _ in range(SKIN_PASSES):
             estimated_at = best.theta

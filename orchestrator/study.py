@@ -90,6 +90,7 @@ class RunSetup:
     level_motions: tuple = ()     # the bones' rigid motion of each more garment level's image (case.levels order)
     levels_aligned: tuple = ()    # each more garment level's image aligned on the bones of I0
     segmentation_warnings: dict = field(default_factory=dict)   # label map -> [SegmentationWarning], setup.json
+    skin_outline: dict = field(default_factory=dict)   # setup.json "skin_outline": the skin's cut-off and error
     # the DIC measurements of each garment level as `calfit measure` stored them, rebuilt once (their windows'
     # operators and covariance take about a second); the geometry's part is read again at every call
     _measured: dict = field(default_factory=dict, repr=False, compare=False)
@@ -139,6 +140,10 @@ class RunSetup:
             lines.append(f"muscle compartments: {count} from the labels")
         lines += [f"{source} unsure: {warning.message}" for source, warnings in self.segmentation_warnings.items()
                   for warning in warnings]
+        if self.skin_outline.get("error_per_mode_mm") is not None:
+            lines.append(f"skin: low-passed at {self.skin_outline['cutoff_mm']:.1f} mm, the shortest wavelength at "
+                         f"which its outline stands out of its own error ({self.skin_outline['error_per_mode_mm']:.4f} "
+                         "mm per Fourier mode, measured at 6-12 mm)")
         return lines
 
     def solve(self, theta: Sequence[float], folder: Path, model: LegModel | None = None):
@@ -319,8 +324,11 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                         **{f"level_{level.number}_aligned": aligned
                            for level, (aligned, _, _, _) in zip(case.levels, prepared_levels)})
     temporary.replace(run_dir / SETUP_ARRAYS)
+    skin_outline = {"cutoff_mm": curves.skin_cutoff_mm,
+                    "error_per_mode_mm": (None if curves.skin_error is None
+                                          else float(np.sqrt(2.0 * curves.skin_error.mode_variance_mm2)))}
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
-                                      "order": order, "compartments": compartment_info,
+                                      "order": order, "compartments": compartment_info, "skin_outline": skin_outline,
                                       "missing_fraction": missing_fraction, "segmentation_warnings": segmentation_warnings,
                                       **({"levels": [info for _, _, info, _ in prepared_levels]} if case.levels else {}),
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
@@ -411,7 +419,8 @@ def load_run(run_dir: str | Path) -> RunSetup:
                              for source, warnings in info.get("segmentation_warnings", {}).items()}
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
                     case_model(mesh, case), info.get("compartments", {"source": "none"}),
-                    info.get("missing_fraction", {}), level_motions, levels_aligned, segmentation_warnings)
+                    info.get("missing_fraction", {}), level_motions, levels_aligned, segmentation_warnings,
+                    skin_outline=info.get("skin_outline", {}))
 
 
 def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None, *,

@@ -463,3 +463,59 @@ def test_leg_slice_at_200k_dof_is_valid():
     assert mesh.min_angle_deg() >= 20.0
     _, uses, _ = corner_edges(mesh)
     assert set(np.unique(uses)) <= {1, 2}
+
+
+def _outline_with_error(rng, mode_variance: float, bump_mm: float = 0.0):
+    """An egg-shaped outline (modes up to 3, perimeter about 300 mm) sampled at 0.25 mm, its true curvature, and
+    the same outline with a white normal error of `mode_variance` per Fourier coefficient up to 3 mm wavelengths;
+    bump_mm: a groove of that depth and 5 mm width on it (a real shape)."""
+    count = 1200
+    theta = np.linspace(0.0, 2 * np.pi, count, endpoint=False)
+
+    def outline(offset):
+        radius = 48.0 + 4.0 * np.cos(2 * theta) + 1.5 * np.sin(3 * theta) - bump_mm * np.exp(-((theta - 1.0) * 48.0 / 5.0) ** 2)
+        return np.column_stack([(radius + offset) * np.cos(theta), (radius + offset) * np.sin(theta)])
+
+    true = outline(0.0)
+    perimeter = np.sum(np.linalg.norm(np.diff(np.vstack([true, true[:1]]), axis=0), axis=1))
+    modes = np.arange(2, int(perimeter / 3.0))
+    alpha, beta = rng.normal(0.0, np.sqrt(mode_variance), (2, len(modes)))
+    error = (alpha[:, None] * np.cos(np.outer(modes, theta)) + beta[:, None] * np.sin(np.outer(modes, theta))).sum(0)
+    return true, outline(error)
+
+
+def _turning_curvature(points: np.ndarray) -> np.ndarray:
+    before, after = points - np.roll(points, 1, axis=0), np.roll(points, -1, axis=0) - points
+    turn = np.arctan2(before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0], np.sum(before * after, axis=1))
+    return turn / (0.5 * (np.linalg.norm(before, axis=1) + np.linalg.norm(after, axis=1)))
+
+
+def _curvature_error(points: np.ndarray, true: np.ndarray) -> float:
+    """RMS relative error of the curvature of `points` against the true outline's at the same polar angle."""
+    angle = lambda p: np.arctan2(p[:, 1], p[:, 0])
+    order = np.argsort(angle(true))
+    expected = np.interp(angle(points), angle(true)[order], _turning_curvature(true)[order], period=2 * np.pi)
+    return float(np.sqrt(np.mean((_turning_curvature(points) / expected - 1.0) ** 2)))
+
+
+def test_the_skin_cutoff_is_where_the_outline_stands_out_of_its_measured_error():
+    """An outline's own spectrum measures its error (white, per Fourier mode, from its 6-12 mm wavelengths) and puts
+    the low-pass where the shape stands out of it: the curvature's error falls from what a fixed 8 mm cut-off leaves,
+    and a 5 mm groove, a real shape, keeps its depth."""
+    from orchestrator.meshing.curves import lowpass_closed, outline_error
+
+    rng = np.random.default_rng(3)
+    variance = 5e-6   # mm^2 per coefficient: 0.003 mm per mode, what the phantoms' and foreign skins show
+    for _ in range(3):
+        true, measured = _outline_with_error(rng, variance)
+        error = outline_error(measured, 8.0)
+        assert error is not None and abs(error.mode_variance_mm2 / variance - 1.0) < 0.35
+        assert error.cutoff_mm > 30.0
+        assert _curvature_error(lowpass_closed(measured, 8.0), true) > 0.1     # what a fixed cut-off leaves
+        assert _curvature_error(lowpass_closed(measured, error.cutoff_mm), true) < 0.02
+    true, measured = _outline_with_error(rng, variance, bump_mm=0.5)
+    error = outline_error(measured, 8.0)
+    assert error.cutoff_mm < 12.0
+    depth = lambda points: np.ptp(np.linalg.norm(points, axis=1)[(np.arange(len(points)) > 150) & (np.arange(len(points)) < 230)])
+    assert abs(depth(lowpass_closed(measured, error.cutoff_mm)) / depth(true) - 1.0) < 0.15
+    assert outline_error(measured[::40], 8.0) is None   # 30 points 10 mm apart: no mode in the error's band

@@ -10,7 +10,8 @@ From the two images alone: the loaded image is aligned on the bones, the displac
 default when the case has one), I0 is segmented and meshed (2,000 CPE6 by default), and the four parameters
 (C10 and Kv of fat and muscle, kPa) are fitted by Levenberg-Marquardt with the engine's sensitivities, the
 residual weighted by the DIC covariance. The uncertainty of the model's skin is then estimated at that point
-and the fit repeated with it in the weights (--skin-uncertainty sets it, mm RMS; default 0.05 pixel).
+and the fit repeated with it in the weights (--skin-uncertainty sets it, mm RMS; default: the error the skin's
+own spectrum shows, 0.05 pixel where it cannot tell).
 --objective contour fits the contour mismatch M of Avril et al. instead (Nelder-Mead, 400 T3 by default).
 --starts table1 runs from the initial values of Avril et al. Table 1 (each parameter +-10 %).
 Every evaluation is logged in RUN_DIR/evaluations.jsonl: run the same command again after an interruption and
@@ -56,7 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--effects", help="comma-separated catalog effects whose parameters are fitted too "
                                            "(calfit diagnose --catalog lists them)")
     parser.add_argument("--skin-uncertainty", type=float, metavar="MM",
-                        help="RMS uncertainty of the segmented skin's shape, mm (default 0.05 pixel)")
+                        help="RMS uncertainty of the segmented skin's shape, mm (default: measured on the skin's "
+                             "spectrum; 0.05 pixel where it cannot be)")
     add_parallel_arguments(parser)
 
 

@@ -66,6 +66,15 @@ def smooth_points(points: np.ndarray, closed: bool, sigma: float) -> np.ndarray:
     return smoothed
 
 
+def equal_arc_samples(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """A closed curve's points resampled at as many equal steps of arc length, and the step (mm)."""
+    closed_loop = np.vstack([points, points[:1]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed_loop, axis=0), axis=1))])
+    count = len(points)
+    even = np.linspace(0.0, arc[-1], count, endpoint=False)
+    return np.column_stack([np.interp(even, arc, closed_loop[:, k]) for k in range(2)]), arc[-1] / count
+
+
 def lowpass_closed(points: np.ndarray, cutoff_mm: float, order: int = 4) -> np.ndarray:
     """A closed curve low-pass filtered along its arc length: resampled at equal steps, its coordinates' Fourier
     series multiplied by the Butterworth response 1 / (1 + (lambda_c / lambda)^(2 order)), lambda the wavelength.
@@ -73,12 +82,8 @@ def lowpass_closed(points: np.ndarray, cutoff_mm: float, order: int = 4) -> np.n
     pixel staircase and the noise of a segmentation, shorter, are removed."""
     if cutoff_mm <= 0 or len(points) < 8:
         return points.copy()
-    closed_loop = np.vstack([points, points[:1]])
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(closed_loop, axis=0), axis=1))])
-    count = len(points)
-    even = np.linspace(0.0, arc[-1], count, endpoint=False)
-    samples = np.column_stack([np.interp(even, arc, closed_loop[:, k]) for k in range(2)])
-    return lowpass_periodic(samples, arc[-1] / count, cutoff_mm, order)
+    samples, spacing = equal_arc_samples(points)
+    return lowpass_periodic(samples, spacing, cutoff_mm, order)
 
 
 def lowpass_periodic(values: np.ndarray, spacing_mm: float, cutoff_mm: float, order: int = 4) -> np.ndarray:
@@ -88,6 +93,59 @@ def lowpass_periodic(values: np.ndarray, spacing_mm: float, cutoff_mm: float, or
     response = 1.0 / (1.0 + (frequency * cutoff_mm) ** (2 * order))
     shape = (-1,) + (1,) * (values.ndim - 1)
     return np.fft.irfft(np.fft.rfft(values, axis=0) * response.reshape(shape), n=len(values), axis=0)
+
+
+SHAPE_OVER_ERROR = 3.0     # a wavelength band is the outline's shape where its power is 3 times the error's or more
+BANDS_PER_OCTAVE = 3
+
+
+@dataclass(frozen=True)
+class OutlineError:
+    """What a measured closed outline's own Fourier spectrum says of its error (`outline_error`).
+
+    cutoff_mm: the shortest wavelength at which the outline's shape stands out of its error, where a low-pass
+    keeps the shape and drops the error (the Wiener filter's crossover); mode_variance_mm2: the error's variance per
+    Fourier coefficient of a normal offset, alpha_k and beta_k of sum_k alpha_k cos(2 pi k s / L) + beta_k
+    sin(2 pi k s / L), as white noise; perimeter_mm: L."""
+
+    cutoff_mm: float
+    mode_variance_mm2: float
+    perimeter_mm: float
+
+
+def outline_error(points: np.ndarray, shortest_shape_mm: float) -> OutlineError | None:
+    """The error of a measured closed outline and the cut-off wavelength that separates it from its shape.
+
+    Wavelengths between 0.75 and 1.5 times `shortest_shape_mm` (the shortest shape the outline can have) hold its
+    error alone: the mean power of its Fourier modes there is the error's, taken as white at longer wavelengths
+    (where, on outlines of known shape, it is the same or lower). Going from the longest wavelengths down in
+    third-octave bands, the shortest band whose mean power is (1 + SHAPE_OVER_ERROR) times the error's or more is
+    the last one that holds shape: its centre is the cut-off (never below shortest_shape_mm). A shape anywhere in
+    the spectrum keeps its wavelengths, so a feature does not need the bands between it and the outline's oval.
+    None when the outline has fewer than 4 modes in the error's band (too short to tell)."""
+    samples, spacing = equal_arc_samples(np.asarray(points, float))
+    count = len(samples)
+    perimeter = count * spacing
+    coefficients = np.fft.rfft(samples - samples.mean(axis=0), axis=0)
+    # amplitude^2 of cos and sin of mode k, summed over x and y: alpha_k^2 + beta_k^2 of a normal offset, since
+    # the normal turns once per perimeter and shifts a mode's power by one mode
+    power = 4.0 * np.sum(np.abs(coefficients) ** 2, axis=1) / count ** 2
+    mode = np.arange(len(power))
+    wavelength = perimeter / np.maximum(mode, 1)
+    usable = (mode >= 2) & (mode < count // 2)
+    error_band = usable & (wavelength >= 0.75 * shortest_shape_mm) & (wavelength <= 1.5 * shortest_shape_mm)
+    if np.count_nonzero(error_band) < 4:
+        return None
+    floor = float(np.mean(power[error_band]))
+    cutoff = perimeter / 4.0      # an oval alone: modes up to 3 kept whole
+    centre = perimeter / 2.0
+    half_band = 2.0 ** (0.5 / BANDS_PER_OCTAVE)
+    while centre >= shortest_shape_mm:
+        band = usable & (wavelength > centre / half_band) & (wavelength <= centre * half_band)
+        if np.any(band) and np.mean(power[band]) >= (1.0 + SHAPE_OVER_ERROR) * floor:
+            cutoff = centre / half_band ** 2   # a band below: the low-pass keeps 86 % of the shape's last band
+        centre /= half_band ** 2
+    return OutlineError(max(cutoff, shortest_shape_mm), floor / 2.0, perimeter)
 
 
 def unit_normals(points: np.ndarray, closed: bool) -> np.ndarray:
