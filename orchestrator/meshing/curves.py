@@ -120,9 +120,11 @@ def outline_error(points: np.ndarray, shortest_shape_mm: float) -> OutlineError 
     error alone: the mean power of its Fourier modes there is the error's, taken as white at longer wavelengths
     (where, on outlines of known shape, it is the same or lower). Going from the longest wavelengths down in
     third-octave bands, the shortest band whose mean power is (1 + SHAPE_OVER_ERROR) times the error's or more is
-    the last one that holds shape: its centre is the cut-off (never below shortest_shape_mm). A shape anywhere in
-    the spectrum keeps its wavelengths, so a feature does not need the bands between it and the outline's oval.
-    None when the outline has fewer than 4 modes in the error's band (too short to tell)."""
+    the last one that holds shape, and the cut-off is the centre of the band below it, where the order-4 Butterworth
+    keeps 86 % of the shape's last band (never below shortest_shape_mm; a quarter of the perimeter when only the
+    oval stands out: modes 2 and 3 kept at 91 % and more). A shape anywhere in the spectrum keeps its wavelengths,
+    so a feature does not need the bands between it and the outline's oval. None when the outline has fewer than 4
+    modes in the error's band (too short to tell)."""
     samples, spacing = equal_arc_samples(np.asarray(points, float))
     count = len(samples)
     perimeter = count * spacing
@@ -137,13 +139,13 @@ def outline_error(points: np.ndarray, shortest_shape_mm: float) -> OutlineError 
     if np.count_nonzero(error_band) < 4:
         return None
     floor = float(np.mean(power[error_band]))
-    cutoff = perimeter / 4.0      # an oval alone: modes up to 3 kept whole
+    cutoff = perimeter / 4.0
     centre = perimeter / 2.0
     half_band = 2.0 ** (0.5 / BANDS_PER_OCTAVE)
     while centre >= shortest_shape_mm:
         band = usable & (wavelength > centre / half_band) & (wavelength <= centre * half_band)
         if np.any(band) and np.mean(power[band]) >= (1.0 + SHAPE_OVER_ERROR) * floor:
-            cutoff = centre / half_band ** 2   # a band below: the low-pass keeps 86 % of the shape's last band
+            cutoff = centre / half_band ** 2
         centre /= half_band ** 2
     return OutlineError(max(cutoff, shortest_shape_mm), floor / 2.0, perimeter)
 
