@@ -473,7 +473,8 @@ def _outline_with_error(rng, mode_variance: float, bump_mm: float = 0.0):
     theta = np.linspace(0.0, 2 * np.pi, count, endpoint=False)
 
     def outline(offset):
-        radius = 48.0 + 4.0 * np.cos(2 * theta) + 1.5 * np.sin(3 * theta) - bump_mm * np.exp(-((theta - 1.0) * 48.0 / 5.0) ** 2)
+        groove = bump_mm * np.exp(-((theta - 1.0) * 48.0 / 5.0) ** 2)
+        radius = 48.0 + 4.0 * np.cos(2 * theta) + 1.5 * np.sin(3 * theta) - groove
         return np.column_stack([(radius + offset) * np.cos(theta), (radius + offset) * np.sin(theta)])
 
     true = outline(0.0)
@@ -516,6 +517,8 @@ def test_the_skin_cutoff_is_where_the_outline_stands_out_of_its_measured_error()
     true, measured = _outline_with_error(rng, variance, bump_mm=0.5)
     error = outline_error(measured, 8.0)
     assert error.cutoff_mm < 12.0
-    depth = lambda points: np.ptp(np.linalg.norm(points, axis=1)[(np.arange(len(points)) > 150) & (np.arange(len(points)) < 230)])
+    def depth(points):   # of the groove, about theta = 1 rad (sample 191)
+        return np.ptp(np.linalg.norm(points[150:230], axis=1))
+
     assert abs(depth(lowpass_closed(measured, error.cutoff_mm)) / depth(true) - 1.0) < 0.15
     assert outline_error(measured[::40], 8.0) is None   # 30 points 10 mm apart: no mode in the error's band
