@@ -214,12 +214,12 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         # dragged far (a foreign case's, by a missing tension profile, to the bounds of C10 and Kv of fat, where the
         # skin's uncertainty came out 8 times what it is at the fit it then weighed)
         pixel = min(setup.case.pixel_size_mm)
-        skin = setup.tissue_curves()
+        variance = setup.skin_mode_variance_mm2
         if skin_sigma_mm is None:   # the skin's error as its own spectrum measured it (geometry_uncertainty)
-            skin_sigma_mm = (SKIN_UNCERTAINTY_PX * pixel if skin.skin_error is None else measured_skin_sigma(
-                skin_perimeter_mm(setup.mesh), skin.skin_error.mode_variance_mm2, skin.skin_cutoff_mm))
+            skin_sigma_mm = (SKIN_UNCERTAINTY_PX * pixel if variance is None else measured_skin_sigma(
+                skin_perimeter_mm(setup.mesh), variance, setup.skin_cutoff_mm))
         options = dict(effects=setup.model.effects, skin_sigma_mm=skin_sigma_mm,
-                       interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=skin.skin_cutoff_mm)
+                       interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=setup.skin_cutoff_mm)
         first, passes = best, []
         for _ in range(SKIN_PASSES):
             estimated_at = best.theta

@@ -42,6 +42,8 @@ from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
 from .materials import law_notes
 from .meshing import Mesh, TissueCurves, mesh_tissue_curves, tissue_curves
+from .meshing.curves import ERROR_BAND
+from .meshing.labels import SHORTEST_SKIN_SHAPE_MM
 from .phantom.mesh import truth_mesh
 from .geometry_uncertainty import level_file as geometry_level_file
 from .geometry_uncertainty import read_columns as read_geometry_columns
@@ -98,10 +100,24 @@ class RunSetup:
 
     def tissue_curves(self) -> TissueCurves:
         """The interfaces of the unloaded labels snapped onto I0's edges, as the run's mesh was made from them
-        (`meshing.tissue_curves`, made once): the discretization check and the skin's uncertainty mesh them again."""
+        (`meshing.tissue_curves`, made once; the skin cut where the run's was, `skin_outline`, a run folder written
+        before that was stored having been cut at SHORTEST_SKIN_SHAPE_MM): the discretization check and the skin's
+        uncertainty mesh them again."""
         if self._tissue_curves is None:
-            self._tissue_curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded)
+            self._tissue_curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded,
+                                                skin_cutoff_mm=self.skin_cutoff_mm)
         return self._tissue_curves
+
+    @property
+    def skin_cutoff_mm(self) -> float:
+        """The wavelength the run's skin was low-passed at (`meshing.labels`)."""
+        return float(self.skin_outline.get("cutoff_mm", SHORTEST_SKIN_SHAPE_MM))
+
+    @property
+    def skin_mode_variance_mm2(self) -> float | None:
+        """The skin's error per Fourier coefficient as its own spectrum measured it (`meshing.curves.outline_error`),
+        None where it could not."""
+        return self.skin_outline.get("mode_variance_mm2")
 
     def setup_lines(self) -> list[str]:
         """What the user should know of how the images were read: the slice taken from a DICOM series, averaged
@@ -140,10 +156,11 @@ class RunSetup:
             lines.append(f"muscle compartments: {count} from the labels")
         lines += [f"{source} unsure: {warning.message}" for source, warnings in self.segmentation_warnings.items()
                   for warning in warnings]
-        if self.skin_outline.get("error_per_mode_mm") is not None:
-            lines.append(f"skin: low-passed at {self.skin_outline['cutoff_mm']:.1f} mm, the shortest wavelength at "
-                         f"which its outline stands out of its own error ({self.skin_outline['error_per_mode_mm']:.4f} "
-                         "mm per Fourier mode, measured at 6-12 mm)")
+        if self.skin_mode_variance_mm2 is not None:
+            band = "-".join(f"{factor * SHORTEST_SKIN_SHAPE_MM:g}" for factor in ERROR_BAND)
+            lines.append(f"skin: low-passed at {self.skin_cutoff_mm:.1f} mm, the shortest wavelength at which its "
+                         f"outline stands out of its own error ({np.sqrt(2.0 * self.skin_mode_variance_mm2):.4f} mm "
+                         f"per Fourier mode, measured at {band} mm)")
         return lines
 
     def solve(self, theta: Sequence[float], folder: Path, model: LegModel | None = None):
@@ -325,8 +342,7 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                            for level, (aligned, _, _, _) in zip(case.levels, prepared_levels)})
     temporary.replace(run_dir / SETUP_ARRAYS)
     skin_outline = {"cutoff_mm": curves.skin_cutoff_mm,
-                    "error_per_mode_mm": (None if curves.skin_error is None
-                                          else float(np.sqrt(2.0 * curves.skin_error.mode_variance_mm2)))}
+                    "mode_variance_mm2": None if curves.skin_error is None else curves.skin_error.mode_variance_mm2}
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
                                       "order": order, "compartments": compartment_info, "skin_outline": skin_outline,
                                       "missing_fraction": missing_fraction, "segmentation_warnings": segmentation_warnings,

@@ -97,6 +97,7 @@ def lowpass_periodic(values: np.ndarray, spacing_mm: float, cutoff_mm: float, or
 
 SHAPE_OVER_ERROR = 3.0     # a wavelength band is the outline's shape where its power is 3 times the error's or more
 BANDS_PER_OCTAVE = 3
+ERROR_BAND = (0.75, 1.5)   # the wavelengths, times the shortest shape, that hold the outline's error alone
 
 
 @dataclass(frozen=True)
@@ -116,7 +117,7 @@ class OutlineError:
 def outline_error(points: np.ndarray, shortest_shape_mm: float) -> OutlineError | None:
     """The error of a measured closed outline and the cut-off wavelength that separates it from its shape.
 
-    Wavelengths between 0.75 and 1.5 times `shortest_shape_mm` (the shortest shape the outline can have) hold its
+    Wavelengths of ERROR_BAND times `shortest_shape_mm` (the shortest shape the outline can have) hold its
     error alone: the mean power of its Fourier modes there is the error's, taken as white at longer wavelengths
     (where, on outlines of known shape, it is the same or lower). Going from the longest wavelengths down in
     third-octave bands, the shortest band whose mean power is (1 + SHAPE_OVER_ERROR) times the error's or more is
@@ -135,7 +136,8 @@ def outline_error(points: np.ndarray, shortest_shape_mm: float) -> OutlineError 
     mode = np.arange(len(power))
     wavelength = perimeter / np.maximum(mode, 1)
     usable = (mode >= 2) & (mode < count // 2)
-    error_band = usable & (wavelength >= 0.75 * shortest_shape_mm) & (wavelength <= 1.5 * shortest_shape_mm)
+    shortest, longest = (factor * shortest_shape_mm for factor in ERROR_BAND)
+    error_band = usable & (wavelength >= shortest) & (wavelength <= longest)
     if np.count_nonzero(error_band) < 4:
         return None
     floor = float(np.mean(power[error_band]))
