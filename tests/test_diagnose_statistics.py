@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose import (Refit, design_effect, information_criteria, local_refit_unneeded, neighbour_correlation,
+from orchestrator.diagnose import (EXPLAINED_FACTOR, FLOOR_AGREEMENT, Diagnosis, EffectScore, Refit, design_effect,
+                                  information_criteria, local_refit_unneeded, neighbour_correlation, refit_verdict,
                                   residual_maps, score_effect, settled)
 from orchestrator.forward import ParameterSpace, annulus_mesh
 from orchestrator.identify import linearised_standard_errors
@@ -244,3 +245,17 @@ def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_w
     assert words.startswith("; in that refit the data do not fix C10_fat (95 % interval +-")
     assert "dv_muscle" not in words and "C10_muscle" not in words
     assert "[" in refit.parameter_text() and "C10_fat=4.5 [" in refit.parameter_text()
+
+
+@pytest.mark.parametrize("refit_ratio", [0.96, 1.2, 1.43, 1.7])
+def test_an_explaining_refit_above_the_floor_s_agreement_is_said_to_leave_part_of_the_residual(refit_ratio):
+    best = EffectScore("heterogeneity", ["h_cos1_muscle"], 443.0, 1, 1e-90, 3.7, 1.0, [0.9], [0.4], significant=True)
+    diagnosis = Diagnosis(["unloaded_curvature"], ["C10_fat"], [3.0], 8.47, 1.0, 4017.0, 482, 0.0, 7.2, 0.75, [best],
+                          True, "", None, 0, "engine", 0.0)
+    fit = Refit(["unloaded_curvature", "heterogeneity"], ["C10_fat", "h_cos1_muscle"], [3.0, 0.4], refit_ratio,
+                refit_ratio, 0.0, 0.0, 0.0, {})
+    explained, verdict = refit_verdict(diagnosis, [fit])
+    assert explained == (refit_ratio <= EXPLAINED_FACTOR)
+    assert f"{refit_ratio:.2f} x the floor" in verdict
+    partly = "explains most of the residual, not all of it" in verdict
+    assert partly == (FLOOR_AGREEMENT < refit_ratio <= EXPLAINED_FACTOR), verdict
