@@ -373,15 +373,20 @@ def ranking_figure(path: Path, ranking: list[dict], alpha: float) -> Path:
     return _save(figure, path)
 
 
-def misfit_figure(path: Path, fits: list[tuple[str, float]], explained_factor: float) -> Path:
-    """Misfit over its noise floor for the identified model and each refit, with the floor (1) and the level
-    at which an effect is said to explain the residual."""
+def misfit_figure(path: Path, fits: list[tuple[str, float]], explained_factor: float,
+                  floor_agreement: float | None = None) -> Path:
+    """Misfit over its noise floor for the identified model and each refit, with the floor (1), the ratio up to which
+    the error model agrees with the measured errors (a refit above it has not reached the floor) and the level at
+    which an effect is said to explain the residual."""
     labels = [label for label, _ in fits]
     ratios = [ratio for _, ratio in fits]
     figure, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(fits) + 2.0), 4.2))
     bars = ax.bar(labels, ratios, color=["tab:gray"] + ["tab:blue"] * (len(fits) - 1))
     ax.bar_label(bars, labels=[f"{r:.2f}x" for r in ratios], fontsize=8)
     ax.axhline(1.0, color="black", linestyle="-", label="noise floor")
+    if floor_agreement is not None:
+        ax.axhline(floor_agreement, color="black", linestyle=":",
+                   label=f"at the floor within the error model's agreement ({floor_agreement:g}x)")
     ax.axhline(explained_factor, color="black", linestyle="--", label=f"explained ({explained_factor:g}x the floor)")
     if max(ratios) > 20 * min(ratios):
         ax.set_yscale("log")

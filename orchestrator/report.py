@@ -34,7 +34,7 @@ import numpy as np
 
 from . import figures
 from .decks import template_dir
-from .diagnose import ALPHA, EXPLAINED_FACTOR, Refit, level_rows, model_label, refit_model
+from .diagnose import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT, Refit, level_rows, model_label, refit_model
 from .discretization import discretization_line
 from .digits import interval_uncertainty, rounded
 from .forward import MeshInterpolator, field_on_pixels
@@ -416,7 +416,7 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                             positions, measured, list(zip(labels, residuals)), maps["centre_mm"])
     figures.ranking_figure(staging / "ranking.png", diagnosis["ranking"], ALPHA)
     figures.misfit_figure(staging / "misfit.png", [(label, f["misfit_over_floor"]) for label, f in zip(labels, fits)],
-                          EXPLAINED_FACTOR)
+                          EXPLAINED_FACTOR, FLOOR_AGREEMENT)
 
     mismatch_values, distances = [], []
     identified = setup.model_with(diagnosis["before"]["effects"])
