@@ -17,14 +17,23 @@ The commanded field, read off the images with calfit's own windows (a cosine fit
 
 so that along the centre row v sits on its crest, 0.5 px, at every x while the period grows from 10 to 300 px.
 A window centred there measures the crest averaged over its height: measured / commanded along that row, against
-the period, is the window's transfer function. The Challenge's metrics, as computed here (the paper's own text was
-not at hand when this was written; these follow the descriptions of it that were):
-- spatial resolution l10: the period at which the measured amplitude is attenuated by 10 %;
-- noise n: the standard deviation of the measured displacement (the Challenge's submissions report it on a separate
-  image with noise and no motion, which pyvale does not ship; here: the scatter of the measured displacement about
-  what the windows should see of the commanded field where the period is long, p >= 200 px);
+the period, is the window's transfer function. The Challenge's metrics (Reu et al. 2022, as the iCorrVision-2D
+project's validation code describes and applies them; the paper itself was not at hand here):
+- spatial resolution l10: the period at which the measured amplitude is attenuated by 10 %. The Challenge's rule
+  ("l10 Ch."): a 12th-order polynomial fitted to measured / commanded against the period, where it first rises
+  through 0.9. Beside it, the same crossing of the ratio's sliding 100-pixel mean ("l10"), which the figure draws;
+- noise n: the standard deviation of the measured displacement along the row on the Challenge's noise-floor image
+  (the reference against an image with fresh noise and no motion), which pyvale does not ship; here: the scatter of
+  the measured displacement about what the windows should see of the commanded field, or about its own sliding
+  100-pixel mean, where the period is long (p >= 200 px, where the commanded field is nearly flat along the row);
 - the Metrological Efficiency Indicator MEI = n x l10 (px^2): lower is better, and a code cannot lower one of the
-  two by changing its window without raising the other.
+  two by changing its window without raising the other. A code's MEI is the mean of its three lowest over the window
+  sizes it ran.
+The codes that took part are compared by that code MEI: benchmarks/data/dic_challenge_2_star5_code_mei.csv holds the
+26 codes' values on Star 5 with their provenance (computed by iCorrVision-2D from the participants' submitted line
+cuts and checked there against the paper's figures; not read off the paper here). Their n comes from the
+noise-floor image, calfit's and pyvale's from the scatter at long periods: the same images' noise through the same
+windows, but not the same pixels.
 
 What calfit does (`orchestrator.imaging.dic.correlate`: ZNCC then IC-GN, affine window; one pass, no prior) is run
 on windows along the centre row every --step pixels for each window size, on a 301-row strip around the centre row
@@ -43,10 +52,6 @@ calfit's covariance (`DICResult.covariance_mm2`, pixel size 1 mm here so mm = px
 measured noise, with the image noise calfit estimates (`estimate_noise_sigma`) and rescaled to the noise read from
 the flat top of the images' power spectrum (`noise_floor`), a check on that estimate.
 
-The published figures of the Challenge's codes on these images (code, subset, n, l10, MEI) are not reproduced here:
-the paper's tables and figures were not reachable from where this script was written. Add them to PUBLISHED, each
-with its table or figure, to print them beside calfit's.
-
 A peer in the same run: pyvale's own DIC engine (`pyvale.dic.calculate_2d`, C++: subset DIC, ZNSSD, affine shape
 function, B-spline interpolation, reliability-guided scan from a seed, its 5-pixel Gaussian prefilter; pyvale's
 defaults otherwise, one thread as calfit's windows here) on the same row with odd subsets of one pixel more than
@@ -55,7 +60,8 @@ itself. Both codes then go through the same metrics, which need nothing of eithe
 scatter of the measured v about its sliding 100-pixel mean where p >= 200 px, l10 and the plateau as above, MEI =
 n x l10, the time of the correlation; and their ratios, calfit / pyvale.
 
-About 2 minutes on a 2-core machine with the defaults (about 1,000 windows per size, pyvale's about twice as many).
+About 4 minutes on a 2-core machine with the defaults (five window sizes, about 1,000 windows each, pyvale's about
+twice as many).
 """
 
 from __future__ import annotations
@@ -83,9 +89,33 @@ PLATEAU_MIN_PERIOD_PX = 250.0    # where the plateau is read
 LEVEL = 0.9                      # 10 % attenuation
 IMAGE_NAMES = ("DIC_Challenge_Star_Noise_Ref.tiff", "DIC_Challenge_Star_Noise_Def.tiff")
 
-# Published figures of the Challenge's codes on the same images, for the table: (code, subset px, n px, l10 px,
-# MEI px^2, where it comes from). Empty: none could be checked against the paper when this was written.
-PUBLISHED: tuple[tuple[str, int, float, float, float, str], ...] = ()
+CHALLENGE_POLYNOMIAL_DEGREE = 12   # the Challenge fits its attenuation curves with a 12th-order polynomial
+CODE_MEI_LOWEST = 3                # and summarises a code by the mean of its three lowest MEIs
+PARTICIPANTS_CSV = Path(__file__).resolve().parent / "data" / "dic_challenge_2_star5_code_mei.csv"
+
+
+def participants() -> list[tuple[str, str, float]]:
+    """(code, family, code MEI px^2) of the Challenge's codes on Star 5 (provenance in the file's header)."""
+    import csv
+
+    with open(PARTICIPANTS_CSV, newline="") as table:
+        rows = csv.DictReader(line for line in table if not line.startswith("#"))
+        return [(row["code"], row["family"], float(row["code_mei_px2"])) for row in rows]
+
+
+def challenge_l10(period: np.ndarray, ratio: np.ndarray) -> float:
+    """The Challenge's spatial resolution: where a 12th-order polynomial fitted to measured / commanded against the
+    period first rises through 0.9 (Polynomial.fit maps the periods onto [-1, 1], where that degree is well posed)."""
+    ok = np.isfinite(period) & np.isfinite(ratio)
+    polynomial = np.polynomial.Polynomial.fit(period[ok], ratio[ok], CHALLENGE_POLYNOMIAL_DEGREE)
+    fine = np.linspace(period[ok].min(), period[ok].max(), 20000)
+    return first_crossing(fine, polynomial(fine))
+
+
+def code_mei(meis) -> float:
+    """A code's MEI as the Challenge ranks codes: the mean of its three lowest over the window sizes it ran."""
+    finite = np.sort(np.asarray(meis, float)[np.isfinite(meis)])
+    return float(finite[:CODE_MEI_LOWEST].mean()) if finite.size >= CODE_MEI_LOWEST else float("nan")
 
 
 def peer_step(subset: int, step: int) -> int:
@@ -128,15 +158,17 @@ def pyvale_crest(reference: np.ndarray, deformed: np.ndarray, subset: int, step:
 
 def common_metrics(x: np.ndarray, y, v: np.ndarray, step: int) -> dict:
     """The metrics both codes go through (module text): the attenuation ratio along the period, n about the sliding
-    mean ("noise"; `analyse` keeps it as "noise_scatter" beside its own n), l10, MEI, plateau."""
+    mean ("noise"; `analyse` keeps it as "noise_scatter" beside its own n), l10 and MEI on the sliding mean and by
+    the Challenge's rule, plateau."""
     period = period_px(x)
     span = max(SMOOTH_SPAN_PX // step, 1)
     ratio = sliding_mean(v / commanded_v(x, y), span)
     long = (period >= NOISE_MIN_PERIOD_PX) & np.isfinite(v)
     noise = float(np.std((v - sliding_mean(v, span))[long]))
     l10 = first_crossing(period, ratio)
-    return dict(period=period, ratio=ratio, noise=noise, l10=l10, mei=noise * l10,
-                plateau=float(np.nanmean(v[period >= PLATEAU_MIN_PERIOD_PX])))
+    l10_challenge = challenge_l10(period, v / commanded_v(x, y))
+    return dict(period=period, ratio=ratio, noise=noise, l10=l10, mei=noise * l10, l10_challenge=l10_challenge,
+                mei_challenge=noise * l10_challenge, plateau=float(np.nanmean(v[period >= PLATEAU_MIN_PERIOD_PX])))
 
 
 def period_px(x) -> np.ndarray:
@@ -272,6 +304,7 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     worst = int(np.nanargmax(gap))
     return dict(window=window, step=step, x=x, period=period, commanded=commanded, measured=measured, seen=seen,
                 sigma=sigma, noise_scatter=common["noise"], mei_scatter=common["mei"], ratio_measured=ratio_measured,
+                l10_challenge=common["l10_challenge"], mei_challenge=common["mei_challenge"],
                 ratio_seen=ratio_seen, failed=int(failed.sum()), windows=len(x),
                 noise=noise, noise_predicted=noise_predicted, noise_sigma=result.noise_sigma[0], l10=l10,
                 l10_last=last_crossing(period, ratio_measured), l10_seen=first_crossing(period, ratio_seen),
@@ -317,16 +350,33 @@ def report(results: list[dict], floor_sigma: float) -> None:
             cells.append(f"{np.mean(d):+8.4f} ({np.std(d):.4f})" if d.size else f"{'-':>16s}")
         print(f"{r['window']:5d}px " + " ".join(f"{c:>16s}" for c in cells))
 
-    print("\nbeside the Challenge's codes (same images, same metrics):")
-    if PUBLISHED:
-        print(f"{'code':>14s} {'subset':>7s} {'n px':>7s} {'l10 px':>7s} {'MEI px2':>8s}  source")
-        for code, subset, n, l10, mei, source in PUBLISHED:
-            print(f"{code:>14s} {subset:5d}px {n:7.4f} {l10:7.1f} {mei:8.3f}  {source}")
-    else:
-        print("  (no published figures included: see the module text; the textbook limit of an affine window, "
-              "l10 unif above, is 67.8 px for a 17-px subset)")
-    for r in results:
-        print(f"  calfit {r['window']:2d}px: n {r['noise']:.4f} px, l10 {r['l10']:.1f} px, MEI {r['mei']:.3f} px^2")
+
+def report_participants(results: list[dict], peers: list[dict]) -> dict:
+    """calfit's and pyvale's code MEI (the Challenge's l10 rule, n the scatter at long periods, the three lowest of
+    their window sizes) placed among the Challenge's codes; returns the two code MEIs for the figure."""
+    codes = participants()
+    theirs = np.array([mei for _, _, mei in codes])
+    print(f"\nbeside the {len(codes)} codes of the DIC Challenge 2.0 on Star 5 (their code MEI: "
+          f"{PARTICIPANTS_CSV.relative_to(PARTICIPANTS_CSV.parents[2])}); l10 Ch. by the Challenge's rule, n the "
+          f"scatter about the sliding mean where p >= {NOISE_MIN_PERIOD_PX:g} px, MEI = n x l10 Ch.:")
+    print(f"{'code':>8s} {'window':>7s} {'n px':>7s} {'l10 Ch.':>8s} {'MEI px2':>8s}")
+    ours = {}
+    for code, runs, size in (("calfit", results, "window"), ("pyvale", peers, "subset")):
+        for r in runs:
+            noise = r["noise_scatter"] if code == "calfit" else r["noise"]
+            print(f"{code:>8s} {r[size]:5d}px {noise:7.4f} {r['l10_challenge']:8.1f} {r['mei_challenge']:8.3f}")
+        ours[code] = code_mei([r["mei_challenge"] for r in runs])
+    print(f"  the Challenge's codes: median {np.median(theirs):.3f} px^2, quartiles {np.quantile(theirs, 0.25):.3f}-"
+          f"{np.quantile(theirs, 0.75):.3f}, range {theirs.min():.3f}-{theirs.max():.3f}; by family:")
+    for family in dict.fromkeys(f for _, f, _ in codes):
+        values = np.array([mei for _, f, mei in codes if f == family])
+        print(f"    {family:>16s}: {len(values):2d} codes, {values.min():.3f}-{values.max():.3f} px^2")
+    for code, mei in ours.items():
+        lower = int(np.sum(theirs < mei))
+        print(f"  {code} (mean of its {CODE_MEI_LOWEST} lowest): code MEI {mei:.3f} px^2, "
+              f"{mei / np.median(theirs):.2f} x the participants' median; {lower} of the {len(codes)} codes lower, "
+              f"rank {lower + 1} of {len(codes) + 1}")
+    return ours
 
 
 def report_peer(results: list[dict], peers: list[dict]) -> None:
@@ -349,14 +399,14 @@ def report_peer(results: list[dict], peers: list[dict]) -> None:
               f"{per_window:.2f} x")
 
 
-def figure(results: list[dict], out: Path, peers: list[dict]) -> None:
+def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 8.5), gridspec_kw=dict(height_ratios=(1, 1.4)))
+    fig, (top, bottom, ranking) = plt.subplots(3, 1, figsize=(9, 11.5), gridspec_kw=dict(height_ratios=(1, 1.4, 0.7)))
     for r, colour in zip(results, colours):
         top.plot(r["x"], r["measured"], color=colour, lw=0.6, label=f"{r['window']} px windows")
     top.plot(results[0]["x"], results[0]["commanded"], color="black", lw=1.0, ls="--", label="commanded")
@@ -388,6 +438,25 @@ def figure(results: list[dict], out: Path, peers: list[dict]) -> None:
     bottom.set_ylabel("measured / commanded amplitude")
     bottom.grid(alpha=0.3)
     bottom.legend(loc="lower right", fontsize=7.5)
+
+    codes = participants()
+    families = list(dict.fromkeys(family for _, family, _ in codes))
+    for row, family in enumerate(families):
+        values = [mei for _, f, mei in codes if f == family]
+        ranking.plot(values, np.full(len(values), row), "o", color="grey", ms=5, alpha=0.7)
+    for code, marker, colour in (("calfit", "D", "tab:blue"), ("pyvale", "s", "tab:red")):
+        ranking.axvline(code_meis[code], color=colour, lw=1.2, ls="--")
+        ranking.plot([], [], ls="--", color=colour, label=f"{code}: {code_meis[code]:.2f} px$^2$ (same images, same "
+                     "metrics)")
+    ranking.axvline(np.median([mei for _, _, mei in codes]), color="black", lw=0.8, ls=":")
+    ranking.plot([], [], ls=":", color="black", label="median of the Challenge's codes")
+    ranking.set_yticks(range(len(families)), [f"{f} ({sum(1 for c in codes if c[1] == f)})" for f in families])
+    ranking.set_ylim(-0.6, len(families) - 0.4)
+    ranking.set_xlabel("code MEI = n x l10, mean of the three lowest window sizes (px$^2$; lower is better)")
+    ranking.set_title("The DIC Challenge 2.0 codes' displacement MEI on Star 5 (Reu et al. 2022), calfit's and "
+                      "pyvale's among them", fontsize=10)
+    ranking.grid(alpha=0.3, axis="x")
+    ranking.legend(loc="upper right", fontsize=7.5)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
@@ -397,7 +466,7 @@ def figure(results: list[dict], out: Path, peers: list[dict]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--windows", type=int, nargs="+", default=[16, 32, 64], help="window sides, px")
+    parser.add_argument("--windows", type=int, nargs="+", default=[16, 24, 32, 48, 64], help="window sides, px")
     parser.add_argument("--step", type=int, default=4, help="pixels between window centres along the crest row")
     parser.add_argument("--images", type=Path, default=None, help="folder holding the two Star TIFFs "
                         "(default: pyvale's package data)")
@@ -425,7 +494,8 @@ def main() -> None:
         peers = [pyvale_crest(full_reference, full_deformed, window + 1, args.step, Path(scratch))
                  for window in args.windows]
     report_peer(results, peers)
-    figure(results, args.out, peers)
+    code_meis = report_participants(results, peers)
+    figure(results, args.out, peers, code_meis)
 
 
 if __name__ == "__main__":
