@@ -652,12 +652,9 @@ def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool
     done = [f for f in refits if f.effects[-1:] == [best]]
     if not done:
         return diagnosis.explained, diagnosis.verdict
-    ratio = done[0].misfit_over_floor
-    # the skin's uncertainty of the baseline's parameters may be far from the refit's (a baseline on a bound): the
-    # refit is judged against its own when it was estimated again
-    own = done[0].own_floor
-    floor = "" if own is None else f" ({ratio:.2f} with the skin's uncertainty of the baseline fit)"
-    ratio = ratio if own is None else own["misfit_over_floor"]
+    ratio = judged_ratio(done[0])
+    floor = ("" if done[0].own_floor is None else
+             f" ({done[0].misfit_over_floor:.2f} with the skin's uncertainty of the baseline fit)")
     tie = diagnosis.ranking[0].tied_with
     settled = (f" (the score could not tell it from {', '.join(tie)}; their refits decided, by BIC)" if tie else "")
     if ratio <= EXPLAINED_FACTOR:
@@ -669,6 +666,12 @@ def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool
                       f"{unfixed_constants(diagnosis, done[0])}")
     return False, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; the best effect, {best}, "
                    f"refitted, leaves {ratio:.2f} x the floor{floor}: no catalog effect explains the residual")
+
+
+def judged_ratio(fit: "Refit") -> float:
+    """A refit's misfit over the floor as its verdict judges it: against its own floor when the skin's uncertainty
+    was estimated again at its parameters (the baseline's may be far from the refit's, a baseline on a bound)."""
+    return fit.misfit_over_floor if fit.own_floor is None else fit.own_floor["misfit_over_floor"]
 
 
 def unfixed_constants(diagnosis: Diagnosis, fit: "Refit") -> str:
@@ -850,19 +853,27 @@ def weigh_local(diagnosis: Diagnosis, patch: PatchScore, before: Refit, after: R
         diagnosis.verdict += f"; a local stiffness change in the {patch.place} does ({numbers})"
     elif rival is None:
         diagnosis.verdict += f"; nor does a local stiffness change in the {patch.place}, the best place found ({numbers})"
+    else:
+        diagnosis.verdict += (f"; a local stiffness change in the {patch.place}, refitted, does not fit better "
+                              f"({numbers}; {', '.join(rival.effects[-1:])} BIC {rival.bic:.1f})")
     return {"patch": asdict(patch), "refitted": True, "ratio": ratio, "explains": bool(explains and (rival is None or bic < rival.bic)),
             "misfit_over_floor": after.misfit_over_floor, "bic": bic, "bic_unpenalized": after.bic,
             "bic_before": before.bic, "bic_catalog": rival.bic if rival is not None else None,
             "aic": after.aic, "aic_before": before.aic, "verdict": diagnosis.verdict}
 
 
-def local_refit_unneeded(diagnosis: Diagnosis, patch: PatchScore) -> str | None:
+def local_refit_unneeded(diagnosis: Diagnosis, patch: PatchScore, catalog_ratio: float | None = None) -> str | None:
     """Why the local change's refit can be left out, or None to run it. It is the rival of a catalog effect whose
     refit explained the residual; when the two are compared on the same linearization at the identified fit (the
     score test's predicted chi^2 with the BIC's penalties, the place's 2 ln N included) and the catalog effect is
     predicted better, the refit cannot be expected to change the verdict. Under friction it costs tens of runs of
-    minutes each (the second paper's drainage case: 24 runs for 2e-4 of the misfit). Said in the verdict."""
+    minutes each (the second paper's drainage case: 24 runs for 2e-4 of the misfit). Said in the verdict.
+    Unless the catalog effect's refit stayed above the floor (catalog_ratio, its misfit over the floor, beyond
+    FLOOR_AGREEMENT): then the linearization was wrong about it, and may be about the local change, which a large
+    change of stiffness leaves far from linear (a muscle three times stiffer: ln 3 = 1.1), so it is refitted."""
     if not diagnosis.explained or not diagnosis.ranking or diagnosis.misfit <= 0.0:
+        return None
+    if catalog_ratio is not None and catalog_ratio > FLOOR_AGREEMENT:
         return None
     best = diagnosis.ranking[0]
     to_chi2 = diagnosis.chi2 / diagnosis.misfit

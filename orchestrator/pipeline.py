@@ -26,8 +26,8 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import (ALPHA, diagnose, level_maps, local_refit_unneeded, patch_elements, refit, refit_verdict,
-                       residual_maps, settle_ties, summarize_fit, weigh_local)
+from .diagnose import (ALPHA, diagnose, judged_ratio, level_maps, local_refit_unneeded, patch_elements, refit,
+                       refit_verdict, residual_maps, settle_ties, summarize_fit, weigh_local)
 from .digits import interval_uncertainty, rounded, with_uncertainty
 from .discretization import discretization_check, discretization_line
 from .effects import effect
@@ -544,7 +544,9 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     local = None
     if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
         patch = diagnosis.patches[0]
-        unneeded = local_refit_unneeded(diagnosis, patch)
+        best = diagnosis.ranking[0].effect if diagnosis.ranking else None
+        best_refit = next((f for f in after if f.effects[-1:] == [best]), None)
+        unneeded = local_refit_unneeded(diagnosis, patch, None if best_refit is None else judged_ratio(best_refit))
         if unneeded:
             diagnosis.verdict += f"; {unneeded}"
             local = {"patch": asdict(patch), "refitted": False, "explains": False, "reason": unneeded,

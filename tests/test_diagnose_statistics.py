@@ -183,12 +183,13 @@ def test_a_refit_is_settled_at_the_noise_floor_inside_its_box():
 def test_the_local_change_is_refitted_only_when_it_could_rival_the_catalog():
     """`local_refit_unneeded` compares the local change and the explaining catalog effect on the same linearization
     (exact on a linear model): the refit is left out when the catalog effect is predicted better on BIC, the place's
-    choice counted, and is run when the local change could win or when nothing explained the residual."""
+    choice counted, and is run when the local change could win, when nothing explained the residual, or when the
+    catalog effect's refit stayed above the floor."""
     rng, J, g = _linear_problem(seed=5)
     local = rng.normal(size=(len(J), 1))
     n = len(J)
 
-    def screened(catalog_share, places, explained=True):
+    def screened(catalog_share, places, explained=True, catalog_ratio=None):
         data = catalog_share * 0.6 * g[:, 0] + (1.0 - catalog_share) * 0.6 * local[:, 0] + rng.normal(size=n)
         r = J @ np.linalg.lstsq(J, data, rcond=None)[0] - data
         chi2 = float(r @ r)
@@ -198,12 +199,15 @@ def test_the_local_change_is_refitted_only_when_it_could_rival_the_catalog():
                                     noise_floor=float(n))
         place = SimpleNamespace(place="muscle, posterior sector", places_tried=places,
                                 predicted_misfit=chi2 - patch["predicted_reduction"])
-        return local_refit_unneeded(diagnosis, place)
+        return local_refit_unneeded(diagnosis, place, catalog_ratio)
 
     reason = screened(1.0, places=40)
     assert reason and "not refitted" in reason and "drainage" in reason
+    assert "not refitted" in (screened(1.0, places=40, catalog_ratio=FLOOR_AGREEMENT) or "")   # at the floor
     assert screened(0.0, places=40) is None                  # the local change is the better explanation
     assert screened(1.0, places=40, explained=False) is None  # nothing explained: the local change is the lead
+    # the catalog effect's refit stayed above the floor: the linearization that preferred it is not trusted
+    assert screened(1.0, places=40, catalog_ratio=1.43) is None
 
 
 def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_what_the_data_do_not_fix():
