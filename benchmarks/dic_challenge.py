@@ -23,17 +23,22 @@ project's validation code describes and applies them; the paper itself was not a
   ("l10 Ch."): a 12th-order polynomial fitted to measured / commanded against the period, where it first rises
   through 0.9. Beside it, the same crossing of the ratio's sliding 100-pixel mean ("l10"), which the figure draws;
 - noise n: the standard deviation of the measured displacement along the row on the Challenge's noise-floor image
-  (the reference against an image with fresh noise and no motion), which pyvale does not ship; here: the scatter of
-  the measured displacement about what the windows should see of the commanded field, or about its own sliding
-  100-pixel mean, where the period is long (p >= 200 px, where the commanded field is nearly flat along the row);
+  (the reference against an image with fresh noise and no motion), which pyvale does not ship. Here, for the
+  Challenge's codes ("n zero"): windows centred a quarter period below the crest, where p >= 200 px, on the
+  commanded field's zero crossing, which is odd about them: an affine window reads its error alone there
+  (`zero_crossing_noise`). Beside it, the scatter of the crest's measured displacement about its own sliding
+  100-pixel mean ("n scatter": it needs no second row, but takes away the error's
+  components longer than 100 px, and reads 17-28 % below n zero at 32-64 px) and about what calfit's observation
+  operator predicts ("n"). Given the Challenge's noise-floor image (--noise-image), n is measured on it, as the
+  Challenge does, for both codes;
 - the Metrological Efficiency Indicator MEI = n x l10 (px^2): lower is better, and a code cannot lower one of the
   two by changing its window without raising the other. A code's MEI is the mean of its three lowest over the window
   sizes it ran.
 The codes that took part are compared by that code MEI: benchmarks/data/dic_challenge_2_star5_code_mei.csv holds the
 26 codes' values on Star 5 with their provenance (computed by iCorrVision-2D from the participants' submitted line
 cuts and checked there against the paper's figures; not read off the paper here). Their n comes from the
-noise-floor image, calfit's and pyvale's from the scatter at long periods: the same images' noise through the same
-windows, but not the same pixels.
+noise-floor image, calfit's and pyvale's from the zero crossing of the same pair: the same images' noise through the
+same windows, but not the same pixels, and over the motion of the field's odd part.
 
 What calfit does (`orchestrator.imaging.dic.correlate`: ZNCC then IC-GN, affine window; one pass, no prior) is run
 on windows along the centre row every --step pixels for each window size, on a 301-row strip around the centre row
@@ -56,12 +61,12 @@ A peer in the same run: pyvale's own DIC engine (`pyvale.dic.calculate_2d`, C++:
 function, B-spline interpolation, reliability-guided scan from a seed, its 5-pixel Gaussian prefilter; pyvale's
 defaults otherwise, one thread as calfit's windows here) on the same row with odd subsets of one pixel more than
 calfit's windows (17 / 33 / 65 px: pyvale takes odd sizes only), so that its subsets are centred on the crest row
-itself. Both codes then go through the same metrics, which need nothing of either code's own error model: n the
-scatter of the measured v about its sliding 100-pixel mean where p >= 200 px, l10 and the plateau as above, MEI =
-n x l10, the time of the correlation; and their ratios, calfit / pyvale.
+itself, and on those nearest to the zero crossing below it. Both codes then go through the same metrics, which need
+nothing of either code's own error model: n at the zero crossing, l10 and the plateau as above, MEI = n x l10, the
+time of the correlation; and their ratios, calfit / pyvale.
 
-About 4 minutes on a 2-core machine with the defaults (five window sizes, about 1,000 windows each, pyvale's about
-twice as many).
+About 5 minutes on a 2-core machine with the defaults (five window sizes, about 1,000 windows each on the crest and
+350 on the zero crossing, pyvale's about twice as many).
 """
 
 from __future__ import annotations
@@ -124,41 +129,94 @@ def peer_step(subset: int, step: int) -> int:
     return max(d for d in range(1, step + 1) if (CREST_ROW - subset // 2) % d == 0)
 
 
-def pyvale_crest(reference: np.ndarray, deformed: np.ndarray, subset: int, step: int, scratch: Path) -> dict:
+def pyvale_run(reference: np.ndarray, deformed: np.ndarray, subset: int, step: int, roi: np.ndarray, seed_x: int,
+               scratch: Path, tag: str) -> tuple[dict, float]:
     """pyvale's DIC (`pyvale.dic.calculate_2d`, its defaults but the subset, the step, one thread and a 10-pixel
-    search) on the subsets centred on the crest row, from a seed at x = 3500 px (where the period is long, as in
-    pyvale's own example on these images): x, v, converged and the correlation's seconds."""
+    search) on a region of interest, from a seed at x = seed_x px inside it: its result columns and seconds."""
     import pyvale.dic
 
-    step = peer_step(subset, step)
-    half = subset // 2
-    roi = np.zeros(reference.shape, dtype=bool)
-    roi[CREST_ROW - half - step:CREST_ROW + half + step + 1, 40:reference.shape[1] - 40] = True
-    out = scratch / f"pyvale-{subset}"
+    rows = np.flatnonzero(roi[:, seed_x])
+    out = scratch / f"pyvale-{tag}-{subset}"
     out.mkdir(parents=True, exist_ok=True)
     began = time.perf_counter()
     pyvale.dic.calculate_2d(reference=reference.astype(np.float32), deformed=deformed.astype(np.float32),
-                            roi_mask=roi, seed=[3500, CREST_ROW], subset_size=subset, subset_step=step,
-                            max_displacement=10, num_threads=1, output_basepath=out, print_level=0)
+                            roi_mask=roi, seed=[seed_x, int(rows[len(rows) // 2])], subset_size=subset,
+                            subset_step=step, max_displacement=10, num_threads=1, output_basepath=out, print_level=0)
     seconds = time.perf_counter() - began
     path = next(out.glob("dic_results_*.csv"))
     with open(path) as table:   # a quoted header whose lines, like the rows, end with a comma
         names = [name.strip('"') for name in table.readline().strip().rstrip(",").split(",")]
     columns = dict(zip(names, np.loadtxt(path, delimiter=",", skiprows=1, usecols=range(len(names)), ndmin=2).T))
+    columns["disp_v"] = np.where(columns["converged"] > 0, columns["disp_v"], np.nan)
+    return columns, seconds
+
+
+def pyvale_crest(reference: np.ndarray, deformed: np.ndarray, subset: int, step: int, scratch: Path,
+                 noise_image: np.ndarray | None = None) -> dict:
+    """pyvale on the subsets centred on the crest row, from a seed at x = 3500 px (where the period is long, as in
+    pyvale's own example on these images), and on those nearest to the zero crossing below it where p >= 200 px (for
+    the noise, `zero_crossing_noise`), and, given the Challenge's noise-floor image, on the crest row of the
+    reference against it: x, v, converged, the crest's correlation seconds and the metrics."""
+    step = peer_step(subset, step)
+    half = subset // 2
+    roi = np.zeros(reference.shape, dtype=bool)
+    roi[CREST_ROW - half - step:CREST_ROW + half + step + 1, 40:reference.shape[1] - 40] = True
+    columns, seconds = pyvale_run(reference, deformed, subset, step, roi, 3500, scratch, "crest")
     crest = columns["subset_y"] == CREST_ROW
     if not crest.any():
         sys.exit(f"dic_challenge: pyvale put no {subset}-px subset on row {CREST_ROW}")
     order = np.argsort(columns["subset_x"][crest])
-    converged = columns["converged"][crest][order] > 0
-    v = np.where(converged, columns["disp_v"][crest][order], np.nan)
+    v = columns["disp_v"][crest][order]
     x = columns["subset_x"][crest][order]
-    return dict(subset=subset, step=step, x=x, v=v, failed=int((~converged).sum()), seconds=seconds,
-                **common_metrics(x, CREST_ROW, v, step))
+    metrics = common_metrics(x, CREST_ROW, v, step)
+
+    # a band following the zero crossing, tall enough to hold a row of subsets at any step
+    all_x = np.arange(reference.shape[1])
+    band = ((np.abs(np.arange(reference.shape[0])[:, None] - zero_row(all_x)[None, :]) <= half + 2 * step + 3)
+            & (period_px(all_x) >= NOISE_MIN_PERIOD_PX)[None, :])
+    band[:, reference.shape[1] - 40:] = False
+    zero, _ = pyvale_run(reference, deformed, subset, step, band, 3500, scratch, "zero")
+    nearest = {}   # per x, the subset centred nearest to the zero crossing
+    for zx, zy, zv in zip(zero["subset_x"], zero["subset_y"], zero["disp_v"]):
+        if zx not in nearest or abs(zy - zero_row(zx)) < abs(nearest[zx][0] - zero_row(zx)):
+            nearest[zx] = (zy, zv)
+    zx = np.array(sorted(nearest))
+    zy, zv = (np.array([nearest[k][i] for k in zx]) for i in (0, 1))
+    noise_floor_image = float("nan")
+    if noise_image is not None:
+        still, _ = pyvale_run(reference, noise_image, subset, step, roi, 3500, scratch, "floor")
+        noise_floor_image = float(np.nanstd(still["disp_v"][still["subset_y"] == CREST_ROW]))
+    return dict(subset=subset, step=step, x=x, v=v, failed=int(np.isnan(v).sum()), seconds=seconds,
+                noise_zero=zero_crossing_noise(zx, zy, zv, x, metrics["ratio"]),
+                noise_floor_image=noise_floor_image, **metrics)
+
+
+def zero_row(x) -> np.ndarray:
+    """The row where the commanded displacement crosses zero, a quarter period below the crest."""
+    return CREST_ROW + period_px(x) / 4.0
+
+
+def zero_crossing_noise(x, y, v, crest_x, crest_ratio) -> float:
+    """n from windows centred where the commanded displacement crosses zero, where p >= 200 px: the field is odd
+    about their centre, which an affine window takes whole (up to its cubic term), so what they read is their error
+    alone, as on the Challenge's noise-floor image, which has no motion. A centre off the crossing by d sees the
+    cosine's even part 0.5 sin(2 pi d / p), attenuated as the crest is: that is taken off with the crest's
+    measured / commanded ratio (its sliding mean) at the same x. Windows on the crest and the trough, paired, read
+    45-80 % more at 64 px (0.0035-0.0041 px against 0.0023-0.0024): the speckle under each weights the crest's
+    curvature its own way, an error of the displacement's shape, which a field without motion does not have.
+    Checked against a noise-floor pair made of the reference and the reference plus fresh noise of the images' sigma
+    (2.2 grey levels: one image's noise where the Challenge's pair has two): 16-pixel windows read 0.0079 px on it
+    (pyvale's 17-pixel subsets 0.0073), and 0.0112 (0.0103) at the zero crossing, sqrt(2) times as much."""
+    x, y, v = (np.asarray(a, float) for a in (x, y, v))
+    long = (period_px(x) >= NOISE_MIN_PERIOD_PX) & np.isfinite(v)
+    attenuation = np.interp(x[long], crest_x[np.isfinite(crest_ratio)], crest_ratio[np.isfinite(crest_ratio)])
+    error = v[long] - attenuation * commanded_v(x[long], y[long])
+    return float(np.std(error)) if error.size > 10 else float("nan")
 
 
 def common_metrics(x: np.ndarray, y, v: np.ndarray, step: int) -> dict:
     """The metrics both codes go through (module text): the attenuation ratio along the period, n about the sliding
-    mean ("noise"; `analyse` keeps it as "noise_scatter" beside its own n), l10 and MEI on the sliding mean and by
+    mean ("noise"; `analyse` keeps it as "noise_scatter" beside its own n), l10 and MEI on the sliding mean, l10 by
     the Challenge's rule, plateau."""
     period = period_px(x)
     span = max(SMOOTH_SPAN_PX // step, 1)
@@ -168,7 +226,7 @@ def common_metrics(x: np.ndarray, y, v: np.ndarray, step: int) -> dict:
     l10 = first_crossing(period, ratio)
     l10_challenge = challenge_l10(period, v / commanded_v(x, y))
     return dict(period=period, ratio=ratio, noise=noise, l10=l10, mei=noise * l10, l10_challenge=l10_challenge,
-                mei_challenge=noise * l10_challenge, plateau=float(np.nanmean(v[period >= PLATEAU_MIN_PERIOD_PX])))
+                plateau=float(np.nanmean(v[period >= PLATEAU_MIN_PERIOD_PX])))
 
 
 def period_px(x) -> np.ndarray:
@@ -196,15 +254,30 @@ def pyvale_images_folder() -> Path:
 
 
 def load_star(folder: Path | None) -> tuple[np.ndarray, np.ndarray]:
-    from PIL import Image
-
     folder = pyvale_images_folder() if folder is None else Path(folder)
     paths = [folder / name for name in IMAGE_NAMES]
     missing = [str(p) for p in paths if not p.is_file()]
     if missing:
         sys.exit("dic_challenge: missing " + ", ".join(missing) + " (pyvale's package data: data/dic/challenge)")
-    reference, deformed = (np.asarray(Image.open(p), dtype=float) for p in paths)
+    reference, deformed = (load_image(p) for p in paths)
     return reference, deformed
+
+
+def load_image(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    if not Path(path).is_file():
+        sys.exit(f"dic_challenge: no image at {path}")
+    return np.asarray(Image.open(path), dtype=float)
+
+
+def noise_floor_image_noise(reference: np.ndarray, noise_image: np.ndarray, window: int, step: int) -> float:
+    """The Challenge's n itself: calfit's windows along the crest row of the reference against its noise-floor image
+    (the same speckle, fresh noise, no motion), the standard deviation of v."""
+    columns = np.arange(window // 2, reference.shape[1] - window // 2 + 1, step)
+    still = correlate(reference, noise_image, np.column_stack([np.full(len(columns), CREST_ROW), columns]),
+                      (1.0, 1.0), window_px=window)
+    return float(np.nanstd(still.displacement_px[:, 1]))
 
 
 def sliding_mean(values: np.ndarray, span: int) -> np.ndarray:
@@ -263,8 +336,10 @@ def observe_in_chunks(reference, gradients, centres, window, noise_sigma, field,
     return np.concatenate(out)
 
 
-def analyse(reference, deformed, gradients, field, window: int, step: int, row0: int) -> dict:
-    """Measured and predicted displacement along the crest for one window size, and the Challenge's metrics."""
+def analyse(reference, deformed, gradients, field, window: int, step: int, row0: int, full_reference,
+            full_deformed) -> dict:
+    """Measured and predicted displacement along the crest for one window size, the Challenge's metrics, and the
+    noise at the zero crossing below the crest (on the full images, whose rows the strip may not hold)."""
     width = reference.shape[1]
     crest = CREST_ROW - row0
     columns = np.arange(window // 2, width - window // 2 + 1, step)
@@ -289,6 +364,11 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     sigma = np.sqrt(np.where(failed, np.nan, result.covariance_mm2[:, 1, 1]))   # pixel = 1 mm
 
     common = common_metrics(x, y, measured, step)
+    columns_long = columns[period_px(columns) >= NOISE_MIN_PERIOD_PX]
+    zero = correlate(full_reference, full_deformed, np.column_stack([np.rint(zero_row(columns_long)), columns_long]),
+                     (1.0, 1.0), window_px=window)
+    noise_zero = zero_crossing_noise(zero.centre_rc[:, 1], zero.centre_rc[:, 0], zero.displacement_px[:, 1], x,
+                                     common["ratio"])
     ratio_measured = common["ratio"]
     ratio_seen = sliding_mean(seen / commanded, max(SMOOTH_SPAN_PX // step, 1))
     long = period >= NOISE_MIN_PERIOD_PX
@@ -303,9 +383,9 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     gap[period < 2 * window] = np.nan    # where the windows see almost nothing, the ratio is noise over a tiny signal
     worst = int(np.nanargmax(gap))
     return dict(window=window, step=step, x=x, period=period, commanded=commanded, measured=measured, seen=seen,
-                sigma=sigma, noise_scatter=common["noise"], mei_scatter=common["mei"], ratio_measured=ratio_measured,
-                l10_challenge=common["l10_challenge"], mei_challenge=common["mei_challenge"],
-                ratio_seen=ratio_seen, failed=int(failed.sum()), windows=len(x),
+                sigma=sigma, noise_scatter=common["noise"], noise_zero=noise_zero,
+                ratio_measured=ratio_measured, l10_challenge=common["l10_challenge"], ratio_seen=ratio_seen,
+                failed=int(failed.sum()), windows=len(x),
                 noise=noise, noise_predicted=noise_predicted, noise_sigma=result.noise_sigma[0], l10=l10,
                 l10_last=last_crossing(period, ratio_measured), l10_seen=first_crossing(period, ratio_seen),
                 l10_uniform=first_crossing(fine, uniform_window(window, fine)), mei=noise * l10,
@@ -352,54 +432,68 @@ def report(results: list[dict], floor_sigma: float) -> None:
 
 
 def report_participants(results: list[dict], peers: list[dict]) -> dict:
-    """calfit's and pyvale's code MEI (the Challenge's l10 rule, n the scatter at long periods, the three lowest of
-    their window sizes) placed among the Challenge's codes; returns the two code MEIs for the figure."""
+    """calfit's and pyvale's code MEI (the Challenge's l10 rule, n on the Challenge's noise-floor image when given,
+    else at the zero crossing, the three lowest of their window sizes) placed among the Challenge's codes; returns
+    the two code MEIs and where their n comes from, for the figure."""
     codes = participants()
     theirs = np.array([mei for _, _, mei in codes])
+    on_image = all(np.isfinite(r["noise_floor_image"]) for r in results + peers)
+    used = "noise_floor_image" if on_image else "noise_zero"
+    source = ("the noise-floor image's crest row, as the Challenge measures it" if on_image else
+              f"windows on the zero crossing where p >= {NOISE_MIN_PERIOD_PX:g} px (the noise-floor image not given)")
     print(f"\nbeside the {len(codes)} codes of the DIC Challenge 2.0 on Star 5 (their code MEI: "
-          f"{PARTICIPANTS_CSV.relative_to(PARTICIPANTS_CSV.parents[2])}); l10 Ch. by the Challenge's rule, n the "
-          f"scatter about the sliding mean where p >= {NOISE_MIN_PERIOD_PX:g} px, MEI = n x l10 Ch.:")
-    print(f"{'code':>8s} {'window':>7s} {'n px':>7s} {'l10 Ch.':>8s} {'MEI px2':>8s}")
+          f"{PARTICIPANTS_CSV.relative_to(PARTICIPANTS_CSV.parents[2])}); n from {source}, the scatter beside it; "
+          "l10 Ch. by the Challenge's rule; MEI = n x l10 Ch.:")
+    print(f"{'code':>8s} {'window':>7s} {'n scatter':>9s} {'n zero':>8s} {'n image':>8s} {'l10 Ch.':>8s} "
+          f"{'MEI px2':>8s}")
     ours = {}
     for code, runs, size in (("calfit", results, "window"), ("pyvale", peers, "subset")):
+        meis = []
         for r in runs:
-            noise = r["noise_scatter"] if code == "calfit" else r["noise"]
-            print(f"{code:>8s} {r[size]:5d}px {noise:7.4f} {r['l10_challenge']:8.1f} {r['mei_challenge']:8.3f}")
-        ours[code] = code_mei([r["mei_challenge"] for r in runs])
+            scatter = r["noise_scatter"] if code == "calfit" else r["noise"]
+            meis.append(r[used] * r["l10_challenge"])
+            print(f"{code:>8s} {r[size]:5d}px {scatter:9.4f} {r['noise_zero']:8.4f} {r['noise_floor_image']:8.4f} "
+                  f"{r['l10_challenge']:8.1f} {meis[-1]:8.3f}")
+        ours[code] = code_mei(meis)
     print(f"  the Challenge's codes: median {np.median(theirs):.3f} px^2, quartiles {np.quantile(theirs, 0.25):.3f}-"
           f"{np.quantile(theirs, 0.75):.3f}, range {theirs.min():.3f}-{theirs.max():.3f}; by family:")
     for family in dict.fromkeys(f for _, f, _ in codes):
         values = np.array([mei for _, f, mei in codes if f == family])
         print(f"    {family:>16s}: {len(values):2d} codes, {values.min():.3f}-{values.max():.3f} px^2")
     for code, mei in ours.items():
+        if not np.isfinite(mei):
+            print(f"  {code}: fewer than {CODE_MEI_LOWEST} window sizes with an l10, no code MEI (run --windows with "
+                  f"{CODE_MEI_LOWEST} or more)")
+            continue
         lower = int(np.sum(theirs < mei))
         print(f"  {code} (mean of its {CODE_MEI_LOWEST} lowest): code MEI {mei:.3f} px^2, "
               f"{mei / np.median(theirs):.2f} x the participants' median; {lower} of the {len(codes)} codes lower, "
               f"rank {lower + 1} of {len(codes) + 1}")
-    return ours
+    return ours, ("n on the Challenge's noise-floor image" if on_image else
+                  "their n at the zero crossing of the same pair (the noise-floor image is not in pyvale's)")
 
 
 def report_peer(results: list[dict], peers: list[dict]) -> None:
-    """Both codes' `common_metrics`, with calfit / pyvale ratios."""
+    """Both codes through the same metrics, which need neither code's error model (n at the zero crossing, l10 on
+    the sliding mean, MEI = n x l10), with calfit / pyvale ratios."""
     print("\nbeside pyvale's DIC engine (same images, same row, one thread each; the same metrics for both, which "
-          "need neither code's error model: n = scatter about the sliding 100-px mean where p >= "
-          f"{NOISE_MIN_PERIOD_PX:g} px)")
+          "need neither code's error model: n at the zero crossing below the crest where p >= "
+          f"{NOISE_MIN_PERIOD_PX:g} px, l10 of the sliding mean)")
     print(f"{'code':>8s} {'subset':>7s} {'step':>5s} {'windows':>8s} {'failed':>6s} {'n px':>7s} {'l10 px':>7s} "
           f"{'MEI px2':>8s} {'plateau':>8s} {'DIC s':>6s}")
     for r, peer in zip(results, peers):
-        mine = dict(noise=r["noise_scatter"], l10=r["l10"], mei=r["mei_scatter"], plateau=r["plateau"])
-        for code, size, step, count, failed, m, seconds in (
-                ("calfit", r["window"], r["step"], r["windows"], r["failed"], mine, r["seconds_dic"]),
-                ("pyvale", peer["subset"], peer["step"], len(peer["x"]), peer["failed"], peer, peer["seconds"])):
-            print(f"{code:>8s} {size:5d}px {step:5d} {count:8d} {failed:6d} {m['noise']:7.4f} {m['l10']:7.1f} "
-                  f"{m['mei']:8.3f} {m['plateau']:8.4f} {seconds:6.1f}")
-        per_window = (r["seconds_dic"] / r["windows"]) / (peer["seconds"] / len(peer["x"]))
-        print(f"{'calfit / pyvale':>22s}: n {mine['noise'] / peer['noise']:.2f} x, l10 "
-              f"{mine['l10'] / peer['l10']:.2f} x, MEI {mine['mei'] / peer['mei']:.2f} x, time per window "
-              f"{per_window:.2f} x")
+        rows = []
+        for code, size, m, count, seconds in (("calfit", r["window"], r, r["windows"], r["seconds_dic"]),
+                                              ("pyvale", peer["subset"], peer, len(peer["x"]), peer["seconds"])):
+            rows.append((m["noise_zero"], m["l10"], m["noise_zero"] * m["l10"], seconds / count))
+            print(f"{code:>8s} {size:5d}px {m['step']:5d} {count:8d} {m['failed']:6d} {rows[-1][0]:7.4f} "
+                  f"{rows[-1][1]:7.1f} {rows[-1][2]:8.3f} {m['plateau']:8.4f} {seconds:6.1f}")
+        (n, l10, mei, per_window), (n_peer, l10_peer, mei_peer, per_window_peer) = rows
+        print(f"{'calfit / pyvale':>22s}: n {n / n_peer:.2f} x, l10 {l10 / l10_peer:.2f} x, MEI "
+              f"{mei / mei_peer:.2f} x, time per window {per_window / per_window_peer:.2f} x")
 
 
-def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict) -> None:
+def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict, noise_source: str) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -444,15 +538,17 @@ def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict) -
     for row, family in enumerate(families):
         values = [mei for _, f, mei in codes if f == family]
         ranking.plot(values, np.full(len(values), row), "o", color="grey", ms=5, alpha=0.7)
-    for code, marker, colour in (("calfit", "D", "tab:blue"), ("pyvale", "s", "tab:red")):
+    for code, colour in (("calfit", "tab:blue"), ("pyvale", "tab:red")):
+        if not np.isfinite(code_meis[code]):
+            continue
         ranking.axvline(code_meis[code], color=colour, lw=1.2, ls="--")
-        ranking.plot([], [], ls="--", color=colour, label=f"{code}: {code_meis[code]:.2f} px$^2$ (same images, same "
-                     "metrics)")
+        ranking.plot([], [], ls="--", color=colour, label=f"{code}: {code_meis[code]:.2f} px$^2$")
     ranking.axvline(np.median([mei for _, _, mei in codes]), color="black", lw=0.8, ls=":")
     ranking.plot([], [], ls=":", color="black", label="median of the Challenge's codes")
     ranking.set_yticks(range(len(families)), [f"{f} ({sum(1 for c in codes if c[1] == f)})" for f in families])
     ranking.set_ylim(-0.6, len(families) - 0.4)
-    ranking.set_xlabel("code MEI = n x l10, mean of the three lowest window sizes (px$^2$; lower is better)")
+    ranking.set_xlabel(f"code MEI = n x l10, mean of the three lowest window sizes (px$^2$; lower is better)\n"
+                       f"calfit and pyvale: {noise_source}", fontsize=9)
     ranking.set_title("The DIC Challenge 2.0 codes' displacement MEI on Star 5 (Reu et al. 2022), calfit's and "
                       "pyvale's among them", fontsize=10)
     ranking.grid(alpha=0.3, axis="x")
@@ -470,10 +566,14 @@ def main() -> None:
     parser.add_argument("--step", type=int, default=4, help="pixels between window centres along the crest row")
     parser.add_argument("--images", type=Path, default=None, help="folder holding the two Star TIFFs "
                         "(default: pyvale's package data)")
+    parser.add_argument("--noise-image", type=Path, default=None, help="the Challenge's noise-floor image of Star 5 "
+                        "(DIC_Challenge_Star_Noise.tif from its site; pyvale does not ship it): n is then measured as "
+                        "the Challenge measures it, for both codes")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/figures/dic_challenge.png"))
     args = parser.parse_args()
 
     full_reference, full_deformed = load_star(args.images)
+    noise_image = None if args.noise_image is None else load_image(args.noise_image)
     row0 = CREST_ROW - STRIP_HALF_ROWS
     reference = full_reference[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
     deformed = full_deformed[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
@@ -485,17 +585,20 @@ def main() -> None:
           f"{', '.join(map(str, args.windows))} px every {args.step} px along row {CREST_ROW}")
     results = []
     for window in args.windows:
-        results.append(analyse(reference, deformed, gradients, field, window, args.step, row0))
+        results.append(analyse(reference, deformed, gradients, field, window, args.step, row0, full_reference,
+                               full_deformed))
         r = results[-1]
+        r["noise_floor_image"] = (float("nan") if noise_image is None else
+                                  noise_floor_image_noise(full_reference, noise_image, window, args.step))
         print(f"  {window:2d} px: {r['windows']} windows, DIC {r['seconds_dic']:.1f} s, operator "
               f"{r['seconds_operator']:.1f} s", flush=True)
     report(results, floor_sigma)
     with tempfile.TemporaryDirectory(prefix="calfit-pyvale-") as scratch:
-        peers = [pyvale_crest(full_reference, full_deformed, window + 1, args.step, Path(scratch))
+        peers = [pyvale_crest(full_reference, full_deformed, window + 1, args.step, Path(scratch), noise_image)
                  for window in args.windows]
     report_peer(results, peers)
-    code_meis = report_participants(results, peers)
-    figure(results, args.out, peers, code_meis)
+    code_meis, noise_source = report_participants(results, peers)
+    figure(results, args.out, peers, code_meis, noise_source)
 
 
 if __name__ == "__main__":
