@@ -84,7 +84,8 @@ from scipy.spatial import cKDTree
 
 from .effects import CATALOG, LOCAL_PROBE, effect
 from .forward import LegModel
-from .heterogeneity import PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name
+from .heterogeneity import (PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups, patch_name,
+                            stiffness_field_text)
 from .identify import FitResult, interval_identifiable, jacobian_in_x, levenberg_marquardt, steps_into_box
 from .levels import LevelsModel
 from .regions import SECTORS, LegFrame, depth_band
@@ -661,9 +662,12 @@ def refit_verdict(diagnosis: Diagnosis, refits: Sequence["Refit"]) -> tuple[bool
         short = ("" if ratio <= FLOOR_AGREEMENT else
                  f"; that is still above the floor, beyond the {FLOOR_AGREEMENT:g} x within which the error model "
                  f"agrees with the measured errors: {best} explains most of the residual, not all of it")
+        field = ("" if not done[0].stiffness_field else
+                 f"; its stiffness field, C10 area-weighted: {stiffness_field_text(done[0].stiffness_field)} (the "
+                 f"refit's C10 of a tissue is the field's reference, not the tissue's constant)")
         return True, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; {best} explains it: "
                       f"refitted with it, the misfit is {ratio:.2f} x the floor{floor}{settled}{short}"
-                      f"{unfixed_constants(diagnosis, done[0])}")
+                      f"{unfixed_constants(diagnosis, done[0])}{field}")
     return False, (f"misfit {diagnosis.misfit / diagnosis.noise_floor:.2f} x the noise floor; the best effect, {best}, "
                    f"refitted, leaves {ratio:.2f} x the floor{floor}: no catalog effect explains the residual")
 
@@ -724,6 +728,9 @@ class Refit:
     own_floor: dict | None = None
     # 95 % intervals of the parameters linearized at this fit (`linearized_intervals`), None without a Jacobian
     intervals: dict | None = None
+    # where groups carry their own materials (heterogeneity, a patch): C10 in kPa by tissue and quarter of the leg
+    # (`heterogeneity.stiffness_field_kpa`), None otherwise
+    stiffness_field: dict | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)

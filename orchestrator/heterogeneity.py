@@ -30,7 +30,7 @@ import numpy as np
 
 from .meshing.garment import polygon_centroid
 from .meshing.mesh import muscle_sets
-from .regions import display_angle_deg
+from .regions import IMAGE_SIDES, QUARTERS, display_angle_deg
 
 SECTORS = 24
 PATCH_MAX_DEG = 90.0   # the widest local change the diagnosis proposes
@@ -72,6 +72,32 @@ class Group:
         angle = np.radians(self.angle_deg)
         return {"cos1": np.cos(angle), "sin1": np.sin(angle), "cos2": np.cos(2 * angle), "sin2": np.sin(2 * angle),
                 "depth": self.depth}[name]
+
+
+def stiffness_field_kpa(model, theta, frame) -> dict[str, dict[str, float]]:
+    """A model's C10 where its groups carry their own materials (heterogeneity, a patch), in kPa, area-weighted over
+    each tissue ("all") and over each quarter of it about the leg (`regions.LegFrame.quarter`: anterior, lateral,
+    posterior, medial): the numbers to hold against a tissue's constant, which the field's reference C10_<tissue>
+    is not (a muscle whose anterior third is three times stiffer has no C10 of its own). Empty without groups."""
+    constants = model.deck_state(theta).constants
+    sums: dict[str, dict[str, list[float]]] = {}
+    for group in model.groups:
+        c10 = constants.get(group.name, {}).get("C10")
+        if c10 is None:
+            continue
+        for key in ("all", frame.quarter(group.angle_deg)):
+            total = sums.setdefault(group.kind, {}).setdefault(key, [0.0, 0.0])
+            total[0] += group.area_mm2 * c10 * 1000.0   # the deck's constants are in MPa
+            total[1] += group.area_mm2
+    order = ("all",) + QUARTERS + IMAGE_SIDES
+    return {kind: {key: parts[key][0] / parts[key][1] for key in order if key in parts} for kind, parts in sums.items()}
+
+
+def stiffness_field_text(field: dict[str, dict[str, float]]) -> str:
+    """"muscle 12.6 kPa (anterior 27.0, lateral 12.1, posterior 11.0, medial 12.3), fat 4.1 (...)"."""
+    return ", ".join(f"{kind} {parts['all']:.3g} kPa ("
+                     + ", ".join(f"{key} {value:.3g}" for key, value in parts.items() if key != "all") + ")"
+                     for kind, parts in sorted(field.items(), key=lambda item: item[0] != "muscle"))
 
 
 def element_geometry(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

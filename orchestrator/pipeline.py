@@ -27,12 +27,13 @@ import numpy as np
 from dataclasses import asdict
 
 from .diagnose import (ALPHA, diagnose, judged_ratio, level_maps, local_refit_unneeded, patch_elements, refit,
-                       refit_verdict, residual_maps, settle_ties, summarize_fit, weigh_local)
+                       refit_model, refit_verdict, residual_maps, settle_ties, summarize_fit, weigh_local)
 from .digits import interval_uncertainty, rounded, with_uncertainty
 from .discretization import discretization_check, discretization_line
 from .effects import effect
 from .figures import diagnosis_figure
 from .garment_state import band_state
+from .heterogeneity import stiffness_field_kpa
 from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
                        pressure_spreads, pressure_uncertainty, table1_starts)
 from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
@@ -472,6 +473,12 @@ def _band_on_the_leg(setup: RunSetup, theta: Sequence[float], model: AtTension |
     return {"theta": [float(v) for v in theta], **state.as_dict()}
 
 
+def _stiffness_field(model, fit, frame) -> dict | None:
+    """The refit's C10 by tissue and quarter of the leg where its effects give groups their own materials."""
+    refitted = refit_model(model, fit.effects[len(model.effects):])
+    return stiffness_field_kpa(refitted, fit.theta, frame) if refitted.groups else None
+
+
 @holds_run_folder()
 def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
                  engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
@@ -522,6 +529,8 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         after_maps.append(residual_maps(objective.positions_mm, residual, frame))
         after_level_maps.append(level_maps(objective, residual, frame))
     settle_ties(diagnosis, after)
+    for fit in after:
+        fit.stiffness_field = _stiffness_field(model, fit, frame)
     if diagnosis.ranking and diagnosis.ranking[0].effect in residuals:
         best = diagnosis.ranking[0].effect
         fit = next(f for f in after if f.effects[-1:] == [best])
@@ -553,6 +562,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
                      "verdict": diagnosis.verdict}
         else:
             fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
+            fit.stiffness_field = _stiffness_field(model, fit, frame)
             local = weigh_local(diagnosis, patch, before, fit, after)
             after.append(fit)
             after_maps.append(residual_maps(objective.positions_mm, residual, frame))

@@ -27,6 +27,8 @@ DEPTH_BANDS_MM = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf)
 DEEP_COMPARTMENT_MM = 15.0
 DIRECTIONS = ("anterior", "anterolateral", "lateral", "posterolateral", "posterior", "posteromedial", "medial",
               "anteromedial")
+QUARTERS = ("anterior", "lateral", "posterior", "medial")
+IMAGE_SIDES = ("image right", "image top", "image left", "image bottom")   # the quarters' names without bones
 
 
 def tissue_name(label: int) -> str:
@@ -90,9 +92,17 @@ class LegFrame:
     def direction(self, angle_deg: float) -> str:
         """Anatomical name of the direction at a display angle."""
         if self.anterior_deg is None:
-            return ("image right", "image top", "image left", "image bottom")[int(((angle_deg + 45.0) % 360.0) // 90.0)]
+            return IMAGE_SIDES[int(((angle_deg + 45.0) % 360.0) // 90.0)]
         relative = ((angle_deg - self.anterior_deg) * self.lateral_sense) % 360.0
         return DIRECTIONS[int(((relative + 22.5) % 360.0) // 45.0)]
+
+    def quarter(self, angle_deg: float) -> str:
+        """Anatomical name of the quarter of the leg (90 degrees about anterior, lateral, posterior or medial) that
+        holds a display angle."""
+        if self.anterior_deg is None:
+            return IMAGE_SIDES[int(((angle_deg + 45.0) % 360.0) // 90.0)]
+        relative = ((angle_deg - self.anterior_deg) * self.lateral_sense) % 360.0
+        return QUARTERS[int(((relative + 45.0) % 360.0) // 90.0)]
 
     def sector_label(self, sector: int) -> str:
         width = 360.0 / SECTORS

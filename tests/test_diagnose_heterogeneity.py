@@ -183,3 +183,32 @@ def test_a_stiff_patch_is_outside_the_catalog_and_located(tmp_path, kind, ratio,
     assert local["patch"]["tissue"] == kind
     assert local["explains"] and local["misfit_over_floor"] <= 1.5, local["verdict"]
     assert "a local stiffness change in the" in result["verdict"] and "label" not in result["verdict"]
+
+
+def test_the_stiffness_field_is_read_by_tissue_and_quarter_of_the_leg(compartment_mesh):
+    """`stiffness_field_kpa` gives what a heterogeneity refit means in a tissue's units: the area-weighted C10 of
+    each tissue and of each quarter of it. Without modes every quarter holds the tissue's constant; with the muscle
+    three times stiffer at the top of the image (sin theta = 1, anterior in this frame) and a third at the bottom,
+    the anterior quarter is the stiffest, the posterior the softest, lateral and medial alike between them, and the
+    fat, whose modes are zero, keeps its constant."""
+    from orchestrator.heterogeneity import stiffness_field_kpa, stiffness_field_text
+    from orchestrator.regions import LegFrame
+
+    model = LegModel(compartment_mesh, 0.16, effects=("heterogeneity",))
+    frame = LegFrame(np.zeros((1, 1)), (1.0, 1.0), np.zeros(2), anterior_deg=90.0, lateral_sense=-1,
+                     skin_distance_mm=np.zeros((1, 1)))
+    theta = list(TABLE2_CENTRAL_KPA) + [0.0] * (model.space.size - 4)
+    flat = stiffness_field_kpa(model, theta, frame)
+    c10 = dict(zip(("fat", "muscle"), TABLE2_CENTRAL_KPA[:2]))
+    for kind in ("fat", "muscle"):
+        assert set(flat[kind]) == {"all", "anterior", "lateral", "posterior", "medial"}
+        assert all(value == pytest.approx(c10[kind], rel=1e-9) for value in flat[kind].values())
+    theta[model.space.names.index("h_sin1_muscle")] = np.log(3.0)
+    field = stiffness_field_kpa(model, theta, frame)
+    muscle = field["muscle"]
+    assert muscle["anterior"] > muscle["lateral"] > muscle["posterior"]
+    assert muscle["medial"] == pytest.approx(muscle["lateral"], rel=0.15)
+    assert 2.0 * c10["muscle"] < muscle["anterior"] < 3.0 * c10["muscle"]
+    assert c10["muscle"] / 3.0 < muscle["posterior"] < c10["muscle"] / 2.0
+    assert all(value == pytest.approx(c10["fat"], rel=1e-9) for value in field["fat"].values())
+    assert stiffness_field_text(field).startswith(f"muscle {muscle['all']:.3g} kPa (")
