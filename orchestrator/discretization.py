@@ -26,8 +26,6 @@ from typing import Sequence
 
 import numpy as np
 
-from .imaging.compartments import find_compartments
-from .meshing.labels import mesh_tissue_curves
 from .objectives import DisplacementResidualObjective
 from .runner import OK, Evaluator
 
@@ -39,14 +37,9 @@ def discretization_check(setup, theta: Sequence[float], measurements, run_dir, *
     """chi2_disc of the module text for the first garment level's measurements, at theta: the run's fitted model
     (`setup.model`, whose run at theta a case of one level has in its log already) against the same effects on a mesh
     of FINER_FACTOR times its elements meshed from the same labels. Returns what identification.json keeps."""
-    from .study import assign_compartments, case_model
+    from .study import case_model
 
-    mesh = setup.mesh
-    pixel = setup.case.pixel_size_mm
-    finer = mesh_tissue_curves(setup.tissue_curves(), n_elements=FINER_FACTOR * len(mesh.elements), order=mesh.order)
-    if setup.compartments.get("source") == "image":   # the muscle's compartments, found in I0 as the setup found them
-        finer = assign_compartments(finer, find_compartments(setup.case.unloaded, setup.labels_unloaded, pixel).labels,
-                                    pixel)
+    finer = setup.mesh_again(FINER_FACTOR * len(setup.mesh.elements))
     residuals = []
     for label, model in (("mesh", setup.model), ("finer", case_model(finer, setup.case, effects=setup.model.effects))):
         objective = DisplacementResidualObjective(model.mesh, measurements)
@@ -61,7 +54,7 @@ def discretization_check(setup, theta: Sequence[float], measurements, run_dir, *
     n = len(residuals[0])
     dof = n - len(theta) - objective.nuisance_dof
     limit = float(np.sqrt(2.0 * n))
-    return {"checked": True, "elements": len(mesh.elements), "finer_elements": len(finer.elements),
+    return {"checked": True, "elements": len(setup.mesh.elements), "finer_elements": len(finer.elements),
             "chi2_disc": chi2_disc, "chi2_mesh": chi2_mesh, "chi2_finer": chi2_finer, "drop": chi2_mesh - chi2_finer,
             "values": n, "limit": limit, "adequate": bool(chi2_disc <= limit),
             "misfit_over_floor_mesh": chi2_mesh / dof, "misfit_over_floor_finer": chi2_finer / dof}

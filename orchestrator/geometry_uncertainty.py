@@ -159,11 +159,9 @@ def _model_on(setup, mesh, effects, tension_N_per_mm):
 
 def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
     """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
-    from .meshing import mesh_tissue_curves
     from .runner import solve_once
 
-    mesh = mesh_tissue_curves(setup.tissue_curves(), n_elements=len(setup.mesh.elements), order=setup.mesh.order,
-                              interface_offsets=offsets)
+    mesh = setup.mesh_again(len(setup.mesh.elements), interface_offsets=offsets)
     model = _model_on(setup, mesh, effects, tension_N_per_mm)
     displacement = solve_once(model, model.deck(theta, sensitivities=False),
                               f"the engine did not converge on a shifted interface at {list(theta)}")
@@ -185,7 +183,8 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
     perimeter = skin_perimeter_mm(model.mesh)
     # the band's model moves the skin itself; Laplace's law feels its curvature's change (module text)
     variances = (offset_variances if model.band is not None else mode_variances)(perimeter, skin_sigma_mm, cutoff_mm)
-    setup.tissue_curves()   # made once, before the threads mesh them
+    setup.tissue_curves()   # made once, before the threads mesh them, as the compartments found in I0
+    setup.compartment_labels()
     shifts = [(interface, sign) for interface in ("skin", "fascia") for sign in (1.0, -1.0)]
 
     def shifted(interface: str, sign: float) -> np.ndarray:

@@ -97,6 +97,7 @@ class RunSetup:
     # operators and covariance take about a second); the geometry's part is read again at every call
     _measured: dict = field(default_factory=dict, repr=False, compare=False)
     _tissue_curves: TissueCurves | None = field(default=None, repr=False, compare=False)   # `tissue_curves`
+    _compartment_labels: np.ndarray | None = field(default=None, repr=False, compare=False)   # `compartment_labels`
 
     def tissue_curves(self) -> TissueCurves:
         """The interfaces of the unloaded labels snapped onto I0's edges, as the run's mesh was made from them
@@ -107,6 +108,25 @@ class RunSetup:
             self._tissue_curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded,
                                                 skin_cutoff_mm=self.skin_cutoff_mm)
         return self._tissue_curves
+
+    def compartment_labels(self) -> np.ndarray | None:
+        """The muscle compartments the setup found at the septa of I0 (`imaging.compartments`, found once), None
+        where the labels gave them or none were found."""
+        if self.compartments.get("source") != "image":
+            return None
+        if self._compartment_labels is None:
+            self._compartment_labels = find_compartments(self.case.unloaded, self.labels_unloaded,
+                                                         self.case.pixel_size_mm).labels
+        return self._compartment_labels
+
+    def mesh_again(self, n_elements: int, interface_offsets=None) -> Mesh:
+        """The run's leg meshed again from its curves with n_elements (and interface_offsets, `mesh_tissue_curves`), its
+        muscle cut into the compartments the setup found in I0 as the setup cut the run's mesh: the discretization
+        check's finer mesh and the skin's shifted ones, which a model with the compartments effect needs."""
+        mesh = mesh_tissue_curves(self.tissue_curves(), n_elements=n_elements, order=self.mesh.order,
+                                  interface_offsets=interface_offsets)
+        found = self.compartment_labels()
+        return mesh if found is None else assign_compartments(mesh, found, self.case.pixel_size_mm)
 
     @property
     def skin_cutoff_mm(self) -> float:
