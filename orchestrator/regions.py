@@ -91,18 +91,21 @@ class LegFrame:
 
     def direction(self, angle_deg: float) -> str:
         """Anatomical name of the direction at a display angle."""
-        if self.anterior_deg is None:
-            return IMAGE_SIDES[int(((angle_deg + 45.0) % 360.0) // 90.0)]
-        relative = ((angle_deg - self.anterior_deg) * self.lateral_sense) % 360.0
-        return DIRECTIONS[int(((relative + 22.5) % 360.0) // 45.0)]
+        return self._nearest(angle_deg, DIRECTIONS)
 
     def quarter(self, angle_deg: float) -> str:
         """Anatomical name of the quarter of the leg (90 degrees about anterior, lateral, posterior or medial) that
         holds a display angle."""
+        return self._nearest(angle_deg, QUARTERS)
+
+    def _nearest(self, angle_deg: float, names: tuple[str, ...]) -> str:
+        """The one of `names`, evenly spaced around the leg from anterior towards lateral, nearest a display angle;
+        without bones, the image's sides."""
         if self.anterior_deg is None:
             return IMAGE_SIDES[int(((angle_deg + 45.0) % 360.0) // 90.0)]
+        width = 360.0 / len(names)
         relative = ((angle_deg - self.anterior_deg) * self.lateral_sense) % 360.0
-        return QUARTERS[int(((relative + 45.0) % 360.0) // 90.0)]
+        return names[int(((relative + width / 2.0) % 360.0) // width)]
 
     def sector_label(self, sector: int) -> str:
         width = 360.0 / SECTORS

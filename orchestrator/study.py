@@ -120,9 +120,10 @@ class RunSetup:
         return self._compartment_labels
 
     def mesh_again(self, n_elements: int, interface_offsets=None) -> Mesh:
-        """The run's leg meshed again from its curves with n_elements (and interface_offsets, `mesh_tissue_curves`), its
-        muscle cut into the compartments the setup found in I0 as the setup cut the run's mesh: the discretization
-        check's finer mesh and the skin's shifted ones, which a model with the compartments effect needs."""
+        """The run's leg meshed again from its curves with n_elements (and interface_offsets: `mesh_tissue_curves`),
+        its muscle cut into the compartments the setup found in I0 as the setup cut the run's mesh: the
+        discretization check's finer mesh and the skin's shifted ones, which a model with the compartments effect
+        needs."""
         mesh = mesh_tissue_curves(self.tissue_curves(), n_elements=n_elements, order=self.mesh.order,
                                   interface_offsets=interface_offsets)
         found = self.compartment_labels()
