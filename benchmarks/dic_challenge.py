@@ -22,15 +22,14 @@ project's validation code describes and applies them; the paper itself was not a
 - spatial resolution l10: the period at which the measured amplitude is attenuated by 10 %. The Challenge's rule
   ("l10 Ch."): a 12th-order polynomial fitted to measured / commanded against the period, where it first rises
   through 0.9. Beside it, the same crossing of the ratio's sliding 100-pixel mean ("l10"), which the figure draws;
-- noise n: the standard deviation of the measured displacement along the row on the Challenge's noise-floor image
-  (the reference against an image with fresh noise and no motion), which pyvale does not ship. Here, for the
-  Challenge's codes ("n zero"): windows centred a quarter period below the crest, where p >= 200 px, on the
+- noise n: the standard deviation of the measured displacement along the row on the Challenge's noise-floor image (the
+  reference against an image with fresh noise and no motion), which pyvale does not ship. Here ("n zero", for the peer
+  table and the Challenge's codes): windows centred a quarter period below the crest, where p >= 200 px, on the
   commanded field's zero crossing, which is odd about them: an affine window reads its error alone there
-  (`zero_crossing_noise`). Beside it, the scatter of the crest's measured displacement about its own sliding
-  100-pixel mean ("n scatter": it needs no second row, but takes away the error's
-  components longer than 100 px, and reads 17-28 % below n zero at 32-64 px) and about what calfit's observation
-  operator predicts ("n"). Given the Challenge's noise-floor image (--noise-image), n is measured on it, as the
-  Challenge does, for both codes;
+  (`zero_crossing_noise`). Beside it, the scatter of the crest's measured displacement about its own sliding 100-pixel
+  mean ("n scatter": it needs no second row, but takes away the error's components longer than 100 px, and reads 17-28 %
+  below n zero at 32-64 px) and about what calfit's observation operator predicts ("n"). Given the Challenge's
+  noise-floor image (--noise-image), n is measured on it, as the Challenge does, for both codes;
 - the Metrological Efficiency Indicator MEI = n x l10 (px^2): lower is better, and a code cannot lower one of the
   two by changing its window without raising the other. A code's MEI is the mean of its three lowest over the window
   sizes it ran.
