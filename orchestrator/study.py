@@ -373,6 +373,8 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                                                                        "centre_mm": list(motion.centre_mm)}})
     setup = load_run(run_dir)
     setup._tissue_curves = curves   # the same labels and I0 as load_run reads back: not snapped again
+    if compartment_info["source"] == "image":   # found at the septa of I0 just now: not searched again
+        setup._compartment_labels = compartment_labels
     return setup
 
 
