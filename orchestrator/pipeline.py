@@ -531,16 +531,15 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     settle_ties(diagnosis, after)
     for fit in after:
         fit.stiffness_field = _stiffness_field(model, fit, frame)
-    if diagnosis.ranking and diagnosis.ranking[0].effect in residuals:
-        best = diagnosis.ranking[0].effect
-        fit = next(f for f in after if f.effects[-1:] == [best])
-        fit.own_floor = _refit_own_floor(setup, identification, fit, residuals[best])
+    best = diagnosis.ranking[0].effect if diagnosis.ranking else None
+    best_refit = next((f for f in after if f.effects[-1:] == [best]), None)   # None: not refitted, or it failed
+    if best_refit is not None:
+        best_refit.own_floor = _refit_own_floor(setup, identification, best_refit, residuals[best])
     diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
-    if diagnosis.ranking and diagnosis.ranking[0].effect in refit_failures:
+    if best in refit_failures:
         # a prediction the refit could not check is not an explanation
         diagnosis.explained = False
-        diagnosis.verdict += (f"; but its refit failed ({refit_failures[diagnosis.ranking[0].effect]}), so that is "
-                              "not confirmed")
+        diagnosis.verdict += f"; but its refit failed ({refit_failures[best]}), so that is not confirmed"
     check = identification.get("discretization") or {}
     if check.get("checked") and not check["adequate"]:
         # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
@@ -553,8 +552,6 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     local = None
     if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
         patch = diagnosis.patches[0]
-        best = diagnosis.ranking[0].effect if diagnosis.ranking else None
-        best_refit = next((f for f in after if f.effects[-1:] == [best]), None)
         unneeded = local_refit_unneeded(diagnosis, patch, None if best_refit is None else judged_ratio(best_refit))
         if unneeded:
             diagnosis.verdict += f"; {unneeded}"
