@@ -270,15 +270,6 @@ def load_image(path: Path) -> np.ndarray:
     return np.asarray(Image.open(path), dtype=float)
 
 
-def noise_floor_image_noise(reference: np.ndarray, noise_image: np.ndarray, window: int, step: int) -> float:
-    """The Challenge's n itself: calfit's windows along the crest row of the reference against its noise-floor image
-    (the same speckle, fresh noise, no motion), the standard deviation of v."""
-    columns = np.arange(window // 2, reference.shape[1] - window // 2 + 1, step)
-    still = correlate(reference, noise_image, np.column_stack([np.full(len(columns), CREST_ROW), columns]),
-                      (1.0, 1.0), window_px=window)
-    return float(np.nanstd(still.displacement_px[:, 1]))
-
-
 def sliding_mean(values: np.ndarray, span: int) -> np.ndarray:
     """NaN-aware mean over `span` neighbours (centred); NaN where none is finite."""
     finite = np.isfinite(values)
@@ -336,9 +327,11 @@ def observe_in_chunks(reference, gradients, centres, window, noise_sigma, field,
 
 
 def analyse(reference, deformed, gradients, field, window: int, step: int, row0: int, full_reference,
-            full_deformed) -> dict:
-    """Measured and predicted displacement along the crest for one window size, the Challenge's metrics, and the
-    noise at the zero crossing below the crest (on the full images, whose rows the strip may not hold)."""
+            full_deformed, noise_image: np.ndarray | None = None) -> dict:
+    """Measured and predicted displacement along the crest for one window size, the Challenge's metrics, the noise
+    at the zero crossing below the crest (on the full images, whose rows the strip may not hold) and, given the
+    Challenge's noise-floor image (the same speckle, fresh noise, no motion), the Challenge's n itself: the standard
+    deviation of v along the crest row of the reference against it."""
     width = reference.shape[1]
     crest = CREST_ROW - row0
     columns = np.arange(window // 2, width - window // 2 + 1, step)
@@ -368,6 +361,11 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
                      (1.0, 1.0), window_px=window)
     noise_zero = zero_crossing_noise(zero.centre_rc[:, 1], zero.centre_rc[:, 0], zero.displacement_px[:, 1], x,
                                      common["ratio"])
+    noise_floor_image = float("nan")
+    if noise_image is not None:
+        still = correlate(reference, noise_image[row0:row0 + reference.shape[0]], centres, (1.0, 1.0),
+                          window_px=window)
+        noise_floor_image = float(np.nanstd(still.displacement_px[:, 1]))
     ratio_measured = common["ratio"]
     ratio_seen = sliding_mean(seen / commanded, max(SMOOTH_SPAN_PX // step, 1))
     long = period >= NOISE_MIN_PERIOD_PX
@@ -382,7 +380,7 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     gap[period < 2 * window] = np.nan    # where the windows see almost nothing, the ratio is noise over a tiny signal
     worst = int(np.nanargmax(gap))
     return dict(window=window, step=step, x=x, period=period, commanded=commanded, measured=measured, seen=seen,
-                sigma=sigma, noise_scatter=common["noise"], noise_zero=noise_zero,
+                sigma=sigma, noise_scatter=common["noise"], noise_zero=noise_zero, noise_floor_image=noise_floor_image,
                 ratio_measured=ratio_measured, l10_challenge=common["l10_challenge"], ratio_seen=ratio_seen,
                 failed=int(failed.sum()), windows=len(x),
                 noise=noise, noise_predicted=noise_predicted, noise_sigma=result.noise_sigma[0], l10=l10,
@@ -585,10 +583,8 @@ def main() -> None:
     results = []
     for window in args.windows:
         results.append(analyse(reference, deformed, gradients, field, window, args.step, row0, full_reference,
-                               full_deformed))
+                               full_deformed, noise_image))
         r = results[-1]
-        r["noise_floor_image"] = (float("nan") if noise_image is None else
-                                  noise_floor_image_noise(full_reference, noise_image, window, args.step))
         print(f"  {window:2d} px: {r['windows']} windows, DIC {r['seconds_dic']:.1f} s, operator "
               f"{r['seconds_operator']:.1f} s", flush=True)
     report(results, floor_sigma)
