@@ -5,11 +5,12 @@ folder holds the two images and case.toml only (no labels beyond what calfit seg
 displacements are measured by DIC, the baseline model (Avril et al.: C10 and Kv of fat and muscle) is
 identified by Levenberg-Marquardt, then diagnosed.
 
-For each hidden effect: the baseline misfit is far above the noise floor (lack of fit p < 1e-6), the hidden
-effect ranks first and is significant, the refit with it comes within 1.2x the floor, and a refit with a wrong
-effect lowers the misfit far less (at most half of the hidden effect's drop, and not to the floor; see
-WRONG_EFFECT_SHARE) with a BIC that says so. A control case (no hidden effect) reports nothing significant; a case with a local swelling of the fat
-(outside the catalog) is reported as not explained by any catalog effect, with the residual located in its sector.
+For each hidden effect: the baseline misfit is far above the noise floor (lack of fit p < 1e-6), the hidden effect
+ranks first and is significant, the refit with it comes within 1.2x the floor, and a refit with a wrong effect
+lowers the misfit far less (at most half of the hidden effect's drop, and not to the floor; see WRONG_EFFECT_SHARE)
+with a BIC that says so. A control case (no hidden effect) reports nothing significant; a case with a local swelling
+of the fat (outside the catalog) is reported as not explained by any catalog effect, with the residual located in
+its sector.
 
 The effect sizes are those of a calf under a garment: 5 % fluid loss of the muscle, 5 % axial elongation,
 0.2 mm of fibular motion, 8 % and 5 % first harmonics of the garment tension, C20 of 3 and 6 MPa (strain
