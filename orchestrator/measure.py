@@ -63,7 +63,7 @@ from .imaging.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_
 from .imaging.mismatch import tissue_mask
 from .imaging.segment import FAT, MUSCLE
 from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
-from .imaging.windows import WindowOperators
+from .imaging.windows import WindowOperators, textured
 from .runfiles import write_json
 
 WINDOW_CHOICES = (16, 32, 64)
@@ -81,6 +81,7 @@ DRAWING_DRAWS = 64          # sub-pixel placements of the leg over which a point
 VESSEL_WORDS = ("vein", "saphenous", "artery", "vessel")
 KINDS = ("grid", "skin", "fascia", "vessel")
 KEPT = "kept"
+FLAT = "less texture than the calibrated noise"
 FILES = {"table": "measurements.csv", "arrays": "measurements.npz", "summary": "measurements.json",
          "figure": "measurements.png"}
 
@@ -334,6 +335,12 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     excess = residual_excess(result, edge_variance, residual_noise, prefilter)
     result = result.calibrated(edge_variance, residual_noise, excess)
     status = _checks(result, min_confidence, max_uncertainty_px, step_px * pixel, excess > MAX_RESIDUAL_EXCESS)
+    # a window matched against the images' own noise estimate may hold less texture than the noise the residuals
+    # calibrated: it is rejected and counted, not left to fail the operators of every other window
+    candidates = np.flatnonzero(status == KEPT)
+    flat = ~textured(unloaded, centres[candidates], window_px, result.noise_sigma[0], prefilter,
+                     None if masks is None else [masks[k] for k in candidates])
+    status[candidates[flat]] = FLAT
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
     kept = status == KEPT

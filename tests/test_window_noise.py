@@ -11,6 +11,7 @@ subtraction weighted by each pixel's share of the noise gives 0.91.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy import ndimage
 
 from orchestrator.imaging.dic import correlate
@@ -60,3 +61,22 @@ def test_windows_half_in_air_predict_their_noise_along_the_skin():
     found = displacements[:, measured]
     error = np.abs(found.mean(axis=0) - np.array(SHIFT_PX[::-1]))
     assert np.all(error <= 4.0 * found.std(axis=0) / np.sqrt(DRAWS)), error
+
+
+def test_a_window_under_the_calibrated_noise_is_told_apart_from_its_textured_neighbours():
+    """`windows.textured` says which windows' texture rises above a noise level: the same weak-textured window
+    passes at half the images' noise and fails at four times it, while a well-textured one passes both;
+    `measure.measure_dic` rejects and counts the first kind instead of failing the whole measurement with it."""
+    from orchestrator.imaging.windows import WindowOperators, textured
+
+    rng = np.random.default_rng(3)
+    image = np.full((SIZE, SIZE), 0.6)
+    image[:, SIZE // 2:] += 0.2 * ndimage.gaussian_filter(rng.standard_normal((SIZE, SIZE // 2)), 1.5) / 0.19
+    image[:, :SIZE // 2] += 0.0035 * ndimage.gaussian_filter(rng.standard_normal((SIZE, SIZE // 2)), 1.5) / 0.19
+    noisy = image + SIGMA * rng.standard_normal(image.shape)
+    centres = np.array([(96, 40), (96, 150)])
+    assert textured(noisy, centres, 32, 0.5 * SIGMA).tolist() == [True, True]
+    assert textured(noisy, centres, 32, 4 * SIGMA).tolist() == [False, True]
+    with pytest.raises(ValueError, match="less texture than noise"):
+        WindowOperators(noisy, centres, 32, (1.0, 1.0), 4 * SIGMA)
+    assert len(WindowOperators(noisy, centres[1:], 32, (1.0, 1.0), 4 * SIGMA)) == 1

@@ -39,6 +39,48 @@ from .dic import (denoised_hessian, edge_strength, on_window_square, spline_grad
 from .prefilter import Prefilter, rician_variance_ratio
 
 
+class _WindowBasis:
+    """What the operators of one set of windows share: the prefiltered reference, its gradients and each prefiltered
+    pixel's noise variance over the tissue's, as `dic.correlate` weighs it."""
+
+    def __init__(self, reference: np.ndarray, reference_noise_sigma: float, prefilter: Prefilter, gradients=None):
+        self.shape = reference.shape
+        self.prefilter = prefilter
+        self.reference_noise_sigma = float(reference_noise_sigma)
+        self.smooth = prefilter(reference)
+        self.grad_rows, self.grad_cols = gradients if gradients is not None else spline_gradient(self.smooth)
+        self.noise_ratio = (prefilter.squared_kernel_response(rician_variance_ratio(reference, reference_noise_sigma))
+                            / prefilter.noise_gain)
+
+    def window(self, row: int, col: int, size: int, used: np.ndarray):
+        """(rows, cols, fx, fy, steepest, hessian, signal) of the window centred at (row, col): its pixels, the
+        reference's gradients there, its zero-normalised steepest-descent images and Gauss-Newton matrix, and that
+        matrix less the noise's share (`dic.denoised_hessian`; None: the window holds less texture than noise)."""
+        r0, c0 = row - size // 2, col - size // 2
+        if r0 < 0 or c0 < 0 or r0 + size > self.shape[0] or c0 + size > self.shape[1]:
+            raise ValueError(f"the window centred at row {row}, column {col} does not fit in the image")
+        rows, cols = np.mgrid[r0:r0 + size, c0:c0 + size]
+        fx, fy = self.grad_cols[rows, cols], self.grad_rows[rows, cols]
+        steepest, hessian = zero_normalised_steepest_descent(self.smooth[rows, cols], fx, fy, used)
+        signal = denoised_hessian(hessian, size, self.reference_noise_sigma, self.prefilter.derivative_noise_gain,
+                                  np.where(used.reshape(size, size), self.noise_ratio[rows, cols], 0.0))
+        return rows, cols, fx, fy, steepest, hessian, signal
+
+
+def textured(reference: np.ndarray, centres_rc, window_px: int, reference_noise_sigma: float,
+             prefilter: Prefilter | None = None, pixel_masks=None) -> np.ndarray:
+    """(N,) True where a window's texture rises above the noise of reference_noise_sigma (its Gauss-Newton matrix
+    less the noise's share is positive definite, `dic.denoised_hessian`): the windows whose operators exist. A
+    window matched with the images' own noise estimate may fall below the noise that the windows' residuals then
+    calibrate; `measure.measure_dic` rejects it and counts it, rather than failing every other window with it."""
+    basis = _WindowBasis(np.asarray(reference, float), reference_noise_sigma,
+                         Prefilter() if prefilter is None else prefilter)
+    centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
+    pixel_sets = window_pixel_sets(pixel_masks, len(centres), int(window_px))
+    return np.array([basis.window(row, col, int(window_px), used)[-1] is not None
+                     for (row, col), used in zip(centres, pixel_sets)], bool)
+
+
 class WindowOperators:
     """The linear maps B~_i and K_i of a set of square windows on a reference image (module text), for windows
     correlated on images smoothed by `prefilter` (default: `dic.correlate`'s), each over the pixels it matched
@@ -53,31 +95,20 @@ class WindowOperators:
         self.prefilter = Prefilter() if prefilter is None else prefilter
         dy, dx = (float(v) for v in pixel_size_mm)
         self.to_mm = np.array([dx, dy])
-        smooth = self.prefilter(reference)
-        grad_rows, grad_cols = gradients if gradients is not None else spline_gradient(smooth)
+        basis = _WindowBasis(reference, reference_noise_sigma, self.prefilter, gradients)
         self._reference = reference
         self.reference_noise_sigma = float(reference_noise_sigma)
         size, reach = self.window_px, self.prefilter.radius
-        # each prefiltered pixel's noise variance over the tissue's, as `dic.correlate` weighs it
-        noise_ratio = (self.prefilter.squared_kernel_response(rician_variance_ratio(reference, reference_noise_sigma))
-                       / self.prefilter.noise_gain)
-        local_rows, local_cols = np.mgrid[0:size, 0:size]
         spread_rows, spread_cols = np.mgrid[-reach:size + reach, -reach:size + reach]
         self.pixels = []        # flat indices of the pixels each window matched
         self.K = []             # (2, 2, n) per window: centre displacement (px) per displacement (px) of its n pixels
         self.noise_pixels = []  # flat indices of the raw pixels whose error reaches each window (inside the image)
         self.B = []             # (2, len(noise_pixels)) per window: B~, px per raw intensity unit
         for (row, col), used in zip(self.centres, window_pixel_sets(pixel_masks, len(self.centres), size)):
-            r0, c0 = row - size // 2, col - size // 2
-            rows, cols = local_rows + r0, local_cols + c0
-            if r0 < 0 or c0 < 0 or r0 + size > self.shape[0] or c0 + size > self.shape[1]:
-                raise ValueError(f"the window centred at row {row}, column {col} does not fit in the image")
-            fx, fy = grad_cols[rows, cols], grad_rows[rows, cols]
-            steepest, hessian = zero_normalised_steepest_descent(smooth[rows, cols], fx, fy, used)
-            signal = denoised_hessian(hessian, size, reference_noise_sigma, self.prefilter.derivative_noise_gain,
-                                      np.where(used.reshape(size, size), noise_ratio[rows, cols], 0.0))
+            rows, cols, fx, fy, steepest, hessian, signal = basis.window(row, col, size, used)
             if signal is None:
                 raise ValueError(f"the window centred at row {row}, column {col} holds less texture than noise")
+            r0, c0 = rows[0, 0], cols[0, 0]
             self.pixels.append((rows * self.shape[1] + cols).ravel()[used])
             fit = np.linalg.solve(hessian, steepest.T)[[0, 3]]
             self.K.append(fit[:, None, :] * np.stack([fx.ravel()[used], fy.ravel()[used]])[None, :, :])
