@@ -35,13 +35,14 @@ from scipy import ndimage
 from .forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
 from .imaging.align import align_on_bones, resample_rigid
 from .imaging.case import Case, read_case
+from .imaging.chemical_shift import FatShift, fat_shift
 from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
 from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
 from .imaging.frame import RigidMotion
 from .imaging.resolution import coarsen_image, working_resolution
 from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
 from .materials import law_notes
-from .meshing import Mesh, TissueCurves, mesh_tissue_curves, tissue_curves
+from .meshing import Mesh, TissueCurves, fat_muscle_normals, mesh_tissue_curves, tissue_curves, with_fat_moved_back
 from .meshing.curves import ERROR_BAND
 from .meshing.labels import SHORTEST_SKIN_SHAPE_MM
 from .phantom.mesh import truth_mesh
@@ -93,6 +94,7 @@ class RunSetup:
     levels_aligned: tuple = ()    # each more garment level's image aligned on the bones of I0
     segmentation_warnings: dict = field(default_factory=dict)   # label map -> [SegmentationWarning], setup.json
     skin_outline: dict = field(default_factory=dict)   # setup.json "skin_outline": the skin's cut-off and error
+    chemical_shift: dict | None = None   # setup.json "chemical_shift" (`imaging.chemical_shift.FatShift.as_dict`)
     # the DIC measurements of each garment level as `calfit measure` stored them, rebuilt once (their windows'
     # operators and covariance take about a second); the geometry's part is read again at every call
     _measured: dict = field(default_factory=dict, repr=False, compare=False)
@@ -102,11 +104,15 @@ class RunSetup:
     def tissue_curves(self) -> TissueCurves:
         """The interfaces of the unloaded labels snapped onto I0's edges, as the run's mesh was made from them
         (`meshing.tissue_curves`, made once; the skin cut where the run's was, `skin_outline`, a run folder written
-        before that was stored having been cut at SHORTEST_SKIN_SHAPE_MM): the discretization check and the skin's
-        uncertainty mesh them again."""
+        before that was stored having been cut at SHORTEST_SKIN_SHAPE_MM; the fat/muscle interface moved back by the
+        chemical shift the setup found, `chemical_shift`): the discretization check and the skin's uncertainty mesh
+        them again."""
         if self._tissue_curves is None:
-            self._tissue_curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded,
-                                                skin_cutoff_mm=self.skin_cutoff_mm)
+            curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded,
+                                   skin_cutoff_mm=self.skin_cutoff_mm)
+            if self.chemical_shift is not None and self.chemical_shift["significant"]:
+                curves = with_fat_moved_back(curves, self.chemical_shift["shift_mm"])
+            self._tissue_curves = curves
         return self._tissue_curves
 
     def compartment_labels(self) -> np.ndarray | None:
@@ -177,6 +183,8 @@ class RunSetup:
             lines.append(f"muscle compartments: {count} from the labels")
         lines += [f"{source} unsure: {warning.message}" for source, warnings in self.segmentation_warnings.items()
                   for warning in warnings]
+        if self.chemical_shift is not None:
+            lines.append(FatShift.from_dict(self.chemical_shift).sentence(self.case.pixel_size_mm))
         if self.skin_mode_variance_mm2 is not None:
             band = "-".join(f"{factor * SHORTEST_SKIN_SHAPE_MM:g}" for factor in ERROR_BAND)
             lines.append(f"skin: low-passed at {self.skin_cutoff_mm:.1f} mm, the shortest wavelength at which its "
@@ -345,6 +353,9 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     run_dir.mkdir(parents=True, exist_ok=True)
     compartment_info = {"source": "labels" if labels_unloaded.max() >= FIRST_COMPARTMENT else "none"}
     curves = tissue_curves(labels_unloaded, case.pixel_size_mm, image=case.unloaded)
+    shift = fat_shift(case.unloaded, *fat_muscle_normals(curves), case.pixel_size_mm)
+    if shift is not None and shift.significant:
+        curves = with_fat_moved_back(curves, shift.shift_mm)
     mesh = mesh_tissue_curves(curves, n_elements=n_elements, order=order)
     compartment_labels = labels_unloaded
     if compartments and compartment_info["source"] == "none":
@@ -362,10 +373,12 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
                         **{f"level_{level.number}_aligned": aligned
                            for level, (aligned, _, _, _) in zip(case.levels, prepared_levels)})
     temporary.replace(run_dir / SETUP_ARRAYS)
+    chemical_shift = None if shift is None else shift.as_dict(case.pixel_size_mm)
     skin_outline = {"cutoff_mm": curves.skin_cutoff_mm,
                     "mode_variance_mm2": None if curves.skin_error is None else curves.skin_error.mode_variance_mm2}
     write_json(run_dir / SETUP_JSON, {"case_dir": str(Path(case_dir).resolve()), "n_elements": len(mesh.elements),
                                       "order": order, "compartments": compartment_info, "skin_outline": skin_outline,
+                                      "chemical_shift": chemical_shift,
                                       "missing_fraction": missing_fraction, "segmentation_warnings": segmentation_warnings,
                                       **({"levels": [info for _, _, info, _ in prepared_levels]} if case.levels else {}),
                                       "leg_area_change": area_change, "rigid_motion": {"angle_deg": motion.angle_deg,
@@ -459,7 +472,7 @@ def load_run(run_dir: str | Path) -> RunSetup:
     return RunSetup(run_dir, case, labels_unloaded, labels_loaded, loaded_aligned, motion, mesh,
                     case_model(mesh, case), info.get("compartments", {"source": "none"}),
                     info.get("missing_fraction", {}), level_motions, levels_aligned, segmentation_warnings,
-                    skin_outline=info.get("skin_outline", {}))
+                    skin_outline=info.get("skin_outline", {}), chemical_shift=info.get("chemical_shift"))
 
 
 def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None, *,

@@ -9,7 +9,8 @@ counter-clockwise in deck coordinates, face numbering, set names) are in mesh.py
 
 from .curves import Curve, SpacingRules
 from .garment import GarmentBand, band_constants_for_tension, band_hoop_tension, garment_band
-from .labels import TissueCurves, interface_curves, mesh_from_labels, mesh_tissue_curves, region_image, tissue_curves
+from .labels import (TissueCurves, fat_muscle_normals, interface_curves, mesh_from_labels, mesh_tissue_curves,
+                     region_image, tissue_curves, with_fat_moved_back)
 from .leg_slice import (
     DEFAULT_MATERIALS,
     DEFAULT_PRESSURE_MPA,
@@ -45,8 +46,10 @@ __all__ = [
     "leg_slice_mesh_for_dof",
     "mesh_curves",
     "mesh_from_labels",
+    "fat_muscle_normals",
     "mesh_tissue_curves",
     "tissue_curves",
+    "with_fat_moved_back",
     "TissueCurves",
     "read_include",
     "region_image",

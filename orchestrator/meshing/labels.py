@@ -36,6 +36,12 @@ Method.
    At the measured cut-off (55 mm on the phantom, 32 mm on those calves) the curvature's
    error is 0.1-0.6 %. A groove or a crest of a real calf stands out of the error and
    keeps its wavelengths. `skin_cutoff_mm` given as a number cuts there instead.
+   An MR image shows the fat's signal displaced along the readout by the chemical shift (`imaging.chemical_shift`),
+   while the water's tissues (muscle, skin) stay where they are: the edge where the bright fat ends is then off the
+   fat/muscle interface by the projection of that displacement on its normal (+-0.6 mm on the sides of a calf at
+   1.4 pixels of 0.41 mm). `with_fat_moved_back` moves the fat/muscle interfaces, snapped to that edge, back by
+   it, the move fading to nothing over FAT_SHIFT_FADE_MM at the ends of an open interface, which meet interfaces
+   of water (a bone's cortex, the skin) that do not move.
 3. The curves go to triangulate.mesh_curves (resampling to the element size with
    area-preserving vertex placement, Triangle with minimum angle and maximum area,
    element-count targeting, node sets and skin surface).
@@ -45,7 +51,7 @@ BONES, SKIN_NODES and tissue-interface node sets (e.g. FAT_MUSCLE); surface SKIN
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -60,6 +66,7 @@ from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
 BONE_LABEL = 3
 SHORTEST_SKIN_SHAPE_MM = 8.0   # a calf's skin has no real shape shorter (step 2 of the module text)
 SNAP_PASSES = 8
+FAT_SHIFT_FADE_MM = 2.0   # an open fat/muscle interface's move back fades to zero over this length at its ends
 
 
 @dataclass(frozen=True)
@@ -74,6 +81,7 @@ class TissueCurves:
     pixel_size: tuple[float, float]
     skin_cutoff_mm: float = SHORTEST_SKIN_SHAPE_MM   # the skin's low-pass cut-off wavelength
     skin_error: OutlineError | None = None           # what the skin's spectrum says of its error, measured there
+    fat_shift_mm: tuple[float, float] = (0.0, 0.0)    # the fat's chemical shift its fat/muscle interfaces undo
 
 
 def tissue_curves(labels: np.ndarray, pixel_size_mm: Sequence[float], smoothing_pixels: float = 1.0,
@@ -88,10 +96,14 @@ def tissue_curves(labels: np.ndarray, pixel_size_mm: Sequence[float], smoothing_
     curves = interface_curves(regions, (row_mm, col_mm), smoothing_pixels)
     if image is not None:
         edges = EdgeMap(image, (row_mm, col_mm))
-        fat_sides = [fat_side(c, regions, (row_mm, col_mm)) for c in curves]
+        # the skin is snapped where the leg's image last falls to the air, the fat/muscle interface where the
+        # bright fat ends, any other interface where its gradient peaks
+        sides = [skin_side(c, regions, (row_mm, col_mm)) or fat_side(c, regions, (row_mm, col_mm)) for c in curves]
+        outer = [is_skin(c.sides) for c in curves]
         for _ in range(SNAP_PASSES):
-            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels, bright_side=side), c.closed, c.sides)
-                      if is_edge(c.sides) else c for c, side in zip(curves, fat_sides)]
+            curves = [Curve(edges.snap(c.points, c.closed, smoothing_pixels, bright_side=side, outermost=last),
+                            c.closed, c.sides)
+                      if is_edge(c.sides) else c for c, side, last in zip(curves, sides, outer)]
     skins = [c for c in curves if c.closed and c.sides[0] == 0]
     error = outline_error(skins[0].points, SHORTEST_SKIN_SHAPE_MM) if len(skins) == 1 else None
     if skin_cutoff_mm is None:
@@ -99,6 +111,43 @@ def tissue_curves(labels: np.ndarray, pixel_size_mm: Sequence[float], smoothing_
     curves = [Curve(lowpass_closed(c.points, skin_cutoff_mm), True, c.sides) if any(c is skin for skin in skins) else c
               for c in curves]
     return TissueCurves(regions, tuple(curves), (row_mm, col_mm), float(skin_cutoff_mm), error)
+
+
+def fat_muscle_normals(tissue: TissueCurves) -> tuple[np.ndarray, np.ndarray]:
+    """((N, 2) points, (N, 2) unit normals from the muscle into the fat) along every fat/muscle interface of
+    `tissue`: where `imaging.chemical_shift` reads the fat's displacement."""
+    points, normals = [np.zeros((0, 2))], [np.zeros((0, 2))]
+    for curve in tissue.curves:
+        if is_fat_muscle(curve.sides):
+            points.append(curve.points)
+            normals.append(fat_side(curve, tissue.regions, tissue.pixel_size) * unit_normals(curve.points, curve.closed))
+    return np.vstack(points), np.vstack(normals)
+
+
+def with_fat_moved_back(tissue: TissueCurves, fat_shift_mm: Sequence[float]) -> TissueCurves:
+    """`tissue` with its fat/muscle interfaces moved back by the fat's chemical shift (x, y) mm (module text,
+    step 2; `fat_moved_back`)."""
+    shift = np.asarray(fat_shift_mm, float).reshape(2)
+    curves = tuple(fat_moved_back(c, shift) if is_fat_muscle(c.sides) else c for c in tissue.curves)
+    return replace(tissue, curves=curves, fat_shift_mm=(float(shift[0]), float(shift[1])))
+
+
+def is_fat_muscle(sides) -> bool:
+    """Whether an interface lies between the fat and the muscle (or one of its compartments)."""
+    low, high = sorted(int(v) for v in sides)
+    return low == 1 and is_tissue(high) and high != 1
+
+
+def fat_moved_back(curve: Curve, fat_shift_mm: np.ndarray) -> Curve:
+    """The fat/muscle interface `curve`, found where the bright fat ends, moved back by the fat's displacement on the
+    image (module text, step 2): translated by -fat_shift_mm, the move fading to zero over FAT_SHIFT_FADE_MM at the
+    ends of an open curve (they meet interfaces that do not move)."""
+    points = np.asarray(curve.points, float)
+    weight = np.ones(len(points))
+    if not curve.closed and len(points) > 1:
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+        weight = np.clip(np.minimum(arc, arc[-1] - arc) / FAT_SHIFT_FADE_MM, 0.0, 1.0)
+    return Curve(points - weight[:, None] * fat_shift_mm[None, :], curve.closed, curve.sides)
 
 
 def mesh_tissue_curves(tissue: TissueCurves, n_elements: int = 400, order: int = 1, min_angle_deg: float = 25.0,
@@ -157,6 +206,19 @@ def fat_side(curve: Curve, regions: np.ndarray, pixel_size: tuple[float, float])
     return 1 if np.mean(_lookup(regions, pixel_size, probe) == 1) >= 0.5 else -1
 
 
+def is_skin(sides) -> bool:
+    """Whether an interface is the leg's outline (against the background)."""
+    return min(int(v) for v in sides) == 0
+
+
+def skin_side(curve: Curve, regions: np.ndarray, pixel_size: tuple[float, float]) -> int:
+    """+1 (-1) when `curve` is the leg's outline with the leg to the left (right) of its direction, 0 otherwise."""
+    if not is_skin(curve.sides):
+        return 0
+    probe = curve.points + 0.5 * min(pixel_size) * unit_normals(curve.points, curve.closed)
+    return 1 if np.mean(_lookup(regions, pixel_size, probe) != 0) >= 0.5 else -1
+
+
 class EdgeMap:
     """Sub-pixel edges of an image, to place the interface curves of its labels on them.
 
@@ -195,9 +257,11 @@ class EdgeMap:
         noise = ndimage.gaussian_gradient_magnitude(image - ndimage.gaussian_filter(image, smoothing_px), smoothing_px)
         self.significant = 4.0 * float(np.median(noise))
 
-    def snap(self, points: np.ndarray, closed: bool, sigma: float, bright_side: int = 0) -> np.ndarray:
+    def snap(self, points: np.ndarray, closed: bool, sigma: float, bright_side: int = 0,
+             outermost: bool = False) -> np.ndarray:
         """The curve moved onto the image's edge. bright_side: 0, the gradient magnitude's peak; +1 (-1), the end
-        of a bright tissue lying to the left (right) of the curve (the class text)."""
+        of a bright tissue lying to the left (right) of the curve (the class text). outermost: with bright_side,
+        the last significant fall along the normal rather than the steepest (the skin, class text)."""
         if len(points) < 5:
             return points
         row_mm, col_mm = self.pixel_size
@@ -223,6 +287,11 @@ class EdgeMap:
         refine = np.where(interior & (curvature < 0), 0.5 * (left - right) / np.where(curvature < 0, curvature, -1.0), 0.0)
         edge = offsets[peak] + refine * self.STEP
         found = interior & (centre >= self.significant)
+        if bright_side and outermost:
+            # the skin against the air: a stronger step of the tissues a pixel or two inside (the fat under a skin
+            # darker than it, the fat's chemical shift into the skin) pulls the smoothed fall's peak inwards or
+            # hides the skin's own, so the skin goes where the image crosses half its level, from where it is
+            edge, found = np.zeros(len(points)), np.ones(len(points), bool)
         if bright_side:
             edge = self._half_level(points, normal, edge, found)
         move = np.clip(edge, -self.max_move, self.max_move)
