@@ -58,7 +58,7 @@ from scipy.spatial import cKDTree
 
 from ...decks import KPA_PER_MPA, numbers, render
 from ...imaging.frame import pixel_centres_mm
-from ...meshing import Mesh, mesh_from_labels
+from ...meshing import Mesh, MeshingError, mesh_from_labels
 from ...meshing.mesh import ITEMS_PER_SET_LINE, muscle_sets
 from ..geometry import COMPARTMENTS, FIRST_COMPARTMENT_LABEL
 from .ccx import DEFAULT_TIMEOUT_S, CcxError, CcxRun, run_ccx
@@ -67,8 +67,9 @@ from .leg3d import Leg3D
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")
 GARMENT_LAWS = ("unloaded", "deformed")
 LABEL_SAMPLE_MM = 0.1                 # the reference labels are meshed from this grid
-DEFAULT_SECTION_ELEMENTS = 700        # triangles of the default section (fast: one solve well under 90 s)
+DEFAULT_SECTION_ELEMENTS = 1000       # triangles of the default section (fast: one solve well under 90 s)
 FINE_SECTION_ELEMENTS = 2000
+SECTION_MESH_ATTEMPTS = 3
 PRESSURE_TOLERANCE = 0.005            # the deformed law's fixed point: largest change / largest pressure
 MAX_PRESSURE_UPDATES = 8
 PRESSURE_RELAXATION = 0.6             # the deformed law's fixed point moves this share of the way per solve
@@ -134,7 +135,7 @@ class HiddenEffects3D:
     stiffer_factor: float = 1.0                        # on C10 and Kv of the stiffer muscle
     stiffer_compartment: str | None = None             # one of geometry.COMPARTMENTS
     stiffer_sector_deg: tuple[float, float] | None = None   # or the muscle within this sector (theta, as above)
-    bone_motion_mm: tuple[float, float, float] | None = None   # rigid displacement of the second bone (fibula)
+    bone_motion_mm: tuple[float, float, float] | None = None   # rigid displacement of the fibula (mm)
 
     def __post_init__(self):
         if not -0.2 < self.muscle_linear_strain < 0.2:
@@ -209,7 +210,16 @@ def section_mesh(leg: Leg3D, field_of_view_mm: tuple[float, float], n_elements: 
     shape = (int(np.ceil(field_of_view_mm[1] / LABEL_SAMPLE_MM)), int(np.ceil(field_of_view_mm[0] / LABEL_SAMPLE_MM)))
     x, y = pixel_centres_mm(shape, (LABEL_SAMPLE_MM, LABEL_SAMPLE_MM))
     labels = leg.geometry.labels_at(x, y, compartments=compartments)
-    return mesh_from_labels(labels, (LABEL_SAMPLE_MM, LABEL_SAMPLE_MM), n_elements=n_elements, order=2)
+    # calfit's mesher places the curves' points for the size asked; where the thin muscle over the tibia makes two
+    # curves cross at a coarse size, a somewhat finer one is tried (at most three times)
+    for attempt in range(SECTION_MESH_ATTEMPTS):
+        try:
+            return mesh_from_labels(labels, (LABEL_SAMPLE_MM, LABEL_SAMPLE_MM),
+                                    n_elements=int(round(n_elements * 1.25 ** attempt)), order=2)
+        except MeshingError as error:
+            failure = error
+    raise ValueError(f"the reference section could not be meshed with about {n_elements} triangles ({failure}); "
+                     "ask for more elements") from failure
 
 
 @dataclass
@@ -467,7 +477,14 @@ class LegSolution3D:
         layer = np.clip(np.searchsorted(heights, z, side="right") - 1, 0, m.layers - 1)
         zeta = np.clip(2.0 * (z - heights[layer]) / (heights[layer + 1] - heights[layer]) - 1.0, -1.0, 1.0)
         nodes = m.elements[layer * len(m.section.elements) + triangle]        # (n, 15)
-        return np.einsum("nk,nkc->cn", wedge_shape_functions(L, zeta), self.displacement_mm[nodes])
+        u = np.einsum("nk,nkc->cn", wedge_shape_functions(L, zeta), self.displacement_mm[nodes])
+        # inside a bone the material moves with it: clamped, or (bone_motion) the fibula's rigid displacement
+        g = m.leg.geometry
+        w = g.frame.to_leg(X, Y)
+        u[:, g.tibia.excess(w) < 0] = 0.0
+        u[:, g.fibula.excess(w) < 0] = (np.asarray(self.effects.bone_motion_mm, float)[:, None]
+                                        if self.effects.bone_motion_mm is not None else 0.0)
+        return u
 
     def slice_field(self, z_mm: float, image_shape: tuple[int, int], pixel_size_mm: tuple[float, float]) -> np.ndarray:
         """(3, H, W): the displacement of the material under each pixel centre of a slice at height z (ux, uy in
@@ -570,7 +587,7 @@ def _run_in(work: Path, deck: str, n_nodes: int, update: int, timeout_s: float, 
 
 
 def _sets(mesh: LegMesh3D, effects: HiddenEffects3D) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    """Element sets (FAT, MUSCLE, STIFF) and node sets (BONES, BONE2, ENDS) of the 3D mesh."""
+    """Element sets (FAT, MUSCLE, STIFF) and node sets (BONES, FIBULA, ENDS) of the 3D mesh."""
     regions = mesh.element_regions
     muscle = (regions == 2) | (regions >= FIRST_COMPARTMENT_LABEL)
     stiff = np.zeros(len(regions), bool)
@@ -595,10 +612,18 @@ def _sets(mesh: LegMesh3D, effects: HiddenEffects3D) -> tuple[dict[str, np.ndarr
     s = mesh.section
     node_sets = {"BONES": mesh.copies(s.node_sets["BONES"]), "ENDS": mesh.end_nodes()}
     if effects.bone_motion_mm is not None:
-        if "BONE2" not in s.node_sets:
-            raise ValueError("bone_motion moves the second bone, and the section has one bone only")
-        node_sets["BONE2"] = mesh.copies(s.node_sets["BONE2"])
+        node_sets["FIBULA"] = mesh.copies(fibula_nodes(mesh))
     return element_sets, node_sets
+
+
+def fibula_nodes(mesh: LegMesh3D) -> np.ndarray:
+    """The section's nodes on the fibula's surface: the bone node set (BONE1, BONE2, ...) nearest its centre."""
+    s, g = mesh.section, mesh.leg.geometry
+    bones = {name: nodes for name, nodes in s.node_sets.items() if name.startswith("BONE") and name != "BONES"}
+    if len(bones) < 2:
+        raise ValueError("bone_motion moves the fibula, and the section has one bone only")
+    centre = np.array(g.frame.to_image(g.fibula.centre), float)
+    return min(bones.values(), key=lambda nodes: float(np.linalg.norm(s.nodes[nodes].mean(axis=0) - centre)))
 
 
 def _deck(mesh: LegMesh3D, theta: tuple[float, ...], effects: HiddenEffects3D, garment_law: str,
@@ -614,7 +639,7 @@ def _deck(mesh: LegMesh3D, theta: tuple[float, ...], effects: HiddenEffects3D, g
                           "expansion": expansion})
     moved = []
     if effects.bone_motion_mm is not None:
-        moved = [f"BONE2, {dof}, {dof}, {value:.10g}" for dof, value in zip((1, 2, 3), effects.bone_motion_mm)]
+        moved = [f"FIBULA, {dof}, {dof}, {value:.10g}" for dof, value in zip((1, 2, 3), effects.bone_motion_mm)]
     return render("leg3d_ccx.inp.j2", description=(f"theta = {list(theta)} kPa, T = {tension:g} N/mm, garment law "
                                                    f"{garment_law}, effects {effects.catalog_form()}"),
                   mesh_include="mesh.inp", materials=materials, clamped_set="BONES", eigenstrain=expansion is not None,
