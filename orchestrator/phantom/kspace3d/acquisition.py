@@ -4,7 +4,7 @@ An MR image is not a drawing of pixels. For each image of `Scanner.acquire`:
 
 1. slice profile: the slice at height z0 is `slice_thickness_mm` thick, its profile a rect of that width blurred by
    a Gaussian of `profile_sigma_mm` (the excitation's transition bands); it is sampled by sub-planes 1 mm apart
-   over +-(thickness / 2 + 2 sigma), each weighted by the profile, w(o) = [erf((o + T/2) / (sigma sqrt 2)) -
+   within +-(thickness / 2 + 2 sigma), each weighted by the profile, w(o) = [erf((o + T/2) / (sigma sqrt 2)) -
    erf((o - T/2) / (sigma sqrt 2))] / 2, normalised to a sum of 1;
 2. on a grid `oversampling` times finer than the final pixels, the water and the fat signals of every sub-plane
    (`appearance3d`, each edge drawn with its coverage of a fine sample) summed with those weights;
@@ -97,7 +97,7 @@ class Scanner:
     def subplanes(self) -> tuple[np.ndarray, np.ndarray]:
         """(offsets mm, weights) of the slice profile's sub-planes (module text, step 1)."""
         half = self.slice_thickness_mm / 2.0 + 2.0 * self.profile_sigma_mm
-        count = int(math.ceil(half / SUBPLANE_SPACING_MM - 1e-9))
+        count = max(1, int(math.floor(half / SUBPLANE_SPACING_MM + 1e-9)))
         offsets = SUBPLANE_SPACING_MM * np.arange(-count, count + 1)
         if self.profile_sigma_mm == 0.0:
             weights = (np.abs(offsets) <= self.slice_thickness_mm / 2.0).astype(float)
