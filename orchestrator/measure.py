@@ -57,6 +57,7 @@ from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from .imaging.case import DisplacementPoints
+from .imaging.chemical_shift import fat_signal
 from .imaging.dic import correlate, grid_centres, roi_centres
 from .imaging.drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
 from .imaging.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
@@ -143,6 +144,7 @@ class Measurements:
     model_columns_mm: np.ndarray | None = None   # (2N, m) G: the model part is G diag(model_weights) G^T (levels)
     model_weights: np.ndarray | None = None      # (m,) the variances of the model part's modes
     reference_noise_sigma: float | None = None   # DIC: the noise of I0 (intensity), shared by every garment level
+    fat_shift_mm: tuple[float, float] | None = None   # DIC: the fat's chemical shift the windows see (`windows`)
     # observation matrices already formed, by mesh (the same mesh is observed by every objective of a run)
     _observed: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -165,10 +167,15 @@ class Measurements:
         """What the measurement sees of a model (picklable, without the images)."""
         if self.operators is None:
             return Observer(self.position_mm, None)
-        windows, pixels = self.operators.observation()
-        rows, cols = np.divmod(pixels, self.operators.shape[1])
-        dx, dy = self.operators.to_mm
-        return Observer(np.column_stack([(cols + 0.5) * dx, (rows + 0.5) * dy]), windows)
+        windows, positions = self.operators.observation(self.fat_shift_mm)
+        return Observer(positions, windows)
+
+    def sees(self, field_mm: np.ndarray) -> np.ndarray:
+        """(N, 2) what the DIC windows measure of a (2, H, W) displacement field on the pixels of I0 (mm), the fat's
+        chemical shift included (`imaging.windows`)."""
+        if self.operators is None:
+            raise ValueError("a field on the pixels is seen through DIC windows: these measurements are points")
+        return self.operators.observe(field_mm, self.fat_shift_mm)
 
     def observation(self, mesh) -> sparse.csr_matrix:
         """Sparse (2N, 2M) map from the nodal displacement of `mesh` (interleaved) to what was measured."""
@@ -302,10 +309,13 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                 landmarks: dict | None = None, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, min_confidence: float = MIN_CONFIDENCE,
                 max_uncertainty_px: float = MAX_UNCERTAINTY_PX, prefilter_px: float = PREFILTER_SIGMA_PX,
-                respect_outline: bool = False, workers: int = 1) -> tuple[Measurements, WindowTable, dict]:
+                respect_outline: bool = False, workers: int = 1,
+                fat_shift_mm=None) -> tuple[Measurements, WindowTable, dict]:
     """DIC between the two images (module text). Returns the kept windows as Measurements, every window tried,
     and a summary. respect_outline: windows inside the leg leave out its outline (`window_pixel_masks`); workers:
-    local processes the windows are matched in (`imaging.dic.correlate`: the same matches as in one)."""
+    local processes the windows are matched in (`imaging.dic.correlate`: the same matches as in one);
+    fat_shift_mm: the fat's chemical shift (x, y) the setup found on I0 (`imaging.chemical_shift`), which the
+    windows see as `imaging.windows` says, or None."""
     if window_px not in WINDOW_CHOICES:
         raise ValueError(f"the DIC window must be one of {WINDOW_CHOICES} pixels, not {window_px}")
     began = time.perf_counter()
@@ -351,7 +361,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         # are the displacements less that difference (measure_dic text)
         operators = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0],
                                     prefilter=prefilter,
-                                    pixel_masks=None if masks is None else [masks[k] for k in np.flatnonzero(kept)])
+                                    pixel_masks=None if masks is None else [masks[k] for k in np.flatnonzero(kept)],
+                                    fat_signal=None if fat_shift_mm is None else fat_signal(unloaded, labels))
         seen = operators.observe(prior)
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
@@ -376,7 +387,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
                         residual_over_model, drawing_factor)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
-                                    edge_variance, operators=operators)
+                                    edge_variance, labels, operators=operators, fat_shift_mm=fat_shift_mm,
+                                    motion=motion)
     summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "outline_margin_px": margin_px, "edge_variance_px2": edge_variance,
                "noise_scale": residual_noise,
@@ -388,6 +400,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                "rigid_motion": {"angle_deg": motion.angle_deg, "translation_mm": list(motion.translation_mm),
                                 "centre_mm": list(motion.centre_mm)},
                "min_confidence": min_confidence, "max_uncertainty_px": max_uncertainty_px,
+               "fat_shift_mm": None if fat_shift_mm is None else [float(v) for v in fat_shift_mm],
                "point_sampling": None if point_sampling is None else {
                    "samples_per_side": point_sampling.samples, "p_value": point_sampling.p_value,
                    "coverages": point_sampling.pixels, "draws": DRAWING_DRAWS,
@@ -463,28 +476,38 @@ def prior_field(positions_mm: np.ndarray, displacement_mm: np.ndarray, shape, pi
 def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, pixel_size_mm,
                      reference_noise_sigma: float, prefilter_px: float, edge_variance_px2: float,
                      labels: np.ndarray | None = None, outline_margin_px: int | None = None,
-                     operators: WindowOperators | None = None) -> Measurements:
+                     operators: WindowOperators | None = None, fat_shift_mm=None,
+                     motion: RigidMotion | None = None) -> Measurements:
     """The kept windows of a table as Measurements (operators and covariance rebuilt from I0, prefiltered as the
     windows were correlated, over the pixels they matched (`window_pixel_masks` of labels, when the measurement
     left out the outline), with the error of the images' edges). operators: the kept windows' own, when the caller
-    has built them already (`measure_dic`)."""
+    has built them already (`measure_dic`). fat_shift_mm: the fat's chemical shift (x, y), with the bones' `motion`
+    between the images: the windows then see the fat where it lies on the image, and what they measure of its
+    offset between the sessions, (R^T - I) delta, is taken out of the data (`imaging.windows`)."""
     kept = table.kept
     if kept.sum() < 10:
         raise ValueError(f"only {int(kept.sum())} DIC windows passed the checks ({table.counts()}); the images do "
                          "not correlate: check that both slices show the same level of the leg")
+    shifted = fat_shift_mm is not None and labels is not None
     if operators is None:
         masks = (None if labels is None or outline_margin_px is None
                  else window_pixel_masks(labels, table.centres_rc[kept], window_px, outline_margin_px))
         operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
-                                    prefilter=Prefilter(prefilter_px), pixel_masks=masks)
+                                    prefilter=Prefilter(prefilter_px), pixel_masks=masks,
+                                    fat_signal=fat_signal(unloaded, labels) if shifted else None)
     covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
     if table.drawing_factor_mm is not None:
         covariance += table.drawing_factor_mm @ table.drawing_factor_mm.T
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]
+    if shifted:
+        delta = np.asarray(fat_shift_mm, float)
+        rotation = np.eye(2) if motion is None else motion.rotation
+        offset = offset + operators.fat_offsets((rotation.T - np.eye(2)) @ delta)
     return Measurements("dic", table.position_mm[kept], table.displacement_mm[kept] - offset, covariance, operators, True,
                         f"DIC: {int(kept.sum())} windows of {window_px} px kept of {len(kept)}", kinds,
-                        reference_noise_sigma=float(reference_noise_sigma))
+                        reference_noise_sigma=float(reference_noise_sigma),
+                        fat_shift_mm=(float(fat_shift_mm[0]), float(fat_shift_mm[1])) if shifted else None)
 
 
 def reference_noise_covariance(first: Measurements, second: Measurements) -> np.ndarray | None:

@@ -128,7 +128,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
                                     landmarks=case.landmarks, window_px=window_px, step_px=step_px,
                                     roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px,
-                                    respect_outline=respect_outline, workers=workers)
+                                    respect_outline=respect_outline, workers=workers, fat_shift_mm=setup.fat_shift_mm)
     summary["window_mm"] = window_px * min(case.pixel_size_mm)
     summary["setup_lines"] = setup.setup_lines()
     for level, motion in zip(case.levels, setup.level_motions):
@@ -137,7 +137,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
                                                     case.pixel_size_mm, motion, landmarks=case.landmarks,
                                                     window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm,
                                                     prefilter_px=prefilter_px, respect_outline=respect_outline,
-                                                    workers=workers)
+                                                    workers=workers, fat_shift_mm=setup.fat_shift_mm)
         level_summary.update(window_mm=summary["window_mm"], level=level.number, image=level.path.name,
                              tension_N_per_mm=level.tension_N_per_mm)
         write_measurements(run_dir, level_table, level_summary, case.unloaded, case.pixel_size_mm, level.number)

@@ -110,8 +110,8 @@ class RunSetup:
         if self._tissue_curves is None:
             curves = tissue_curves(self.labels_unloaded, self.case.pixel_size_mm, image=self.case.unloaded,
                                    skin_cutoff_mm=self.skin_cutoff_mm)
-            if self.chemical_shift is not None and self.chemical_shift["significant"]:
-                curves = with_fat_moved_back(curves, self.chemical_shift["shift_mm"])
+            if self.fat_shift_mm is not None:
+                curves = with_fat_moved_back(curves, self.fat_shift_mm)
             self._tissue_curves = curves
         return self._tissue_curves
 
@@ -134,6 +134,12 @@ class RunSetup:
                                   interface_offsets=interface_offsets)
         found = self.compartment_labels()
         return mesh if found is None else assign_compartments(mesh, found, self.case.pixel_size_mm)
+
+    @property
+    def fat_shift_mm(self) -> tuple[float, float] | None:
+        """The fat's chemical shift (x, y) mm the setup found on I0 and took (`imaging.chemical_shift`), None."""
+        info = self.chemical_shift
+        return tuple(info["shift_mm"]) if info is not None and info["significant"] else None
 
     @property
     def skin_cutoff_mm(self) -> float:
@@ -270,10 +276,11 @@ class RunSetup:
         stamp = tuple((self.run_dir / files[key]).stat().st_mtime_ns for key in ("arrays", "summary"))
         if self._measured.get(level, (None,))[0] != stamp:
             # measurements made before the prefilter and the edges' error model were neither prefiltered nor had one
+            motion = self.motion if level == 1 else self.level_motions[level - 2]
             self._measured[level] = (stamp, dic_measurements(
                 self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm, summary["noise_sigma"][0],
                 summary.get("prefilter_px", 0.0), summary.get("edge_variance_px2", 0.0), self.labels_unloaded,
-                summary.get("outline_margin_px")))
+                summary.get("outline_margin_px"), fat_shift_mm=summary.get("fat_shift_mm"), motion=motion))
         measured = self._measured[level][1]
         geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level) if with_geometry else None
         if geometry is None:

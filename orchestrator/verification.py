@@ -53,9 +53,7 @@ def errors_against(measurements, mesh_or_observation, true_nodal_or_field) -> np
     (`mesh_or_observation` None: DIC windows only)."""
     measured = np.asarray(measurements.displacement_mm, float).ravel()
     if mesh_or_observation is None:
-        if measurements.operators is None:
-            raise ValueError("a field on the pixels is seen through DIC windows: these measurements are points")
-        return measured - measurements.operators.observe(true_nodal_or_field).ravel()
+        return measured - measurements.sees(true_nodal_or_field).ravel()
     return measured - measurements.observation(mesh_or_observation) @ np.asarray(true_nodal_or_field, float).ravel()
 
 

@@ -24,6 +24,22 @@ s_i^2 the intensity-noise variance of window i in the tissue, rho its Rician sha
 which on the diagonal is the covariance each window reports (with s_edge = 0) and is positive semi-definite (a
 Gram matrix scaled by positive weights). `covariance` assembles it for the fit's weighting, its noise floor and its
 Monte-Carlo intervals.
+
+The fat's chemical shift (`chemical_shift`). An MR image is the water's signal plus the fat's, the fat's shown
+displaced by delta along the readout, the same delta in both sessions and fixed to the scanner. A fat feature
+shown at x in I0 is the fat at x - delta; in I1 the loaded fat at y shows at y + delta, and with the bones' motion
+M (rotation R) taken out of the match, that feature moves by u(x - delta) + (R^T - I) delta, where a water
+feature moves by u(x). Linearised, grad f = grad W + grad F splits each K(x) into the water's and the fat's
+parts, K = K_w + K_f (K_f from the gradient of the fat's share of I0, `chemical_shift.fat_signal`), and a window
+measures
+
+    u_window = sum_x K_w(x) u(x) + K_f(x) u(x - delta)  +  sum_x K_f(x) (R^T - I) delta:
+
+`observation(delta)` is the first part, the model read at the pixels and at the pixels less delta; the second,
+a constant for each window (`fat_offsets`), is taken out of the data (`measure.dic_measurements`). At 1.4 px of
+0.41 mm and a turn of 1.9 degrees between the sessions, (R^T - I) delta is 0.019 mm, and u(x - delta) differs from
+u(x) by up to 0.02 mm where the fat is compressed (3 % strain over 0.57 mm): both the size of a window's noise in
+the fat.
 """
 
 from __future__ import annotations
@@ -31,7 +47,7 @@ from __future__ import annotations
 from functools import cached_property
 
 import numpy as np
-from scipy import sparse
+from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
 from .dic import (denoised_hessian, edge_strength, on_window_square, spline_gradient, window_pixel_sets,
@@ -87,7 +103,8 @@ class WindowOperators:
     (`pixel_masks`, as `dic.correlate` takes them; None: whole squares)."""
 
     def __init__(self, reference: np.ndarray, centres_rc, window_px: int, pixel_size_mm, reference_noise_sigma: float,
-                 gradients=None, prefilter: Prefilter | None = None, pixel_masks=None):
+                 gradients=None, prefilter: Prefilter | None = None, pixel_masks=None,
+                 fat_signal: np.ndarray | None = None):
         reference = np.asarray(reference, float)
         self.shape = tuple(np.shape(reference))
         self.centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
@@ -104,6 +121,10 @@ class WindowOperators:
         self.K = []             # (2, 2, n) per window: centre displacement (px) per displacement (px) of its n pixels
         self.noise_pixels = []  # flat indices of the raw pixels whose error reaches each window (inside the image)
         self.B = []             # (2, len(noise_pixels)) per window: B~, px per raw intensity unit
+        # the fat's part of each K (module text, the chemical shift): grad f split into the fat's and the water's
+        fat_rows, fat_cols = (spline_gradient(self.prefilter(np.asarray(fat_signal, float))) if fat_signal is not None
+                              else (None, None))
+        self.K_fat = [] if fat_signal is not None else None
         for (row, col), used in zip(self.centres, window_pixel_sets(pixel_masks, len(self.centres), size)):
             rows, cols, fx, fy, steepest, hessian, signal = basis.window(row, col, size, used)
             if signal is None:
@@ -112,6 +133,9 @@ class WindowOperators:
             self.pixels.append((rows * self.shape[1] + cols).ravel()[used])
             fit = np.linalg.solve(hessian, steepest.T)[[0, 3]]
             self.K.append(fit[:, None, :] * np.stack([fx.ravel()[used], fy.ravel()[used]])[None, :, :])
+            if self.K_fat is not None:
+                fat_x, fat_y = fat_cols[rows, cols].ravel()[used], fat_rows[rows, cols].ravel()[used]
+                self.K_fat.append(fit[:, None, :] * np.stack([fat_x, fat_y])[None, :, :])
             spread = self.prefilter.spread(on_window_square(np.linalg.solve(signal, steepest.T)[[0, 3]], used, size))
             reach_rows, reach_cols = (spread_rows + r0).ravel(), (spread_cols + c0).ravel()
             inside = ((reach_rows >= 0) & (reach_rows < self.shape[0]) & (reach_cols >= 0)
@@ -122,13 +146,13 @@ class WindowOperators:
     def __len__(self) -> int:
         return len(self.centres)
 
-    def observation(self) -> tuple[sparse.csr_matrix, np.ndarray]:
-        """(O, pixels): O is the sparse (2N, 2P) map from the displacement (mm, interleaved u_x, u_y) at the P
-        pixels `pixels` (flat indices, row-major) to what the N windows measure (mm, interleaved)."""
+    def _assemble(self, maps) -> tuple[sparse.csr_matrix, np.ndarray]:
+        """(O, pixels): the sparse (2N, 2P) map of the per-window blocks `maps` (K or K_fat) from the displacement
+        (mm, interleaved u_x, u_y) at the P pixels `pixels` (flat indices, row-major) to the N windows (mm)."""
         pixels, inverse = np.unique(np.concatenate(self.pixels), return_inverse=True)
         rows, cols, values = [], [], []
         start = 0
-        for i, (own, k) in enumerate(zip(self.pixels, self.K)):
+        for i, (own, k) in enumerate(zip(self.pixels, maps)):
             local = inverse[start:start + own.size]
             start += own.size
             for a in range(2):
@@ -141,11 +165,42 @@ class WindowOperators:
                                    shape=(2 * len(self), 2 * len(pixels)))
         return matrix, pixels
 
-    def observe(self, field_mm: np.ndarray) -> np.ndarray:
-        """(N, 2) what the windows measure of a (2, H, W) displacement field in mm."""
-        matrix, pixels = self.observation()
-        values = np.stack([field_mm[0].ravel()[pixels], field_mm[1].ravel()[pixels]], axis=1).ravel()
+    def _pixel_positions(self, pixels: np.ndarray) -> np.ndarray:
+        rows, cols = np.divmod(pixels, self.shape[1])
+        dx, dy = self.to_mm
+        return np.column_stack([(cols + 0.5) * dx, (rows + 0.5) * dy])
+
+    def observation(self, fat_shift_mm=None) -> tuple[sparse.csr_matrix, np.ndarray]:
+        """(O, positions): O is the sparse (2N, 2Q) map from the displacement (mm, interleaved u_x, u_y) at the Q
+        positions (mm, image frame) to what the N windows measure (mm, interleaved). The positions are the pixels
+        the windows matched; with the fat's chemical shift `fat_shift_mm` (x, y) (operators made with a
+        `fat_signal`), the fat's share of each pixel reads the field where that fat lies, the pixel less the shift,
+        and the positions are those pixels and then the same less the shift (module text)."""
+        matrix, pixels = self._assemble(self.K)
+        positions = self._pixel_positions(pixels)
+        if fat_shift_mm is None or self.K_fat is None or not np.any(np.asarray(fat_shift_mm, float) != 0.0):
+            return matrix, positions
+        fat, _ = self._assemble(self.K_fat)
+        return (sparse.hstack([matrix - fat, fat], format="csr"),
+                np.vstack([positions, positions - np.asarray(fat_shift_mm, float)[None, :]]))
+
+    def observe(self, field_mm: np.ndarray, fat_shift_mm=None) -> np.ndarray:
+        """(N, 2) what the windows measure of a (2, H, W) displacement field in mm (`observation`), the field read
+        between its pixels by bilinear interpolation."""
+        matrix, positions = self.observation(fat_shift_mm)
+        dx, dy = self.to_mm
+        at = [positions[:, 1] / dy - 0.5, positions[:, 0] / dx - 0.5]
+        values = np.stack([ndimage.map_coordinates(np.asarray(field_mm[c], float), at, order=1, mode="nearest")
+                           for c in range(2)], axis=1).ravel()
         return (matrix @ values).reshape(-1, 2)
+
+    def fat_offsets(self, offset_mm) -> np.ndarray:
+        """(N, 2) what the windows measure of a uniform displacement offset_mm (x, y) of the fat's signal alone
+        (operators made with a `fat_signal`; zeros without one)."""
+        if self.K_fat is None:
+            return np.zeros((len(self), 2))
+        fat, pixels = self._assemble(self.K_fat)
+        return (fat @ np.tile(np.asarray(offset_mm, float), len(pixels))).reshape(-1, 2)
 
     @cached_property
     def noise_ratio(self) -> np.ndarray:
