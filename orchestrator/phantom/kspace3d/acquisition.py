@@ -48,7 +48,7 @@ from scipy.special import erf
 SUBPLANE_SPACING_MM = 1.0
 FIXED_POINT_TOLERANCE_MM = 1e-5
 FIXED_POINT_MAX_ITERATIONS = 200
-FIXED_POINT_ACCEPTED_MM = 1e-3           # still moving this little after the last iteration: kept
+FIXED_POINT_ACCEPTED_MM = 1e-3           # a point still moving this little after the last iteration is kept
 GRID_HEIGHT_STEP_MM = 1.5
 VENDOR_FILTERS = (None, "hamming", "fermi")
 READOUTS = ("x", "y")
@@ -302,10 +302,13 @@ class DisplacementGrid:
                          for component in self.values]).reshape((3,) + np.shape(x))
 
 
-def material_points(y: np.ndarray, motion: LegMotion, displacement) -> np.ndarray:
+def material_points(y: np.ndarray, motion: LegMotion, displacement, in_air=None) -> np.ndarray:
     """The material points X (3, ...) shown at session-1 scanner points y (3, ...): X + u(X) = motion.undo(y) by
     the fixed point X <- x - u(X), only the points not yet converged iterated (damped after a hundred steps, as
-    `render.undeform` does, for the points where the plain iteration oscillates)."""
+    `render.undeform` does, for the points where the plain iteration oscillates). in_air(x, y, z) -> bool: points
+    that show nothing wherever they land nearby (away from the skin), where the truth's field, continued beyond the
+    mesh by its nearest element, may jump between two elements' continuations and the fixed point hop for ever:
+    they are kept as they are."""
     target = motion.undo(y).reshape(3, -1)
     X = target.copy()
     index = np.arange(target.shape[1])
@@ -317,9 +320,10 @@ def material_points(y: np.ndarray, motion: LegMotion, displacement) -> np.ndarra
         index = index[np.max(np.abs(step), axis=0) >= FIXED_POINT_TOLERANCE_MM]
         if index.size == 0:
             return X.reshape(np.shape(y))
-    # a few points in the air by the skin, where the mesh's field is continued by its nearest element, may hop
-    # between two neighbours' continuations by a few hundredths of a micrometre: they are kept
-    if np.max(np.abs(step)) < FIXED_POINT_ACCEPTED_MM:
+    moving = np.max(np.abs(step), axis=0) >= FIXED_POINT_ACCEPTED_MM
+    if in_air is not None:
+        moving &= ~np.asarray(in_air(*X[:, index]), bool)
+    if not moving.any():
         return X.reshape(np.shape(y))
     raise ValueError("x = X + u(X) could not be inverted for the loaded image (the fixed point did not converge); "
                      "the 3D truth folds the tissue: lower the tension or stiffen the tissues")

@@ -41,6 +41,7 @@ from .noise3d import GradientNoise3D, tilt_rotation
 
 STREAK_FAMILIES = len(COMPARTMENTS) + 1      # the compartments and the gastrocnemius' medial head
 MEDIAL_HEAD = len(COMPARTMENTS)
+AIR_MARGIN_MM = 0.5                          # beyond the skin by this much, a sample of a fine grid is all air
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,11 @@ class Appearance3D:
         return {"seed": self.seed, "contrast": dataclasses.asdict(self.contrast)}
 
     # -- the signals -----------------------------------------------------------------------------
+
+    def in_air(self, x, y, z, margin_mm: float = AIR_MARGIN_MM) -> np.ndarray:
+        """Points farther than margin_mm outside the skin (reference mm), where no sample shows any signal."""
+        X, Y = self.leg.reference_point(x, y, z)
+        return self.leg.geometry.skin.excess(self.leg.frame.to_leg(X, Y)) > margin_mm
 
     def signals(self, x, y, z, sample_mm: float) -> tuple[np.ndarray, np.ndarray]:
         """(water, fat) of samples of size sample_mm at points (x, y, z) of the unloaded leg (module text)."""

@@ -79,7 +79,7 @@ class KspacePhantom:
         deformation = displacement if displacement is not None else (lambda x, y, z: np.zeros((3,) + np.shape(x)))
 
         def loaded(x, y, z, sample_mm):
-            X = material_points(np.stack([x, y, z]), motion, deformation)
+            X = material_points(np.stack([x, y, z]), motion, deformation, self.appearance.in_air)
             return self.appearance.signals(X[0], X[1], X[2], sample_mm)
 
         return loaded
