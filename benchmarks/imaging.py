@@ -1,6 +1,6 @@
 """Timings of the imaging room on the 420x420 phantom calf (0.36 mm pixels). Prints figures, asserts nothing.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/imaging.py [--foreign DIR] [--only errors]
+    PYTHONPATH=. .venv/bin/python benchmarks/imaging.py [--foreign DIR ...] [--only errors|foreign] [--outline]
 
 The last section holds `calfit measure` against the true field, per band of tissue (fat within 5 mm of the skin,
 other fat, muscle): the RMS error, the predicted sigma and chi^2/n of the errors whitened by the predicted
@@ -42,7 +42,7 @@ from orchestrator.phantom import (CalfPhantom, MRIPhantom, T1Contrast, bone_clam
 from orchestrator.phantom.truths import random_truth
 from orchestrator.pipeline import run_measure
 from orchestrator.study import load_run, make_phantom_case
-from orchestrator.verification import band_errors, errors_against, field_from_mesh_file
+from orchestrator.verification import band_errors, errors_against, field_from_truth_file
 
 
 def best_of(function, repeats: int = 5) -> tuple[float, object]:
@@ -61,12 +61,16 @@ def line(what: str, seconds: float, note: str = "") -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--foreign", type=Path, help="a folder of case folders with truth/<case>.npz")
-    parser.add_argument("--only", choices=("errors",), help="only the measurement's error against the true field")
+    parser.add_argument("--foreign", type=Path, action="append", default=[],
+                        help="a folder of case folders with truth/<case>.npz (repeat for several)")
+    parser.add_argument("--only", choices=("errors", "foreign"),
+                        help="only the measurement's error against the true field (foreign: on the --foreign cases only)")
+    parser.add_argument("--outline", action="store_true",
+                        help="measure the foreign cases a second time leaving out the leg's outline")
     arguments = parser.parse_args()
-    if arguments.only != "errors":
+    if arguments.only is None:
         timings()
-    measurement_error_by_band(arguments.foreign)
+    measurement_error_by_band(arguments.foreign, phantoms=arguments.only != "foreign", outline=arguments.outline)
 
 
 def timings() -> None:
@@ -145,17 +149,22 @@ def dic_accuracy(noise: float = 0.02) -> None:
                   f"predicted sigma median {summary['median_sigma_mm']:.4f}; {elapsed:.1f} s")
 
 
-def measurement_error_by_band(foreign: Path | None, seeds=(3, 4), noise_draws=(0, 1, 2)) -> None:
+def measurement_error_by_band(foreign: list[Path], seeds=(3, 4), noise_draws=(0, 1, 2), phantoms: bool = True,
+                              outline: bool = False) -> None:
     """`calfit measure` (the default: 32-pixel windows, prefiltered, edges calibrated) against the true field, per
     band (module text): engine-made cases of both renderers at random truths with a scanner motion, each truth under
-    several draws of the images' noise, then the cases of another program when given. A band holds 27-200 windows,
-    whose chi^2/n scatters from one noise draw to the next (0.51-1.27 in the deep fat of one truth of the second
-    renderer): each group of images ends with the chi^2/n pooled over its draws, sum chi^2 / sum n."""
+    several draws of the images' noise, then the cases of other programs when given (each folder pooled apart:
+    point-sampled 2D calves, k-space 3D calves). A band holds 27-200 windows, whose chi^2/n scatters from one noise
+    draw to the next (0.51-1.27 in the deep fat of one truth of the second renderer): each group of images ends with
+    the chi^2/n pooled over its draws, sum chi^2 / sum n. outline: the foreign cases measured a second time with
+    windows inside the leg leaving out its outline (`--respect-outline`)."""
     print("\nThe measurement against the true field, per band (chi^2/n of the errors whitened by the predicted "
           "covariance; 1 when the error model holds):")
     with tempfile.TemporaryDirectory(prefix="calfit-bench-bands-") as scratch:
         scratch = Path(scratch)
         for name, phantom in (("CalfPhantom", CalfPhantom()), ("MRIPhantom", MRIPhantom.at_resolution(0.36))):
+            if not phantoms:
+                break
             pooled = []
             for seed in seeds:
                 for draw in noise_draws:
@@ -167,28 +176,33 @@ def measurement_error_by_band(foreign: Path | None, seeds=(3, 4), noise_draws=(0
                                                scratch / f"run-{name}-{seed}-{draw}",
                                                lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy")))
             _print_pooled(f"{name}, {len(pooled)} cases", pooled)
-        pooled, pooled_outline = [], []
-        for case in sorted(p for p in (foreign.iterdir() if foreign else ()) if (p / "case.toml").is_file()):
-            truth_file = foreign / "truth" / f"{case.name}.npz"
-            if not truth_file.is_file():
-                continue
-            images_only = scratch / case.name
-            images_only.mkdir()
-            for item in case.iterdir():
-                if item.name != "points.csv":
-                    shutil.copy(item, images_only / item.name)
+        for folder in foreign:
+            pooled, pooled_outline = [], []
+            for case in sorted(p for p in folder.iterdir() if (p / "case.toml").is_file()):
+                truth_file = folder / "truth" / f"{case.name}.npz"
+                if not truth_file.is_file():
+                    continue
+                images_only = scratch / folder.name / case.name
+                images_only.mkdir(parents=True)
+                for item in case.iterdir():
+                    if item.name != "points.csv":
+                        shutil.copy(item, images_only / item.name)
 
-            def truth(shape, pixel, truth_file=truth_file):
-                return field_from_mesh_file(truth_file, shape, pixel)
+                def truth(shape, pixel, truth_file=truth_file):
+                    return field_from_truth_file(truth_file, shape, pixel)
 
-            pooled.append(_print_bands(f"{case.name} (another program)", images_only, scratch / f"run-{case.name}",
-                                       truth))
-            pooled_outline.append(_print_bands(f"{case.name} (another program), windows inside the leg leaving out its "
-                                               "outline (--respect-outline)", images_only,
-                                               scratch / f"run-{case.name}-outline", truth, respect_outline=True))
-        if pooled:
-            _print_pooled(f"the other program's {len(pooled)} cases", pooled)
-            _print_pooled(f"the other program's {len(pooled)} cases, leaving out the outline", pooled_outline)
+                pooled.append(_print_bands(f"{folder.name}/{case.name} (another program)", images_only,
+                                           scratch / f"run-{folder.name}-{case.name}", truth))
+                if outline:
+                    pooled_outline.append(_print_bands(
+                        f"{folder.name}/{case.name} (another program), windows inside the leg leaving out its outline "
+                        "(--respect-outline)", images_only, scratch / f"run-{folder.name}-{case.name}-outline", truth,
+                        respect_outline=True))
+            if pooled:
+                _print_pooled(f"{folder.name}: the other program's {len(pooled)} cases", pooled)
+            if pooled_outline:
+                _print_pooled(f"{folder.name}: the other program's {len(pooled)} cases, leaving out the outline",
+                              pooled_outline)
 
 
 def _print_bands(title: str, case: Path, run: Path, true_field, respect_outline: bool = False) -> list:

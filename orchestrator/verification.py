@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from .forward import MeshInterpolator, field_on_pixels
 from .objectives import symmetric_roots
@@ -88,6 +89,23 @@ def band_errors(measurements, errors: np.ndarray, frame) -> tuple[list[BandError
                               float(np.median(np.sqrt(np.diagonal(block)))),
                               float(band_errors_mm @ np.linalg.solve(block, band_errors_mm) / band_errors_mm.size)))
     return rows, float(whitened @ whitened / whitened.size)
+
+
+def field_from_truth_file(path: str | Path, shape: tuple[int, int], pixel_size_mm) -> np.ndarray:
+    """(2, H, W) true in-plane displacement on the pixels of I0 from another program's truth file: a mesh and its
+    nodal field (`field_from_mesh_file`) or the field on I0's pixels itself, u_inplane_mm (H, W, 2), NaN outside
+    the leg (a 3D leg imaged through k-space: the material under each pixel centre), which is extended outwards
+    from the nearest pixel of the leg (a window on the skin sees the skin's edge, which moves with the skin)."""
+    with np.load(path) as truth:
+        if "u_inplane_mm" not in truth.files:
+            return field_from_mesh_file(path, shape, pixel_size_mm)
+        field = np.asarray(truth["u_inplane_mm"], float)
+    if field.shape[:2] != tuple(shape):
+        raise ValueError(f"{path}: its field is {field.shape[:2]} pixels where I0 is {tuple(shape)}")
+    inside = np.all(np.isfinite(field), axis=2)
+    rows, cols = ndimage.distance_transform_edt(~inside, return_distances=False, return_indices=True)
+    field = field[rows, cols]
+    return np.stack([field[..., 0], field[..., 1]])
 
 
 def field_from_mesh_file(path: str | Path, shape: tuple[int, int], pixel_size_mm) -> np.ndarray:

@@ -238,3 +238,36 @@ def test_a_window_size_outside_the_choices_is_refused(measured_case, capsys):
     with pytest.raises(SystemExit):
         main(["measure", str(case), "--out", str(run), "--window", "20"])
     assert "invalid choice" in capsys.readouterr().err
+
+
+def test_a_weakly_textured_window_is_kept_at_the_zncc_its_noise_allows_and_a_false_match_is_not(phantom_pair):
+    """A window is judged by the ZNCC its own texture and the images' noise allow (`imaging.dic.attainable_confidence`):
+    with noise that pulls the muscle's ZNCC under 0.8, the muscle's windows are kept (their covariance says how
+    little each knows, and they err against it as the well-textured ones do), while a window whose loaded texture was swapped for another place's
+    is rejected as a low match."""
+    phantom, unloaded, shifted = phantom_pair
+    rng = np.random.default_rng(11)
+    noisy = [image + 0.05 * rng.standard_normal(image.shape) for image in (unloaded, shifted)]
+    labels = phantom.labels()
+    swapped = noisy[1].copy()
+    rows, cols = slice(190, 230), slice(120, 160)
+    swapped[rows, cols] = noisy[1][rows.start + 60:rows.stop + 60, cols]   # another place's texture
+    measured, table, _ = measure_dic(noisy[0], swapped, labels, phantom.pixel_size_mm, RigidMotion(),
+                                     window_px=32, step_px=16)
+    status = np.array(table.status)
+    low_zncc = (table.confidence < 0.8) & (np.array(table.tissue) == "muscle")
+    inside_swap = ((table.centres_rc[:, 0] >= 198) & (table.centres_rc[:, 0] < 222)
+                   & (table.centres_rc[:, 1] >= 128) & (table.centres_rc[:, 1] < 152))
+    assert inside_swap.any() and all(s.startswith("low match") for s in status[inside_swap]), status[inside_swap]
+    # windows that reach into the swapped patch are not judged
+    apart = ((np.abs(table.centres_rc[:, 0] - 210) > 36) | (np.abs(table.centres_rc[:, 1] - 140) > 36))
+    kept_low = low_zncc & (status == "kept") & apart
+    assert kept_low.sum() >= 10 and kept_low.sum() >= 0.7 * (low_zncc & apart).sum(), (kept_low.sum(), low_zncc.sum())
+    # the kept windows of low ZNCC err against their covariance (the tissue moved by SHIFT_MM) as the others do
+    def chi2(selected):
+        errors = table.displacement_mm[selected] - np.asarray(SHIFT_MM)
+        return np.mean([e @ np.linalg.solve(c, e) / 2 for e, c in zip(errors, table.covariance_mm2[selected])])
+    # (on this pair of a whole-image sub-pixel shift every window errs more than predicted, the low and the high ZNCC
+    # alike: what is asserted is that the low ones are no worse)
+    ratio = chi2(kept_low) / chi2((status == "kept") & ~low_zncc & apart)
+    assert 0.6 < ratio < 1.6, ratio

@@ -316,6 +316,28 @@ def _match_chunk(indices, job: tuple | None = None) -> list:
             for k in indices]
 
 
+def attainable_confidence(reference: np.ndarray, centres_rc, window_px: int, noise_sigma: tuple[float, float],
+                          pixel_masks=None) -> np.ndarray:
+    """(N,) the ZNCC each window can reach between two noisy images of the same texture: S / sqrt((S + s_0^2)
+    (S + s_1^2)), S the variance of the window's texture in the raw reference less its noise s_0^2, s_1 the loaded
+    image's noise (0 where the window holds no texture above the noise). A weakly textured window (the muscle of a
+    T1 image) matches at a low ZNCC that is all its noise allows, and its covariance says how little it knows; a
+    false match reaches far less than its texture allows (`measure`: the match check)."""
+    reference = np.asarray(reference, float)
+    centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
+    pixel_sets = window_pixel_sets(pixel_masks, len(centres), window_px)
+    half = window_px // 2
+    variance = np.zeros(len(centres))
+    for k, ((row, col), used) in enumerate(zip(centres, pixel_sets)):
+        block = reference[max(row - half, 0):row - half + window_px, max(col - half, 0):col - half + window_px]
+        values = block.ravel()[used] if block.size == used.size else block.ravel()
+        variance[k] = values.var() if values.size > 1 else 0.0
+    s0, s1 = (float(v) for v in noise_sigma)
+    texture = np.maximum(variance - s0 ** 2, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.nan_to_num(texture / np.sqrt((texture + s0 ** 2) * (texture + s1 ** 2)))
+
+
 def _signal_noise(image: np.ndarray) -> float:
     """Noise of an image where it has signal (the Rician noise of the background is not Gaussian)."""
     level = np.percentile(image, 99)
