@@ -123,7 +123,8 @@ class Scanner:
         grid_u, grid_v = np.meshgrid(np.linspace(-0.8, 0.8, 81), np.linspace(-0.8, 0.8, 81))
         disc = np.hypot(grid_u, grid_v) <= 0.8
         reference = sum(c * grid_u ** a * grid_v ** b for c, (a, b) in zip(coefficients, terms))[disc]
-        magnitude = 1.0 + self.coil_amplitude * (shape - reference.mean()) / np.max(np.abs(reference - reference.mean()))
+        spread = np.max(np.abs(reference - reference.mean()))
+        magnitude = 1.0 + self.coil_amplitude * (shape - reference.mean()) / spread
         phase = rng.uniform(-0.6, 0.6) * u + rng.uniform(-0.6, 0.6) * v + rng.uniform(-0.4, 0.4) * u * v
         return magnitude * np.exp(1j * phase)
 

@@ -173,16 +173,16 @@ class Appearance3D:
         inner, inner_slope = g.fascia.radius.evaluate(unit)
         thickness, thickness_slope = outer - inner, outer_slope - inner_slope
         depth = (outer - rho) / thickness
-        depth_gradient = unit * (-1.0 / thickness) + 1j * unit * ((outer_slope * thickness - (outer - rho) * thickness_slope)
-                                                                  / (thickness ** 2 * rho))
+        across = (outer_slope * thickness - (outer - rho) * thickness_slope) / (thickness ** 2 * rho)
+        depth_gradient = unit * (-1.0 / thickness) + 1j * unit * across
         turn, turn_gradient = np.angle(unit) / (2.0 * np.pi), 1j * unit / (2.0 * np.pi * rho)
         low, high = c.septum_width_mm
         width = low + (high - low) * smoothstep(0.5 + 0.35 * self.width(w.real, w.imag, z))
         # radial sheets: level sets of N turn + b depth + A n(X, z)
         n, nx, ny, nz = self.radial_warp(w.real, w.imag, z, gradient=True)
         level = c.radial_septa * turn + self.septum_tilt * depth + 0.3 * n
-        slope = np.hypot(np.abs(c.radial_septa * turn_gradient + self.septum_tilt * depth_gradient + 0.3 * (nx + 1j * ny)),
-                         0.3 * nz)
+        in_plane = c.radial_septa * turn_gradient + self.septum_tilt * depth_gradient + 0.3 * (nx + 1j * ny)
+        slope = np.hypot(np.abs(in_plane), 0.3 * nz)
         shown = smoothstep(0.5 + 1.2 * (self.radial_presence(w.real, w.imag, z) + 0.5))
         covered = line_coverage(np.abs(level - np.round(level)) / np.maximum(slope, 1e-9), width, h) * shown
         # oblique sheets: the zero set of an isotropic noise, in every orientation

@@ -177,7 +177,8 @@ def make_kspace_case(folder, truth_folder=None, *, theta_kPa: Sequence[float] = 
     hidden = HiddenEffects3D.from_dict(effects)
     if solution is None:
         solution = solve_truth(phantom, theta_kPa, tension_N_per_mm, heights_mm=[slice_height_mm], motion=motion,
-                               effects=hidden, garment_law=garment_law, fine=fine, n_section_elements=n_section_elements)
+                               effects=hidden, garment_law=garment_law, fine=fine,
+                               n_section_elements=n_section_elements)
     elif solution.mesh.leg is not leg:
         raise ValueError("the solution was solved on another leg; pass the phantom it was solved for")
     solved = time.perf_counter()
@@ -326,7 +327,8 @@ def write_kspace_volume_case(folder, truth_folder=None, *, heights_mm: Sequence[
                                          (unloaded, loaded)):
             (case_staging / role).mkdir()
             for k, (height, image) in enumerate(zip(heights, stack)):
-                write_dicom_slice(case_staging / role / f"IM{k + 1:04d}.dcm", image, pixel_size_mm=scanner.pixel_size_mm,
+                write_dicom_slice(case_staging / role / f"IM{k + 1:04d}.dcm", image,
+                                  pixel_size_mm=scanner.pixel_size_mm,
                                   height_mm=float(height), slice_thickness_mm=scanner.slice_thickness_mm,
                                   identity=identity, instance=k + 1, spacing_mm=spacing,
                                   chemical_shift_px=scanner.chemical_shift_px)
@@ -415,7 +417,8 @@ def _write_json(path: Path, data: dict) -> None:
     path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 
 
-def _grid_points(field_mm, labels, scanner: Scanner, spacing_mm: float, sigma_mm: float, seed: int) -> DisplacementPoints:
+def _grid_points(field_mm, labels, scanner: Scanner, spacing_mm: float, sigma_mm: float,
+                 seed: int) -> DisplacementPoints:
     """The true displacement at grid points in fat and muscle, plus Gaussian noise of sigma_mm."""
     x, y = pixel_centres_mm(scanner.image_shape, scanner.pixel_size_mm)
     step = max(1, int(round(spacing_mm / scanner.pixel_size_mm[0])))

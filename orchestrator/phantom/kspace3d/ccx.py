@@ -95,5 +95,6 @@ def _last_displacements(path: Path, n_nodes: int) -> np.ndarray:
             break
     table = np.array(rows)
     if len(table) != n_nodes or not np.array_equal(table[:, 0].astype(int), np.arange(1, n_nodes + 1)):
-        raise CcxError(f"{path} lists {len(table)} nodes where the deck has {n_nodes}; the run is incomplete, read its log")
+        raise CcxError(f"{path} lists {len(table)} nodes where the deck has {n_nodes}; the run is incomplete, read "
+                       "its log")
     return table[:, 1:]

@@ -134,7 +134,8 @@ class Leg3D:
         return 1.0 + self.along.taper_per_100mm * (np.asarray(z_mm, float) - self.along.reference_height_mm) / 100.0
 
     def twist_rad(self, z_mm) -> np.ndarray:
-        return np.deg2rad(self.along.twist_deg_per_100mm * (np.asarray(z_mm, float) - self.along.reference_height_mm) / 100.0)
+        rise = np.asarray(z_mm, float) - self.along.reference_height_mm
+        return np.deg2rad(self.along.twist_deg_per_100mm * rise / 100.0)
 
     def centre_mm(self, z_mm) -> tuple[np.ndarray, np.ndarray]:
         """The leg centre (image frame) at heights z."""
@@ -203,8 +204,8 @@ class Leg3D:
 
     def prismatic(self) -> "Leg3D":
         """The same section with no change along the leg (the plane-strain check)."""
-        along = dataclasses.replace(self.along, taper_per_100mm=0.0, twist_deg_per_100mm=0.0, drift_mm_per_mm=(0.0, 0.0),
-                                    fat_per_100mm=0.0, fat_back_per_100mm=0.0)
+        along = dataclasses.replace(self.along, taper_per_100mm=0.0, twist_deg_per_100mm=0.0,
+                                    drift_mm_per_mm=(0.0, 0.0), fat_per_100mm=0.0, fat_back_per_100mm=0.0)
         return Leg3D(self.shape, along)
 
 

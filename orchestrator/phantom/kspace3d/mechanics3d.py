@@ -644,8 +644,8 @@ def _deck(mesh: LegMesh3D, theta: tuple[float, ...], effects: HiddenEffects3D, g
                   "expansion": expansion}]
     if effects.stiffer:
         f = effects.stiffer_factor
-        materials.append({"name": "STIFF", "elset": "STIFF", "constants": numbers((f * c10_muscle, 1.0 / (f * kv_muscle))),
-                          "expansion": expansion})
+        materials.append({"name": "STIFF", "elset": "STIFF", "expansion": expansion,
+                          "constants": numbers((f * c10_muscle, 1.0 / (f * kv_muscle)))})
     moved = []
     if effects.bone_motion_mm is not None:
         moved = [f"FIBULA, {dof}, {dof}, {value:.10g}" for dof, value in zip((1, 2, 3), effects.bone_motion_mm)]

@@ -69,7 +69,7 @@ class GradientNoise3D:
         value *= self._scale
         if not gradient:
             return value
-        grad = [du * self._scale / self.cell_mm[0], dv * self._scale / self.cell_mm[1], dw * self._scale / self.cell_mm[2]]
+        grad = [d * self._scale / cell for d, cell in zip((du, dv, dw), self.cell_mm)]
         if self.rotation is not None:   # d/dx_original = R^T d/dx_rotated
             r = self.rotation
             grad = [r[0, n] * grad[0] + r[1, n] * grad[1] + r[2, n] * grad[2] for n in range(3)]
