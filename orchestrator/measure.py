@@ -62,6 +62,7 @@ from scipy.spatial import cKDTree
 
 from .imaging.case import DisplacementPoints
 from .imaging.chemical_shift import fat_signal
+from .imaging.coherence import coherence_sentence, texture_coherence
 from .imaging.dic import attainable_confidence, correlate, grid_centres, roi_centres
 from .imaging.drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
 from .imaging.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
@@ -375,6 +376,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
+    # does the loaded slice show the same tissue? (`imaging.coherence`: a slide along the leg between the sessions)
+    coherence = slice_coherence(unloaded, loaded, labels, pixel_size_mm, motion, result, status, result.noise_sigma)
     # boundaries drawn by point samples (a renderer's, not a scanner's) carry an error that the residuals cannot show
     to_loaded = loaded_index_map(prior, motion, pixel_size_mm)
     drawn = boundaries(labels, unloaded)
@@ -409,6 +412,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                                 "centre_mm": list(motion.centre_mm)},
                "min_confidence": min_confidence, "max_uncertainty_px": max_uncertainty_px,
                "fat_shift_mm": None if fat_shift_mm is None else [float(v) for v in fat_shift_mm],
+               "texture_coherence": [c.as_dict() for c in coherence],
+               "through_plane_warning": coherence_sentence(coherence),
                "point_sampling": None if point_sampling is None else {
                    "samples_per_side": point_sampling.samples, "p_value": point_sampling.p_value,
                    "coverages": point_sampling.pixels, "draws": DRAWING_DRAWS,
@@ -455,6 +460,26 @@ def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: f
     outliers = normalised_median_outliers(result.position_mm, result.displacement_px, candidates, radius_mm=3.0 * step_mm)
     status[outliers & candidates] = f"median test (> {MEDIAN_THRESHOLD:g})"
     return status
+
+
+def slice_coherence(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm, motion: RigidMotion,
+                    result, status: np.ndarray, noise_sigma) -> list:
+    """The fat's and the muscle's texture coherence between I0 and I1 sampled through the field the kept windows
+    measured and the bones' motion (`imaging.coherence`); empty with too few kept windows."""
+    kept = status == KEPT
+    if kept.sum() < 10:
+        return []
+    field = prior_field(result.position_mm[kept], result.displacement_mm[kept], unloaded.shape, pixel_size_mm)
+    rows, cols = np.indices(unloaded.shape, dtype=float)
+    to_loaded = loaded_index_map(field, motion, pixel_size_mm)(np.column_stack([rows.ravel(), cols.ravel()]))
+    warped = ndimage.map_coordinates(np.asarray(loaded, float), to_loaded.T, order=3, mode="constant",
+                                     cval=np.nan).reshape(unloaded.shape)
+    values = []
+    for name, label in (("fat", FAT), ("muscle", MUSCLE)):
+        found = texture_coherence(unloaded, warped, tissue_mask(labels, label), noise_sigma, name)
+        if found is not None:
+            values.append(found)
+    return values
 
 
 def loaded_index_map(field_mm: np.ndarray, motion: RigidMotion, pixel_size_mm):

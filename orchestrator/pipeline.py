@@ -317,7 +317,9 @@ def floor_calibration(run_dir: Path) -> dict:
             "image_noise_sigma_estimated": summary.get("noise_sigma_estimated", summary["noise_sigma"]),
             "edge_position_sigma_px": float(np.sqrt(summary.get("edge_variance_px2", 0.0))),
             "residual_over_predicted": summary.get("noise_scale"), "windows": summary["windows"],
-            "kept": summary["kept"], "status": summary["status"], "point_sampling": summary.get("point_sampling")}
+            "kept": summary["kept"], "status": summary["status"], "point_sampling": summary.get("point_sampling"),
+            "fat_shift_mm": summary.get("fat_shift_mm"), "texture_coherence": summary.get("texture_coherence"),
+            "through_plane_warning": summary.get("through_plane_warning")}
 
 
 def floor_sentence(calibration: dict) -> str:
@@ -334,7 +336,8 @@ def floor_sentence(calibration: dict) -> str:
             + (f" (their noise {agreement:.2f} times the images' estimate)" if agreement is not None else "")
             + _point_sampling_clause(calibration.get("point_sampling"))
             + f"; {calibration['kept']} of {calibration['windows']} windows kept"
-            + (f" ({rejected})" if rejected else "") + ".")
+            + (f" ({rejected})" if rejected else "") + "."
+            + (f" Warning: {calibration['through_plane_warning']}." if calibration.get("through_plane_warning") else ""))
 
 
 def _point_sampling_clause(point_sampling: dict | None) -> str:

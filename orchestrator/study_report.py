@@ -69,13 +69,25 @@ def build_study_report(rows: list[dict], volume: dict | None, figure_dir: Path) 
     title = f"calfit study: {volume['name']}" if volume is not None else "calfit study"
     overview = (f"{len(rows)} {kind}, {len(done)} done. "
                 + (f"Slices every {volume['slice_spacing_mm']:.3g} mm of the volume, the loaded session aligned on "
-                   f"the bones in 3D (rotation {np.linalg.norm(volume['motion']['rotation_vector_deg']):.2f} deg, "
-                   f"translation ({', '.join(f'{t:.2f}' for t in volume['motion']['translation_mm'])}) mm). "
-                   if volume is not None else "")
+                   f"the bones in 3D: {_motion_words(volume)}. " if volume is not None else "")
                 + "Each case was identified from its images, given its Monte-Carlo intervals, its pressures and its "
                   "diagnosis (calfit study).")
     return {"title": title, "overview": overview,
             "answers": _answers(done, rows, failing, pressures, volume), "sections": sections, "missing": []}
+
+
+def _motion_words(volume: dict) -> str:
+    """How the leg moved between the sessions, as the 3D alignment found it: turned and tilted (degrees) and slid
+    along the leg (mm, the bones' centre along the slice normal: a loaded slice shows the leg that far higher or
+    lower), or the rotation and translation where the study's record predates those words."""
+    alignment = volume.get("alignment") or {}
+    rotation, translation = alignment.get("rotation_deg"), alignment.get("translation_mm")
+    if rotation is not None and translation is not None:
+        return (f"the leg turned {rotation[2]:.2f} deg about its axis, tilted {float(np.hypot(*rotation[:2])):.2f} deg "
+                f"and slid {translation[2]:+.2f} mm along it between the sessions (in-plane shift "
+                f"{translation[0]:.2f}, {translation[1]:.2f} mm)")
+    return (f"rotation {np.linalg.norm(volume['motion']['rotation_vector_deg']):.2f} deg, "
+            f"translation ({', '.join(f'{t:.2f}' for t in volume['motion']['translation_mm'])}) mm")
 
 
 def parameter_names(rows: list[dict]) -> list[str]:

@@ -67,6 +67,11 @@ def summary_lines(summary: dict, run_dir: str) -> list[str]:
         lines.append(f"error model calibrated on the windows' residuals: noise x{summary['noise_scale']:.2f} in variance "
                      f"against each image's own estimate, edges drawn within "
                      f"{summary['edge_variance_px2'] ** 0.5:.3f} px (prefilter {summary['prefilter_px']:g} px)")
+    if summary.get("texture_coherence"):
+        lines.append("texture coherence between the slices: " + ", ".join(
+            f"{c['tissue']} {c['coherence']:.2f}" for c in summary["texture_coherence"]) + " (1 for the same tissue)")
+    if summary.get("through_plane_warning"):
+        lines.append(f"warning: {summary['through_plane_warning']}")
     if summary.get("outline_margin_px") is not None:
         lines.append(f"windows inside the leg leave out its outline: the {summary['outline_margin_px']} px next to it and "
                      "the air beyond")
