@@ -567,6 +567,12 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
             after.append(fit)
             after_maps.append(residual_maps(objective.positions_mm, residual, frame))
             after_level_maps.append(level_maps(objective, residual, frame))
+    warning = (floor_calibration(run_dir).get("through_plane_warning") if identified_data(identification) == "dic"
+               else None)
+    if warning:
+        # an error model that does not hold judges every effect wrongly: the verdict says so first
+        diagnosis.explained = False
+        diagnosis.verdict = f"caution: {warning}; {diagnosis.verdict}"
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]
