@@ -49,7 +49,9 @@ the element's own interpolation, up to the difference between Phi and its quadra
 neo_hooke tissues, the same triangles) and compares the in-plane nodal displacement of the 3D solution's node
 plane at the reference height: under the same face pressures (`*DLOAD`) and under the engine's own Laplace law.
 For a prismatic leg with its end faces held axially, 3D is plane strain: the same-load difference is the
-discretization's and the solver's (0.08 % RMS of max |u| on the default mesh).
+discretization's and the solver's: 0.04-0.08 % RMS of max |u| on the default mesh (1,049 triangles x 8 layers,
+25,388 nodes, ccx 30-40 s on two cores) and on the fine one (2,083 x 14, 83,620 nodes, 290 s). The tapering leg
+departs from plane strain at mid-segment by 0.32 % RMS (0.62 % at most) on both meshes: physics, not mesh.
 """
 
 from __future__ import annotations
