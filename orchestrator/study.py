@@ -333,25 +333,31 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
     case = working_case(case_dir)
     unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
-    segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm)
+    # the fat's chemical shift, first on a segmentation that knows none: a fatty marrow it moves against its
+    # cortex may be missed there, so the images are segmented again knowing its size (`segment_t1`)
+    first = fat_shift_of(case.unloaded, case.labels if case.labels is not None
+                         else segment_t1(case.unloaded, case.pixel_size_mm), case.pixel_size_mm)
+    shift_size = float(np.hypot(*first.shift_mm)) if first is not None and first.significant else 0.0
+    segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm, fat_shift_mm=shift_size)
     labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
-    segmented_loaded = segment_t1(case.loaded, case.pixel_size_mm)
+    segmented_loaded = segment_t1(case.loaded, case.pixel_size_mm, fat_shift_mm=shift_size)
     missing_fraction = {}
     for role, name, labels in (("unloaded", unloaded_name, labels_unloaded), ("loaded", loaded_name, segmented_loaded)):
         check_leg_in_view(labels, case.pixel_size_mm, name)
         if check_missing_pixels(case.missing.get(role), labels > 0, case.pixel_size_mm, name):
             missing_fraction[name] = float(case.missing[role].mean())
-    motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded)
-              if align else RigidMotion())
+    motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded,
+                             fat_shift_mm=shift_size) if align else RigidMotion())
     loaded_aligned = resample_rigid(case.loaded, motion, case.pixel_size_mm) if align else case.loaded
-    labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm)
+    labels_loaded = segment_t1(loaded_aligned, case.pixel_size_mm, fat_shift_mm=shift_size)
     area_change = check_compression(segmented_unloaded > 0, labels_loaded > 0, unloaded_name, loaded_name)
     # labels.png is meshed as given; what is doubtful in it, or in the segmentations, is said, not corrected
     unloaded_source = case.files["labels"].name if case.labels is not None else f"segmentation of {unloaded_name}"
     segmentation_warnings = {source: [w.as_dict() for w in segmentation_checks(labels, case.pixel_size_mm)]
                              for source, labels in ((unloaded_source, labels_unloaded),
                                                     (f"segmentation of {loaded_name} aligned on the bones", labels_loaded))}
-    prepared_levels = [_prepare_level(case, level, labels_unloaded, segmented_unloaded, align) for level in case.levels]
+    prepared_levels = [_prepare_level(case, level, labels_unloaded, segmented_unloaded, align, shift_size)
+                       for level in case.levels]
     for level, (_, _, _, share) in zip(case.levels, prepared_levels):
         if share is not None:
             missing_fraction[level.path.name] = share
@@ -398,6 +404,13 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     return setup
 
 
+def fat_shift_of(image: np.ndarray, labels: np.ndarray, pixel_size_mm) -> FatShift | None:
+    """The fat's chemical shift on `image` (`imaging.chemical_shift`), read across the fat/muscle interface of
+    `labels` snapped to the image's edges."""
+    curves = tissue_curves(labels, pixel_size_mm, image=image)
+    return fat_shift(image, *fat_muscle_normals(curves), pixel_size_mm)
+
+
 def working_case(case_dir: str | Path) -> Case:
     """The case read and put at its working resolution (`imaging.resolution`), its garment levels' images too."""
     case = working_resolution(read_case(case_dir))
@@ -410,18 +423,20 @@ def working_case(case_dir: str | Path) -> Case:
         for level in case.levels))
 
 
-def _prepare_level(case: Case, level, labels_unloaded: np.ndarray, segmented_unloaded: np.ndarray, align: bool):
+def _prepare_level(case: Case, level, labels_unloaded: np.ndarray, segmented_unloaded: np.ndarray, align: bool,
+                   fat_shift_mm: float = 0.0):
     """A more garment level's image checked and aligned on the bones as the first level's: (aligned image, motion,
     its setup.json entry, its share of pixels without a value or None)."""
     name = level.path.name
-    labels = segment_t1(level.image, case.pixel_size_mm)
+    labels = segment_t1(level.image, case.pixel_size_mm, fat_shift_mm=fat_shift_mm)
     check_leg_in_view(labels, case.pixel_size_mm, name)
     share = (float(level.missing.mean())
              if check_missing_pixels(level.missing, labels > 0, case.pixel_size_mm, name) else None)
-    motion = (align_on_bones(case.unloaded, level.image, case.pixel_size_mm, labels_unloaded=labels_unloaded)
-              if align else RigidMotion())
+    motion = (align_on_bones(case.unloaded, level.image, case.pixel_size_mm, labels_unloaded=labels_unloaded,
+                             fat_shift_mm=fat_shift_mm) if align else RigidMotion())
     aligned = resample_rigid(level.image, motion, case.pixel_size_mm) if align else level.image
-    area_change = check_compression(segmented_unloaded > 0, segment_t1(aligned, case.pixel_size_mm) > 0,
+    area_change = check_compression(segmented_unloaded > 0,
+                                    segment_t1(aligned, case.pixel_size_mm, fat_shift_mm=fat_shift_mm) > 0,
                                     case.files["unloaded"].name, name)
     info = {"level": level.number, "image": name, "tension_N_per_mm": level.tension_N_per_mm,
             "leg_area_change": area_change,

@@ -56,13 +56,16 @@ def kabsch_2d(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray
 
 
 def align_on_bones(unloaded: np.ndarray, loaded: np.ndarray, pixel_size_mm, *, labels_unloaded: np.ndarray | None = None,
-                   labels_loaded: np.ndarray | None = None, rim_mm: float = 0.7, centre_mm=None) -> RigidMotion:
-    """The rigid motion M (about `centre_mm`, default the image centre) with I1(M(x)) ~ I0(x) on the bones."""
+                   labels_loaded: np.ndarray | None = None, rim_mm: float = 0.7, centre_mm=None,
+                   fat_shift_mm: float = 0.0) -> RigidMotion:
+    """The rigid motion M (about `centre_mm`, default the image centre) with I1(M(x)) ~ I0(x) on the bones; the
+    images segmented here knowing the size of the fat's chemical shift (`segment.segment_t1`)."""
     shape = unloaded.shape
     dy, dx = pixel_size_mm
     centre = np.asarray(centre_mm if centre_mm is not None else (shape[1] * dx / 2, shape[0] * dy / 2), float)
-    labels_unloaded = segment_t1(unloaded, pixel_size_mm) if labels_unloaded is None else labels_unloaded
-    labels_loaded = segment_t1(loaded, pixel_size_mm) if labels_loaded is None else labels_loaded
+    labels_unloaded = (segment_t1(unloaded, pixel_size_mm, fat_shift_mm=fat_shift_mm) if labels_unloaded is None
+                       else labels_unloaded)
+    labels_loaded = segment_t1(loaded, pixel_size_mm, fat_shift_mm=fat_shift_mm) if labels_loaded is None else labels_loaded
     bones0, bones1 = bone_centroids(labels_unloaded, pixel_size_mm), bone_centroids(labels_loaded, pixel_size_mm)
     matched = min(len(bones0), len(bones1))
     if matched == 0:

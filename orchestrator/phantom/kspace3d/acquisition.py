@@ -318,12 +318,13 @@ def material_points(y: np.ndarray, motion: LegMotion, displacement, in_air=None)
         u = displacement(*X[:, index])
         step = target[:, index] - u - X[:, index]
         X[:, index] += damping * step
-        index = index[np.max(np.abs(step), axis=0) >= FIXED_POINT_TOLERANCE_MM]
+        stepped, index = index, index[np.max(np.abs(step), axis=0) >= FIXED_POINT_TOLERANCE_MM]
         if index.size == 0:
             return X.reshape(np.shape(y))
+    # judged on the last step of the points it was taken for
     moving = np.max(np.abs(step), axis=0) >= FIXED_POINT_ACCEPTED_MM
     if in_air is not None:
-        moving &= ~np.asarray(in_air(*X[:, index]), bool)
+        moving &= ~np.asarray(in_air(*X[:, stepped]), bool)
     if not moving.any():
         return X.reshape(np.shape(y))
     raise ValueError("x = X + u(X) could not be inverted for the loaded image (the fixed point did not converge); "
