@@ -1,0 +1,1 @@
+"""The case folder as a user brings it: case.toml and its tables (`folder`), the image formats (PNG, TIFF, .npy, DICOM files and series, NIfTI: `_formats`, `dicom_series`, `volume`) and the working resolution of a fine matrix (`resolution`)."""

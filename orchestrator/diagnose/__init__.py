@@ -1,0 +1,1 @@
+"""Where the model fails and which physics is missing: the score of every effect of the catalog, the refits, the places of a local change and the verdict (`diagnosis`), and the residual's picture (`figure`)."""

@@ -1,0 +1,1 @@
+"""The finite-element engine seen from Python: where calfit-fe is (`locate`), the decks rendered from templates (`decks`), the runs and their log, cache and workers (`runner`), and what a run wrote (`results`)."""

@@ -1,0 +1,1 @@
+"""Fitting the model to the measurements: the objectives (`objectives`), Levenberg-Marquardt, Nelder-Mead and the Monte-Carlo intervals (`identify`), several garment levels fitted together (`levels`), the model's geometry uncertainty (`geometry_uncertainty`) and integrated DIC (`integrated`)."""

@@ -1,0 +1,1 @@
+"""What was measured and how the fit compares the model with it: digital image correlation (`dic`, `prefilter`, `windows`), the error of a renderer's point-sampled drawing (`drawing`), the measurements and their covariance from the images or points.csv (`measurements`), their picture (`figure`), and a measurement held against a known true field (`verification`)."""

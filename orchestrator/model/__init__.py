@@ -1,0 +1,1 @@
+"""The leg model: the effect catalog (`effects`) and the heterogeneity modes (`heterogeneity`), the garment's state (`garment_state`), the leg's anatomical frame and regions (`regions`), and the model that writes a deck for parameters and reads the engine's answer (`forward`)."""

@@ -1,0 +1,1 @@
+"""One case through the pipeline, in its run folder: the setup every command rebuilds (`setup`: the case read, segmented, aligned and meshed), the commands' stages (`stages`: measure, identify, Monte-Carlo, pressures, diagnose) and the mesh's own check (`discretization`)."""
