@@ -10,6 +10,8 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 DEBIAN_PACKAGES := g++ cmake make pkg-config libeigen3-dev libsuitesparse-dev libopenblas-dev calculix-ccx
 ENGINE_SOURCES := $(shell find solver_cpp -type f \( -name '*.cpp' -o -name '*.hpp' -o -name 'CMakeLists.txt' \))
+# the editable install maps each module to its file: a module added or moved needs it made again (seconds)
+PACKAGE_SOURCES := $(shell find orchestrator -name "*.py")
 
 .PHONY: setup system-packages demo test test-slow test-cpp bench fuzz sanitize clean
 
@@ -33,7 +35,7 @@ $(VENV)/bin/python:
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 
-$(VENV)/.installed: $(VENV)/bin/python pyproject.toml CMakeLists.txt $(ENGINE_SOURCES)
+$(VENV)/.installed: $(VENV)/bin/python pyproject.toml CMakeLists.txt $(ENGINE_SOURCES) $(PACKAGE_SOURCES)
 	$(PY) -m pip install -q -e '.[test]'
 	touch $@
 

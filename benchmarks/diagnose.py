@@ -25,10 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.runner import LOG_NAME, EvaluationLog
-from orchestrator.study import make_phantom_case
+from orchestrator.core.frame import RigidMotion
+from orchestrator.run.stages import run_diagnose, run_identify
+from orchestrator.engine.runner import LOG_NAME, EvaluationLog
+from orchestrator.run.setup import make_phantom_case
 
 HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
                  "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05}}

@@ -39,10 +39,10 @@ cuts and checked there against the paper's figures; not read off the paper here)
 noise-floor image, calfit's and pyvale's from the zero crossing of the same pair: the same images' noise through the
 same windows, but not the same pixels, and over the motion of the field's odd part.
 
-What calfit does (`orchestrator.imaging.dic.correlate`: ZNCC then IC-GN, affine window; one pass, no prior) is run
+What calfit does (`orchestrator.measure.dic.correlate`: ZNCC then IC-GN, affine window; one pass, no prior) is run
 on windows along the centre row every --step pixels for each window size, on a 301-row strip around the centre row
 (enough for the 64-pixel windows' search area; the whole image only costs time). Beside it, what the linearised
-windows should see of the commanded field (`orchestrator.imaging.windows.WindowOperators(...).observe`: the
+windows should see of the commanded field (`orchestrator.measure.windows.WindowOperators(...).observe`: the
 gradient-weighted affine fit over each window, the observation operator calfit's identification compares its model
 with) and, for reference, the textbook limit of an affine window with uniform weights: the mean of the cosine over
 its h rows, sin(pi h / p) / (h sin(pi / p)), which is 0.9 at p = 63.8 / 127.7 / 255.6 px for h = 16 / 32 / 64
@@ -79,9 +79,9 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.imaging.dic import correlate, spline_gradient
-from orchestrator.imaging.prefilter import Prefilter
-from orchestrator.imaging.windows import WindowOperators
+from orchestrator.measure.dic import correlate, spline_gradient
+from orchestrator.measure.prefilter import Prefilter
+from orchestrator.measure.windows import WindowOperators
 
 AMPLITUDE_PX = 0.5
 CREST_ROW = 250

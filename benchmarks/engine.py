@@ -83,15 +83,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from engine_run import parse_ccx_dat  # noqa: E402
 from leg_decks import GARMENT_FRICTION, garment_friction_text, garment_text, nonuniform_follower_text  # noqa: E402
-from orchestrator.engine import find_engine  # noqa: E402
-from orchestrator.meshing import (  # noqa: E402
-    DEFAULT_MATERIALS,
-    DEFAULT_PRESSURE_MPA,
-    garment_band,
-    leg_slice_deck,
-    leg_slice_mesh,
-    leg_slice_mesh_for_dof,
-)
+from orchestrator.engine.locate import find_engine  # noqa: E402
+from orchestrator.meshing import (DEFAULT_MATERIALS, DEFAULT_PRESSURE_MPA, garment_band, leg_slice_deck,
+                                  leg_slice_mesh, leg_slice_mesh_for_dof)
 from orchestrator.meshing.garment import neo_hooke_D1  # noqa: E402
 
 NEARLY_INCOMPRESSIBLE_NU = 0.499
@@ -578,8 +572,8 @@ def grouped_sensitivities(args, root: Path) -> None:
     `*SENSITIVITY, NAME=` column per parameter) against the same member lines asked one column each, as before such
     blocks: wall time of the whole run (the path carries every column through friction) and
     max |du_combined - sum w du_line| / max |du|."""
-    from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel
-    from orchestrator.results import EngineResults, sensitivity_name
+    from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
+    from orchestrator.engine.results import EngineResults, sensitivity_name
 
     mesh = leg_slice_mesh(args.garment_elements, order=2)
     for effect in ("local", "heterogeneity"):
@@ -614,7 +608,7 @@ def grouped_sensitivities(args, root: Path) -> None:
 
 def second_paper(args, root: Path) -> None:
     """4c (module text): the second paper's model under the band with friction, as a diagnosis runs it."""
-    from orchestrator.forward import LegModel
+    from orchestrator.model.forward import LegModel
     from orchestrator.phantom.truths import SECOND_PAPER_KPA, SECOND_PAPER_TISSUES
 
     mesh = leg_slice_mesh(args.second_paper_elements, order=2)
@@ -629,7 +623,7 @@ def second_paper(args, root: Path) -> None:
 
 
 def _with_mesh(folder: Path, text: str, model) -> Path:
-    from orchestrator.forward import write_mesh_include
+    from orchestrator.model.forward import write_mesh_include
 
     write_mesh_include(model, folder)
     return write_leg_deck(folder, text)

@@ -4,7 +4,7 @@
                                                          [--increments 5,10,20,80] [--increments-mesh 2000]
 
 The phantom calf's own geometry (`study.truth_mesh`, CPE6) is meshed at each size, the band put on as
-`forward.LegModel(mesh, 0.16, garment="explicit", friction_mu=mu)` writes it (orchestrator/decks.py,
+`forward.LegModel(mesh, 0.16, garment="explicit", friction_mu=mu)` writes it (orchestrator/engine/decks.py,
 templates/leg_garment.inp.j2) at theta = (3.4, 14.1, 85.0, 52.0) kPa, and the tissue's displacements are compared
 at common points (a 1 mm grid inside every mesh, more than 0.3 mm from the skin) by finite-element interpolation.
 Printed:
@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from orchestrator.decks import leg_garment_deck
-from orchestrator.forward import LegModel, MeshInterpolator, _barycentric, write_mesh_include
-from orchestrator.materials import deck_material
-from orchestrator.objectives import leg_rows
+from orchestrator.engine.decks import leg_garment_deck
+from orchestrator.model.forward import LegModel, MeshInterpolator, _barycentric, write_mesh_include
+from orchestrator.core.materials import deck_material
+from orchestrator.fit.objectives import leg_rows
 from orchestrator.phantom import CalfPhantom
-from orchestrator.results import EngineResults
-from orchestrator.runner import run_engine
-from orchestrator.study import truth_mesh
+from orchestrator.engine.results import EngineResults
+from orchestrator.engine.runner import run_engine
+from orchestrator.run.setup import truth_mesh
 
 THETA_KPA = (3.4, 14.1, 85.0, 52.0)
 TENSION_N_PER_MM = 0.16

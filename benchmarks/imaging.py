@@ -4,7 +4,7 @@
 
 The last section holds `calfit measure` against the true field, per band of tissue (fat within 5 mm of the skin,
 other fat, muscle): the RMS error, the predicted sigma and chi^2/n of the errors whitened by the predicted
-covariance (`orchestrator.verification`), on engine-made cases of both phantom renderers (`CalfPhantom`, k-space
+covariance (`orchestrator.measure.verification`), on engine-made cases of both phantom renderers (`CalfPhantom`, k-space
 band-limited; `MRIPhantom`, partial volume; two truths, three noise draws each, pooled) and, with --foreign, on case
 folders made by another program, measured twice: whole windows (the default) and windows inside the leg that leave
 out its outline (`calfit measure --respect-outline`). DIR holds case folders (their points.csv is ignored) and
@@ -32,17 +32,17 @@ import numpy as np
 from scipy import ndimage
 
 from orchestrator.imaging.align import align_on_bones
-from orchestrator.imaging.dic import correlate, roi_centres
-from orchestrator.imaging.frame import RigidMotion, displacement_on_grid
+from orchestrator.measure.dic import correlate, roi_centres
+from orchestrator.core.frame import RigidMotion, displacement_on_grid
 from orchestrator.imaging.mismatch import ContourMismatch
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.imaging.warp import warp_image
 from orchestrator.phantom import (CalfPhantom, MRIPhantom, T1Contrast, bone_clamped_compression, make_loaded_image,
                                   render_unloaded)
 from orchestrator.phantom.truths import random_truth
-from orchestrator.pipeline import run_measure
-from orchestrator.study import load_run, make_phantom_case
-from orchestrator.verification import band_errors, errors_against, field_from_truth_file
+from orchestrator.run.stages import run_measure
+from orchestrator.run.setup import load_run, make_phantom_case
+from orchestrator.measure.verification import band_errors, errors_against, field_from_truth_file
 
 
 def best_of(function, repeats: int = 5) -> tuple[float, object]:

@@ -11,7 +11,7 @@ tests/test_identify_images.py; 4,000 CPE6 for the truth, images and case.toml on
 For each case, on one prepared run folder (the same segmentation, bone alignment and 1,000-CPE6 mesh for both):
 - windows: `calfit identify` as it is today (`pipeline.run_identify`: DIC windows, LM from the default start, the
   skin's uncertainty, LM again); its misfit over its own floor as it reports it;
-- I-DIC (`orchestrator.imaging.integrated`): the same LM (`identify.levenberg_marquardt`) on the grey-level residual,
+- I-DIC (`orchestrator.fit.integrated`): the same LM (`identify.levenberg_marquardt`) on the grey-level residual,
   started from the windows' result ("from windows"), and once more from a start away from the truth ("cold": the
   default start, Avril et al. Table 2, for the phantoms; for the foreign cases, whose truth IS Table 2, the default
   start moved by +-20 %, C10_fat x 1.2, C10_muscle x 0.8, Kv_fat x 0.8, Kv_muscle x 1.2, effects at zero);
@@ -36,16 +36,16 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.forward import LEG_PARAMETERS, MeshInterpolator
-from orchestrator.identify import residual_jacobian
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.imaging.integrated import IntegratedDIC, identify_integrated
+from orchestrator.model.forward import LEG_PARAMETERS, MeshInterpolator
+from orchestrator.fit.identify import residual_jacobian
+from orchestrator.core.frame import RigidMotion
+from orchestrator.fit.integrated import IntegratedDIC, identify_integrated
 from orchestrator.meshing.mesh import Mesh
 from orchestrator.phantom import CalfPhantom, MRIPhantom
 from orchestrator.phantom.truths import random_truth
-from orchestrator.pipeline import DEFAULT_MESH, run_identify
-from orchestrator.runner import Evaluator
-from orchestrator.study import make_phantom_case, prepare_run
+from orchestrator.run.stages import DEFAULT_MESH, run_identify
+from orchestrator.engine.runner import Evaluator
+from orchestrator.run.setup import make_phantom_case, prepare_run
 
 FOREIGN = Path("/work/shared/foreign-cases")
 FOREIGN_EFFECTS = {"blind-04": ["unloaded_curvature"], "blind-01": ["unloaded_curvature", "drainage"]}

@@ -26,7 +26,7 @@ FIELD_OF_VIEW_MM = 151.2
 CHILD = """
 import json, re, sys, time
 from pathlib import Path
-from orchestrator.pipeline import run_measure
+from orchestrator.run.stages import run_measure
 began = time.perf_counter()
 summary = run_measure(sys.argv[1], sys.argv[2])
 peak_kib = int(re.search(r"VmHWM:\s+(\d+) kB", Path("/proc/self/status").read_text()).group(1))

@@ -32,13 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.forward import LEG_PARAMETERS
-from orchestrator.geometry_uncertainty import skin_perimeter_mm
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.pipeline import run_identify, run_montecarlo
-from orchestrator.results import MMHG_PER_KPA
+from orchestrator.model.forward import LEG_PARAMETERS
+from orchestrator.fit.geometry_uncertainty import skin_perimeter_mm
+from orchestrator.core.frame import RigidMotion
+from orchestrator.run.stages import run_identify, run_montecarlo
+from orchestrator.engine.results import MMHG_PER_KPA
 from orchestrator.phantom.truths import random_truth
-from orchestrator.study import load_run, make_phantom_case
+from orchestrator.run.setup import load_run, make_phantom_case
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 FIRST_TENSION = 0.16   # N/mm

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.forward import TABLE2_CENTRAL_KPA
-from orchestrator.identify import nelder_mead, pressure_uncertainty
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.runner import Evaluator
-from orchestrator.study import make_phantom_case, prepare_run, read_json
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA
+from orchestrator.fit.identify import nelder_mead, pressure_uncertainty
+from orchestrator.core.frame import RigidMotion
+from orchestrator.run.stages import run_diagnose, run_identify
+from orchestrator.engine.runner import Evaluator
+from orchestrator.run.setup import make_phantom_case, prepare_run, read_json
 
 
 def main() -> None:

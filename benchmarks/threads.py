@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from orchestrator.engine import find_engine  # noqa: E402
+from orchestrator.engine.locate import find_engine  # noqa: E402
 from orchestrator.meshing import leg_slice_deck, leg_slice_mesh_for_dof  # noqa: E402
 
 LOADS = (0, 1, 2)          # programs spinning beside the engine

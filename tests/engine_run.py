@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.engine import find_engine
-from orchestrator.results import EngineResults, ResultsError
+from orchestrator.engine.locate import find_engine
+from orchestrator.engine.results import EngineResults, ResultsError
 
 ENGINE_TIMEOUT_S = 300.0
 

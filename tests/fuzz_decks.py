@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     engine = args.engine
     if engine is None:
         sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-        from orchestrator.engine import find_engine
+        from orchestrator.engine.locate import find_engine
         engine = str(find_engine())
     summary = fuzz(engine, args.inputs, args.seed, args.workers, args.keep, args.timeout)
     print(summary.line())

@@ -4,7 +4,7 @@ truth's deck directly (how a case is made whose residual no catalog effect expla
 
 from __future__ import annotations
 
-from orchestrator.regions import display_angle_deg
+from orchestrator.model.regions import display_angle_deg
 
 OEDEMA_SECTOR_DEG = (210.0, 300.0)     # display angles (counter-clockwise, 90 at the top of the image)
 
@@ -25,7 +25,7 @@ def oedema(deck_text: str, mesh, dv: float = 0.15) -> str:
 def identified_and_diagnosed(case, run, label: str, model_tables: str = "") -> dict:
     """`calfit identify` from the images (the case's [model] tables appended first) then `calfit diagnose`; the
     ranking, the refits and the verdict printed under `label`."""
-    from orchestrator.pipeline import run_diagnose, run_identify
+    from orchestrator.run.stages import run_diagnose, run_identify
 
     if model_tables:
         with open(case / "case.toml", "a") as toml:

@@ -16,8 +16,8 @@ import sys
 import time
 from pathlib import Path
 
-from orchestrator.engine import find_engine
-from orchestrator.runner import LOG_NAME
+from orchestrator.engine.locate import find_engine
+from orchestrator.engine.runner import LOG_NAME
 
 
 def calfit_command(*arguments) -> list[str]:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from engine_run import node_to_surface
-from orchestrator.decks import MESH_INCLUDE_NAME, leg_garment_deck
+from orchestrator.engine.decks import MESH_INCLUDE_NAME, leg_garment_deck
 from orchestrator.meshing import DEFAULT_MATERIALS, leg_slice_deck
 from orchestrator.meshing.mesh import FACE_CORNERS
 
@@ -43,7 +43,7 @@ def nonuniform_follower_text(mesh, increments: int) -> str:
 def garment_text(leg, band, friction_mu: float, **deck_options) -> str:
     """The leg `leg` under the explicit garment band `band` (orchestrator.meshing.garment_band) put on as
     templates/leg_garment.inp.j2 does, with Coulomb friction friction_mu and the deck's default penalty (other
-    options of orchestrator.decks.leg_garment_deck, e.g. release_static, in deck_options); the mesh inline, and the
+    options of orchestrator.engine.decks.leg_garment_deck, e.g. release_static, in deck_options); the mesh inline, and the
     displacements of every node, leg and band, printed at the end (*NODE PRINT) for CalculiX, whose NALL, the leg
     mesh's node set, leaves the band out."""
     text = leg_garment_deck(DEFAULT_MATERIALS, band, leg, friction_mu=friction_mu, **deck_options)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from dicom_files import new_dataset, put_grey_image
 
-from orchestrator.imaging.case import DisplacementPoints, read_case, write_case_folder
-from orchestrator.imaging.errors import CaseError
+from orchestrator.case.folder import DisplacementPoints, read_case, write_case_folder
+from orchestrator.core.errors import CaseError
 
 SHAPE = (48, 64)
 PIXEL = (0.5, 0.4)

@@ -108,8 +108,8 @@ def test_windows_see_the_fat_where_its_signal_lies_and_its_offset_between_the_se
     1.5 px along x in both: against what the windows see of the true field, the windows that see the fat (in this
     scene almost all: its muscle is nearly flat) are off by about (R^T - I) delta (0.021 mm along y) unless they see
     the chemical shift (`imaging.windows`); seen so, that error goes."""
-    from orchestrator.imaging.frame import RigidMotion
-    from orchestrator.measure import measure_dic
+    from orchestrator.core.frame import RigidMotion
+    from orchestrator.measure.measurements import measure_dic
 
     pixel = (PIXEL_MM, PIXEL_MM)
     shift = (1.5, 0.0)

@@ -14,8 +14,8 @@ import pytest
 
 from orchestrator.cli import main
 from orchestrator.meshing import leg_slice_deck
-from orchestrator.results import EngineResults
-from orchestrator.runner import ENGINE_LOG, DeckRejected, EngineFailed, run_engine
+from orchestrator.engine.results import EngineResults
+from orchestrator.engine.runner import ENGINE_LOG, DeckRejected, EngineFailed, run_engine
 
 
 @pytest.fixture(scope="module")

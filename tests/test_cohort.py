@@ -1,4 +1,4 @@
-"""`calfit study` on a cohort (orchestrator.cohort): every case a task on a Dask LocalCluster, one row each in
+"""`calfit study` on a cohort (orchestrator.study.cohort): every case a task on a Dask LocalCluster, one row each in
 study.csv, a failed case said and not in the way of the others, and a study started again repeats nothing.
 
 The cases are phantom legs at different truths with points.csv (the displacement points the fit reads), on a
@@ -15,11 +15,11 @@ import shutil
 import numpy as np
 import pytest
 
-from orchestrator.cohort import FAILED, ROW_FILE, CaseOptions, run_study
+from orchestrator.study.cohort import FAILED, ROW_FILE, CaseOptions, run_study
 from orchestrator.phantom.truths import random_truth
-from orchestrator.runfiles import RunFolderError
-from orchestrator.runner import LOG_NAME
-from orchestrator.study import make_phantom_case
+from orchestrator.core.files import RunFolderError
+from orchestrator.engine.runner import LOG_NAME
+from orchestrator.run.setup import make_phantom_case
 
 OPTIONS = CaseOptions(n_elements=400, draws=20, stages=("identify", "montecarlo"))
 

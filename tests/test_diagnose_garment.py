@@ -1,4 +1,4 @@
-"""The garment's effects in the diagnosis (issue 13, must-show 3; orchestrator/diagnose.py, "The garment's effects").
+"""The garment's effects in the diagnosis (issue 13, must-show 3; orchestrator/diagnose/diagnosis.py, "The garment's effects").
 
 - A Laplace-law model gets friction and bridging as candidates (the band's runs give their columns), with its effects
   on the tissues carried by the band; with an effect of Laplace's law itself fitted they are skipped with the reason. The band model fits friction's coefficient mu as
@@ -16,14 +16,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.decks import sensitivity_blocks
-from orchestrator.diagnose import candidate_effects, garment_model, refit_model
-from orchestrator.forward import LegModel
-from orchestrator.imaging.frame import RigidMotion
+from orchestrator.engine.decks import sensitivity_blocks
+from orchestrator.diagnose.diagnosis import candidate_effects, garment_model, refit_model
+from orchestrator.model.forward import LegModel
+from orchestrator.core.frame import RigidMotion
 from orchestrator.phantom import CalfPhantom
 from orchestrator.phantom.geometry import CalfGeometry, CalfShape
-from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.study import make_phantom_case, truth_mesh
+from orchestrator.run.stages import run_diagnose, run_identify
+from orchestrator.run.setup import make_phantom_case, truth_mesh
 
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # not the fit's start (Table 2: 4.5, 11.2, 106, 69.5)
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
@@ -183,11 +183,11 @@ def test_the_bands_runs_beside_the_probe_give_the_columns_they_give_one_after_th
     bridging and friction columns to the last digit, two runs each, and every line of the shared log whole."""
     import json
 
-    from orchestrator.diagnose import GarmentRuns, garment_columns
-    from orchestrator.imaging.case import DisplacementPoints
-    from orchestrator.measure import points_measurements
-    from orchestrator.objectives import DisplacementResidualObjective
-    from orchestrator.runner import Evaluator
+    from orchestrator.diagnose.diagnosis import GarmentRuns, garment_columns
+    from orchestrator.case.folder import DisplacementPoints
+    from orchestrator.measure.measurements import points_measurements
+    from orchestrator.fit.objectives import DisplacementResidualObjective
+    from orchestrator.engine.runner import Evaluator
 
     places = leg_mesh.nodes[:: max(1, len(leg_mesh.nodes) // 40)]
     measured = points_measurements(DisplacementPoints(places, np.zeros_like(places), np.full(len(places), 0.01)))

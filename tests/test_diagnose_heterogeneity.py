@@ -20,17 +20,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel, write_mesh_include
-from orchestrator.heterogeneity import SECTOR_DEG, SECTORS, element_geometry, mesh_groups, patch_candidates
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel, write_mesh_include
+from orchestrator.model.heterogeneity import SECTOR_DEG, SECTORS, element_geometry, mesh_groups, patch_candidates
 from orchestrator.imaging.compartments import FIRST_COMPARTMENT, find_compartments
-from orchestrator.imaging.frame import RigidMotion
+from orchestrator.core.frame import RigidMotion
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.phantom import CalfPhantom, T1Contrast
 from orchestrator.phantom.render import render_unloaded
-from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.results import EngineResults
-from orchestrator.runner import run_engine
-from orchestrator.study import load_run, make_phantom_case, truth_mesh
+from orchestrator.run.stages import run_diagnose, run_identify
+from orchestrator.engine.results import EngineResults
+from orchestrator.engine.runner import run_engine
+from orchestrator.run.setup import load_run, make_phantom_case, truth_mesh
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 
@@ -191,8 +191,8 @@ def test_the_stiffness_field_is_read_by_tissue_and_quarter_of_the_leg(compartmen
     three times stiffer at the top of the image (sin theta = 1, anterior in this frame) and a third at the bottom,
     the anterior quarter is the stiffest, the posterior the softest, lateral and medial alike between them, and the
     fat, whose modes are zero, keeps its constant."""
-    from orchestrator.heterogeneity import stiffness_field_kpa, stiffness_field_text
-    from orchestrator.regions import LegFrame
+    from orchestrator.model.heterogeneity import stiffness_field_kpa, stiffness_field_text
+    from orchestrator.model.regions import LegFrame
 
     model = LegModel(compartment_mesh, 0.16, effects=("heterogeneity",))
     frame = LegFrame(np.zeros((1, 1)), (1.0, 1.0), np.zeros(2), anterior_deg=90.0, lateral_sense=-1,

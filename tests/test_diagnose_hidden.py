@@ -29,11 +29,11 @@ import re
 
 import pytest
 
-from orchestrator.diagnose import ALPHA
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.pipeline import run_diagnose, run_identify
-from orchestrator.regions import SECTORS
-from orchestrator.study import make_phantom_case
+from orchestrator.diagnose.diagnosis import ALPHA
+from orchestrator.core.frame import RigidMotion
+from orchestrator.run.stages import run_diagnose, run_identify
+from orchestrator.model.regions import SECTORS
+from orchestrator.run.setup import make_phantom_case
 from hidden_physics import OEDEMA_SECTOR_DEG, oedema
 from renderers import RENDERERS, phantom
 

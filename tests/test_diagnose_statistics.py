@@ -1,4 +1,4 @@
-"""The statistics of the diagnosis (orchestrator.diagnose) on linear models where the answers are exact."""
+"""The statistics of the diagnosis (orchestrator.diagnose.diagnosis) on linear models where the answers are exact."""
 
 from types import SimpleNamespace
 
@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose import (EXPLAINED_FACTOR, FLOOR_AGREEMENT, Diagnosis, EffectScore, Refit, design_effect,
-                                  information_criteria, local_refit_unneeded, neighbour_correlation, refit_verdict,
-                                  residual_maps, score_effect, settled)
-from orchestrator.forward import ParameterSpace, annulus_mesh
-from orchestrator.identify import linearised_standard_errors
-from orchestrator.measure import Measurements
-from orchestrator.objectives import DisplacementResidualObjective
-from orchestrator.regions import LegFrame
-from orchestrator.runner import OK
+from orchestrator.diagnose.diagnosis import (EXPLAINED_FACTOR, FLOOR_AGREEMENT, Diagnosis, EffectScore, Refit,
+                                             design_effect, information_criteria, local_refit_unneeded,
+                                             neighbour_correlation, refit_verdict, residual_maps, score_effect, settled)
+from orchestrator.model.forward import ParameterSpace, annulus_mesh
+from orchestrator.fit.identify import linearised_standard_errors
+from orchestrator.measure.measurements import Measurements
+from orchestrator.fit.objectives import DisplacementResidualObjective
+from orchestrator.model.regions import LegFrame
+from orchestrator.engine.runner import OK
 
 
 def _linear_problem(seed=0, n=400, p=4):
@@ -217,7 +217,7 @@ def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_w
     identifiable, the additive parameter is identifiable because its interval excludes zero; a direction the data
     do not see gives an unbounded interval. The verdict's words name the identified model's constants that the
     refit leaves loose, not the effect's own parameters."""
-    from orchestrator.diagnose import linearized_intervals, unfixed_constants
+    from orchestrator.diagnose.diagnosis import linearized_intervals, unfixed_constants
 
     rng = np.random.default_rng(3)
     space = ParameterSpace(("C10_fat", "C10_muscle", "dv_muscle"), (0.1, 0.1, -1.0), (100.0, 100.0, 1.0),

@@ -1,4 +1,4 @@
-"""DICOM series as case images (orchestrator/imaging/dicom_series.py).
+"""DICOM series as case images (orchestrator/case/dicom_series.py).
 
 Series are written as a scanner exports them: one file per slice, file names shuffled against the positions,
 some with a .dcm suffix and some with none, a DICOMDIR and a text file beside them, InstanceNumbers running
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from dicom_files import new_dataset, put_grey_image
 
-from orchestrator.imaging.case import PIXEL_SIZE_RTOL, read_case
-from orchestrator.imaging.errors import CaseError
+from orchestrator.case.folder import PIXEL_SIZE_RTOL, read_case
+from orchestrator.core.errors import CaseError
 
 SHAPE = (48, 64)
 SPACING = (0.42, 0.40)         # row, column: non-square, so a swap is seen
@@ -201,7 +201,7 @@ def test_one_series_beside_a_single_file(tmp_path):
 
 
 def test_pixel_size_tolerance_is_the_case_tolerance():
-    from orchestrator.imaging import dicom_series
+    from orchestrator.case import dicom_series
 
     assert dicom_series.PIXEL_SIZE_RTOL == PIXEL_SIZE_RTOL == 0.01
 
@@ -317,7 +317,7 @@ def test_prepare_run_from_dicom_series_of_the_phantom(tmp_path):
     import imageio.v3 as iio
 
     from orchestrator.phantom import write_case
-    from orchestrator.study import prepare_run
+    from orchestrator.run.setup import prepare_run
 
     png_case, _ = write_case(tmp_path / "png", labels=None)
     folder = tmp_path / "series"

@@ -1,10 +1,10 @@
-"""Numbers with the digits their uncertainty allows (orchestrator.digits; GUM sec. 7.2.6)."""
+"""Numbers with the digits their uncertainty allows (orchestrator.core.digits; GUM sec. 7.2.6)."""
 
 import math
 
 import pytest
 
-from orchestrator.digits import decimals, rounded, with_uncertainty
+from orchestrator.core.digits import decimals, rounded, with_uncertainty
 
 
 @pytest.mark.parametrize("value, uncertainty, text", [
@@ -35,7 +35,7 @@ def test_the_shown_value_is_the_value_to_half_a_unit_of_its_last_place():
 
 
 def test_calfit_pressures_prints_the_whole_spread_with_its_digits():
-    from orchestrator.pipeline import pressure_summary
+    from orchestrator.run.stages import pressure_summary
 
     result = {"landmarks": ["deep_veins"], "mean_kPa": [2.4064037], "std_kPa": [0.0024375776], "cv_percent": [0.1013],
               "central_kPa": [2.4066642], "tension_N_per_mm": 0.16, "tension_rel": 0.1, "plus_kPa": [2.6495072],

@@ -1,4 +1,4 @@
-"""The fit's mesh against its measurements (orchestrator/discretization.py): the identification solves its fit again
+"""The fit's mesh against its measurements (orchestrator/run/discretization.py): the identification solves its fit again
 on a mesh of twice the elements and says whether the misfit depends on the mesh more than the noise lets one see.
 
 A phantom calf made on its own 8,000-element mesh, measured at points (0.02 mm noise), identified from a start that
@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import pytest
 
-from orchestrator.imaging.frame import RigidMotion
+from orchestrator.core.frame import RigidMotion
 from orchestrator.phantom.truths import random_truth
-from orchestrator import pipeline
-from orchestrator.pipeline import run_identify
-from orchestrator.runner import LOG_NAME, EvaluationLog
-from orchestrator.study import load_run, make_phantom_case
+from orchestrator.run import stages as pipeline
+from orchestrator.run.stages import run_identify
+from orchestrator.engine.runner import LOG_NAME, EvaluationLog
+from orchestrator.run.setup import load_run, make_phantom_case
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from orchestrator.cli import COMMANDS, build_parser
-from orchestrator.imaging.case import _TOML_SCHEMA
+from orchestrator.case.folder import _TOML_SCHEMA
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCUMENTS = [ROOT / "README.md", ROOT / "solver_cpp" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

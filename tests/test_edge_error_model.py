@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from orchestrator.imaging.dic import correlate, edge_strength, grid_centres
-from orchestrator.imaging.prefilter import Prefilter, fit_error_model
+from orchestrator.measure.dic import correlate, edge_strength, grid_centres
+from orchestrator.measure.prefilter import Prefilter, fit_error_model
 
 SIZE = 192
 NOISE = 0.01

@@ -7,7 +7,7 @@ import re
 import pytest
 
 from fuzz_decks import fuzz, mutate
-from orchestrator.engine import find_engine
+from orchestrator.engine.locate import find_engine
 
 INPUTS = 2000
 

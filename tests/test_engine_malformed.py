@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.engine import find_engine
+from orchestrator.engine.locate import find_engine
 
 BASE = """\
 *HEADING

@@ -51,9 +51,9 @@ import numpy as np
 import pytest
 
 from engine_run import run_engine
-from orchestrator.engine import find_engine
+from orchestrator.engine.locate import find_engine
 from orchestrator.meshing import leg_slice_deck, leg_slice_mesh
-from orchestrator.results import EngineResults, ResultsError
+from orchestrator.engine.results import EngineResults, ResultsError
 
 TENSION = 0.16  # N/mm
 PROFILE = {1: (0.1, 0.05)}  # k -> (a_k, b_k): B2 is not listed
@@ -498,7 +498,7 @@ def _band_sensitivities_against_differences(tmp_path: Path, step: float, frictio
     PROFILE) and SHAPE's (the skin's nodes moved), differenced by +-gap_step mm."""
     from dataclasses import replace
 
-    from orchestrator.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
+    from orchestrator.engine.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
     from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
 
     leg = leg_slice_mesh(400, order=2)
@@ -593,7 +593,7 @@ def test_sensitivities_through_friction_along_the_loading_path(tmp_path, frictio
     sticking), at mu = 0.02 (much of it slipping) and on the second paper's u/p elements, the tissues' constants and
     the band's C10, and the muscle's volume change and the axial stretch of the last step (where the deck leaves
     them out, and where it gives them), against central differences of the whole put-on (the release in twentieths,
-    as orchestrator.decks writes it with friction). Measured at mu = 0.3: relative errors 3e-9 to 7e-7; without the
+    as orchestrator.engine.decks writes it with friction). Measured at mu = 0.3: relative errors 3e-9 to 7e-7; without the
     history's part of (4), which the last tangent alone gives, 5e-2 to 0.68. The relative step of the differences
     is 3e-5: at 1e-5 the runs' Newton residual (1e-9 of the forces) over the step reached 5e-4, and at 1e-4 or 3e-4
     a step moved a skin node across a change of contact state (the band's C10 read 1-4 % off at mu = 0.02 and 5 % on
@@ -617,7 +617,7 @@ def test_a_named_block_is_one_parameter_the_weighted_sum_of_its_lines(tmp_path, 
     pressures."""
     from dataclasses import replace
 
-    from orchestrator.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
+    from orchestrator.engine.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
     from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
 
     leg = leg_slice_mesh(400, order=2)
@@ -646,7 +646,7 @@ def test_a_named_block_is_one_parameter_the_weighted_sum_of_its_lines(tmp_path, 
 @pytest.mark.parametrize("friction_mu", [0.0, 0.3], ids=["frictionless", "mu0.3"])
 def test_sensitivities_to_the_skin_offset_that_the_band_feels(tmp_path, friction_mu):
     """`GAP PROFILE` lines: du/d(a_k, b_k) of the skin's offset as the band's contact sees it (*GAP PROFILE, the
-    skin's shape error under the band: orchestrator.geometry_uncertainty), frictionless and carried through friction
+    skin's shape error under the band: orchestrator.fit.geometry_uncertainty), frictionless and carried through friction
     along the put-on (the offset acts at every increment, on the residual and on the contact history it leaves),
     where the deck leaves the profile at zero and where it gives a term, against central differences of the whole
     put-on with the offset moved by +-1e-4 mm."""

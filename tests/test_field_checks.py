@@ -11,11 +11,11 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from orchestrator.imaging.errors import ImagingError
+from orchestrator.core.errors import ImagingError
 from orchestrator.imaging.field_checks import MAX_GROWTH, MISSING_MARGIN_MM, check_compression, check_leg_in_view
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.phantom import CalfPhantom, write_case
-from orchestrator.study import prepare_run
+from orchestrator.run.setup import prepare_run
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The explicit garment band on the leg as a user reads it (`orchestrator.garment_state`, issue 29 item 4): its
+"""The explicit garment band on the leg as a user reads it (`orchestrator.model.garment_state`, issue 29 item 4): its
 contact pressure, shear, status and slip around the skin, its bridges and its hoop force, from the engine's own
 outputs (contact_pressure, contact_shear, contact_status, contact_slip).
 
@@ -20,12 +20,12 @@ import pytest
 from skimage.measure import points_in_poly
 
 from engine_run import run_engine
-from orchestrator.decks import GARMENT_STEPS, MESH_INCLUDE_NAME, leg_garment_deck
-from orchestrator.garment_state import OPEN, SLIPPING, STICKING, band_state
+from orchestrator.engine.decks import GARMENT_STEPS, MESH_INCLUDE_NAME, leg_garment_deck
+from orchestrator.model.garment_state import OPEN, SLIPPING, STICKING, band_state
 from orchestrator.imaging.segment import FAT
 from orchestrator.meshing import DEFAULT_MATERIALS, garment_band, leg_slice_mesh
-from orchestrator.regions import LegFrame
-from orchestrator.results import EngineResults
+from orchestrator.model.regions import LegFrame
+from orchestrator.engine.results import EngineResults
 from test_garment import dented_leg_mesh
 
 N_ELEMENTS = 1000
@@ -112,7 +112,7 @@ def test_a_band_knitted_unevenly_keeps_an_uneven_hoop_force_where_friction_holds
     times 1 + 0.05 cos phi. Held at mu = 0.3, the band keeps a hoop force lower where it is longer (measured: the
     force's cos phi part -0.025 N/mm of 0.149, -17 %); at mu = 0.02 it slips (half the skin) until the force is nearly
     even again (-0.002 N/mm). Either way within the capstan bound, max T / min T <= exp(mu 2 pi)."""
-    from orchestrator.forward import LegModel, write_mesh_include
+    from orchestrator.model.forward import LegModel, write_mesh_include
 
     theta = [3.1, 14.0, 90.0, 120.0]
     harmonic = {}

@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.forward import LEG_PARAMETERS
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.pipeline import run_identify, run_montecarlo
+from orchestrator.model.forward import LEG_PARAMETERS
+from orchestrator.core.frame import RigidMotion
+from orchestrator.run.stages import run_identify, run_montecarlo
 from orchestrator.phantom.truths import random_truth
-from orchestrator.runner import LOG_NAME
-from orchestrator.study import make_phantom_case
+from orchestrator.engine.runner import LOG_NAME
+from orchestrator.run.setup import make_phantom_case
 from intervals import assert_error_is_a_draw
 from renderers import phantom
 

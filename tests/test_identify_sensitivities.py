@@ -6,9 +6,9 @@ truth, in at most 15 engine runs (fitted on 600 CPE6, the phantom made on its ow
 import numpy as np
 import pytest
 
-from orchestrator.forward import TABLE2_CENTRAL_KPA
-from orchestrator.pipeline import run_identify
-from orchestrator.study import make_phantom_case
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA
+from orchestrator.run.stages import run_identify
+from orchestrator.run.setup import make_phantom_case
 
 START_KPA = (np.array(TABLE2_CENTRAL_KPA) * np.array([1.3, 0.8, 0.8, 1.25])).tolist()   # off the truth
 

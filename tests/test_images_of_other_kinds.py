@@ -28,8 +28,8 @@ import pytest
 from skimage import io, transform
 
 from hidden_physics import assert_found_or_nothing, identified_and_diagnosed
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.study import make_phantom_case
+from orchestrator.core.frame import RigidMotion
+from orchestrator.run.setup import make_phantom_case
 from renderers import phantom
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))

@@ -13,8 +13,8 @@ import pytest
 from scipy import ndimage
 
 from orchestrator.imaging.align import align_on_bones, kabsch_2d, resample_rigid
-from orchestrator.imaging.dic import correlate, grid_centres, roi_centres
-from orchestrator.imaging.frame import RigidMotion, displacement_on_grid
+from orchestrator.measure.dic import correlate, grid_centres, roi_centres
+from orchestrator.core.frame import RigidMotion, displacement_on_grid
 from orchestrator.imaging.mismatch import ContourMismatch, contour_pixels
 from orchestrator.imaging.segment import dice, segment_t1
 from orchestrator.imaging.warp import warp_image, warp_labels
@@ -95,7 +95,7 @@ def test_segmentation_dice_on_the_phantom(imaging_phantom, imaging_unloaded, ima
 
 
 def test_segmentation_without_bone_is_an_imaging_error():
-    from orchestrator.imaging.errors import ImagingError
+    from orchestrator.core.errors import ImagingError
 
     image = np.zeros((120, 120))
     image[20:100, 20:100] = 0.4

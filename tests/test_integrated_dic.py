@@ -1,4 +1,4 @@
-"""Integrated DIC (`orchestrator.imaging.integrated`): the parameters fitted to the grey levels directly.
+"""Integrated DIC (`orchestrator.fit.integrated`): the parameters fitted to the grey levels directly.
 
 A small engine-made case, made here rather than by `make_phantom_case` to stay fast: the phantom calf
 (`CalfPhantom`, band-limited, with its coil bias fixed in the scanner) at 0.54 mm pixels, its exact labels meshed
@@ -14,16 +14,17 @@ import copy
 import numpy as np
 import pytest
 
-from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
-from orchestrator.identify import levenberg_marquardt, residual_jacobian
-from orchestrator.imaging.frame import RigidMotion, pixel_centres_mm
-from orchestrator.imaging.integrated import IntegratedDIC
+from orchestrator.model.forward import (TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels,
+                                        write_mesh_include)
+from orchestrator.fit.identify import levenberg_marquardt, residual_jacobian
+from orchestrator.core.frame import RigidMotion, pixel_centres_mm
+from orchestrator.fit.integrated import IntegratedDIC
 from orchestrator.meshing import mesh_from_labels
-from orchestrator.objectives import leg_rows
+from orchestrator.fit.objectives import leg_rows
 from orchestrator.phantom import CalfPhantom, make_loaded_image, render_unloaded
-from orchestrator.regions import LegFrame
-from orchestrator.results import EngineResults
-from orchestrator.runner import Evaluator, run_engine
+from orchestrator.model.regions import LegFrame
+from orchestrator.engine.results import EngineResults
+from orchestrator.engine.runner import Evaluator, run_engine
 
 TRUTH = [3.0, 9.0, 150.0, 45.0]          # kPa: every parameter 20-50 % away from the start (Table 2)
 MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.6, 75.6))

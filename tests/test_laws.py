@@ -1,4 +1,4 @@
-"""Laws per tissue (issue 13, item 1; orchestrator/materials.py, docs/case-folder.md "The model"): case.toml's
+"""Laws per tissue (issue 13, item 1; orchestrator/core/materials.py, docs/case-folder.md "The model"): case.toml's
 [model.<tissue>] tables, the parameters they make, the deck materials they write, and the engine sensitivities
 mapped onto them (Kv of a D1 law through D1 = 1/Kv).
 
@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.forward import LEG_PARAMETERS, LegModel, write_mesh_include
-from orchestrator.materials import MaterialError, TissueLaw
+from orchestrator.model.forward import LEG_PARAMETERS, LegModel, write_mesh_include
+from orchestrator.core.materials import MaterialError, TissueLaw
 from orchestrator.phantom import CalfPhantom
-from orchestrator.results import EngineResults
-from orchestrator.runner import run_engine
-from orchestrator.study import truth_mesh
+from orchestrator.engine.results import EngineResults
+from orchestrator.engine.runner import run_engine
+from orchestrator.run.setup import truth_mesh
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +103,7 @@ def test_directions_the_data_do_not_fix_leave_their_parameters_undetermined():
     Jacobian's columns are C10 g and C01 g. The noise Monte-Carlo must leave that direction out (not send every
     draw to the box's corners) and call both undetermined, while a third, independent parameter stays fixed and
     gets the plain least-squares refit."""
-    from orchestrator.identify import _free_directions
+    from orchestrator.fit.identify import _free_directions
 
     rng = np.random.default_rng(3)
     g, h = rng.standard_normal(200), rng.standard_normal(200)
@@ -148,7 +148,7 @@ def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg
     """The skin's uncertainty asks the engine for du/da_k, du/db_k of the garment's profile on top of a model's
     own lines. A model fitting the tension profile (a1 to b2) without the engine's sensitivities lost A1 and B1 from
     its deck, and `calfit identify --effects tension_profile` stopped with KeyError 'PROFILE:GARMENT:A1'."""
-    from orchestrator.geometry_uncertainty import profile_lines, skin_pressure_sensitivities
+    from orchestrator.fit.geometry_uncertainty import profile_lines, skin_pressure_sensitivities
 
     model = LegModel(leg_mesh, 0.16, effects=("tension_profile",), engine_sensitivities=False)
     theta = [4.5, 11.2, 106.0, 69.5, 0.2, -0.1, 0.05, 0.02]
@@ -160,9 +160,9 @@ def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg
 
 def test_under_the_band_the_skins_modes_move_the_skin_itself(leg_mesh):
     """With the explicit band the skin's uncertainty asks the engine for the SHAPE sensitivities (the skin's nodes
-    moved, orchestrator.geometry_uncertainty), not a Laplace profile the band's deck has no place for, and only those
+    moved, orchestrator.fit.geometry_uncertainty), not a Laplace profile the band's deck has no place for, and only those
     lines: the model's own are not needed there."""
-    from orchestrator.geometry_uncertainty import shape_lines, skin_mode_lines, skin_pressure_sensitivities
+    from orchestrator.fit.geometry_uncertainty import shape_lines, skin_mode_lines, skin_pressure_sensitivities
 
     model = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3)
     theta = [3.4, 14.1, 85.0, 52.0]
@@ -184,7 +184,7 @@ class _SumOnlyEvaluator:
     def __init__(self, sum_only, fat_sum=2.4):
         from types import SimpleNamespace
 
-        from orchestrator.forward import ParameterSpace
+        from orchestrator.model.forward import ParameterSpace
         space = ParameterSpace(("C10_fat", "C10_muscle", "C01_fat"), (0.1, 0.1, 0.05), (30.0, 30.0, 30.0))
         self.model = SimpleNamespace(space=space, sum_only=sum_only)
         self.launched = self.replayed = 0
@@ -209,7 +209,7 @@ class _SumOnlyEvaluator:
 def test_levenberg_marquardt_does_not_wander_along_a_sum():
     """C10 and C01 of an incompressible fat act only through their sum: LM fits the sum and the muscle, and leaves
     the pair's split where it started (1:1 here) instead of following the differenced Jacobian's jitter along it."""
-    from orchestrator.identify import levenberg_marquardt
+    from orchestrator.fit.identify import levenberg_marquardt
 
     fit = levenberg_marquardt(_SumOnlyEvaluator([("C10_fat", "C01_fat")]), [2.25, 5.6, 2.25])
     c10, muscle, c01 = fit.theta
@@ -220,7 +220,7 @@ def test_levenberg_marquardt_does_not_wander_along_a_sum():
 def test_levenberg_marquardt_moves_the_other_of_a_pair_whose_one_is_on_its_bound():
     """The pair steps as one while both are inside the box; once C10_fat is on its lower bound (0.1) C01_fat
     alone takes the rest of the sum (0.18)."""
-    from orchestrator.identify import levenberg_marquardt
+    from orchestrator.fit.identify import levenberg_marquardt
 
     fit = levenberg_marquardt(_SumOnlyEvaluator([("C10_fat", "C01_fat")], fat_sum=0.18), [0.5, 5.6, 0.5])
     c10, muscle, c01 = fit.theta
@@ -229,7 +229,7 @@ def test_levenberg_marquardt_moves_the_other_of_a_pair_whose_one_is_on_its_bound
 
 
 def test_a_sum_only_pair_is_reported_by_its_sum():
-    from orchestrator.pipeline import intervals_summary
+    from orchestrator.run.stages import intervals_summary
 
     result = {"method": "noise", "names": ["C10_fat", "C10_muscle", "C01_fat"], "lower": [0.1, 0.88, 0.05],
               "upper": [30.0, 0.91, 30.0], "central": [1.2, 0.9, 1.2], "relative_half_width": [12.0, 0.016, 12.0],

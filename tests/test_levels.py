@@ -1,4 +1,4 @@
-"""Several garment levels of one slice fitted jointly (issue 13, item 2; `orchestrator.levels`).
+"""Several garment levels of one slice fitted jointly (issue 13, item 2; `orchestrator.fit.levels`).
 
 Fast: one evaluation of a `LevelsModel` solves every level (a job sub-folder each) and its
 `JointDisplacementObjective` gives each level's residuals stacked, as each level evaluated alone gives them, with
@@ -17,18 +17,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.decks import deck_key
-from orchestrator.forward import LEG_PARAMETERS, LegModel
-from orchestrator.identify import residual_jacobian
-from orchestrator.imaging.case import DisplacementPoints, GarmentLevel, read_case, write_case_folder
-from orchestrator.imaging.errors import CaseError
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.levels import AtTension, JointDisplacementObjective, LevelsModel
+from orchestrator.engine.decks import deck_key
+from orchestrator.model.forward import LEG_PARAMETERS, LegModel
+from orchestrator.fit.identify import residual_jacobian
+from orchestrator.case.folder import DisplacementPoints, GarmentLevel, read_case, write_case_folder
+from orchestrator.core.errors import CaseError
+from orchestrator.core.frame import RigidMotion
+from orchestrator.fit.levels import AtTension, JointDisplacementObjective, LevelsModel
 from orchestrator.meshing import leg_slice_mesh
-from orchestrator.objectives import DisplacementResidualObjective
+from orchestrator.fit.objectives import DisplacementResidualObjective
 from orchestrator.phantom.truths import random_truth
-from orchestrator.results import EngineResults
-from orchestrator.runner import BAD_DECK, OK, Evaluator
+from orchestrator.engine.results import EngineResults
+from orchestrator.engine.runner import BAD_DECK, OK, Evaluator
 
 from intervals import assert_error_is_a_draw
 
@@ -145,7 +145,7 @@ def test_the_explicit_bands_levels_are_one_band_of_a_fabric_as_stiff_as_each_ten
 def test_an_effect_added_to_several_levels_is_in_every_levels_deck(leg):
     """What the diagnosis of several socks does to a model (`diagnose.with_changes`): the effect goes into the one
     leg model that every level solves, each level keeping its tension."""
-    from orchestrator.diagnose import garment_model, with_changes
+    from orchestrator.diagnose.diagnosis import garment_model, with_changes
 
     model, _ = leg
     levels = LevelsModel(model, TENSIONS)
@@ -179,7 +179,7 @@ def _spd(rng, size: int, scale: float) -> np.ndarray:
 def _window_like(mesh, rng, count: int, covariance: np.ndarray):
     """Made-up DIC-like measurements at `count` element centroids: a dense covariance, the bones' residual rigid
     motion as a nuisance."""
-    from orchestrator.measure import Measurements
+    from orchestrator.measure.measurements import Measurements
 
     centroids = mesh.nodes[mesh.elements[:, :3]].mean(axis=1)
     points = centroids[rng.choice(len(centroids), count, replace=False)]
@@ -297,8 +297,8 @@ def test_an_evaluation_whitens_the_levels_and_their_sensitivities_together(leg, 
 def test_the_noise_of_i0_correlates_the_levels_windows():
     """Two levels measured with windows of the same I0: the covariance between their errors is I0's share,
     sigma_0^2 sum B_i B_j^T, which within one level is what its covariance holds at intensity variance sigma_0^2."""
-    from orchestrator.imaging.windows import WindowOperators
-    from orchestrator.measure import Measurements, reference_noise_covariance
+    from orchestrator.measure.windows import WindowOperators
+    from orchestrator.measure.measurements import Measurements, reference_noise_covariance
 
     rng = np.random.default_rng(4)
     image = ndimage_smooth(rng.normal(1000.0, 300.0, (64, 64)))
@@ -332,7 +332,7 @@ def ndimage_smooth(values: np.ndarray) -> np.ndarray:
 
 
 def test_a_level_stored_without_its_columns_is_refused_or_estimated_again(leg, tmp_path):
-    from orchestrator import geometry_uncertainty as geometry
+    from orchestrator.fit import geometry_uncertainty as geometry
 
     model, _ = leg
     rng = np.random.default_rng(2)
@@ -401,7 +401,7 @@ def test_a_wrong_level_is_one_sentence_naming_the_file(levels_case, old, new, fi
 
 
 def test_a_level_of_another_matrix_size_is_refused(levels_case):
-    from orchestrator.imaging._formats import write_png16
+    from orchestrator.case._formats import write_png16
 
     write_png16(levels_case / "loaded-40mmHg.png", _grey(2)[:, :40])
     with pytest.raises(CaseError, match="is 48x40 pixels but unloaded.png is 48x64") as error:
@@ -427,8 +427,8 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
     outside their two-level intervals while the levels were whitened each on its own (C10 of fat and Kv of muscle
     of seed 2, Kv of fat of seed 3); whitened together (the skin's and I0's errors common to the levels), each
     error is one of the Monte-Carlo's draws (module comment above)."""
-    from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
-    from orchestrator.study import make_phantom_case
+    from orchestrator.run.stages import run_identify, run_montecarlo, run_pressures
+    from orchestrator.run.setup import make_phantom_case
 
     truth = random_truth(seed)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
@@ -461,8 +461,8 @@ def test_two_socks_on_the_explicit_band_are_identified_jointly(tmp_path):
     (each level's band of the same size, its fabric stiffer in proportion), on its own 2,000-element mesh, points with
     0.02 mm noise and scanner motion, fitted jointly with the band from case.toml; each sock's band in
     pressures.json."""
-    from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
-    from orchestrator.study import make_phantom_case
+    from orchestrator.run.stages import run_identify, run_montecarlo, run_pressures
+    from orchestrator.run.setup import make_phantom_case
 
     truth = random_truth(4)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
@@ -497,9 +497,9 @@ def test_two_socks_are_diagnosed_together_from_the_images(tmp_path):
     figures and the report say, level by level, where the identified model failed."""
     import json
 
-    from orchestrator.pipeline import run_diagnose, run_identify
-    from orchestrator.report import write_report
-    from orchestrator.study import make_phantom_case
+    from orchestrator.run.stages import run_diagnose, run_identify
+    from orchestrator.report.run_report import write_report
+    from orchestrator.run.setup import make_phantom_case
 
     truth = random_truth(4)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],

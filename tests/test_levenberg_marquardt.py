@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt's stagnation test (orchestrator/identify.py, STALL_CHI2): a model that lacks an effect leaves
+"""Levenberg-Marquardt's stagnation test (orchestrator/fit/identify.py, STALL_CHI2): a model that lacks an effect leaves
 a residual it cannot explain, and LM then crawls, every step accepted for a tiny fall (the second paper's leg with a
 hidden drainage, fitted without it from its images: 54 runs for a 0.7 % fall). It stops once chi^2 falls by less
 than 0.01 s^2 over 3 steps, s^2 = chi^2 / (n - p).
@@ -15,8 +15,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from orchestrator.forward import ParameterSpace
-from orchestrator.identify import levenberg_marquardt
+from orchestrator.model.forward import ParameterSpace
+from orchestrator.fit.identify import levenberg_marquardt
 
 N_RESIDUALS = 300
 

@@ -29,9 +29,9 @@ import pytest
 from killing import calfit_command, counting_wrapper, kill_after, log_lines
 
 from orchestrator.cli import main
-from orchestrator.forward import LEG_PARAMETERS
-from orchestrator.pipeline import run_identify, run_montecarlo, run_pressures
-from orchestrator.study import PARAMETERS_FILE, make_phantom_case, read_json
+from orchestrator.model.forward import LEG_PARAMETERS
+from orchestrator.run.stages import run_identify, run_montecarlo, run_pressures
+from orchestrator.run.setup import PARAMETERS_FILE, make_phantom_case, read_json
 
 
 @pytest.fixture(scope="module")

@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator import decks
-from orchestrator.engine import find_engine
-from orchestrator.forward import TABLE2_CENTRAL_KPA, LegModel
+from orchestrator.engine import decks
+from orchestrator.engine.locate import find_engine
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
 from orchestrator.meshing import leg_slice_mesh
-from orchestrator.objectives import DisplacementResidualObjective
-from orchestrator.runner import (BAD_DECK, HANG_FACTOR, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT, TIMEOUT_COLUMNS_PER_RUN,
-                                 EvaluationLog, Evaluator, run_timeout)
+from orchestrator.fit.objectives import DisplacementResidualObjective
+from orchestrator.engine.runner import (BAD_DECK, HANG_FACTOR, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT,
+                                        TIMEOUT_COLUMNS_PER_RUN, EvaluationLog, Evaluator, run_timeout)
 
 SLEEP_MARKER = "** calfit-test: sleep"
 

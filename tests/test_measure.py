@@ -16,13 +16,13 @@ import pytest
 from scipy import linalg, ndimage
 
 from orchestrator.cli import main
-from orchestrator.imaging.dic import correlate, estimate_noise_sigma, grid_centres
-from orchestrator.imaging.frame import RigidMotion
-from orchestrator.imaging.windows import WindowOperators
-from orchestrator.measure import FILES, measure_dic, normalised_median_outliers, window_pixel_masks
+from orchestrator.measure.dic import correlate, estimate_noise_sigma, grid_centres
+from orchestrator.core.frame import RigidMotion
+from orchestrator.measure.windows import WindowOperators
+from orchestrator.measure.measurements import FILES, measure_dic, normalised_median_outliers, window_pixel_masks
 from orchestrator.phantom import CalfPhantom, MRIPhantom, bone_clamped_compression, make_loaded_image, render_unloaded
-from orchestrator.regions import LegFrame
-from orchestrator.verification import band_errors, errors_against
+from orchestrator.model.regions import LegFrame
+from orchestrator.measure.verification import band_errors, errors_against
 from orchestrator.phantom.case import write_case
 
 SHIFT_MM = (0.047, -0.033)       # a sub-pixel translation of the tissue: 0.13 and 0.09 pixel
@@ -143,7 +143,7 @@ def test_the_observation_operator_sees_a_bent_field_as_the_windows_do():
     centres = grid_centres(unloaded.shape, 64, 32, mask=np.isin(phantom.labels(), (1, 2)))
     result = correlate(unloaded, loaded, centres, phantom.pixel_size_mm, window_px=64)
     kept = np.isfinite(result.uncertainty_px) & (result.uncertainty_px < 0.25)
-    from orchestrator.imaging.frame import displacement_on_grid
+    from orchestrator.core.frame import displacement_on_grid
 
     field = displacement_on_grid(field_fn, unloaded.shape, phantom.pixel_size_mm)
     seen = WindowOperators(unloaded, centres[kept], 64, phantom.pixel_size_mm, result.noise_sigma[0]).observe(field)
@@ -204,8 +204,8 @@ def test_a_run_measured_leaving_out_the_outline_is_read_back_with_the_same_windo
     (`study.RunSetup.measurements`: operators and covariance made again from I0 and the labels) use the pixels the
     correlation used: the variances rebuilt agree with those the correlation reported (measured: median 0.02 % over
     the 63 windows that leave out the outline); rebuilt over whole squares, they would be off by a median 18 %."""
-    from orchestrator.measure import dic_measurements, read_window_table
-    from orchestrator.study import load_run
+    from orchestrator.measure.measurements import dic_measurements, read_window_table
+    from orchestrator.run.setup import load_run
 
     case, _, run = measured_case
     outline_run = run.parent / "run-outline"

@@ -22,19 +22,9 @@ import pytest
 from scipy.spatial import cKDTree
 from skimage.measure import find_contours
 
-from orchestrator.meshing import (
-    DEFAULT_PRESSURE_MPA,
-    Mesh,
-    corner_angles_deg,
-    leg_slice_deck,
-    leg_slice_geometry,
-    leg_slice_mesh,
-    leg_slice_mesh_for_dof,
-    mesh_from_labels,
-    read_include,
-    region_image,
-    tissue_name,
-)
+from orchestrator.meshing import (DEFAULT_PRESSURE_MPA, Mesh, corner_angles_deg, leg_slice_deck, leg_slice_geometry,
+                                  leg_slice_mesh, leg_slice_mesh_for_dof, mesh_from_labels, read_include, region_image,
+                                  tissue_name)
 from orchestrator.meshing.labels import interface_curves
 from orchestrator.meshing.mesh import FACE_CORNERS, FACE_MIDSIDE
 

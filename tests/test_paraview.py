@@ -16,9 +16,9 @@ import pytest
 from conftest import copy_run
 
 from orchestrator.cli import main
-from orchestrator.decks import KPA_PER_MPA
-from orchestrator.results import MMHG_PER_KPA
-from orchestrator.study import load_run
+from orchestrator.engine.decks import KPA_PER_MPA
+from orchestrator.engine.results import MMHG_PER_KPA
+from orchestrator.run.setup import load_run
 
 
 

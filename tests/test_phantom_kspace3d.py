@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from orchestrator.imaging.case import read_case
+from orchestrator.case.folder import read_case
 from orchestrator.phantom.kspace3d import (HiddenEffects3D, Layering, Leg3D, LegAlongHeight, LegMotion, Scanner,
                                            build_phantom, leg_mesh_3d, make_kspace_case, plane_strain_difference,
                                            solve_leg3d, solve_truth)
@@ -383,9 +383,9 @@ def test_a_volume_case_is_aligned_by_calfit_with_the_true_slide(tmp_path):
     true motion put them within 0.5 mm along the leg (the weakly determined slide: 0.32 mm at this code) and 0.25 mm
     across it."""
     from orchestrator.imaging.align3d import align_volumes_on_bones
-    from orchestrator.imaging.volume import RigidMotion3D, read_volume
+    from orchestrator.case.volume import RigidMotion3D, read_volume
     from orchestrator.phantom.kspace3d import write_kspace_volume_case
-    from orchestrator.volume_study import read_volume_case
+    from orchestrator.study.volume_cases import read_volume_case
 
     motion = LegMotion(turn_deg=2.0, tilt_deg=0.8, tilt_axis_deg=30.0, shift_mm=(1.2, -0.8), slide_mm=3.0)
     heights = 70.0 + 3.0 * (np.arange(12) - 5.5)

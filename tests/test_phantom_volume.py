@@ -12,10 +12,10 @@ import pytest
 from scipy import ndimage
 from skimage import io
 
-from orchestrator.forward import TABLE2_CENTRAL_KPA
-from orchestrator.imaging.frame import pixel_centres_mm
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA
+from orchestrator.core.frame import pixel_centres_mm
 from orchestrator.imaging.segment import segment_t1
-from orchestrator.imaging.volume import RigidMotion3D, Volume, volume_affine
+from orchestrator.case.volume import RigidMotion3D, Volume, volume_affine
 from orchestrator.phantom import LANDMARK_NAMES, as_displacement_fn
 from orchestrator.phantom.appearance import bias_field
 from orchestrator.phantom.volume import (DEFAULT_HEIGHTS_MM, DEFAULT_MOTION, DEFAULT_TENSION, DEFAULT_TRUTH,

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from conftest import copy_run
 
-from orchestrator import figures
-from orchestrator.pipeline import run_diagnose, run_montecarlo, run_pressures
-from orchestrator.digits import decimals
-from orchestrator.report import format_cell, write_report
-from orchestrator.results import MMHG_PER_KPA
-from orchestrator.study import PARAMETERS_FILE, read_json
+from orchestrator.report import figures
+from orchestrator.run.stages import run_diagnose, run_montecarlo, run_pressures
+from orchestrator.core.digits import decimals
+from orchestrator.report.run_report import format_cell, write_report
+from orchestrator.engine.results import MMHG_PER_KPA
+from orchestrator.run.setup import PARAMETERS_FILE, read_json
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

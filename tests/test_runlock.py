@@ -1,4 +1,4 @@
-"""One command at a time in a run folder (`orchestrator.runlock`): a second process is told who holds the folder,
+"""One command at a time in a run folder (`orchestrator.core.run_lock`): a second process is told who holds the folder,
 the same process may nest commands, and the lock goes with the process however it ends."""
 
 import subprocess
@@ -7,11 +7,11 @@ import time
 
 import pytest
 
-from orchestrator.runlock import LOCK_NAME, RunFolderBusy, holds_run_folder, run_folder_lock
+from orchestrator.core.run_lock import LOCK_NAME, RunFolderBusy, holds_run_folder, run_folder_lock
 
 HOLDER = """
 import sys, time
-from orchestrator.runlock import run_folder_lock
+from orchestrator.core.run_lock import run_folder_lock
 with run_folder_lock(sys.argv[1]):
     print("held", flush=True)
     time.sleep(float(sys.argv[2]))

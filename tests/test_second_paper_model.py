@@ -28,10 +28,10 @@ import numpy as np
 import pytest
 from intervals import assert_each_error_within_its_spread
 
-from orchestrator.imaging.frame import RigidMotion
+from orchestrator.core.frame import RigidMotion
 from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES
-from orchestrator.pipeline import run_identify, run_montecarlo
-from orchestrator.study import make_phantom_case
+from orchestrator.run.stages import run_identify, run_montecarlo
+from orchestrator.run.setup import make_phantom_case
 
 
 @pytest.mark.slow

@@ -21,9 +21,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from orchestrator.imaging.frame import pixel_centres_mm
-from orchestrator.imaging.segment import (BONE, FAT, MUSCLE, SegmentationWarning, dice, segment_t1,
-                                          segmentation_checks)
+from orchestrator.core.frame import pixel_centres_mm
+from orchestrator.imaging.segment import BONE, FAT, MUSCLE, SegmentationWarning, dice, segment_t1, segmentation_checks
 from orchestrator.meshing import mesh_from_labels
 from orchestrator.phantom import CalfGeometry, CalfPhantom, CalfShape, MRIPhantom, T1Contrast, render_unloaded
 
@@ -232,9 +231,9 @@ def test_a_warning_goes_through_json_unchanged(truth):
 def test_a_run_keeps_the_users_labels_and_says_what_is_unsure_in_them(tmp_path, monkeypatch):
     """labels.png is meshed as given, fat island and all; setup.json holds the warning, the set-up lines print it,
     and the segmentation figure draws it."""
-    from orchestrator.figures import segmentation_figure
+    from orchestrator.report.figures import segmentation_figure
     from orchestrator.phantom import write_case
-    from orchestrator.study import load_run, prepare_run
+    from orchestrator.run.setup import load_run, prepare_run
 
     phantom = _phantom("calfit", 0.6)
     case, _ = write_case(tmp_path / "case", phantom, labels="truth")

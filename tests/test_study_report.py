@@ -1,4 +1,4 @@
-"""The study report (orchestrator/study_report.py) from study rows: the pressure at the standard's named heights,
+"""The study report (orchestrator/report/study_report.py) from study rows: the pressure at the standard's named heights,
 the profiles, the distributions and the failing cases."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from orchestrator.results import MMHG_PER_KPA
-from orchestrator.study_report import at_height, parameter_names, pressure_names, write_study_report
+from orchestrator.engine.results import MMHG_PER_KPA
+from orchestrator.report.study_report import at_height, parameter_names, pressure_names, write_study_report
 
 HEIGHTS = [204.0, 212.0, 220.0, 228.0]
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.cohort import CaseOptions, run_study
+from orchestrator.study.cohort import CaseOptions, run_study
 from orchestrator.phantom.volume import FINE_HEIGHTS_MM, FINE_STUDIED_MM, LegProfile, PhantomLeg, write_volume_case
 
 pytestmark = pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Volumes of a volume study (orchestrator/imaging/volume.py: read_volume) and their rigid alignment on the bones
+"""Volumes of a volume study (orchestrator/case/volume.py: read_volume) and their rigid alignment on the bones
 (orchestrator/imaging/align3d.py).
 
 The alignment is checked on a phantom leg drawn analytically in patient mm: an elliptic outline with a layer of
@@ -20,9 +20,9 @@ from scipy import ndimage
 from scipy.special import erf
 
 from orchestrator.imaging.align3d import align_volumes_on_bones, resample_on_slice
-from orchestrator.imaging.errors import CaseError, ImagingError
+from orchestrator.core.errors import CaseError, ImagingError
 from orchestrator.imaging.segment import BONE, segment_t1
-from orchestrator.imaging.volume import RigidMotion3D, Volume, read_volume, volume_affine, write_nifti_volume
+from orchestrator.case.volume import RigidMotion3D, Volume, read_volume, volume_affine, write_nifti_volume
 
 # ----------------------------------------------------------------- the phantom leg
 

@@ -1,4 +1,4 @@
-"""A volume case's case.toml (orchestrator/volume_study.py): heights, the tension along the leg, landmark lines,
+"""A volume case's case.toml (orchestrator/study/volume_cases.py): heights, the tension along the leg, landmark lines,
 the [model] tables passed to every slice, and the errors that name the fix."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import tomllib
 import numpy as np
 import pytest
 
-from orchestrator.imaging.case import read_case
-from orchestrator.imaging.errors import CaseError
-from orchestrator.volume_study import _chosen_slices, is_volume_case, read_volume_case
+from orchestrator.case.folder import read_case
+from orchestrator.core.errors import CaseError
+from orchestrator.study.volume_cases import _chosen_slices, is_volume_case, read_volume_case
 
 TOML = """\
 [case]
@@ -119,9 +119,9 @@ def test_a_volume_is_cut_into_slice_cases_that_see_the_same_tissue(tmp_path):
     from test_volume import TRUTH, _render
 
     from orchestrator.imaging.segment import BONE, segment_t1
-    from orchestrator.imaging.volume import RigidMotion3D, write_nifti_volume
-    from orchestrator.runfiles import RunFolderError
-    from orchestrator.volume_study import slice_volume_case
+    from orchestrator.case.volume import RigidMotion3D, write_nifti_volume
+    from orchestrator.core.files import RunFolderError
+    from orchestrator.study.volume_cases import slice_volume_case
 
     unloaded, loaded = _render(seed=0), _render(TRUTH, seed=1)
     heights = unloaded.slice_positions_mm[[4, 6]]
@@ -167,8 +167,8 @@ def test_the_skin_shift_between_slices_is_measured_in_pixels():
     radius scaled along the leg): the shift read from the segmented slices is that, within a third of a pixel."""
     from test_volume import _leg
 
-    from orchestrator.imaging.volume import Volume, volume_affine
-    from orchestrator.volume_study import skin_shift_px
+    from orchestrator.case.volume import Volume, volume_affine
+    from orchestrator.study.volume_cases import skin_shift_px
 
     pixel, spacing = 0.8, 4.0
     affine = volume_affine((pixel, pixel), spacing)

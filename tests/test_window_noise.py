@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from orchestrator.imaging.dic import correlate
+from orchestrator.measure.dic import correlate
 
 SIZE = 192
 SIGMA = 0.02
@@ -67,7 +67,7 @@ def test_a_window_under_the_calibrated_noise_is_told_apart_from_its_textured_nei
     """`windows.textured` says which windows' texture rises above a noise level: the same weak-textured window
     passes at half the images' noise and fails at four times it, while a well-textured one passes both;
     `measure.measure_dic` rejects and counts the first kind instead of failing the whole measurement with it."""
-    from orchestrator.imaging.windows import WindowOperators, textured
+    from orchestrator.measure.windows import WindowOperators, textured
 
     rng = np.random.default_rng(3)
     image = np.full((SIZE, SIZE), 0.6)

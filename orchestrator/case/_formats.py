@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CaseError
+from ..core.errors import CaseError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".dcm", ".nii", ".nii.gz")
 _GREY_FIX = "save it as a single-channel (greyscale) 8 or 16-bit image"

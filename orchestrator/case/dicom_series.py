@@ -57,7 +57,7 @@ from pathlib import Path
 import numpy as np
 
 from ._formats import SliceFile, read_dicom_file, read_slice
-from .errors import CaseError
+from ..core.errors import CaseError
 
 PIXEL_SIZE_RTOL = 0.01                 # pixel spacings of the two images (and case.toml) may differ by 1 %
 MAX_NORMAL_ANGLE_DEG = 1.0             # between the normals of the two series

@@ -31,8 +31,8 @@ import numpy as np
 
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
 from .dicom_series import IMAGES_KEYS, PIXEL_SIZE_RTOL, read_image_pair
-from .errors import CaseError
-from ..materials import LAWS, MaterialError, TissueLaw, tissue_set
+from ..core.errors import CaseError
+from ..core.materials import LAWS, MaterialError, TissueLaw, tissue_set
 
 FAT, MUSCLE, BONE = 1, 2, 3
 FIRST_COMPARTMENT = 4

@@ -19,7 +19,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from .case import Case
+from .folder import Case
 
 FINEST_WORKING_PIXEL_MM = 0.18
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .errors import CaseError
+from ..core.errors import CaseError
 
 
 @dataclass(frozen=True)

@@ -34,15 +34,15 @@ from pathlib import Path
 
 
 from ..meshing import leg_slice_deck
-from ..imaging.frame import RigidMotion
-from ..measure import read_window_table
-from ..pipeline import (fit_summary, intervals_summary, pressure_summary, run_diagnose, run_identify, run_measure,
-                        run_montecarlo, run_pressures)
-from ..report import write_report
-from ..results import EngineResults
-from ..runner import run_engine
-from ..runfiles import read_json
-from ..study import PARAMETERS_FILE, make_phantom_case
+from ..core.frame import RigidMotion
+from ..measure.measurements import read_window_table
+from ..run.stages import (fit_summary, intervals_summary, pressure_summary, run_diagnose, run_identify, run_measure,
+                          run_montecarlo, run_pressures)
+from ..report.run_report import write_report
+from ..engine.results import EngineResults
+from ..engine.runner import run_engine
+from ..core.files import read_json
+from ..run.setup import PARAMETERS_FILE, make_phantom_case
 from ._common import add_output_arguments, honours_quiet, notice, show_progress
 from ._measure import summary_lines
 from ._solve import describe
@@ -118,7 +118,7 @@ def run_full(args: argparse.Namespace) -> int:
 
 
 def run_volume(args: argparse.Namespace) -> int:
-    from ..cohort import CaseOptions, run_study
+    from ..study.cohort import CaseOptions, run_study
     from ..phantom.volume import FINE_HEIGHTS_MM, FINE_STUDIED_MM, write_volume_case
 
     began = time.perf_counter()

@@ -27,10 +27,10 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..imaging.errors import CaseError, ImagingError
-from ..imaging.prefilter import PREFILTER_SIGMA_PX
-from ..measure import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
-from ..pipeline import run_measure
+from ..core.errors import CaseError, ImagingError
+from ..measure.prefilter import PREFILTER_SIGMA_PX
+from ..measure.measurements import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
+from ..run.stages import run_measure
 from ._common import add_output_arguments, emit, fail, honours_quiet
 
 HELP = "measure the tissue displacements between the two images (DIC), relative to the bones"

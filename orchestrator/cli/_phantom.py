@@ -16,8 +16,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
-from ..study import make_phantom_case
+from ..model.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
+from ..run.setup import make_phantom_case
 from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write a phantom case made by the engine (truth kept apart)"

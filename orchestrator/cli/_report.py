@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..report import write_report
-from ..runfiles import RunFolderError, read_json
-from ..study import PARAMETERS_FILE
+from ..report.run_report import write_report
+from ..core.files import RunFolderError, read_json
+from ..run.setup import PARAMETERS_FILE
 from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write the run's HTML report with its figures and tables"

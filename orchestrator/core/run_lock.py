@@ -21,7 +21,7 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .runfiles import RunFolderError
+from .files import RunFolderError
 
 LOCK_NAME = ".calfit.lock"
 _held: dict[str, list] = {}   # folder -> [open lock file, depth]: a lock is one per process by nature

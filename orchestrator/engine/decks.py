@@ -41,7 +41,8 @@ def template_dir() -> Path:
     if override:
         candidates = [Path(override)]
     else:
-        candidates = [Path(__file__).resolve().parent.parent / "templates", Path(__file__).resolve().parent / "templates"]
+        package = Path(__file__).resolve().parents[1]   # orchestrator/
+        candidates = [package.parent / "templates", package / "templates"]
     for folder in candidates:
         if folder.is_dir():
             return folder
@@ -136,7 +137,7 @@ def leg_laplace_deck(materials: Mapping[str, tuple[str, Sequence[float]]], tensi
     materials: element set -> (*HYPERELASTIC option, constants in MPa), e.g. {"FAT": ("AVRIL", (C10, Kv))}
     (`materials.deck_material`); a third AVRIL constant is C20 (>= 0, the `stiffening` effect).
     tension_profile: (angle in degrees, factor) pairs of a tabulated tension; None = constant T.
-    effects: the step keywords of the effect catalog (`orchestrator.effects`).
+    effects: the step keywords of the effect catalog (`orchestrator.model.effects`).
     """
     _positive("the garment tension", [tension_N_per_mm])
     if tension_profile and effects.fourier_profile:
@@ -229,7 +230,7 @@ def leg_garment_deck(materials: Mapping[str, tuple[str, Sequence[float]]], band,
     FRICTION_RELEASE_STATIC with friction). GARMENT_STEPS names the steps of the inflated and the
     released states. materials: tissue element set -> (law, constants in MPa), as leg_laplace_deck.
     effects: the effect catalog's keywords on the tissues and bones (volume changes, axial stretch, rigid motions)
-    act in step 4, once the band is on (`orchestrator.effects`), and its *SENSITIVITY lines; a tension profile or
+    act in step 4, once the band is on (`orchestrator.model.effects`), and its *SENSITIVITY lines; a tension profile or
     the unloaded curvature belong to Laplace's law and are refused. gap_profile: (k, a_k, b_k) of the skin's offset
     as the band feels it (`*GAP PROFILE`, mm; () writes the keyword at zero, for its `GAP PROFILE` sensitivities).
     The mesh include (mesh.inp) is `band.include_text(leg)`."""

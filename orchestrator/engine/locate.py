@@ -30,7 +30,7 @@ def _candidates() -> list[Path]:
     # An editable install keeps the package in the source tree while scikit-build-core
     # installs the executable into site-packages/orchestrator/bin.
     found.append(Path(sysconfig.get_paths()["platlib"]) / "orchestrator" / "bin" / ENGINE_NAME)
-    repo = Path(__file__).resolve().parent.parent
+    repo = Path(__file__).resolve().parents[2]   # orchestrator/engine/locate.py -> the checkout
     found.extend(sorted(repo.glob(f"build/*/solver_cpp/{ENGINE_NAME}")))
     return found
 

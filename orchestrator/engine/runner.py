@@ -29,7 +29,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from .decks import DeckError, deck_key, sensitivity_blocks
-from .engine import find_engine
+from .locate import find_engine
 from .results import EngineResults
 
 DEFAULT_TIMEOUT_S = 600.0
@@ -79,7 +79,7 @@ def solve_once(model, deck_text: str, failure: str) -> np.ndarray:
     """One engine run of a model's deck text in a scratch folder, the model's mesh include written beside it: the
     displacement of every node of the deck. RuntimeError(failure) when the engine does not converge (a phantom's
     truth or a one-off solve, not an evaluation of a fit: those go through `Evaluator` and its log)."""
-    from .forward import write_mesh_include
+    from ..model.forward import write_mesh_include
 
     with tempfile.TemporaryDirectory(prefix="calfit-solve-") as scratch:
         write_mesh_include(model, Path(scratch))
@@ -150,7 +150,7 @@ def run_engine(
 # --- evaluations: cache, run log, parallel execution ---------------------------------------------
 #
 # An evaluation is one deck run through the engine and scored by an objective
-# (orchestrator.objectives). Its key is the SHA-256 of the deck, the mesh it includes and the
+# (orchestrator.fit.objectives). Its key is the SHA-256 of the deck, the mesh it includes and the
 # objective's fingerprint (decks.deck_key). Every finished evaluation, failed or not, is
 # appended as one JSON line to RUN_DIR/evaluations.jsonl (parameters, status, cost, outputs,
 # time) the moment it finishes; an `Evaluator` opened on the same run folder reads that log
@@ -571,7 +571,7 @@ class Evaluator:
     model: has `deck(theta, **options) -> str`, `mesh_text`, `mesh_sha`; objective: has
     `outputs(nodal_u, outdir) -> dict` (with "cost") and `fingerprint`. A model of several garment levels has
     `decks(theta, **options) -> tuple[str, ...]` instead, and its objective `level_outputs([(nodal_u, outdir),
-    ...])` (`orchestrator.levels`). workers: local processes
+    ...])` (`orchestrator.fit.levels`). workers: local processes
     (1 = in this process); scheduler: a Dask distributed address (then workers is ignored).
     `launched` counts the engine runs of this session (not those replayed from the log).
     progress: show the stage's progress line on stderr (`Progress`), named `label`; cost_is_misfit: the

@@ -113,7 +113,7 @@ def mode_variances(perimeter_mm: float, skin_sigma_mm: float, cutoff_mm: float, 
 
 
 def profile_lines(count: int) -> list[str]:
-    from .effects import PROFILE_NAME
+    from ..model.effects import PROFILE_NAME
 
     return [f"PROFILE, {PROFILE_NAME}, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
 
@@ -131,9 +131,9 @@ def skin_mode_lines(model, count: int) -> list[str]:
 def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> dict[str, np.ndarray]:
     """du/d(mode) of the skin's modes k = 1 .. count (`skin_mode_lines`; nodal (M, 2) each) of the model at theta,
     from one engine run (only these lines: the model's own are not needed here)."""
-    from .forward import write_mesh_include
-    from .results import EngineResults, sensitivity_name
-    from .runner import DEFAULT_TIMEOUT_S, run_engine, run_timeout
+    from ..model.forward import write_mesh_include
+    from ..engine.results import EngineResults, sensitivity_name
+    from ..engine.runner import DEFAULT_TIMEOUT_S, run_engine, run_timeout
 
     lines = skin_mode_lines(model, count)
     with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:
@@ -150,7 +150,7 @@ def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> di
 
 def _model_on(setup, mesh, effects, tension_N_per_mm):
     """The run's model (its tissues, elements and garment) on `mesh` under `tension_N_per_mm`, with `effects`."""
-    from .forward import LegModel
+    from ..model.forward import LegModel
 
     model = setup.model
     return LegModel(mesh, tension_N_per_mm, effects=tuple(effects), tissues=model.tissues, hybrid=model.hybrid,
@@ -159,7 +159,7 @@ def _model_on(setup, mesh, effects, tension_N_per_mm):
 
 def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
     """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
-    from .runner import solve_once
+    from ..engine.runner import solve_once
 
     mesh = setup.mesh_again(len(setup.mesh.elements), interface_offsets=offsets)
     model = _model_on(setup, mesh, effects, tension_N_per_mm)
@@ -176,7 +176,7 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
     made them, under the case's [garment] tension or `tension_N_per_mm` (another garment level's). workers > 1: the
     modes' run and the shifted interfaces' remeshes and solves go side by side in that many threads (an engine
     solves while another interface is meshed), with the same results."""
-    from .meshing.labels import interface_shift
+    from ..meshing.labels import interface_shift
 
     tension = setup.case.tension_N_per_mm if tension_N_per_mm is None else float(tension_N_per_mm)
     model = _model_on(setup, setup.mesh, effects, tension)

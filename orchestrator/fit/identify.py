@@ -34,7 +34,7 @@ from typing import Sequence
 import numpy as np
 from scipy import optimize
 
-from .runner import OK, Evaluator
+from ..engine.runner import OK, Evaluator
 
 FD_STEP = 1e-3           # forward-difference step in ln(theta): 0.1 %
 MAX_LM_STEP = 1.0        # largest LM step in x: a factor e in a constant, `scale` in an effect parameter
@@ -84,7 +84,7 @@ def _cost(record: dict) -> float:
 
 def parameter_space(evaluator: Evaluator):
     """The evaluator's model's parameter space (ln theta for all parameters when the model has none)."""
-    from .forward import ParameterSpace
+    from ..model.forward import ParameterSpace
 
     space = getattr(evaluator.model, "space", None)
     return space if isinstance(space, ParameterSpace) else None

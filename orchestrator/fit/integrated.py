@@ -53,9 +53,9 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from .frame import RigidMotion, mm_to_index
-from .prefilter import PREFILTER_SIGMA_PX, Prefilter, rician_variance_ratio
-from .segment import BONE
+from ..core.frame import RigidMotion, mm_to_index
+from ..measure.prefilter import PREFILTER_SIGMA_PX, Prefilter, rician_variance_ratio
+from ..imaging.segment import BONE
 
 AIR_BAND_PX = 3               # pixels of air outside the skin of I0 kept in the region
 NUISANCE_ITERATIONS = 8       # at most this many Gauss-Newton steps on the nuisances per evaluation
@@ -96,9 +96,9 @@ class IntegratedDIC:
     def __init__(self, mesh, unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm,
                  motion: RigidMotion, *, prefilter_px: float = PREFILTER_SIGMA_PX, air_band_px: int = AIR_BAND_PX,
                  noise_sigma: tuple[float, float] | None = None, brightness: str = "affine"):
-        from ..forward import MeshInterpolator
-        from ..objectives import _array_sha
-        from .dic import _signal_noise   # the windows' own estimate of each image's noise where it has signal
+        from ..model.forward import MeshInterpolator
+        from .objectives import _array_sha
+        from ..measure.dic import _signal_noise   # the windows' own estimate of each image's noise where it has signal
 
         unloaded, loaded = np.asarray(unloaded, float), np.asarray(loaded, float)
         if unloaded.shape != loaded.shape or unloaded.shape != np.shape(labels):
@@ -156,7 +156,7 @@ class IntegratedDIC:
     def _sample(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """I1 (prefiltered, cubic spline) at z = M(points), its gradient with respect to the points (per mm, in the
         unloaded frame: the gradient in the loaded image turned back by M's rotation), and z (mm)."""
-        from .dic import spline_derivatives
+        from ..measure.dic import spline_derivatives
 
         x, y = self.motion.apply(points_mm[:, 0], points_mm[:, 1])
         rows, cols = mm_to_index(x, y, self.pixel_size_mm)
@@ -259,7 +259,7 @@ class IntegratedDIC:
         """Cost, whitened residuals, the fitted nuisances and, with the engine's sensitivities (a deck with
         *SENSITIVITY), dr/d(engine parameter) per engine parameter name (what `identify.residual_jacobian`
         combines into dr/dtheta)."""
-        from ..results import EngineResults
+        from ..engine.results import EngineResults
 
         r, g, basis, q = self.profile(self.displacement(nodal_u))
         out = {"cost": self.cost_of(r), "residuals": r.tolist(), "nuisance": dict(zip(self.nuisance_names, map(float, q)))}
@@ -307,7 +307,7 @@ class IntegratedDIC:
         `displacement_mm`, (n, 2) mm at `positions_mm`), the nuisances fitted in both cases."""
         from types import SimpleNamespace
 
-        from ..verification import band_masks
+        from ..measure.verification import band_masks
 
         if displacement_mm is None:
             displacement_mm = self.displacement(nodal_u)
@@ -328,8 +328,8 @@ def identify_integrated(setup, run_dir, *, effects: Sequence[str] = (), start: S
     folder: they share no cache key, the fingerprints differ, but the logs grow large). Returns (FitResult, the
     objective, a summary: the noise floor, misfit over it, the fitted nuisances, the parameters' linearised standard
     deviations (`parameter_covariance`, not inflated by a misfit above the floor), wall time)."""
-    from ..identify import levenberg_marquardt, residual_jacobian
-    from ..runner import Evaluator
+    from .identify import levenberg_marquardt, residual_jacobian
+    from ..engine.runner import Evaluator
 
     began = time.perf_counter()
     objective = IntegratedDIC.from_setup(setup, **options)

@@ -47,7 +47,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .forward import LegModel
+from ..model.forward import LegModel
 from .objectives import _array_sha, symmetric_roots
 
 

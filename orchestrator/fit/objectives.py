@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .decks import KPA_PER_MPA, text_sha256
-from .forward import MeshInterpolator, field_on_pixels
-from .imaging.mismatch import ContourMismatch, MismatchResult
+from ..engine.decks import KPA_PER_MPA, text_sha256
+from ..model.forward import MeshInterpolator, field_on_pixels
+from ..imaging.mismatch import ContourMismatch, MismatchResult
 
 
 def leg_rows(nodal: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -121,8 +121,8 @@ class DisplacementResidualObjective:
     @classmethod
     def at_points(cls, mesh, positions_mm, measured_mm, sigma_mm=None) -> "DisplacementResidualObjective":
         """The residual at points (points.csv rows; sigma 1 mm when not given, so that F = r.r / (2N))."""
-        from .imaging.case import DisplacementPoints
-        from .measure import points_measurements
+        from ..case.folder import DisplacementPoints
+        from ..measure.measurements import points_measurements
 
         points = DisplacementPoints(np.asarray(positions_mm, float).reshape(-1, 2),
                                     np.asarray(measured_mm, float).reshape(-1, 2), sigma_mm)
@@ -173,7 +173,7 @@ class DisplacementResidualObjective:
 
     def observed_sensitivities(self, outdir: Path) -> dict[str, np.ndarray]:
         """O du/dtheta (mm per unit, interleaved) per engine parameter name; empty when the deck asked for none."""
-        from .results import EngineResults
+        from ..engine.results import EngineResults
 
         sensitivities = EngineResults(Path(outdir)).sensitivities()
         n_nodes = self.observation.shape[1] // 2
@@ -195,7 +195,7 @@ class LandmarkPressure:
         self.fingerprint = f"P:{_array_sha(self.positions_mm)}:{','.join(self.names)}"
 
     def outputs(self, nodal_u: np.ndarray, outdir: Path) -> dict:
-        from .results import EngineResults
+        from ..engine.results import EngineResults
 
         pressure = leg_rows(EngineResults(Path(outdir)).point_field("pressure"), self.weights.shape[1]) * KPA_PER_MPA
         values = self.weights @ pressure

@@ -7,10 +7,10 @@ labels 0 background, 1 fat (with skin), 2 muscle, 3 bone, >= 4 muscle compartmen
 """
 
 from .align import align_on_bones, bone_centroids, resample_rigid
-from .case import Case, DisplacementPoints, ModelChoice, read_case, read_model_choice, write_case_folder
-from .dic import DICResult, correlate, grid_centres, roi_centres
-from .errors import CaseError, ImagingError
-from .frame import RigidMotion, displacement_on_grid, pixel_centres_mm
+from ..case.folder import Case, DisplacementPoints, ModelChoice, read_case, read_model_choice, write_case_folder
+from ..measure.dic import DICResult, correlate, grid_centres, roi_centres
+from ..core.errors import CaseError, ImagingError
+from ..core.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
 from .mismatch import ContourMismatch, MismatchResult, contour_pixels
 from .segment import dice, segment_t1
 from .warp import warp_image, warp_labels

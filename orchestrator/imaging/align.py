@@ -26,8 +26,8 @@ import numpy as np
 from scipy import ndimage, optimize
 from skimage import morphology
 
-from .errors import ImagingError
-from .frame import RigidMotion, mm_to_index, pixel_centres_mm
+from ..core.errors import ImagingError
+from ..core.frame import RigidMotion, mm_to_index, pixel_centres_mm
 from .segment import BONE, segment_t1
 
 

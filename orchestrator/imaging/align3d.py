@@ -63,10 +63,10 @@ from scipy.spatial.transform import Rotation
 from skimage import morphology
 
 from .align import bone_centroids
-from .errors import ImagingError
-from .frame import mm_to_index
+from ..core.errors import ImagingError
+from ..core.frame import mm_to_index
 from .segment import BONE, segment_t1
-from .volume import RigidMotion3D, Volume
+from ..case.volume import RigidMotion3D, Volume
 
 MIN_POINTS_PER_SLICE = 20    # an unloaded slice with fewer bone and rim points takes no part (its std is noise)
 MIN_OVERLAP = 0.5            # share of the bone and rim points that must fall inside the loaded slab

@@ -28,7 +28,7 @@ import numpy as np
 from scipy import ndimage
 from skimage import draw, filters, measure, morphology, segmentation
 
-from .case import FIRST_COMPARTMENT
+from ..case.folder import FIRST_COMPARTMENT
 from .segment import MUSCLE
 
 LINE_DIRECTIONS = 24

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import ImagingError
+from ..core.errors import ImagingError
 
 MAX_BORDER_CONTACT_MM = 1.0
 MAX_GROWTH = 0.005

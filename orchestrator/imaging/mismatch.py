@@ -29,8 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .case import FIRST_COMPARTMENT
-from .frame import displacement_on_grid
+from ..case.folder import FIRST_COMPARTMENT
+from ..core.frame import displacement_on_grid
 
 FAT, MUSCLE = 1, 2
 TISSUE_NAMES = {FAT: "fat", MUSCLE: "muscle"}

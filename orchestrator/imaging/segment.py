@@ -63,8 +63,8 @@ import numpy as np
 from scipy import ndimage, signal
 from skimage import filters, morphology
 
-from .case import FIRST_COMPARTMENT
-from .errors import ImagingError
+from ..case.folder import FIRST_COMPARTMENT
+from ..core.errors import ImagingError
 
 BACKGROUND, FAT, MUSCLE, BONE = 0, 1, 2, 3
 TISSUE_NAMES = {BACKGROUND: "background", FAT: "fat", MUSCLE: "muscle", BONE: "bone"}

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .frame import displacement_on_grid
+from ..core.frame import displacement_on_grid
 
 
 def sample_coordinates(shape: tuple[int, int], displacement, pixel_size_mm) -> np.ndarray:

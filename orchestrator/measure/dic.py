@@ -83,9 +83,9 @@ import numpy as np
 from scipy import ndimage
 from skimage.feature import match_template
 
-from .case import DisplacementPoints
-from .frame import RigidMotion, index_to_mm
-from .mismatch import FAT, MUSCLE, contour_pixels, tissue_mask
+from ..case.folder import DisplacementPoints
+from ..core.frame import RigidMotion, index_to_mm
+from ..imaging.mismatch import FAT, MUSCLE, contour_pixels, tissue_mask
 from .prefilter import EdgeResiduals, Prefilter, rician_variance_ratio
 
 SEARCH_FACTOR = 4

@@ -60,17 +60,17 @@ from scipy import ndimage, sparse
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
-from .imaging.case import DisplacementPoints
-from .imaging.chemical_shift import fat_signal
-from .imaging.coherence import coherence_sentence, texture_coherence
-from .imaging.dic import attainable_confidence, correlate, grid_centres, roi_centres
-from .imaging.drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
-from .imaging.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
-from .imaging.mismatch import tissue_mask
-from .imaging.segment import FAT, MUSCLE
-from .imaging.prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
-from .imaging.windows import WindowOperators, textured
-from .runfiles import write_json
+from ..case.folder import DisplacementPoints
+from ..imaging.chemical_shift import fat_signal
+from ..imaging.coherence import coherence_sentence, texture_coherence
+from .dic import attainable_confidence, correlate, grid_centres, roi_centres
+from .drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
+from ..core.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
+from ..imaging.mismatch import tissue_mask
+from ..imaging.segment import FAT, MUSCLE
+from .prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
+from .windows import WindowOperators, textured
+from ..core.files import write_json
 
 WINDOW_CHOICES = (16, 32, 64)
 DEFAULT_WINDOW_PX = 32
@@ -233,7 +233,7 @@ class Observer:
     windows: sparse.csr_matrix | None
 
     def __call__(self, mesh) -> sparse.csr_matrix:
-        from .forward import MeshInterpolator
+        from ..model.forward import MeshInterpolator
 
         at_positions = sparse.kron(MeshInterpolator(mesh).weights(self.positions_mm), sparse.identity(2), format="csr")
         return at_positions if self.windows is None else (self.windows @ at_positions).tocsr()
@@ -581,7 +581,7 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
                        level: int = 1) -> None:
     """The table, the arrays, the summary and the picture (of garment level `level`, `level_files`), each written
     to a temporary name then renamed."""
-    from .figures import dic_vectors_figure
+    from ..report.figures import dic_vectors_figure
 
     run_dir = Path(run_dir)
     files = level_files(level)

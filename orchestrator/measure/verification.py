@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from .forward import MeshInterpolator, field_on_pixels
-from .objectives import symmetric_roots
+from ..model.forward import MeshInterpolator, field_on_pixels
+from ..fit.objectives import symmetric_roots
 
 SKIN_BAND_MM = 5.0
 BANDS = ("fat within 5 mm of the skin", "other fat", "muscle")
@@ -111,7 +111,7 @@ def field_from_truth_file(path: str | Path, shape: tuple[int, int], pixel_size_m
 def field_from_mesh_file(path: str | Path, shape: tuple[int, int], pixel_size_mm) -> np.ndarray:
     """(2, H, W) true displacement on the pixels of I0 from a file holding a mesh and its nodal field: nodes_mm
     (N, 2), cells (E, 3 or 6; CPE6 in CalculiX order), u_mm (N, 2), as the foreign cases' truth/<case>.npz."""
-    from .meshing.mesh import Mesh
+    from ..meshing.mesh import Mesh
 
     with np.load(path) as truth:
         mesh = Mesh(truth["nodes_mm"], truth["cells"], np.ones(len(truth["cells"]), int))

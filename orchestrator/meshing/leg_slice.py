@@ -26,7 +26,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from skimage.measure import points_in_poly
 
-from ..decks import render
+from ..engine.decks import render
 from .curves import Curve, SpacingRules
 from .mesh import Mesh
 from .triangulate import BONE_KEY_OFFSET, mesh_curves

@@ -20,7 +20,7 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | unloaded_curvature | alpha_unloaded               | *LAPLACE PRESSURE, REFERENCE=alpha  |
 | band_profile    | band_a1, band_b1                | *VOLUME CHANGE of the band's sectors|
 
-Beyond the catalog, three effects act on the material groups of `orchestrator.heterogeneity` (every tissue cut
+Beyond the catalog, three effects act on the material groups of `orchestrator.model.heterogeneity` (every tissue cut
 by sector and depth, one material each): `patch:<groups>` (dlnE_patch: every modulus of the law, C10 and
 Kv alike, times exp(dlnE_patch) in those groups, the local stiffness change the diagnosis proposes where the
 catalog explains nothing), `region:<fat|muscle>:<start deg>:<end deg>` (dlnE: the same in an angular sector,
@@ -48,10 +48,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .decks import KPA_PER_MPA
+from ..engine.decks import KPA_PER_MPA
 from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
-from .materials import engine_constant
-from .meshing.mesh import compartment_sets, muscle_sets
+from ..core.materials import engine_constant
+from ..meshing.mesh import compartment_sets, muscle_sets
 
 SECOND_BONE = "BONE2"
 PROFILE_NAME = "GARMENT"

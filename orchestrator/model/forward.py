@@ -1,7 +1,7 @@
 """The forward model: parameters -> deck -> calfit-fe -> nodal displacement -> displacement anywhere.
 
 A model (`LegModel`, `DiskModel`) turns a parameter vector theta into the text of a deck
-(`orchestrator.decks`) for its mesh. The engine gives the nodal displacement u_a; the
+(`orchestrator.engine.decks`) for its mesh. The engine gives the nodal displacement u_a; the
 displacement at any point x of the reference configuration is the finite-element
 interpolation u(x) = sum_a N_a(x) u_a on the triangle that holds x (barycentric coordinates
 L1, L2, L3; T3: N_a = L_a; T6 with straight sides: N_a = L_a (2 L_a - 1) at the corners and
@@ -12,7 +12,7 @@ residual at DIC points (Bouten and Drapier eq. 2). Points outside the mesh (back
 bone holes) take the displacement of the nearest point of the nearest element (the bones'
 boundary is clamped, so bone pixels get u = 0).
 
-Parameters of the leg model: the constants of each tissue's law (`orchestrator.materials`), by constant then
+Parameters of the leg model: the constants of each tissue's law (`orchestrator.core.materials`), by constant then
 by tissue, in kPa (decks are in MPa); with the first paper's law in fat and muscle, Avril et al.'s Table 1
 order: C10 of fat, C10 of muscle, Kv of fat, Kv of muscle.
 """
@@ -27,14 +27,14 @@ import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from .decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
+from ..engine.decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
 from .heterogeneity import group_elsets_text, groups_for
-from .imaging.case import GARMENTS
-from .materials import (AVRIL, AVRIL_START_KPA, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS,
-                        MaterialError, TissueLaw, deck_material, default_bounds, default_start, engine_constant,
-                        sum_only_pairs, tissue_name, tissue_set)
-from .meshing import Mesh
-from .meshing.mesh import muscle_sets
+from ..case.folder import GARMENTS
+from ..core.materials import (AVRIL, AVRIL_START_KPA, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS,
+                              MaterialError, TissueLaw, deck_material, default_bounds, default_start, engine_constant,
+                              sum_only_pairs, tissue_name, tissue_set)
+from ..meshing import Mesh
+from ..meshing.mesh import muscle_sets
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
 BAND_PROFILE = "band_profile"   # the band's own effect: its prestretch varying around the leg (`effects`)
@@ -184,7 +184,7 @@ def _effect_space(names: Sequence[str], element_sets: Sequence[str], node_sets: 
 @dataclass
 class LegModel:
     """The leg slice of Avril et al.: two tissues with the AVRIL law, clamped bones, Laplace garment;
-    optionally with effects of the catalog (`orchestrator.effects`).
+    optionally with effects of the catalog (`orchestrator.model.effects`).
 
     garment: "laplace" (Avril et al. eq. 1, the default) or "explicit": the second paper's band
     (`orchestrator.meshing.garment_band`, carrying tension_N_per_mm at its design stretch) put on by
@@ -221,7 +221,7 @@ class LegModel:
     tissues: dict | None = None
 
     def __post_init__(self):
-        from .meshing import garment_band
+        from ..meshing import garment_band
 
         if self.garment not in GARMENTS:
             raise ValueError(f"garment must be one of {GARMENTS}, got {self.garment!r}")
@@ -420,7 +420,7 @@ class LegModel:
         skin, at zero); sensitivities=False: none at all (a finite-difference probe needs the displacements alone);
         own_sensitivities=False: the extra lines alone, not theta's; release_static: the band's release increments
         (`decks.leg_garment_deck`; default: the fit's, RELEASE_STATIC or FRICTION_RELEASE_STATIC)."""
-        from .decks import StepEffects
+        from ..engine.decks import StepEffects
 
         state = self.deck_state(theta)
         tension = self.tension_N_per_mm if tension_N_per_mm is None else tension_N_per_mm

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .meshing.garment import polygon_centroid
-from .meshing.mesh import muscle_sets
+from ..meshing.garment import polygon_centroid
+from ..meshing.mesh import muscle_sets
 from .regions import IMAGE_SIDES, QUARTERS, display_angle_deg
 
 SECTORS = 24

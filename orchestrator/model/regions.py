@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .imaging.align import bone_centroids
-from .imaging.mismatch import FIRST_COMPARTMENT
-from .imaging.segment import BONE, FAT, MUSCLE
+from ..imaging.align import bone_centroids
+from ..imaging.mismatch import FIRST_COMPARTMENT
+from ..imaging.segment import BONE, FAT, MUSCLE
 
 SECTORS = 12                   # 30-degree sectors
 DEPTH_BANDS_MM = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf)

@@ -29,12 +29,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..imaging._formats import write_png16
-from ..imaging.case import DisplacementPoints, GarmentLevel, replace_folder, write_case_folder
-from ..imaging.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
+from ..case._formats import write_png16
+from ..case.folder import DisplacementPoints, GarmentLevel, replace_folder, write_case_folder
+from ..core.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
 from ..imaging.segment import segment_t1
-from .render import (CalfPhantom, Phantom, as_displacement_fn, bone_clamped_compression, loaded_labels, make_loaded_image,
-                     render_unloaded)
+from .render import (CalfPhantom, Phantom, as_displacement_fn, bone_clamped_compression, loaded_labels,
+                     make_loaded_image, render_unloaded)
 
 
 def write_case(folder, phantom: Phantom | None = None, displacement=None, *, rigid: RigidMotion | None = None,

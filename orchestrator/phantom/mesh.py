@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..imaging.frame import pixel_centres_mm
+from ..core.frame import pixel_centres_mm
 from ..meshing import Mesh, mesh_from_labels
 
 TRUTH_SUPERSAMPLING = 4

@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 from scipy import ndimage
 
-from ..imaging.frame import DisplacementFn, RigidMotion, mm_to_index, pixel_centres_mm
+from ..core.frame import DisplacementFn, RigidMotion, mm_to_index, pixel_centres_mm
 from .appearance import T1Contrast, TextureField, add_rician_noise, bias_field
 from .geometry import CalfGeometry
 

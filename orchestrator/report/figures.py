@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .digits import with_uncertainty
-from .results import MMHG_PER_KPA
+from ..core.digits import with_uncertainty
+from ..engine.results import MMHG_PER_KPA
 
 import matplotlib
 
@@ -62,8 +62,8 @@ def dic_vectors_figure(path: Path, image: np.ndarray, pixel_size_mm, table, summ
 def compartments_figure(path: Path, image: np.ndarray, pixel_size_mm, compartments) -> Path:
     """The muscle compartments found in I0 (`imaging.compartments`), each tinted and named at its centroid,
     over the septa they rest on (red), for the user to check before trusting the `compartments` effect."""
-    from .imaging.compartments import FIRST_COMPARTMENT
-    from .regions import compartment_names
+    from ..imaging.compartments import FIRST_COMPARTMENT
+    from ..model.regions import compartment_names
 
     figure, ax = plt.subplots(figsize=(7.5, 7.0))
     _image_axes(ax, image, pixel_size_mm)
@@ -182,7 +182,7 @@ def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh,
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Patch
 
-    from .imaging.segment import segmentation_checks
+    from ..imaging.segment import segmentation_checks
 
     warnings = segmentation_checks(labels, pixel_size_mm) if warnings is None else list(warnings)
 
@@ -495,7 +495,7 @@ def study_profile_figure(heights_mm, panels, named_heights: dict[str, float], ki
                          reference: float | None = None):
     """Quantities along the leg, one panel each: panels are (label, values, low, high, unit) by height, low/high
     the band (None: no band). The named heights of the compression standard (B, B1, C, D) are dashed lines."""
-    from .results import MMHG_PER_KPA
+    from ..engine.results import MMHG_PER_KPA
 
     heights = np.asarray(heights_mm, float)
     columns = min(len(panels), 2)

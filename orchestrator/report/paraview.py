@@ -64,13 +64,13 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from .decks import KPA_PER_MPA
-from .meshing.mesh import tissue_name
-from .results import MMHG_PER_KPA
-from .results import EngineResults
-from .runlock import holds_run_folder
-from .runfiles import RunFolderError, read_json
-from .study import load_run
+from ..engine.decks import KPA_PER_MPA
+from ..meshing.mesh import tissue_name
+from ..engine.results import MMHG_PER_KPA
+from ..engine.results import EngineResults
+from ..core.run_lock import holds_run_folder
+from ..core.files import RunFolderError, read_json
+from ..run.setup import load_run
 
 OUTPUT_FOLDER = "paraview"
 COLLECTION_NAME = "model.pvd"

@@ -33,22 +33,22 @@ import jinja2
 import numpy as np
 
 from . import figures
-from .decks import template_dir
-from .diagnose import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT, Refit, level_rows, model_label, refit_model
-from .discretization import discretization_line
-from .digits import interval_uncertainty, rounded
-from .forward import MeshInterpolator, field_on_pixels
-from .identify import pressure_spreads
-from .imaging.case import replace_folder
-from .imaging.segment import BONE
-from .imaging.warp import warp_image
-from .measure import FILES as MEASURE_FILES
-from .objectives import leg_rows
-from .pipeline import floor_sentence, identified_data, sum_only_lines
-from .results import MMHG_PER_KPA
-from .runlock import holds_run_folder
-from .runfiles import read_json
-from .study import load_run
+from ..engine.decks import template_dir
+from ..diagnose.diagnosis import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT, Refit, level_rows, model_label, refit_model
+from ..run.discretization import discretization_line
+from ..core.digits import interval_uncertainty, rounded
+from ..model.forward import MeshInterpolator, field_on_pixels
+from ..fit.identify import pressure_spreads
+from ..case.folder import replace_folder
+from ..imaging.segment import BONE
+from ..imaging.warp import warp_image
+from ..measure.measurements import FILES as MEASURE_FILES
+from ..fit.objectives import leg_rows
+from ..run.stages import floor_sentence, identified_data, sum_only_lines
+from ..engine.results import MMHG_PER_KPA
+from ..core.run_lock import holds_run_folder
+from ..core.files import read_json
+from ..run.setup import load_run
 
 REPORT_TEMPLATE = "report.html.j2"
 REPORT_JSON = "report.json"

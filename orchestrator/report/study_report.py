@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .digits import interval_uncertainty
-from .imaging.case import replace_folder
-from .report import _figure, _section, _strict_json, _table, render_page
-from .results import MMHG_PER_KPA
+from ..core.digits import interval_uncertainty
+from ..case.folder import replace_folder
+from .run_report import _figure, _section, _strict_json, _table, render_page
+from ..engine.results import MMHG_PER_KPA
 
 REPORT_FOLDER = "report"
 BAND_SIGMAS = 2.0    # the pressure bands: +- 2 standard deviations (about 95 %)

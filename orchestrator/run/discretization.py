@@ -26,8 +26,8 @@ from typing import Sequence
 
 import numpy as np
 
-from .objectives import DisplacementResidualObjective
-from .runner import OK, Evaluator
+from ..fit.objectives import DisplacementResidualObjective
+from ..engine.runner import OK, Evaluator
 
 FINER_FACTOR = 2
 
@@ -37,7 +37,7 @@ def discretization_check(setup, theta: Sequence[float], measurements, run_dir, *
     """chi2_disc of the module text for the first garment level's measurements, at theta: the run's fitted model
     (`setup.model`, whose run at theta a case of one level has in its log already) against the same effects on a mesh
     of FINER_FACTOR times its elements meshed from the same labels. Returns what identification.json keeps."""
-    from .study import case_model
+    from .setup import case_model
 
     finer = setup.mesh_again(FINER_FACTOR * len(setup.mesh.elements))
     residuals = []

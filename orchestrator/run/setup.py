@@ -32,29 +32,29 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from .forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
-from .imaging.align import align_on_bones, resample_rigid
-from .imaging.case import Case, read_case
-from .imaging.chemical_shift import FatShift, fat_shift
-from .imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
-from .imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
-from .imaging.frame import RigidMotion
-from .imaging.resolution import coarsen_image, working_resolution
-from .imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
-from .materials import law_notes
-from .meshing import Mesh, TissueCurves, fat_muscle_normals, mesh_tissue_curves, tissue_curves, with_fat_moved_back
-from .meshing.curves import ERROR_BAND
-from .meshing.labels import SHORTEST_SKIN_SHAPE_MM
-from .phantom.mesh import truth_mesh
-from .geometry_uncertainty import level_file as geometry_level_file
-from .geometry_uncertainty import read_columns as read_geometry_columns
-from .geometry_uncertainty import read_covariance as read_geometry_covariance
-from .measure import level_files as measure_level_files
-from .measure import Measurements, dic_measurements, points_measurements, read_window_table
-from .figures import compartments_figure
-from .objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure, leg_rows
-from .regions import LegFrame
-from .runfiles import RunFolderError, read_json, write_json
+from ..model.forward import TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels, write_mesh_include
+from ..imaging.align import align_on_bones, resample_rigid
+from ..case.folder import Case, read_case
+from ..imaging.chemical_shift import FatShift, fat_shift
+from ..imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
+from ..imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
+from ..core.frame import RigidMotion
+from ..case.resolution import coarsen_image, working_resolution
+from ..imaging.segment import MUSCLE, SegmentationWarning, segment_t1, segmentation_checks
+from ..core.materials import law_notes
+from ..meshing import Mesh, TissueCurves, fat_muscle_normals, mesh_tissue_curves, tissue_curves, with_fat_moved_back
+from ..meshing.curves import ERROR_BAND
+from ..meshing.labels import SHORTEST_SKIN_SHAPE_MM
+from ..phantom.mesh import truth_mesh
+from ..fit.geometry_uncertainty import level_file as geometry_level_file
+from ..fit.geometry_uncertainty import read_columns as read_geometry_columns
+from ..fit.geometry_uncertainty import read_covariance as read_geometry_covariance
+from ..measure.measurements import level_files as measure_level_files
+from ..measure.measurements import Measurements, dic_measurements, points_measurements, read_window_table
+from ..report.figures import compartments_figure
+from ..fit.objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure, leg_rows
+from ..model.regions import LegFrame
+from ..core.files import RunFolderError, read_json, write_json
 
 SETUP_ARRAYS = "setup.npz"
 COMPARTMENTS_FIGURE = "compartments.png"
@@ -201,8 +201,8 @@ class RunSetup:
     def solve(self, theta: Sequence[float], folder: Path, model: LegModel | None = None):
         """Solve the run's model (or `model`) once at theta in `folder`, keeping the engine's outputs (the VTU of
         each step: stresses, pressure); returns its `EngineResults`. RuntimeError when it does not converge."""
-        from .results import EngineResults
-        from .runner import run_engine
+        from ..engine.results import EngineResults
+        from ..engine.runner import run_engine
 
         model = model if model is not None else self.model
         folder = Path(folder)
@@ -218,7 +218,7 @@ class RunSetup:
     def model_with(self, effects: Sequence[str] = (), sensitivities: bool = False) -> LegModel:
         """The run's leg model with these catalog effects fitted too; with `sensitivities` its decks ask the engine
         for du/dtheta (Levenberg-Marquardt and the diagnosis then need no finite-difference runs)."""
-        from .effects import parse_effects
+        from ..model.effects import parse_effects
 
         return case_model(self.mesh, self.case, effects=parse_effects(list(effects)), engine_sensitivities=sensitivities)
 
@@ -230,7 +230,7 @@ class RunSetup:
     def at_every_level(self, model: LegModel):
         """The model under every garment level of the case at once (`levels.LevelsModel`), or the model itself
         when the case has one level."""
-        from .levels import LevelsModel
+        from ..fit.levels import LevelsModel
 
         return LevelsModel(model, self.case.tensions) if self.case.levels else model
 
@@ -306,8 +306,8 @@ class RunSetup:
     def objective_of(self, measured: Sequence[Measurements]):
         """The displacement residual of these measurements, one per garment level: a
         `DisplacementResidualObjective` for one, their `levels.JointDisplacementObjective` for several."""
-        from .levels import JointDisplacementObjective
-        from .measure import reference_noise_covariance
+        from ..fit.levels import JointDisplacementObjective
+        from ..measure.measurements import reference_noise_covariance
 
         parts = [DisplacementResidualObjective(self.mesh, m) for m in measured]
         if len(parts) == 1:
@@ -520,8 +520,8 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
     `MRIPhantom` (the second, independent renderer). garment, friction_mu:
     the truth's garment, Laplace's law or the explicit band with that friction; tissues, hybrid: the tissues' laws
     (theta_kPa then holds their free constants) and u/p elements (`forward.LegModel`)."""
-    from .phantom import CalfPhantom, write_case
-    from .runner import solve_once
+    from ..phantom import CalfPhantom, write_case
+    from ..engine.runner import solve_once
 
     effects = {name: dict(values) for name, values in (effects or {}).items()}
     phantom = phantom or CalfPhantom()
@@ -558,7 +558,7 @@ def make_phantom_case(folder: str | Path, truth_folder: str | Path | None = None
 
 def _phantom_level_nodal(model: LegModel, theta_kPa, tension: float, edit_deck) -> np.ndarray:
     """The truth's nodal displacement under another garment tension (a phantom's more garment level)."""
-    from .runner import solve_once
+    from ..engine.runner import solve_once
 
     text = model.deck(theta_kPa, tension_N_per_mm=tension)
     return leg_rows(solve_once(model, edit_deck(text, model.mesh) if edit_deck else text,

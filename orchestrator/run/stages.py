@@ -26,29 +26,31 @@ import numpy as np
 
 from dataclasses import asdict
 
-from .diagnose import (ALPHA, diagnose, judged_ratio, level_maps, local_refit_unneeded, patch_elements, refit,
-                       refit_model, refit_verdict, residual_maps, settle_ties, summarize_fit, weigh_local)
-from .digits import interval_uncertainty, rounded, with_uncertainty
+from ..diagnose.diagnosis import (ALPHA, diagnose, judged_ratio, level_maps, local_refit_unneeded, patch_elements,
+                                  refit, refit_model, refit_verdict, residual_maps, settle_ties, summarize_fit,
+                                  weigh_local)
+from ..core.digits import interval_uncertainty, rounded, with_uncertainty
 from .discretization import discretization_check, discretization_line
-from .effects import effect
-from .figures import diagnosis_figure
-from .garment_state import band_state
-from .heterogeneity import stiffness_field_kpa
-from .identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
-                       pressure_spreads, pressure_uncertainty, table1_starts)
-from .geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
-                                   discard_without_columns, geometry_columns, measured_skin_sigma, skin_perimeter_mm)
-from .geometry_uncertainty import read_covariance as read_geometry_covariance
-from .geometry_uncertainty import write as write_geometry
-from .imaging.case import read_model_choice
-from .imaging.prefilter import PREFILTER_SIGMA_PX
-from .measure import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
-from .levels import AtTension
-from .runlock import holds_run_folder
-from .results import MMHG_PER_KPA
-from .runner import LOG_NAME, EvaluationLog, Evaluator
-from .runfiles import read_json, write_json
-from .study import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
+from ..model.effects import effect
+from ..report.figures import diagnosis_figure
+from ..model.garment_state import band_state
+from ..model.heterogeneity import stiffness_field_kpa
+from ..fit.identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
+                            pressure_spreads, pressure_uncertainty, table1_starts)
+from ..fit.geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
+                                        discard_without_columns, geometry_columns, measured_skin_sigma,
+                                        skin_perimeter_mm)
+from ..fit.geometry_uncertainty import read_covariance as read_geometry_covariance
+from ..fit.geometry_uncertainty import write as write_geometry
+from ..case.folder import read_model_choice
+from ..measure.prefilter import PREFILTER_SIGMA_PX
+from ..measure.measurements import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
+from ..fit.levels import AtTension
+from ..core.run_lock import holds_run_folder
+from ..engine.results import MMHG_PER_KPA
+from ..engine.runner import LOG_NAME, EvaluationLog, Evaluator
+from ..core.files import read_json, write_json
+from .setup import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
 
 OBJECTIVES = ("contour", "displacement")
 REFINEMENT_JSON = "refinement.json"   # a run meshed again: the finer mesh's size, its start, the coarser mesh's fit

@@ -45,13 +45,13 @@ from typing import Callable
 
 import numpy as np
 
-from .diagnose import ALPHA
-from .digits import rounded
-from .identify import pressure_spreads
-from .pipeline import run_diagnose, run_identify, run_montecarlo, run_pressures
-from .runfiles import RunFolderError, atomic_write_text, read_json, write_json
-from .study_report import cell_uncertainty, write_study_report
-from .volume_study import SLICES_JSON, is_volume_case, slice_volume_case
+from ..diagnose.diagnosis import ALPHA
+from ..core.digits import rounded
+from ..fit.identify import pressure_spreads
+from ..run.stages import run_diagnose, run_identify, run_montecarlo, run_pressures
+from ..core.files import RunFolderError, atomic_write_text, read_json, write_json
+from ..report.study_report import cell_uncertainty, write_study_report
+from .volume_cases import SLICES_JSON, is_volume_case, slice_volume_case
 
 ROW_FILE = "row.json"
 TABLE_CSV, TABLE_PARQUET, SUMMARY_JSON = "study.csv", "study.parquet", "study.json"
@@ -141,8 +141,8 @@ def _interface_pressure(run_dir: Path) -> dict:
     at the heights B to D, with the tension's uncertainty as its spread. The perimeter is the meshed skin of I0;
     the compressed skin's is shorter by the garment's compression (under 1 % on the phantoms), which this leaves
     out."""
-    from .geometry_uncertainty import skin_perimeter_mm
-    from .study import load_run
+    from ..fit.geometry_uncertainty import skin_perimeter_mm
+    from ..run.setup import load_run
 
     setup = load_run(run_dir)
     pressure_kPa = 2.0 * np.pi * setup.case.tension_N_per_mm / skin_perimeter_mm(setup.mesh) * 1000.0

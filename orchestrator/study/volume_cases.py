@@ -43,10 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .imaging.case import DEFAULT_TENSION_REL_UNCERTAINTY, write_case_folder
-from .imaging.case import _model_choice as check_model_table
-from .imaging.errors import CaseError
-from .runfiles import RunFolderError, read_json, write_json
+from ..case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, write_case_folder
+from ..case.folder import _model_choice as check_model_table
+from ..core.errors import CaseError
+from ..core.files import RunFolderError, read_json, write_json
 
 SLICES_JSON = "slices.json"
 SLICES_FOLDER = "slices"
@@ -199,8 +199,8 @@ def read_volume_case(folder: str | Path) -> VolumeCase:
 def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple[list[SliceCase], dict]:
     """Cut the volume case into slice cases under out/slices (module text); returns them, by height, and the record
     written to out/slices.json. A record already there is reused when it was cut at the same heights."""
-    from .imaging.align3d import align_volumes_on_bones, resample_on_slice
-    from .imaging.volume import read_volume
+    from ..imaging.align3d import align_volumes_on_bones, resample_on_slice
+    from ..case.volume import read_volume
 
     say = report or (lambda line: None)
     case = read_volume_case(folder)
@@ -293,7 +293,7 @@ def skin_shift_px(volume, k: int, masks: dict | None = None) -> float:
 
 def leg_mask(volume, k: int, masks: dict | None = None) -> np.ndarray:
     """The leg (every tissue) of slice k, segmented (`imaging.segment.segment_t1`); kept in `masks` when given."""
-    from .imaging.segment import segment_t1
+    from ..imaging.segment import segment_t1
 
     masks = {} if masks is None else masks
     if k not in masks:

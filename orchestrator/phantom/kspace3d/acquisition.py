@@ -265,7 +265,7 @@ class LegMotion:
         pixel centres at the image frame's less half a pixel, `phantom.volume`)."""
         from scipy.spatial.transform import Rotation
 
-        from ...imaging.volume import RigidMotion3D
+        from ...case.volume import RigidMotion3D
 
         dy, dx = pixel_size_mm
         centre = np.asarray(self.centre_mm, float) - np.array([0.5 * dx, 0.5 * dy, 0.0])

@@ -37,15 +37,15 @@ from typing import Sequence
 
 import numpy as np
 
-from ...imaging._formats import write_png16
-from ...imaging.case import DEFAULT_TENSION_REL_UNCERTAINTY, DisplacementPoints, replace_folder, write_case_folder
-from ...imaging.frame import pixel_centres_mm
+from ...case._formats import write_png16
+from ...case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, DisplacementPoints, replace_folder, write_case_folder
+from ...core.frame import pixel_centres_mm
 from ..mri.anatomy import LegShape
 from .acquisition import AcquiredImage, DisplacementGrid, LegMotion, Scanner, grid_heights, material_points
 from .appearance3d import Appearance3D, KspaceContrast
 from .leg3d import Leg3D, LegAlongHeight
-from .mechanics3d import (DEFAULT_SECTION_ELEMENTS, FINE_SECTION_ELEMENTS, LEG_PARAMETERS, HiddenEffects3D,
-                          Layering, LegSolution3D, leg_mesh_3d, solve_leg3d)
+from .mechanics3d import (DEFAULT_SECTION_ELEMENTS, FINE_SECTION_ELEMENTS, LEG_PARAMETERS, HiddenEffects3D, Layering,
+                          LegSolution3D, leg_mesh_3d, solve_leg3d)
 
 PARAMETERS_FILE = "parameters.json"      # the name `study.make_phantom_case` gives it
 LEG_MARGIN_MM = 3.0                       # the skin stays this far inside the field of view in both sessions
@@ -434,7 +434,7 @@ def _grid_points(field_mm, labels, scanner: Scanner, spacing_mm: float, sigma_mm
 def _write_dicom_case(folder: Path, name: str, images, scanner: Scanner, height_mm: float, tension: float,
                       rel: float, landmarks: dict, labels, points, overwrite: bool) -> None:
     """The case folder with one DICOM file per image: case.toml without pixel_size_mm (the files carry it)."""
-    from ...imaging.case import _write_points
+    from ...case.folder import _write_points
     from .dicom import new_identities, write_dicom_slice
 
     if folder.exists() and not overwrite:

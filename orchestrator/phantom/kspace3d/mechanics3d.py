@@ -67,8 +67,8 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...decks import KPA_PER_MPA, numbers, render
-from ...imaging.frame import pixel_centres_mm
+from ...engine.decks import KPA_PER_MPA, numbers, render
+from ...core.frame import pixel_centres_mm
 from ...meshing import Mesh, MeshingError, mesh_from_labels
 from ...meshing.mesh import ITEMS_PER_SET_LINE, muscle_sets
 from ..geometry import COMPARTMENTS, FIRST_COMPARTMENT_LABEL
@@ -196,7 +196,7 @@ class HiddenEffects3D:
         return cls(**values)
 
     def catalog_form(self) -> dict[str, dict[str, float]]:
-        """The effects in the terms of calfit's catalog (`orchestrator.effects`) where it has them."""
+        """The effects in the terms of calfit's catalog (`orchestrator.model.effects`) where it has them."""
         out: dict[str, dict] = {}
         if self.muscle_linear_strain:
             out["drainage"] = {"dv_muscle": (1.0 + self.muscle_linear_strain) ** 3 - 1.0}
@@ -666,10 +666,10 @@ def plane_strain_difference(solution: LegSolution3D) -> dict:
     plane (`*DLOAD`: what remains is the 3D solution's departure from plane strain and the discretization), and
     `engine_laplace`, the engine's own Laplace law (REFERENCE=1 for the unloaded law, the deformed membrane for
     the deformed one), whose pressure is distributed along the skin its own way (solver_cpp/README.md)."""
-    from ...forward import LegModel
-    from ...materials import TissueLaw
-    from ...objectives import leg_rows
-    from ...runner import solve_once
+    from ...model.forward import LegModel
+    from ...core.materials import TissueLaw
+    from ...fit.objectives import leg_rows
+    from ...engine.runner import solve_once
 
     if solution.effects != HiddenEffects3D():
         raise ValueError("the plane-strain check compares the baseline physics; solve without hidden effects")

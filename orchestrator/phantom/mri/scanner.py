@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...imaging.frame import pixel_centres_mm
+from ...core.frame import pixel_centres_mm
 from ..geometry import COMPARTMENTS
 from .anatomy import LegGeometry
 from .structure import FatSepta, GradientNoise, MuscleStreaks, line_coverage
