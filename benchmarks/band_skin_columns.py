@@ -29,22 +29,24 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from orchestrator.model.forward import LegModel  # noqa: E402
-from orchestrator.fit.geometry_uncertainty import skin_perimeter_mm, skin_pressure_sensitivities  # noqa: E402
 from orchestrator.core.frame import RigidMotion  # noqa: E402
-from orchestrator.meshing.curves import unit_normals  # noqa: E402
-from orchestrator.run.stages import _setup  # noqa: E402
 from orchestrator.engine.runner import solve_once  # noqa: E402
-from orchestrator.run.setup import make_phantom_case  # noqa: E402
+from orchestrator.fit.geometry_uncertainty import (  # noqa: E402
+    skin_perimeter_mm,
+    skin_pressure_sensitivities,
+)
+from orchestrator.meshing.curves import unit_normals  # noqa: E402
+from orchestrator.model.forward import LegModel  # noqa: E402
+from orchestrator.phantom.cases import make_phantom_case  # noqa: E402
+from orchestrator.run.stages import _setup  # noqa: E402
 
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)
 
 
 def _gap_profile_sensitivities(model, count: int) -> dict:
     """du/d(a_k, b_k) of the band's *GAP PROFILE of the skin, k = 1 .. count, at TRUTH_KPA."""
-    from orchestrator.model.forward import write_mesh_include
     from orchestrator.engine.results import EngineResults, sensitivity_name
-    from orchestrator.engine.runner import run_engine
+    from orchestrator.engine.runner import run_engine, write_mesh_include
 
     lines = [f"GAP PROFILE, SKIN, {kind}{k}" for k in range(1, count + 1) for kind in ("A", "B")]
     with tempfile.TemporaryDirectory(prefix="calfit-bench-gap-") as scratch:

@@ -26,9 +26,9 @@ import time
 from pathlib import Path
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.run.stages import run_diagnose, run_identify
 from orchestrator.engine.runner import LOG_NAME, EvaluationLog
-from orchestrator.run.setup import make_phantom_case
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.run.stages import run_diagnose, run_identify
 
 HIDDEN_VALUES = {"drainage": {"dv_muscle": -0.05}, "bone_motion": {"ux_BONE2": 0.2, "uy_BONE2": -0.15},
                  "out_of_plane": {"eps_z": 0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05}}

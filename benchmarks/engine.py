@@ -82,10 +82,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
 from engine_run import parse_ccx_dat  # noqa: E402
-from leg_decks import GARMENT_FRICTION, garment_friction_text, garment_text, nonuniform_follower_text  # noqa: E402
+from leg_decks import (  # noqa: E402
+    GARMENT_FRICTION,
+    garment_friction_text,
+    garment_text,
+    nonuniform_follower_text,
+)
+
 from orchestrator.engine.locate import find_engine  # noqa: E402
-from orchestrator.meshing import (DEFAULT_MATERIALS, DEFAULT_PRESSURE_MPA, garment_band, leg_slice_deck,
-                                  leg_slice_mesh, leg_slice_mesh_for_dof)
+from orchestrator.meshing import (
+    DEFAULT_MATERIALS,
+    DEFAULT_PRESSURE_MPA,
+    garment_band,
+    leg_slice_deck,
+    leg_slice_mesh,
+    leg_slice_mesh_for_dof,
+)
 from orchestrator.meshing.garment import neo_hooke_D1  # noqa: E402
 
 NEARLY_INCOMPRESSIBLE_NU = 0.499
@@ -572,8 +584,8 @@ def grouped_sensitivities(args, root: Path) -> None:
     `*SENSITIVITY, NAME=` column per parameter) against the same member lines asked one column each, as before such
     blocks: wall time of the whole run (the path carries every column through friction) and
     max |du_combined - sum w du_line| / max |du|."""
-    from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
     from orchestrator.engine.results import EngineResults, sensitivity_name
+    from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
 
     mesh = leg_slice_mesh(args.garment_elements, order=2)
     for effect in ("local", "heterogeneity"):
@@ -623,7 +635,7 @@ def second_paper(args, root: Path) -> None:
 
 
 def _with_mesh(folder: Path, text: str, model) -> Path:
-    from orchestrator.model.forward import write_mesh_include
+    from orchestrator.engine.runner import write_mesh_include
 
     write_mesh_include(model, folder)
     return write_leg_deck(folder, text)

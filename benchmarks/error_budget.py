@@ -77,18 +77,34 @@ from matplotlib.tri import Triangulation
 from scipy import ndimage
 from skimage import io
 
-from orchestrator.case.folder import BONE, FAT, MUSCLE
-from orchestrator.measure.dic import edge_strength, spline_gradient, zero_normalised_steepest_descent
 from orchestrator.core.frame import RigidMotion
-from orchestrator.measure.prefilter import Prefilter, rician_variance_ratio
-from orchestrator.phantom import CalfPhantom, MRIPhantom, as_displacement_fn, material_points
-from orchestrator.phantom.appearance import add_rician_noise
-from orchestrator.phantom.truths import random_truth
-from orchestrator.run.stages import run_measure
-from orchestrator.run.setup import load_run, make_phantom_case
+from orchestrator.core.tissues import BONE, FAT, MUSCLE
+from orchestrator.measure.dic import (
+    edge_strength,
+    spline_gradient,
+    zero_normalised_steepest_descent,
+)
 from orchestrator.measure.measurements import loaded_index_map, read_window_table
-from orchestrator.measure.verification import (band_errors, band_masks, errors_against, field_from_mesh_file,
-                                               symmetric_roots, without_rigid_motion)
+from orchestrator.measure.prefilter import Prefilter, rician_variance_ratio
+from orchestrator.measure.verification import (
+    band_errors,
+    band_masks,
+    errors_against,
+    field_from_mesh_file,
+    symmetric_roots,
+    without_rigid_motion,
+)
+from orchestrator.phantom import (
+    CalfPhantom,
+    MRIPhantom,
+    as_displacement_fn,
+    material_points,
+)
+from orchestrator.phantom.appearance import add_rician_noise
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import random_truth
+from orchestrator.run.setup import load_run
+from orchestrator.run.stages import run_measure
 
 RENDERER_MOTION = RigidMotion(-1.2, (1.1, 0.7), (75.6, 75.6))
 SKIN_REACH_PX = 3        # pixels of the air and the leg counted as the skin's edge

@@ -26,14 +26,14 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from orchestrator.engine.decks import leg_garment_deck
-from orchestrator.model.forward import LegModel, MeshInterpolator, _barycentric, write_mesh_include
 from orchestrator.core.materials import deck_material
-from orchestrator.fit.objectives import leg_rows
-from orchestrator.phantom import CalfPhantom
+from orchestrator.engine.decks import leg_garment_deck
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import run_engine
-from orchestrator.run.setup import truth_mesh
+from orchestrator.engine.runner import run_engine, write_mesh_include
+from orchestrator.fit.objectives import leg_rows
+from orchestrator.model.forward import LegModel, MeshInterpolator, _barycentric
+from orchestrator.phantom import CalfPhantom
+from orchestrator.phantom.mesh import truth_mesh
 
 THETA_KPA = (3.4, 14.1, 85.0, 52.0)
 TENSION_N_PER_MM = 0.16

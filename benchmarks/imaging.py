@@ -31,18 +31,29 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from orchestrator.imaging.align import align_on_bones
-from orchestrator.measure.dic import correlate, roi_centres
 from orchestrator.core.frame import RigidMotion, displacement_on_grid
+from orchestrator.imaging.align import align_on_bones
 from orchestrator.imaging.mismatch import ContourMismatch
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.imaging.warp import warp_image
-from orchestrator.phantom import (CalfPhantom, MRIPhantom, T1Contrast, bone_clamped_compression, make_loaded_image,
-                                  render_unloaded)
+from orchestrator.measure.dic import correlate, roi_centres
+from orchestrator.measure.verification import (
+    band_errors,
+    errors_against,
+    field_from_truth_file,
+)
+from orchestrator.phantom import (
+    CalfPhantom,
+    MRIPhantom,
+    T1Contrast,
+    bone_clamped_compression,
+    make_loaded_image,
+    render_unloaded,
+)
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.phantom.truths import random_truth
+from orchestrator.run.setup import load_run
 from orchestrator.run.stages import run_measure
-from orchestrator.run.setup import load_run, make_phantom_case
-from orchestrator.measure.verification import band_errors, errors_against, field_from_truth_file
 
 
 def best_of(function, repeats: int = 5) -> tuple[float, object]:

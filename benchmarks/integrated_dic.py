@@ -36,16 +36,17 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.model.forward import LEG_PARAMETERS, MeshInterpolator
-from orchestrator.fit.identify import residual_jacobian
 from orchestrator.core.frame import RigidMotion
-from orchestrator.fit.integrated import IntegratedDIC, identify_integrated
-from orchestrator.meshing.mesh import Mesh
-from orchestrator.phantom import CalfPhantom, MRIPhantom
-from orchestrator.phantom.truths import random_truth
-from orchestrator.run.stages import DEFAULT_MESH, run_identify
 from orchestrator.engine.runner import Evaluator
-from orchestrator.run.setup import make_phantom_case, prepare_run
+from orchestrator.fit.identify import residual_jacobian
+from orchestrator.fit.integrated import identify_integrated
+from orchestrator.meshing.mesh import Mesh
+from orchestrator.model.forward import LEG_PARAMETERS, MeshInterpolator
+from orchestrator.phantom import CalfPhantom, MRIPhantom
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import random_truth
+from orchestrator.run.setup import prepare_run
+from orchestrator.run.stages import DEFAULT_MESH, run_identify
 
 FOREIGN = Path("/work/shared/foreign-cases")
 FOREIGN_EFFECTS = {"blind-04": ["unloaded_curvature"], "blind-01": ["unloaded_curvature", "drainage"]}

@@ -23,10 +23,20 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from orchestrator.phantom.kspace3d import (LegMotion, build_phantom, leg_mesh_3d, make_kspace_case,
-                                           plane_strain_difference, solve_leg3d)
+from orchestrator.phantom.kspace3d import (
+    LegMotion,
+    build_phantom,
+    leg_mesh_3d,
+    make_kspace_case,
+    plane_strain_difference,
+    solve_leg3d,
+)
 from orchestrator.phantom.kspace3d.case import FINE_LAYERING  # noqa: E402
-from orchestrator.phantom.kspace3d.mechanics3d import DEFAULT_SECTION_ELEMENTS, FINE_SECTION_ELEMENTS, Layering
+from orchestrator.phantom.kspace3d.mechanics3d import (
+    DEFAULT_SECTION_ELEMENTS,
+    FINE_SECTION_ELEMENTS,
+    Layering,
+)
 
 THETA_KPA = (5.0, 13.0, 85.0, 65.0)
 TENSION = 0.15

@@ -32,13 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.model.forward import LEG_PARAMETERS
-from orchestrator.fit.geometry_uncertainty import skin_perimeter_mm
 from orchestrator.core.frame import RigidMotion
-from orchestrator.run.stages import run_identify, run_montecarlo
-from orchestrator.engine.results import MMHG_PER_KPA
+from orchestrator.core.units import MMHG_PER_KPA
+from orchestrator.fit.geometry_uncertainty import skin_perimeter_mm
+from orchestrator.model.forward import LEG_PARAMETERS
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.phantom.truths import random_truth
-from orchestrator.run.setup import load_run, make_phantom_case
+from orchestrator.run.setup import load_run
+from orchestrator.run.stages import run_identify, run_montecarlo
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 FIRST_TENSION = 0.16   # N/mm
@@ -109,7 +110,7 @@ def one_truth(seed: int, second_tension: float, draws: int, workers: int, keep: 
               f"{w2 / w1:9.2f}")
     inside = {label: [lo <= t <= hi for lo, t, hi in zip(r["montecarlo"]["lower"], truth, r["montecarlo"]["upper"])]
               for label, r in results.items()}
-    print(f"truth inside its 95 % interval: " + "; ".join(
+    print("truth inside its 95 % interval: " + "; ".join(
         f"{label} {sum(flags)}/{len(flags)}" for label, flags in inside.items()))
     print()
     for label, r in results.items():

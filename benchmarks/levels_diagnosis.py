@@ -37,11 +37,16 @@ from pathlib import Path
 
 from levels import first_level_only
 
-from orchestrator.core.frame import RigidMotion
-from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES, random_truth
-from orchestrator.run.stages import run_diagnose, run_identify
 from orchestrator.core.files import write_json
-from orchestrator.run.setup import make_phantom_case
+from orchestrator.core.frame import RigidMotion
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import (
+    SECOND_PAPER_FIT_TABLES,
+    SECOND_PAPER_KPA,
+    SECOND_PAPER_TISSUES,
+    random_truth,
+)
+from orchestrator.run.stages import run_diagnose, run_identify
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 FIRST_TENSION = 0.16   # N/mm

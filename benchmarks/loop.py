@@ -25,12 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.model.forward import TABLE2_CENTRAL_KPA
-from orchestrator.fit.identify import nelder_mead, pressure_uncertainty
 from orchestrator.core.frame import RigidMotion
-from orchestrator.run.stages import run_diagnose, run_identify
 from orchestrator.engine.runner import Evaluator
-from orchestrator.run.setup import make_phantom_case, prepare_run, read_json
+from orchestrator.fit.identify import nelder_mead, pressure_uncertainty
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.run.setup import prepare_run, read_json
+from orchestrator.run.stages import run_diagnose, run_identify
 
 
 def main() -> None:

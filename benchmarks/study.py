@@ -21,11 +21,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from orchestrator.study.cohort import ROW_FILE, STAGES, CaseOptions, run_study  # noqa: E402
-from orchestrator.core.frame import RigidMotion  # noqa: E402
-from orchestrator.phantom.truths import random_truth  # noqa: E402
 from orchestrator.core.files import read_json  # noqa: E402
-from orchestrator.run.setup import make_phantom_case  # noqa: E402
+from orchestrator.core.frame import RigidMotion  # noqa: E402
+from orchestrator.phantom.cases import make_phantom_case  # noqa: E402
+from orchestrator.phantom.truths import random_truth  # noqa: E402
+from orchestrator.study.cohort import ROW_FILE, STAGES, CaseOptions, run_study  # noqa: E402
 
 TARGET_SPEEDUP = 1.8
 

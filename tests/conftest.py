@@ -8,8 +8,8 @@ import shutil
 
 import pytest
 
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.run.stages import run_identify
-from orchestrator.run.setup import make_phantom_case
 
 HIDDEN_DRAINAGE = {"drainage": {"dv_muscle": -0.05}}
 

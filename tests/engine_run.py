@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from orchestrator.core.errors import ResultsError
 from orchestrator.engine.locate import find_engine
-from orchestrator.engine.results import EngineResults, ResultsError
+from orchestrator.engine.results import EngineResults
 
 ENGINE_TIMEOUT_S = 300.0
 

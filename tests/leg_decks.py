@@ -9,8 +9,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-
 from engine_run import node_to_surface
+
 from orchestrator.engine.decks import MESH_INCLUDE_NAME, leg_garment_deck
 from orchestrator.meshing import DEFAULT_MATERIALS, leg_slice_deck
 from orchestrator.meshing.mesh import FACE_CORNERS

@@ -24,16 +24,22 @@ import meshio
 import numpy as np
 import pytest
 
-from orchestrator.fit.identify import MIN_NOISE_DRAWS
 from orchestrator.case.folder import ModelChoice, read_model_choice
 from orchestrator.core.errors import CaseError
+from orchestrator.core.files import read_json
 from orchestrator.core.frame import RigidMotion
 from orchestrator.core.materials import TissueLaw
+from orchestrator.fit.identify import MIN_NOISE_DRAWS
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.report.paraview import write_paraview
-from orchestrator.run.stages import run_diagnose, run_identify, run_montecarlo, run_pressures
 from orchestrator.report.run_report import write_report
-from orchestrator.core.files import read_json
-from orchestrator.run.setup import load_run, make_phantom_case
+from orchestrator.run.setup import load_run
+from orchestrator.run.stages import (
+    run_diagnose,
+    run_identify,
+    run_montecarlo,
+    run_pressures,
+)
 
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # C10 fat, C10 muscle, Kv fat, Kv muscle; the start is Table 2's (4.5, 11.2, 106, 69.5)
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from orchestrator.cli import main
-from orchestrator.meshing import leg_slice_deck
+from orchestrator.core.errors import DeckRejected, EngineFailed
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import ENGINE_LOG, DeckRejected, EngineFailed, run_engine
+from orchestrator.engine.runner import ENGINE_LOG, run_engine
+from orchestrator.meshing import leg_slice_deck
 
 
 @pytest.fixture(scope="module")

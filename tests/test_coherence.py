@@ -6,7 +6,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from orchestrator.imaging.coherence import SAME_TISSUE, coherence_sentence, texture_coherence
+from orchestrator.imaging.coherence import (
+    SAME_TISSUE,
+    coherence_sentence,
+    texture_coherence,
+)
 
 SHAPE = (192, 192)
 NOISE = 0.02

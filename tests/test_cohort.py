@@ -15,11 +15,11 @@ import shutil
 import numpy as np
 import pytest
 
-from orchestrator.study.cohort import FAILED, ROW_FILE, CaseOptions, run_study
-from orchestrator.phantom.truths import random_truth
-from orchestrator.core.files import RunFolderError
+from orchestrator.core.errors import RunFolderError
 from orchestrator.engine.runner import LOG_NAME
-from orchestrator.run.setup import make_phantom_case
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import random_truth
+from orchestrator.study.cohort import FAILED, ROW_FILE, CaseOptions, run_study
 
 OPTIONS = CaseOptions(n_elements=400, draws=20, stages=("identify", "montecarlo"))
 

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.study.cohort import ROW_FILE, CaseOptions, run_study
-from orchestrator.phantom.truths import random_truth
 from orchestrator.engine.runner import LOG_NAME
-from orchestrator.run.setup import make_phantom_case
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import random_truth
+from orchestrator.study.cohort import ROW_FILE, CaseOptions, run_study
 
 pytestmark = pytest.mark.slow
 

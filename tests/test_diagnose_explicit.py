@@ -19,13 +19,14 @@ import numpy as np
 import pytest
 from hidden_physics import assert_found_or_nothing, identified_and_diagnosed
 
-from orchestrator.diagnose.diagnosis import candidate_effects, garment_model
-from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel, write_mesh_include
 from orchestrator.core.frame import RigidMotion
-from orchestrator.phantom import CalfPhantom
+from orchestrator.diagnose.diagnosis import candidate_effects, garment_model
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import run_engine
-from orchestrator.run.setup import make_phantom_case, truth_mesh
+from orchestrator.engine.runner import run_engine, write_mesh_include
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
+from orchestrator.phantom import CalfPhantom
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.mesh import truth_mesh
 
 TENSION = 0.16   # N/mm
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # not the fit's start (Table 2: 4.5, 11.2, 106, 69.5)

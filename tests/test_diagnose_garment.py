@@ -16,14 +16,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.engine.decks import sensitivity_blocks
-from orchestrator.diagnose.diagnosis import candidate_effects, garment_model, refit_model
-from orchestrator.model.forward import LegModel
 from orchestrator.core.frame import RigidMotion
+from orchestrator.diagnose.diagnosis import (
+    candidate_effects,
+    garment_model,
+    refit_model,
+)
+from orchestrator.engine.decks import sensitivity_blocks
+from orchestrator.model.forward import LegModel
 from orchestrator.phantom import CalfPhantom
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.phantom.geometry import CalfGeometry, CalfShape
+from orchestrator.phantom.mesh import truth_mesh
 from orchestrator.run.stages import run_diagnose, run_identify
-from orchestrator.run.setup import make_phantom_case, truth_mesh
 
 TRUTH_KPA = (3.4, 14.1, 85.0, 52.0)   # not the fit's start (Table 2: 4.5, 11.2, 106, 69.5)
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
@@ -183,11 +188,11 @@ def test_the_bands_runs_beside_the_probe_give_the_columns_they_give_one_after_th
     bridging and friction columns to the last digit, two runs each, and every line of the shared log whole."""
     import json
 
-    from orchestrator.diagnose.diagnosis import GarmentRuns, garment_columns
     from orchestrator.case.folder import DisplacementPoints
-    from orchestrator.measure.measurements import points_measurements
-    from orchestrator.fit.objectives import DisplacementResidualObjective
+    from orchestrator.diagnose.diagnosis import GarmentRuns, garment_columns
     from orchestrator.engine.runner import Evaluator
+    from orchestrator.fit.objectives import DisplacementResidualObjective
+    from orchestrator.measure.measurements import points_measurements
 
     places = leg_mesh.nodes[:: max(1, len(leg_mesh.nodes) // 40)]
     measured = points_measurements(DisplacementPoints(places, np.zeros_like(places), np.full(len(places), 0.01)))

@@ -14,23 +14,30 @@ calfit's own mesh of I0, image noise, a rigid scanner motion, displacements meas
 - the control (no effect, `test_diagnose_hidden`) proposes no patch.
 """
 
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel, write_mesh_include
-from orchestrator.model.heterogeneity import SECTOR_DEG, SECTORS, element_geometry, mesh_groups, patch_candidates
-from orchestrator.imaging.compartments import FIRST_COMPARTMENT, find_compartments
 from orchestrator.core.frame import RigidMotion
-from orchestrator.imaging.segment import segment_t1
-from orchestrator.phantom import CalfPhantom, T1Contrast
-from orchestrator.phantom.render import render_unloaded
-from orchestrator.run.stages import run_diagnose, run_identify
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import run_engine
-from orchestrator.run.setup import load_run, make_phantom_case, truth_mesh
+from orchestrator.engine.runner import run_engine, write_mesh_include
+from orchestrator.imaging.compartments import FIRST_COMPARTMENT, find_compartments
+from orchestrator.imaging.segment import segment_t1
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
+from orchestrator.model.heterogeneity import (
+    SECTOR_DEG,
+    SECTORS,
+    element_geometry,
+    mesh_groups,
+    patch_candidates,
+)
+from orchestrator.phantom import CalfPhantom, T1Contrast
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.mesh import truth_mesh
+from orchestrator.phantom.render import render_unloaded
+from orchestrator.run.setup import load_run
+from orchestrator.run.stages import run_diagnose, run_identify
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 
@@ -191,7 +198,10 @@ def test_the_stiffness_field_is_read_by_tissue_and_quarter_of_the_leg(compartmen
     three times stiffer at the top of the image (sin theta = 1, anterior in this frame) and a third at the bottom,
     the anterior quarter is the stiffest, the posterior the softest, lateral and medial alike between them, and the
     fat, whose modes are zero, keeps its constant."""
-    from orchestrator.model.heterogeneity import stiffness_field_kpa, stiffness_field_text
+    from orchestrator.model.heterogeneity import (
+        stiffness_field_kpa,
+        stiffness_field_text,
+    )
     from orchestrator.model.regions import LegFrame
 
     model = LegModel(compartment_mesh, 0.16, effects=("heterogeneity",))

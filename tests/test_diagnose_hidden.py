@@ -28,14 +28,14 @@ Measured (this machine, engine sensitivities), misfit / floor: see the issue not
 import re
 
 import pytest
-
-from orchestrator.diagnose.diagnosis import ALPHA
-from orchestrator.core.frame import RigidMotion
-from orchestrator.run.stages import run_diagnose, run_identify
-from orchestrator.model.regions import SECTORS
-from orchestrator.run.setup import make_phantom_case
 from hidden_physics import OEDEMA_SECTOR_DEG, oedema
 from renderers import RENDERERS, phantom
+
+from orchestrator.core.frame import RigidMotion
+from orchestrator.diagnose.diagnosis import ALPHA
+from orchestrator.model.regions import SECTORS
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.run.stages import run_diagnose, run_identify
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 # How much of the hidden effect's drop in misfit (and in BIC) a wrong effect may take. DIC measures relative to the

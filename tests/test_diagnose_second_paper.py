@@ -43,12 +43,21 @@ import re
 from functools import partial
 
 import pytest
-from hidden_physics import OEDEMA_SECTOR_DEG, assert_found_or_nothing, identified_and_diagnosed, oedema
+from hidden_physics import (
+    OEDEMA_SECTOR_DEG,
+    assert_found_or_nothing,
+    identified_and_diagnosed,
+    oedema,
+)
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES
 from orchestrator.model.regions import SECTORS
-from orchestrator.run.setup import make_phantom_case
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import (
+    SECOND_PAPER_FIT_TABLES,
+    SECOND_PAPER_KPA,
+    SECOND_PAPER_TISSUES,
+)
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 SECTOR_DEG = 360.0 / SECTORS

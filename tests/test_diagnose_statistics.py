@@ -6,15 +6,27 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose.diagnosis import (EXPLAINED_FACTOR, FLOOR_AGREEMENT, Diagnosis, EffectScore, Refit,
-                                             design_effect, information_criteria, local_refit_unneeded,
-                                             neighbour_correlation, refit_verdict, residual_maps, score_effect, settled)
-from orchestrator.model.forward import ParameterSpace, annulus_mesh
-from orchestrator.fit.identify import linearised_standard_errors
-from orchestrator.measure.measurements import Measurements
-from orchestrator.fit.objectives import DisplacementResidualObjective
-from orchestrator.model.regions import LegFrame
+from orchestrator.diagnose.diagnosis import (
+    EXPLAINED_FACTOR,
+    FLOOR_AGREEMENT,
+    Diagnosis,
+    EffectScore,
+    Refit,
+    design_effect,
+    information_criteria,
+    local_refit_unneeded,
+    neighbour_correlation,
+    refit_verdict,
+    residual_maps,
+    score_effect,
+    settled,
+)
 from orchestrator.engine.runner import OK
+from orchestrator.fit.identify import linearised_standard_errors
+from orchestrator.fit.objectives import DisplacementResidualObjective
+from orchestrator.measure.measurements import Measurements
+from orchestrator.model.forward import ParameterSpace, annulus_mesh
+from orchestrator.model.regions import LegFrame
 
 
 def _linear_problem(seed=0, n=400, p=4):

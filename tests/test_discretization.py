@@ -11,11 +11,12 @@ from __future__ import annotations
 import pytest
 
 from orchestrator.core.frame import RigidMotion
+from orchestrator.engine.runner import LOG_NAME, EvaluationLog
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.phantom.truths import random_truth
 from orchestrator.run import stages as pipeline
+from orchestrator.run.setup import load_run
 from orchestrator.run.stages import run_identify
-from orchestrator.engine.runner import LOG_NAME, EvaluationLog
-from orchestrator.run.setup import load_run, make_phantom_case
 
 
 @pytest.fixture(scope="module")

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from orchestrator.cli import COMMANDS, build_parser
 from orchestrator.case.folder import _TOML_SCHEMA
+from orchestrator.cli import COMMANDS, build_parser
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCUMENTS = [ROOT / "README.md", ROOT / "solver_cpp" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]

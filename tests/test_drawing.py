@@ -4,8 +4,14 @@ scanner's and from anti-aliased ones, and the error of intensity such a drawing 
 import numpy as np
 import pytest
 
-from orchestrator.case.folder import FAT, MUSCLE
-from orchestrator.measure.drawing import Boundary, covered, crossings, detect_point_sampling, drawing_error
+from orchestrator.core.tissues import FAT, MUSCLE
+from orchestrator.measure.drawing import (
+    Boundary,
+    covered,
+    crossings,
+    detect_point_sampling,
+    drawing_error,
+)
 from orchestrator.phantom.appearance import add_rician_noise
 
 SHAPE = (220, 220)
@@ -78,14 +84,14 @@ def test_calfits_second_renderer_point_sampled_is_found_and_anti_aliased_is_not(
     renderer's drawing; the skin as bright as fat, so that the steps of 1/9 rise above the noise) or with the share it
     covers (its default): `calfit measure` finds the first point-sampled, with 3 x 3 samples, and adds its drawing's
     error to the windows' covariance, and leaves the second as it is."""
+    from orchestrator.core.files import read_json
     from orchestrator.core.frame import RigidMotion
     from orchestrator.measure.measurements import read_window_table
     from orchestrator.phantom import MRIPhantom
+    from orchestrator.phantom.cases import make_phantom_case
     from orchestrator.phantom.mri.scanner import MRIContrast
     from orchestrator.phantom.truths import random_truth
     from orchestrator.run.stages import run_measure
-    from orchestrator.core.files import read_json
-    from orchestrator.run.setup import make_phantom_case
 
     phantom = MRIPhantom.at_resolution(0.36, anti_aliased=anti_aliased, contrast=MRIContrast(skin=0.9))
     case, _ = make_phantom_case(tmp_path / "case", phantom=phantom, theta_kPa=random_truth(5), n_elements=3000,

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law, annulus
 from engine_run import run_engine
 from fe_cases import deck, l2_error, ring

@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law, annulus, stretches_for_stress
 from engine_run import run_ccx, run_engine
 from fe_cases import ring, unit_square

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_run import ccx_available, ccx_displacement_array, run_ccx, run_engine
 from fe_cases import _grid_triangles, _ids, boundary_faces, fmt, ring
 

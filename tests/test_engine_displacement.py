@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law, stretch_for_stress_given_other
 from engine_run import ccx_available, ccx_displacement_array, run_ccx, run_engine
 from fe_cases import deck, unit_square

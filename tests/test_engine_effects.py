@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import (
     Law,
     clamped_growth_pressure,

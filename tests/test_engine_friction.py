@@ -32,7 +32,6 @@ import shutil
 
 import numpy as np
 import pytest
-
 from engine_run import CCX, node_to_surface, run_ccx, run_engine
 from fe_cases import _grid_triangles, _ids, boundary_faces, fmt
 

@@ -5,8 +5,8 @@
 import re
 
 import pytest
-
 from fuzz_decks import fuzz, mutate
+
 from orchestrator.engine.locate import find_engine
 
 INPUTS = 2000

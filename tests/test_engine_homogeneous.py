@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law, stretches_for_stress
 from engine_run import run_engine
 from fe_cases import deck, unit_square

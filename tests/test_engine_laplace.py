@@ -17,11 +17,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.interpolate import CubicSpline
-
 from engine_closed_forms import Law, annulus
 from engine_run import run_engine
 from fe_cases import deck, l2_error, ring
+from scipy.interpolate import CubicSpline
 
 LAW = Law("AVRIL", (1.0, 10.0))
 T = 1.0

@@ -35,12 +35,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law
 from engine_run import ccx_displacement_array, run_ccx, run_engine
 from fe_cases import deck, face_nodes, fmt, ring
-from orchestrator.meshing import leg_slice_deck, leg_slice_mesh
+
 from orchestrator.engine.results import EngineResults
+from orchestrator.meshing import leg_slice_deck, leg_slice_mesh
 
 LAW = Law("AVRIL", (1.0, 10.0))
 TENSION = 0.16  # N/mm on the leg (p about 3 kPa)

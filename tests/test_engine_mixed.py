@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law
 from engine_run import ccx_available, ccx_displacement_array, run_ccx, run_engine
 from fe_cases import cook_membrane, deck, edge_loads, ring, unit_square

@@ -20,12 +20,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from scipy import optimize
-
 from engine_closed_forms import Law, stretch_for_stress_given_other
 from engine_run import run_engine
 from fe_cases import deck, ring, unit_square
+from scipy import optimize
 
 FLOOR = 1e-13  # relative residuals below this are round-off
 C_QUAD = 10.0

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from engine_closed_forms import Law, patch_linear_stress
 from engine_run import run_engine
 from fe_cases import deck, macneal_harder_patch

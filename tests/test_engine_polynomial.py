@@ -32,10 +32,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from engine_closed_forms import Law, full_gradient, stretch_for_stress_given_other, stretches_for_stress
+from engine_closed_forms import (
+    Law,
+    full_gradient,
+    stretch_for_stress_given_other,
+    stretches_for_stress,
+)
 from engine_run import run_ccx, run_engine
 from fe_cases import cook_membrane, deck, edge_loads, fmt, unit_square
+
 from orchestrator.engine.results import EngineResults
 
 REFERENCE = Path(__file__).resolve().parent / "ccx_reference" / "polynomial"

@@ -49,11 +49,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from engine_run import run_engine
+
+from orchestrator.core.errors import ResultsError
 from orchestrator.engine.locate import find_engine
+from orchestrator.engine.results import EngineResults
 from orchestrator.meshing import leg_slice_deck, leg_slice_mesh
-from orchestrator.engine.results import EngineResults, ResultsError
 
 TENSION = 0.16  # N/mm
 PROFILE = {1: (0.1, 0.05)}  # k -> (a_k, b_k): B2 is not listed
@@ -498,7 +499,11 @@ def _band_sensitivities_against_differences(tmp_path: Path, step: float, frictio
     PROFILE) and SHAPE's (the skin's nodes moved), differenced by +-gap_step mm."""
     from dataclasses import replace
 
-    from orchestrator.engine.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
+    from orchestrator.engine.decks import (
+        MESH_INCLUDE_NAME,
+        StepEffects,
+        leg_garment_deck,
+    )
     from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
 
     leg = leg_slice_mesh(400, order=2)
@@ -617,7 +622,11 @@ def test_a_named_block_is_one_parameter_the_weighted_sum_of_its_lines(tmp_path, 
     pressures."""
     from dataclasses import replace
 
-    from orchestrator.engine.decks import MESH_INCLUDE_NAME, StepEffects, leg_garment_deck
+    from orchestrator.engine.decks import (
+        MESH_INCLUDE_NAME,
+        StepEffects,
+        leg_garment_deck,
+    )
     from orchestrator.meshing import DEFAULT_MATERIALS, garment_band
 
     leg = leg_slice_mesh(400, order=2)

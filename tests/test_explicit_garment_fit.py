@@ -19,14 +19,23 @@ import json
 import numpy as np
 import pytest
 
-from orchestrator.model.forward import (LEG_PARAMETERS, TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator,
-                                        write_mesh_include)
-from orchestrator.fit.identify import levenberg_marquardt
 from orchestrator.core.materials import AVRIL_BOUNDS_KPA
-from orchestrator.meshing import leg_slice_mesh
-from orchestrator.fit.objectives import DisplacementResidualObjective
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import LOG_NAME, Evaluator, run_engine
+from orchestrator.engine.runner import (
+    LOG_NAME,
+    Evaluator,
+    run_engine,
+    write_mesh_include,
+)
+from orchestrator.fit.identify import levenberg_marquardt
+from orchestrator.fit.objectives import DisplacementResidualObjective
+from orchestrator.meshing import leg_slice_mesh
+from orchestrator.model.forward import (
+    LEG_PARAMETERS,
+    TABLE2_CENTRAL_KPA,
+    LegModel,
+    MeshInterpolator,
+)
 
 TENSION = 0.16  # N/mm
 SIGMA_MM = 0.02

@@ -12,7 +12,12 @@ import numpy as np
 import pytest
 
 from orchestrator.core.errors import ImagingError
-from orchestrator.imaging.field_checks import MAX_GROWTH, MISSING_MARGIN_MM, check_compression, check_leg_in_view
+from orchestrator.imaging.field_checks import (
+    MAX_GROWTH,
+    MISSING_MARGIN_MM,
+    check_compression,
+    check_leg_in_view,
+)
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.phantom import CalfPhantom, write_case
 from orchestrator.run.setup import prepare_run

@@ -27,15 +27,29 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from engine_run import run_engine
 from scipy.ndimage import gaussian_filter1d
 from skimage.measure import points_in_poly
 
-from engine_run import run_engine
-from orchestrator.engine.decks import (GARMENT_PENALTY_MPA_PER_MM, GARMENT_STEPS, MESH_INCLUDE_NAME, leg_garment_deck,
-                                       leg_laplace_deck)
-from orchestrator.meshing import (DEFAULT_MATERIALS, LegSliceGeometry, SpacingRules, band_constants_for_tension,
-                                  band_hoop_tension, garment_band, leg_slice_geometry, leg_slice_mesh, mesh_curves,
-                                  signed_areas)
+from orchestrator.engine.decks import (
+    GARMENT_PENALTY_MPA_PER_MM,
+    GARMENT_STEPS,
+    MESH_INCLUDE_NAME,
+    leg_garment_deck,
+    leg_laplace_deck,
+)
+from orchestrator.meshing import (
+    DEFAULT_MATERIALS,
+    LegSliceGeometry,
+    SpacingRules,
+    band_constants_for_tension,
+    band_hoop_tension,
+    garment_band,
+    leg_slice_geometry,
+    leg_slice_mesh,
+    mesh_curves,
+    signed_areas,
+)
 
 N_ELEMENTS = 1000
 CURVATURE_SIGMA_SAMPLES = 2.0
@@ -290,7 +304,8 @@ def test_a_stiffer_band_on_tissues_as_much_stiffer_moves_the_leg_the_same(leg, t
     the same; only the contact penalty, which is not scaled, differs (measured: 3.3 um of 0.98 mm here; on a 600-element
     leg 3.5 um of 0.99 mm frictionless, 3.1 um of 0.83 mm at mu = 0.3). Displacements cannot tell the band's stiffness
     from the tissues' scale."""
-    from orchestrator.model.forward import LegModel, write_mesh_include
+    from orchestrator.engine.runner import write_mesh_include
+    from orchestrator.model.forward import LegModel
 
     theta, tension = np.array([3.1, 14.0, 90.0, 120.0]), 0.16
     model = LegModel(leg, tension, garment="explicit")

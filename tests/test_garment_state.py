@@ -17,16 +17,16 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from skimage.measure import points_in_poly
-
 from engine_run import run_engine
-from orchestrator.engine.decks import GARMENT_STEPS, MESH_INCLUDE_NAME, leg_garment_deck
-from orchestrator.model.garment_state import OPEN, SLIPPING, STICKING, band_state
-from orchestrator.imaging.segment import FAT
-from orchestrator.meshing import DEFAULT_MATERIALS, garment_band, leg_slice_mesh
-from orchestrator.model.regions import LegFrame
-from orchestrator.engine.results import EngineResults
+from skimage.measure import points_in_poly
 from test_garment import dented_leg_mesh
+
+from orchestrator.core.tissues import FAT
+from orchestrator.engine.decks import GARMENT_STEPS, MESH_INCLUDE_NAME, leg_garment_deck
+from orchestrator.engine.results import EngineResults
+from orchestrator.meshing import DEFAULT_MATERIALS, garment_band, leg_slice_mesh
+from orchestrator.model.garment_state import OPEN, SLIPPING, STICKING, band_state
+from orchestrator.model.regions import LegFrame
 
 N_ELEMENTS = 1000
 PIXEL_MM = 0.5
@@ -112,7 +112,8 @@ def test_a_band_knitted_unevenly_keeps_an_uneven_hoop_force_where_friction_holds
     times 1 + 0.05 cos phi. Held at mu = 0.3, the band keeps a hoop force lower where it is longer (measured: the
     force's cos phi part -0.025 N/mm of 0.149, -17 %); at mu = 0.02 it slips (half the skin) until the force is nearly
     even again (-0.002 N/mm). Either way within the capstan bound, max T / min T <= exp(mu 2 pi)."""
-    from orchestrator.model.forward import LegModel, write_mesh_include
+    from orchestrator.engine.runner import write_mesh_include
+    from orchestrator.model.forward import LegModel
 
     theta = [3.1, 14.0, 90.0, 120.0]
     harmonic = {}

@@ -16,15 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from orchestrator.model.forward import LEG_PARAMETERS
-from orchestrator.core.frame import RigidMotion
-from orchestrator.run.stages import run_identify, run_montecarlo
-from orchestrator.phantom.truths import random_truth
-from orchestrator.engine.runner import LOG_NAME
-from orchestrator.run.setup import make_phantom_case
 from intervals import assert_error_is_a_draw
 from renderers import phantom
+
+from orchestrator.core.frame import RigidMotion
+from orchestrator.engine.runner import LOG_NAME
+from orchestrator.model.forward import LEG_PARAMETERS
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import random_truth
+from orchestrator.run.stages import run_identify, run_montecarlo
 
 SCANNER_MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.0, 75.0))
 FAST = (("calf", 1),)

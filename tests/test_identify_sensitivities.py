@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from orchestrator.model.forward import TABLE2_CENTRAL_KPA
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.run.stages import run_identify
-from orchestrator.run.setup import make_phantom_case
 
 START_KPA = (np.array(TABLE2_CENTRAL_KPA) * np.array([1.3, 0.8, 0.8, 1.25])).tolist()   # off the truth
 

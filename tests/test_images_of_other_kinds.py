@@ -25,12 +25,12 @@ import re
 
 import numpy as np
 import pytest
+from hidden_physics import assert_found_or_nothing, identified_and_diagnosed
+from renderers import phantom
 from skimage import io, transform
 
-from hidden_physics import assert_found_or_nothing, identified_and_diagnosed
 from orchestrator.core.frame import RigidMotion
-from orchestrator.run.setup import make_phantom_case
-from renderers import phantom
+from orchestrator.phantom.cases import make_phantom_case
 
 SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 IMAGES = ("unloaded.png", "loaded.png")

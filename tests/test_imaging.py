@@ -9,17 +9,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from scipy import ndimage
 
-from orchestrator.imaging.align import align_on_bones, kabsch_2d, resample_rigid
-from orchestrator.measure.dic import correlate, grid_centres, roi_centres
 from orchestrator.core.frame import RigidMotion, displacement_on_grid
+from orchestrator.imaging.align import align_on_bones, kabsch_2d, resample_rigid
 from orchestrator.imaging.mismatch import ContourMismatch, contour_pixels
 from orchestrator.imaging.segment import dice, segment_t1
 from orchestrator.imaging.warp import warp_image, warp_labels
-from orchestrator.phantom import (CalfPhantom, T1Contrast, bone_clamped_compression, loaded_labels, make_loaded_image,
-                                  render_unloaded)
+from orchestrator.measure.dic import correlate, grid_centres, roi_centres
+from orchestrator.phantom import (
+    CalfPhantom,
+    T1Contrast,
+    bone_clamped_compression,
+    loaded_labels,
+    make_loaded_image,
+    render_unloaded,
+)
 
 PIXEL = 0.36
 

@@ -14,17 +14,21 @@ import copy
 import numpy as np
 import pytest
 
-from orchestrator.model.forward import (TABLE2_CENTRAL_KPA, LegModel, MeshInterpolator, field_on_pixels,
-                                        write_mesh_include)
-from orchestrator.fit.identify import levenberg_marquardt, residual_jacobian
 from orchestrator.core.frame import RigidMotion, pixel_centres_mm
-from orchestrator.fit.integrated import IntegratedDIC
-from orchestrator.meshing import mesh_from_labels
-from orchestrator.fit.objectives import leg_rows
-from orchestrator.phantom import CalfPhantom, make_loaded_image, render_unloaded
-from orchestrator.model.regions import LegFrame
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import Evaluator, run_engine
+from orchestrator.engine.runner import Evaluator, run_engine, write_mesh_include
+from orchestrator.fit.identify import levenberg_marquardt, residual_jacobian
+from orchestrator.fit.integrated import IntegratedDIC
+from orchestrator.fit.objectives import leg_rows
+from orchestrator.meshing import mesh_from_labels
+from orchestrator.model.forward import (
+    TABLE2_CENTRAL_KPA,
+    LegModel,
+    MeshInterpolator,
+    field_on_pixels,
+)
+from orchestrator.model.regions import LegFrame
+from orchestrator.phantom import CalfPhantom, make_loaded_image, render_unloaded
 
 TRUTH = [3.0, 9.0, 150.0, 45.0]          # kPa: every parameter 20-50 % away from the start (Table 2)
 MOTION = RigidMotion(-0.8, (-0.5, 0.3), (75.6, 75.6))

@@ -18,12 +18,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orchestrator.model.forward import LEG_PARAMETERS, LegModel, write_mesh_include
-from orchestrator.core.materials import MaterialError, TissueLaw
-from orchestrator.phantom import CalfPhantom
+from orchestrator.core.errors import MaterialError
+from orchestrator.core.materials import TissueLaw
 from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import run_engine
-from orchestrator.run.setup import truth_mesh
+from orchestrator.engine.runner import run_engine, write_mesh_include
+from orchestrator.model.forward import LEG_PARAMETERS, LegModel
+from orchestrator.phantom import CalfPhantom
+from orchestrator.phantom.mesh import truth_mesh
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +149,10 @@ def test_the_skins_pressure_sensitivities_come_with_a_fitted_tension_profile(leg
     """The skin's uncertainty asks the engine for du/da_k, du/db_k of the garment's profile on top of a model's
     own lines. A model fitting the tension profile (a1 to b2) without the engine's sensitivities lost A1 and B1 from
     its deck, and `calfit identify --effects tension_profile` stopped with KeyError 'PROFILE:GARMENT:A1'."""
-    from orchestrator.fit.geometry_uncertainty import profile_lines, skin_pressure_sensitivities
+    from orchestrator.fit.geometry_uncertainty import (
+        profile_lines,
+        skin_pressure_sensitivities,
+    )
 
     model = LegModel(leg_mesh, 0.16, effects=("tension_profile",), engine_sensitivities=False)
     theta = [4.5, 11.2, 106.0, 69.5, 0.2, -0.1, 0.05, 0.02]
@@ -162,7 +166,11 @@ def test_under_the_band_the_skins_modes_move_the_skin_itself(leg_mesh):
     """With the explicit band the skin's uncertainty asks the engine for the SHAPE sensitivities (the skin's nodes
     moved, orchestrator.fit.geometry_uncertainty), not a Laplace profile the band's deck has no place for, and only those
     lines: the model's own are not needed there."""
-    from orchestrator.fit.geometry_uncertainty import shape_lines, skin_mode_lines, skin_pressure_sensitivities
+    from orchestrator.fit.geometry_uncertainty import (
+        shape_lines,
+        skin_mode_lines,
+        skin_pressure_sensitivities,
+    )
 
     model = LegModel(leg_mesh, 0.16, garment="explicit", friction_mu=0.3)
     theta = [3.4, 14.1, 85.0, 52.0]

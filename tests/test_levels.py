@@ -16,21 +16,25 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from intervals import assert_error_is_a_draw
 
-from orchestrator.engine.decks import deck_key
-from orchestrator.model.forward import LEG_PARAMETERS, LegModel
-from orchestrator.fit.identify import residual_jacobian
-from orchestrator.case.folder import DisplacementPoints, GarmentLevel, read_case, write_case_folder
+from orchestrator.case.folder import (
+    DisplacementPoints,
+    GarmentLevel,
+    read_case,
+    write_case_folder,
+)
 from orchestrator.core.errors import CaseError
 from orchestrator.core.frame import RigidMotion
-from orchestrator.fit.levels import AtTension, JointDisplacementObjective, LevelsModel
-from orchestrator.meshing import leg_slice_mesh
-from orchestrator.fit.objectives import DisplacementResidualObjective
-from orchestrator.phantom.truths import random_truth
+from orchestrator.engine.decks import deck_key
 from orchestrator.engine.results import EngineResults
 from orchestrator.engine.runner import BAD_DECK, OK, Evaluator
-
-from intervals import assert_error_is_a_draw
+from orchestrator.fit.identify import residual_jacobian
+from orchestrator.fit.levels import AtTension, JointDisplacementObjective, LevelsModel
+from orchestrator.fit.objectives import DisplacementResidualObjective
+from orchestrator.meshing import leg_slice_mesh
+from orchestrator.model.forward import LEG_PARAMETERS, LegModel
+from orchestrator.phantom.truths import random_truth
 
 TENSIONS = (0.16, 0.32)   # N/mm: about 20 and 40 mmHg on a calf
 THETA = (3.1, 14.0, 90.0, 120.0)   # kPa, off Table 2
@@ -229,7 +233,7 @@ def test_the_joint_covariance_has_the_cross_blocks_of_the_common_geometry(togeth
 def test_whitening_together_is_generalised_least_squares_with_each_levels_rigid_motion(together):
     """What a direct Cholesky factor of the full C gives: the same weighted sums of squares and cross products
     (the Gauss-Newton steps and F), after removing each level's rigid motion in the whitened space."""
-    from scipy.linalg import block_diag, cho_factor, solve_triangular
+    from scipy.linalg import block_diag, solve_triangular
 
     joint, measured, columns, weights, between = together
     full = block_diag(*(m.measurement_covariance_mm2 for m in measured)) + (np.vstack(columns) * weights) @ np.vstack(
@@ -297,8 +301,11 @@ def test_an_evaluation_whitens_the_levels_and_their_sensitivities_together(leg, 
 def test_the_noise_of_i0_correlates_the_levels_windows():
     """Two levels measured with windows of the same I0: the covariance between their errors is I0's share,
     sigma_0^2 sum B_i B_j^T, which within one level is what its covariance holds at intensity variance sigma_0^2."""
+    from orchestrator.measure.measurements import (
+        Measurements,
+        reference_noise_covariance,
+    )
     from orchestrator.measure.windows import WindowOperators
-    from orchestrator.measure.measurements import Measurements, reference_noise_covariance
 
     rng = np.random.default_rng(4)
     image = ndimage_smooth(rng.normal(1000.0, 300.0, (64, 64)))
@@ -427,8 +434,8 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
     outside their two-level intervals while the levels were whitened each on its own (C10 of fat and Kv of muscle
     of seed 2, Kv of fat of seed 3); whitened together (the skin's and I0's errors common to the levels), each
     error is one of the Monte-Carlo's draws (module comment above)."""
+    from orchestrator.phantom.cases import make_phantom_case
     from orchestrator.run.stages import run_identify, run_montecarlo, run_pressures
-    from orchestrator.run.setup import make_phantom_case
 
     truth = random_truth(seed)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
@@ -461,8 +468,8 @@ def test_two_socks_on_the_explicit_band_are_identified_jointly(tmp_path):
     (each level's band of the same size, its fabric stiffer in proportion), on its own 2,000-element mesh, points with
     0.02 mm noise and scanner motion, fitted jointly with the band from case.toml; each sock's band in
     pressures.json."""
+    from orchestrator.phantom.cases import make_phantom_case
     from orchestrator.run.stages import run_identify, run_montecarlo, run_pressures
-    from orchestrator.run.setup import make_phantom_case
 
     truth = random_truth(4)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],
@@ -497,9 +504,9 @@ def test_two_socks_are_diagnosed_together_from_the_images(tmp_path):
     figures and the report say, level by level, where the identified model failed."""
     import json
 
-    from orchestrator.run.stages import run_diagnose, run_identify
+    from orchestrator.phantom.cases import make_phantom_case
     from orchestrator.report.run_report import write_report
-    from orchestrator.run.setup import make_phantom_case
+    from orchestrator.run.stages import run_diagnose, run_identify
 
     truth = random_truth(4)
     case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, tension_N_per_mm=TENSIONS[0], levels=TENSIONS[1:],

@@ -15,8 +15,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from orchestrator.model.forward import ParameterSpace
 from orchestrator.fit.identify import levenberg_marquardt
+from orchestrator.model.forward import ParameterSpace
 
 N_RESIDUALS = 300
 

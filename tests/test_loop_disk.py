@@ -12,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.model.forward import DiskModel
+from orchestrator.engine.runner import OK, Evaluator
 from orchestrator.fit.identify import levenberg_marquardt, nelder_mead
 from orchestrator.fit.objectives import DisplacementResidualObjective
-from orchestrator.engine.runner import OK, Evaluator
+from orchestrator.model.forward import DiskModel
 
 
 class NodalDisplacement:

@@ -25,13 +25,13 @@ import subprocess
 
 import numpy as np
 import pytest
-
 from killing import calfit_command, counting_wrapper, kill_after, log_lines
 
 from orchestrator.cli import main
 from orchestrator.model.forward import LEG_PARAMETERS
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.run.setup import PARAMETERS_FILE, read_json
 from orchestrator.run.stages import run_identify, run_montecarlo, run_pressures
-from orchestrator.run.setup import PARAMETERS_FILE, make_phantom_case, read_json
 
 
 @pytest.fixture(scope="module")

@@ -23,11 +23,21 @@ import pytest
 
 from orchestrator.engine import decks
 from orchestrator.engine.locate import find_engine
-from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
-from orchestrator.meshing import leg_slice_mesh
+from orchestrator.engine.runner import (
+    BAD_DECK,
+    HANG_FACTOR,
+    LOG_NAME,
+    NOT_CONVERGED,
+    OK,
+    TIMEOUT,
+    TIMEOUT_COLUMNS_PER_RUN,
+    EvaluationLog,
+    Evaluator,
+    run_timeout,
+)
 from orchestrator.fit.objectives import DisplacementResidualObjective
-from orchestrator.engine.runner import (BAD_DECK, HANG_FACTOR, LOG_NAME, NOT_CONVERGED, OK, TIMEOUT,
-                                        TIMEOUT_COLUMNS_PER_RUN, EvaluationLog, Evaluator, run_timeout)
+from orchestrator.meshing import leg_slice_mesh
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel
 
 SLEEP_MARKER = "** calfit-test: sleep"
 

@@ -16,13 +16,24 @@ import pytest
 from scipy import linalg, ndimage
 
 from orchestrator.cli import main
-from orchestrator.measure.dic import correlate, estimate_noise_sigma, grid_centres
 from orchestrator.core.frame import RigidMotion
-from orchestrator.measure.windows import WindowOperators
-from orchestrator.measure.measurements import FILES, measure_dic, normalised_median_outliers, window_pixel_masks
-from orchestrator.phantom import CalfPhantom, MRIPhantom, bone_clamped_compression, make_loaded_image, render_unloaded
-from orchestrator.model.regions import LegFrame
+from orchestrator.measure.dic import correlate, estimate_noise_sigma, grid_centres
+from orchestrator.measure.measurements import (
+    FILES,
+    measure_dic,
+    normalised_median_outliers,
+    window_pixel_masks,
+)
 from orchestrator.measure.verification import band_errors, errors_against
+from orchestrator.measure.windows import WindowOperators
+from orchestrator.model.regions import LegFrame
+from orchestrator.phantom import (
+    CalfPhantom,
+    MRIPhantom,
+    bone_clamped_compression,
+    make_loaded_image,
+    render_unloaded,
+)
 from orchestrator.phantom.case import write_case
 
 SHIFT_MM = (0.047, -0.033)       # a sub-pixel translation of the tissue: 0.13 and 0.09 pixel

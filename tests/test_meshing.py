@@ -22,9 +22,19 @@ import pytest
 from scipy.spatial import cKDTree
 from skimage.measure import find_contours
 
-from orchestrator.meshing import (DEFAULT_PRESSURE_MPA, Mesh, corner_angles_deg, leg_slice_deck, leg_slice_geometry,
-                                  leg_slice_mesh, leg_slice_mesh_for_dof, mesh_from_labels, read_include, region_image,
-                                  tissue_name)
+from orchestrator.core.tissues import element_set_of_label
+from orchestrator.meshing import (
+    DEFAULT_PRESSURE_MPA,
+    Mesh,
+    corner_angles_deg,
+    leg_slice_deck,
+    leg_slice_geometry,
+    leg_slice_mesh,
+    leg_slice_mesh_for_dof,
+    mesh_from_labels,
+    read_include,
+    region_image,
+)
 from orchestrator.meshing.labels import interface_curves
 from orchestrator.meshing.mesh import FACE_CORNERS, FACE_MIDSIDE
 
@@ -172,7 +182,7 @@ def test_tissue_interface_node_sets_hold_the_edges_between_tissues(label_meshes,
         expected: dict[str, set] = {}
         for edge in np.flatnonzero(mixed):
             low, high = sorted(owner_regions[edge])
-            key = f"{tissue_name(int(low))}_{tissue_name(int(high))}"
+            key = f"{element_set_of_label(int(low))}_{element_set_of_label(int(high))}"
             expected.setdefault(key, set()).update(edges[edge].tolist())
         corner_nodes = set(np.unique(mesh.elements[:, :3]).tolist())
         for key, nodes in expected.items():

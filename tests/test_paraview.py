@@ -16,10 +16,8 @@ import pytest
 from conftest import copy_run
 
 from orchestrator.cli import main
-from orchestrator.engine.decks import KPA_PER_MPA
-from orchestrator.engine.results import MMHG_PER_KPA
+from orchestrator.core.units import KPA_PER_MPA, MMHG_PER_KPA
 from orchestrator.run.setup import load_run
-
 
 
 @pytest.fixture(scope="module")

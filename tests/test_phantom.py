@@ -11,9 +11,21 @@ from scipy import ndimage
 
 from orchestrator.case.folder import read_case
 from orchestrator.core.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
-from orchestrator.phantom import (COMPARTMENTS, LANDMARK_NAMES, CalfGeometry, CalfPhantom, CalfShape, T1Contrast,
-                                  Tissue, as_displacement_fn, loaded_labels, make_loaded_image, material_points,
-                                  render_unloaded, write_case)
+from orchestrator.phantom import (
+    COMPARTMENTS,
+    LANDMARK_NAMES,
+    CalfGeometry,
+    CalfPhantom,
+    CalfShape,
+    T1Contrast,
+    Tissue,
+    as_displacement_fn,
+    loaded_labels,
+    make_loaded_image,
+    material_points,
+    render_unloaded,
+    write_case,
+)
 
 
 @pytest.fixture(scope="module")

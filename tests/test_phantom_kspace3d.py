@@ -27,11 +27,24 @@ import pytest
 from scipy import ndimage
 
 from orchestrator.case.folder import read_case
-from orchestrator.phantom.kspace3d import (HiddenEffects3D, Layering, Leg3D, LegAlongHeight, LegMotion, Scanner,
-                                           build_phantom, leg_mesh_3d, make_kspace_case, plane_strain_difference,
-                                           solve_leg3d, solve_truth)
+from orchestrator.phantom.kspace3d import (
+    HiddenEffects3D,
+    Layering,
+    Leg3D,
+    LegMotion,
+    Scanner,
+    build_phantom,
+    leg_mesh_3d,
+    make_kspace_case,
+    plane_strain_difference,
+    solve_leg3d,
+    solve_truth,
+)
 from orchestrator.phantom.kspace3d.ccx import ccx_available
-from orchestrator.phantom.kspace3d.mechanics3d import polygon_corner_curvature, wedge_shape_functions
+from orchestrator.phantom.kspace3d.mechanics3d import (
+    polygon_corner_curvature,
+    wedge_shape_functions,
+)
 from orchestrator.phantom.mri.anatomy import LegShape
 
 needs_ccx = pytest.mark.skipif(not ccx_available(), reason="CalculiX (ccx) is not installed")
@@ -382,8 +395,8 @@ def test_a_volume_case_is_aligned_by_calfit_with_the_true_slide(tmp_path):
     the sessions. calfit's 3D alignment on the bones finds the motion: at the bones' centres, the estimated and the
     true motion put them within 0.5 mm along the leg (the weakly determined slide: 0.32 mm at this code) and 0.25 mm
     across it."""
-    from orchestrator.imaging.align3d import align_volumes_on_bones
     from orchestrator.case.volume import RigidMotion3D, read_volume
+    from orchestrator.imaging.align3d import align_volumes_on_bones
     from orchestrator.phantom.kspace3d import write_kspace_volume_case
     from orchestrator.study.volume_cases import read_volume_case
 

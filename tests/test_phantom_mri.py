@@ -12,10 +12,21 @@ from scipy import ndimage
 from orchestrator.core.frame import pixel_centres_mm
 from orchestrator.imaging.segment import dice
 from orchestrator.measure.measurements import read_window_table
-from orchestrator.phantom import (COMPARTMENTS, LANDMARK_NAMES, CalfPhantom, LegGeometry, LegShape, MRIPhantom,
-                                  as_displacement_fn, loaded_labels, make_loaded_image, render_unloaded, write_case)
+from orchestrator.phantom import (
+    COMPARTMENTS,
+    LANDMARK_NAMES,
+    CalfPhantom,
+    LegGeometry,
+    LegShape,
+    MRIPhantom,
+    as_displacement_fn,
+    loaded_labels,
+    make_loaded_image,
+    render_unloaded,
+    write_case,
+)
+from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.run.stages import run_measure
-from orchestrator.run.setup import make_phantom_case
 
 PIXEL_MM = 0.6
 

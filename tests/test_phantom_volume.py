@@ -5,21 +5,30 @@ bones moved by the motion, the leg shrunk by the true field, the truth folder)."
 from __future__ import annotations
 
 import json
-import tomllib
 
 import numpy as np
 import pytest
+import tomllib
 from scipy import ndimage
 from skimage import io
 
-from orchestrator.model.forward import TABLE2_CENTRAL_KPA
+from orchestrator.case.volume import RigidMotion3D, Volume, volume_affine
 from orchestrator.core.frame import pixel_centres_mm
 from orchestrator.imaging.segment import segment_t1
-from orchestrator.case.volume import RigidMotion3D, Volume, volume_affine
+from orchestrator.model.forward import TABLE2_CENTRAL_KPA
 from orchestrator.phantom import LANDMARK_NAMES, as_displacement_fn
 from orchestrator.phantom.appearance import bias_field
-from orchestrator.phantom.volume import (DEFAULT_HEIGHTS_MM, DEFAULT_MOTION, DEFAULT_TENSION, DEFAULT_TRUTH,
-                                         HeightProfile, LegProfile, LoadedSession, PhantomLeg, write_volume_case)
+from orchestrator.phantom.volume import (
+    DEFAULT_HEIGHTS_MM,
+    DEFAULT_MOTION,
+    DEFAULT_TENSION,
+    DEFAULT_TRUTH,
+    HeightProfile,
+    LegProfile,
+    LoadedSession,
+    PhantomLeg,
+    write_volume_case,
+)
 
 SMALL_HEIGHTS_MM = (236.0, 244.0, 252.0, 260.0)
 COARSE_PIXELS_MM = (0.72, 0.72)

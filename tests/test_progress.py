@@ -18,8 +18,8 @@ import re
 
 import pytest
 
-from orchestrator.engine import runner
 from orchestrator.cli import main
+from orchestrator.engine import runner
 from orchestrator.engine.runner import BAD_DECK, NOT_CONVERGED, OK, Progress
 
 ESCAPE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from conftest import copy_run
 
-from orchestrator.report import figures
-from orchestrator.run.stages import run_diagnose, run_montecarlo, run_pressures
 from orchestrator.core.digits import decimals
+from orchestrator.core.units import MMHG_PER_KPA
+from orchestrator.report import figures
 from orchestrator.report.run_report import format_cell, write_report
-from orchestrator.engine.results import MMHG_PER_KPA
 from orchestrator.run.setup import PARAMETERS_FILE, read_json
+from orchestrator.run.stages import run_diagnose, run_montecarlo, run_pressures
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -78,7 +78,7 @@ def reported(drainage_case, drainage_identified, tmp_path_factory):
     run_pressures(run, draws=8, workers=2, progress=False)
     run_diagnose(run, refit_effects=["drainage"], workers=2, progress=False)
     drawn = {}
-    save = figures._save
+    save = figures.save
 
     def recording_save(figure, path):
         axes = [a for ax in figure.axes for a in (ax, *ax.child_axes)]     # secondary axes (mmHg) are children
@@ -86,11 +86,11 @@ def reported(drainage_case, drainage_identified, tmp_path_factory):
         return save(figure, path)
 
     truth = read_json(truth_folder / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
-    figures._save = recording_save
+    figures.save = recording_save
     try:
         page = write_report(run, truth)
     finally:
-        figures._save = save
+        figures.save = save
     reader = PageReader()
     reader.feed(page.read_text(encoding="utf-8"))
     return page, json.loads((page.parent / "report.json").read_text()), reader, drawn

@@ -6,13 +6,13 @@ clinical matrix."""
 import numpy as np
 import pytest
 
-from orchestrator.core.frame import pixel_centres_mm
 from orchestrator.case.resolution import block_factor, coarsen_image, coarsen_labels
+from orchestrator.core.frame import pixel_centres_mm
 from orchestrator.measure.measurements import read_window_table
 from orchestrator.phantom import CalfPhantom, write_case
 from orchestrator.phantom.render import bone_clamped_compression
-from orchestrator.run.stages import run_measure
 from orchestrator.run.setup import load_run
+from orchestrator.run.stages import run_measure
 
 FIELD_OF_VIEW_MM = 151.2
 

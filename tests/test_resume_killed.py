@@ -17,7 +17,6 @@ import shutil
 import subprocess
 
 import pytest
-
 from killing import calfit_command, counting_wrapper, kill_after, log_lines
 
 # Timings and counts of engine launches say how a run went, not what it found.

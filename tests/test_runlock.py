@@ -7,7 +7,8 @@ import time
 
 import pytest
 
-from orchestrator.core.run_lock import LOCK_NAME, RunFolderBusy, holds_run_folder, run_folder_lock
+from orchestrator.core.errors import RunFolderBusy
+from orchestrator.core.run_lock import LOCK_NAME, holds_run_folder, run_folder_lock
 
 HOLDER = """
 import sys, time

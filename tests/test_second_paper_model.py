@@ -29,9 +29,13 @@ import pytest
 from intervals import assert_each_error_within_its_spread
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.phantom.truths import SECOND_PAPER_FIT_TABLES, SECOND_PAPER_KPA, SECOND_PAPER_TISSUES
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.truths import (
+    SECOND_PAPER_FIT_TABLES,
+    SECOND_PAPER_KPA,
+    SECOND_PAPER_TISSUES,
+)
 from orchestrator.run.stages import run_identify, run_montecarlo
-from orchestrator.run.setup import make_phantom_case
 
 
 @pytest.mark.slow

@@ -22,9 +22,22 @@ import pytest
 from scipy import ndimage
 
 from orchestrator.core.frame import pixel_centres_mm
-from orchestrator.imaging.segment import BONE, FAT, MUSCLE, SegmentationWarning, dice, segment_t1, segmentation_checks
+from orchestrator.core.tissues import BONE, FAT, MUSCLE
+from orchestrator.imaging.segment import (
+    SegmentationWarning,
+    dice,
+    segment_t1,
+    segmentation_checks,
+)
 from orchestrator.meshing import mesh_from_labels
-from orchestrator.phantom import CalfGeometry, CalfPhantom, CalfShape, MRIPhantom, T1Contrast, render_unloaded
+from orchestrator.phantom import (
+    CalfGeometry,
+    CalfPhantom,
+    CalfShape,
+    MRIPhantom,
+    T1Contrast,
+    render_unloaded,
+)
 
 FIELD_OF_VIEW_MM = 151.2
 PIXELS_MM = (0.3, 0.36, 0.45, 0.6)
@@ -231,8 +244,8 @@ def test_a_warning_goes_through_json_unchanged(truth):
 def test_a_run_keeps_the_users_labels_and_says_what_is_unsure_in_them(tmp_path, monkeypatch):
     """labels.png is meshed as given, fat island and all; setup.json holds the warning, the set-up lines print it,
     and the segmentation figure draws it."""
-    from orchestrator.report.figures import segmentation_figure
     from orchestrator.phantom import write_case
+    from orchestrator.report.figures import segmentation_figure
     from orchestrator.run.setup import load_run, prepare_run
 
     phantom = _phantom("calfit", 0.6)

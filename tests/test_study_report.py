@@ -8,8 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from orchestrator.engine.results import MMHG_PER_KPA
-from orchestrator.report.study_report import at_height, parameter_names, pressure_names, write_study_report
+from orchestrator.core.units import MMHG_PER_KPA
+from orchestrator.report.study_report import (
+    at_height,
+    parameter_names,
+    pressure_names,
+    write_study_report,
+)
 
 HEIGHTS = [204.0, 212.0, 220.0, 228.0]
 

@@ -12,8 +12,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from orchestrator.phantom.volume import (
+    FINE_HEIGHTS_MM,
+    FINE_STUDIED_MM,
+    LegProfile,
+    PhantomLeg,
+    write_volume_case,
+)
 from orchestrator.study.cohort import CaseOptions, run_study
-from orchestrator.phantom.volume import FINE_HEIGHTS_MM, FINE_STUDIED_MM, LegProfile, PhantomLeg, write_volume_case
 
 pytestmark = pytest.mark.slow
 

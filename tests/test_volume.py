@@ -19,10 +19,17 @@ from dicom_files import new_dataset, put_grey_image
 from scipy import ndimage
 from scipy.special import erf
 
-from orchestrator.imaging.align3d import align_volumes_on_bones, resample_on_slice
+from orchestrator.case.volume import (
+    RigidMotion3D,
+    Volume,
+    read_volume,
+    volume_affine,
+    write_nifti_volume,
+)
 from orchestrator.core.errors import CaseError, ImagingError
-from orchestrator.imaging.segment import BONE, segment_t1
-from orchestrator.case.volume import RigidMotion3D, Volume, read_volume, volume_affine, write_nifti_volume
+from orchestrator.core.tissues import BONE
+from orchestrator.imaging.align3d import align_volumes_on_bones, resample_on_slice
+from orchestrator.imaging.segment import segment_t1
 
 # ----------------------------------------------------------------- the phantom leg
 

@@ -3,14 +3,17 @@ the [model] tables passed to every slice, and the errors that name the fix."""
 
 from __future__ import annotations
 
-import tomllib
-
 import numpy as np
 import pytest
+import tomllib
 
 from orchestrator.case.folder import read_case
 from orchestrator.core.errors import CaseError
-from orchestrator.study.volume_cases import _chosen_slices, is_volume_case, read_volume_case
+from orchestrator.study.volume_cases import (
+    _chosen_slices,
+    is_volume_case,
+    read_volume_case,
+)
 
 TOML = """\
 [case]
@@ -118,9 +121,10 @@ def test_a_volume_is_cut_into_slice_cases_that_see_the_same_tissue(tmp_path):
     unloaded ones; a second run reuses the slices, and other heights in the same folder are refused."""
     from test_volume import TRUTH, _render
 
-    from orchestrator.imaging.segment import BONE, segment_t1
     from orchestrator.case.volume import RigidMotion3D, write_nifti_volume
-    from orchestrator.core.files import RunFolderError
+    from orchestrator.core.errors import RunFolderError
+    from orchestrator.core.tissues import BONE
+    from orchestrator.imaging.segment import segment_t1
     from orchestrator.study.volume_cases import slice_volume_case
 
     unloaded, loaded = _render(seed=0), _render(TRUTH, seed=1)

@@ -56,8 +56,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._formats import SliceFile, read_dicom_file, read_slice
 from ..core.errors import CaseError
+from ._formats import SliceFile, read_dicom_file, read_slice
 
 PIXEL_SIZE_RTOL = 0.01                 # pixel spacings of the two images (and case.toml) may differ by 1 %
 MAX_NORMAL_ANGLE_DEG = 1.0             # between the normals of the two series

@@ -23,19 +23,19 @@ import math
 import os
 import shutil
 import tempfile
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tomllib
 
+from ..core.errors import CaseError, MaterialError
+from ..core.files import replace_folder
+from ..core.materials import ELEMENTS, GARMENTS, LAWS, TissueLaw, tissue_set
+from ..core.tissues import BONE, FAT, FIRST_COMPARTMENT, MUSCLE
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
 from .dicom_series import IMAGES_KEYS, PIXEL_SIZE_RTOL, read_image_pair
-from ..core.errors import CaseError
-from ..core.materials import LAWS, MaterialError, TissueLaw, tissue_set
 
-FAT, MUSCLE, BONE = 1, 2, 3
-FIRST_COMPARTMENT = 4
 POINTS_COLUMNS = ("x_mm", "y_mm", "ux_mm", "uy_mm")
 DEFAULT_TENSION_REL_UNCERTAINTY = 0.10
 
@@ -48,8 +48,6 @@ _TOML_SCHEMA = {
 }
 MODEL_KEYS = ("element", "garment", "friction")
 TISSUE_KEYS = ("law", "terms", "incompressible", "fixed", "bounds", "start")
-ELEMENTS = {"CPE3": 1, "CPE6": 2, "CPE6H": 2}   # element -> order of the mesh
-GARMENTS = ("laplace", "explicit")
 LEVEL_KEYS = ("image", "tension_N_per_mm", "points")   # of each [[garment.levels]] table
 
 
@@ -553,17 +551,6 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
         shutil.rmtree(staging, ignore_errors=True)
         raise
     return folder
-
-
-def replace_folder(staging: Path, folder: Path) -> None:
-    """Move a fully written staging folder to its final place, replacing an old one only at the very end."""
-    if folder.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
-        os.rename(folder, old / folder.name)
-        os.rename(staging, folder)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.rename(staging, folder)
 
 
 def _case_toml(name, pixel_size_mm, tension, rel, landmarks, levels=()) -> str:

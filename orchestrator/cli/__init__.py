@@ -8,8 +8,19 @@ from __future__ import annotations
 
 import argparse
 
-from . import (_demo, _diagnose, _identify, _measure, _montecarlo, _paraview, _phantom, _pressures, _report, _solve,
-               _study)
+from . import (
+    _demo,
+    _diagnose,
+    _identify,
+    _measure,
+    _montecarlo,
+    _paraview,
+    _phantom,
+    _pressures,
+    _report,
+    _solve,
+    _study,
+)
 
 COMMANDS = {
     "demo": _demo,

@@ -32,17 +32,26 @@ import argparse
 import time
 from pathlib import Path
 
-
-from ..meshing import leg_slice_deck
+from ..core.files import read_json
 from ..core.frame import RigidMotion
-from ..measure.measurements import read_window_table
-from ..run.stages import (fit_summary, intervals_summary, pressure_summary, run_diagnose, run_identify, run_measure,
-                          run_montecarlo, run_pressures)
-from ..report.run_report import write_report
+from ..core.units import KPA_PER_MPA
 from ..engine.results import EngineResults
 from ..engine.runner import run_engine
-from ..core.files import read_json
-from ..run.setup import PARAMETERS_FILE, make_phantom_case
+from ..measure.measurements import read_window_table
+from ..meshing import leg_slice_deck
+from ..phantom.cases import make_phantom_case
+from ..report.run_report import write_report
+from ..run.setup import PARAMETERS_FILE
+from ..run.stages import (
+    fit_summary,
+    intervals_summary,
+    pressure_summary,
+    run_diagnose,
+    run_identify,
+    run_measure,
+    run_montecarlo,
+    run_pressures,
+)
 from ._common import add_output_arguments, honours_quiet, notice, show_progress
 from ._measure import summary_lines
 from ._solve import describe
@@ -51,7 +60,6 @@ HELP = "phantom case -> identification -> uncertainty -> HTML report (or --leg-s
 
 # Avril et al. (2010), Table 2, central values, in MPa: (C10, Kv).
 TABLE2_CENTRAL = {"FAT": ("AVRIL", (4.5e-3, 106e-3)), "MUSCLE": ("AVRIL", (11.2e-3, 69.5e-3))}
-KPA_PER_MPA = 1e3
 # the phantom's truth, kPa: not the fit's start (Table 2 central values), within Avril et al.'s Table 1 ranges
 DEMO_TRUTH_KPA = (3.6, 12.4, 92.0, 74.0)
 DEMO_SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
@@ -118,8 +126,8 @@ def run_full(args: argparse.Namespace) -> int:
 
 
 def run_volume(args: argparse.Namespace) -> int:
-    from ..study.cohort import CaseOptions, run_study
     from ..phantom.volume import FINE_HEIGHTS_MM, FINE_STUDIED_MM, write_volume_case
+    from ..study.cohort import CaseOptions, run_study
 
     began = time.perf_counter()
     out = Path(args.out)

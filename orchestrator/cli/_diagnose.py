@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import argparse
 
+from ..core.errors import EffectError, RunFolderError
 from ..diagnose.diagnosis import ALPHA, Diagnosis, Refit, comparison_lines, level_lines, ranking_lines
-from ..model.effects import EffectError, describe, parse_effects
+from ..model.effects import describe, parse_effects
 from ..run.stages import run_diagnose
-from ..core.files import RunFolderError
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "rank the physical effects missing from an identified model, refit with one"

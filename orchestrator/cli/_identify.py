@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import argparse
 
-from ..model.effects import EffectError, parse_effects
-from ..core.errors import CaseError, ImagingError
+from ..core.errors import CaseError, EffectError, ImagingError
 from ..measure.measurements import DEFAULT_WINDOW_PX, WINDOW_CHOICES
-from ..run.stages import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, floor_sentence, run_identify
+from ..model.effects import parse_effects
 from ..run.setup import DATA_SOURCES
+from ..run.stages import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, floor_sentence, run_identify
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, notice, parallel_options
 
 HELP = "fit the tissue parameters of a case (Nelder-Mead or Levenberg-Marquardt)"

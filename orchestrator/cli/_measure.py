@@ -28,8 +28,8 @@ import argparse
 import os
 
 from ..core.errors import CaseError, ImagingError
-from ..measure.prefilter import PREFILTER_SIGMA_PX
 from ..measure.measurements import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
+from ..measure.prefilter import PREFILTER_SIGMA_PX
 from ..run.stages import run_measure
 from ._common import add_output_arguments, emit, fail, honours_quiet
 

@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..core.errors import RunFolderError
 from ..run.stages import intervals_summary, run_montecarlo
-from ..core.files import RunFolderError
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "parameter intervals by Monte-Carlo: over the measurement noise, or below a misfit threshold (Table 2)"

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..core.errors import RunFolderError
 from ..report.paraview import write_paraview
-from ..core.files import RunFolderError
 from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write the identified model (displacement, stress, pressure) as VTU/PVD files for ParaView"

@@ -17,7 +17,7 @@ import argparse
 import json
 
 from ..model.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
-from ..run.setup import make_phantom_case
+from ..phantom.cases import make_phantom_case
 from ._common import add_output_arguments, fail, honours_quiet
 
 HELP = "write a phantom case made by the engine (truth kept apart)"

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..core.errors import RunFolderError
 from ..run.stages import pressure_summary, run_pressures
-from ..core.files import RunFolderError
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "pressures at the landmarks with their uncertainty (Tables 3 and 4)"

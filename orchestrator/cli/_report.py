@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..core.errors import RunFolderError
+from ..core.files import read_json
 from ..report.run_report import write_report
-from ..core.files import RunFolderError, read_json
 from ..run.setup import PARAMETERS_FILE
 from ._common import add_output_arguments, fail, honours_quiet
 

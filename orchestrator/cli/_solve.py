@@ -12,8 +12,9 @@ import argparse
 import json
 import sys
 
+from ..core.errors import DeckRejected, EngineFailed
 from ..engine.results import EngineResults
-from ..engine.runner import DeckRejected, EngineFailed, run_engine
+from ..engine.runner import run_engine
 from ._common import add_output_arguments, honours_quiet, show_progress
 
 HELP = "run the FE engine on one deck and summarize the result"

@@ -23,8 +23,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from ..core.errors import RunFolderError
 from ..study.cohort import STAGES, CaseOptions, run_study
-from ..core.files import RunFolderError
 from ._common import add_output_arguments, emit, fail, honours_quiet, notice
 
 HELP = "a cohort of cases through the whole pipeline on a Dask cluster, one table row per case"

@@ -9,11 +9,12 @@ the pipeline (measure, study, identify, diagnose) so that each writes its result
 from __future__ import annotations
 
 import json
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
-
-class RunFolderError(ValueError):
-    """A run folder is missing a file that an earlier command writes."""
+from .errors import RunFolderError
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -33,3 +34,14 @@ def read_json(path: Path, made_by: str) -> dict:
     if not path.is_file():
         raise RunFolderError(f"{path} does not exist: run `{made_by}` first")
     return json.loads(path.read_text(encoding="utf-8"))
+
+
+def replace_folder(staging: Path, folder: Path) -> None:
+    """Move a fully written staging folder to its final place, replacing an old one only at the very end."""
+    if folder.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old.", dir=folder.parent))
+        os.rename(folder, old / folder.name)
+        os.rename(staging, folder)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.rename(staging, folder)

@@ -29,7 +29,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Mapping
 
-KPA_PER_MPA = 1e3
+from .errors import MaterialError
+from .units import KPA_PER_MPA
+
 LAWS = ("avril", "neo_hooke", "mooney_rivlin", "reduced_polynomial")
 CONSTANT_ORDER = ("C10", "C01", "C20", "C30", "Kv")   # parameter order of a model: by constant, then by tissue
 LINEAR_CONSTANTS = ("C20", "C30")                       # may be negative: additive steps, not ln theta
@@ -45,10 +47,6 @@ AVRIL_BOUNDS_KPA = {"fat": {"C10": (1.0, 20.0), "Kv": (30.0, 250.0)}, "muscle": 
 # 1.5-16 kPa; the boxes hold both.
 OTHER_BOUNDS_KPA = {"C10": (0.1, 30.0), "C01": (0.05, 30.0), "C20": (-5.0, 50.0), "C30": (-5.0, 50.0)}
 HIGHER_ORDER_SCALE_KPA = 0.5   # the optimizers' unit step of C20, C30
-
-
-class MaterialError(ValueError):
-    """A tissue law that cannot be written or fitted (an unknown law, a constant the law has not)."""
 
 
 @dataclass(frozen=True)
@@ -121,10 +119,6 @@ def tissue_set(tissue: str) -> str:
         return tissue.upper()
     raise MaterialError(f"unknown tissue {tissue!r}: write fat, muscle or compartment<label> (label >= 4 of "
                         "labels.png)")
-
-
-def tissue_name(element_set: str) -> str:
-    return element_set.lower()
 
 
 def default_start(tissue: str, law: TissueLaw, constant: str) -> float:
@@ -203,3 +197,9 @@ def law_notes(tissue: str, law: TissueLaw) -> list[str]:
     return [f"{tissue}: in plane strain an {'' if law.incompressible else 'almost '}incompressible tissue has "
             f"I1bar = I2bar, so C10_{tissue} and C01_{tissue} act {how} through their sum: their intervals will "
             f"say so; fix one of them ([model.{tissue}] fixed) to identify the other"]
+
+
+ELEMENTS = {"CPE3": 1, "CPE6": 2, "CPE6H": 2}   # element -> order of the mesh
+
+
+GARMENTS = ("laplace", "explicit")

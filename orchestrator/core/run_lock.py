@@ -21,14 +21,10 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from .files import RunFolderError
+from .errors import RunFolderBusy, RunFolderError
 
 LOCK_NAME = ".calfit.lock"
 _held: dict[str, list] = {}   # folder -> [open lock file, depth]: a lock is one per process by nature
-
-
-class RunFolderBusy(RunFolderError):
-    """Another command holds the run folder."""
 
 
 @contextmanager

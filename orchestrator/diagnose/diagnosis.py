@@ -82,14 +82,22 @@ import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
 
-from ..model.effects import CATALOG, LOCAL_PROBE, effect
-from ..model.forward import LegModel
-from ..model.heterogeneity import (PATCH_PREFIX, SECTOR_DEG, Group, groups_for, patch_candidates, patch_groups,
-                                   patch_name, stiffness_field_text)
+from ..engine.runner import OK, Evaluator, Progress
 from ..fit.identify import FitResult, interval_identifiable, jacobian_in_x, levenberg_marquardt, steps_into_box
 from ..fit.levels import LevelsModel
+from ..model.effects import CATALOG, LOCAL_PROBE, effect
+from ..model.forward import LegModel
+from ..model.heterogeneity import (
+    PATCH_PREFIX,
+    SECTOR_DEG,
+    Group,
+    groups_for,
+    patch_candidates,
+    patch_groups,
+    patch_name,
+    stiffness_field_text,
+)
 from ..model.regions import SECTORS, LegFrame, depth_band
-from ..engine.runner import OK, Evaluator, Progress
 
 ALPHA = 0.01
 REFIT_FTOL = 1e-5            # LM stops when chi^2 falls by less than this fraction (a useless effect crawls)

@@ -24,14 +24,11 @@ from typing import Iterable, Mapping, Sequence
 
 import jinja2
 
+from ..core.errors import DeckError
+
 TEMPLATE_DIR_ENV = "CALFIT_TEMPLATES"
 MESH_INCLUDE_NAME = "mesh.inp"
 ONE_INCREMENT = (1.0, 1.0, 1e-4, 1.0)  # initial dt, period, min dt, max dt: cut back only when needed
-KPA_PER_MPA = 1e3
-
-
-class DeckError(ValueError):
-    """A deck cannot be rendered from the given values (a missing variable, a non-positive constant)."""
 
 
 def template_dir() -> Path:

@@ -13,12 +13,10 @@ import sysconfig
 from importlib import resources
 from pathlib import Path
 
+from ..core.errors import EngineNotFoundError
+
 ENGINE_NAME = "calfit-fe"
 ENV_OVERRIDE = "CALFIT_FE"
-
-
-class EngineNotFoundError(RuntimeError):
-    pass
 
 
 def _candidates() -> list[Path]:

@@ -21,17 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-MMHG_PER_KPA = 7.50062    # 1 mmHg = 133.322 Pa
+from ..core.errors import ResultsError
 
 
 def sensitivity_name(line: str) -> str:
     """The engine's name for the column of a plain `*SENSITIVITY` line as calfit writes it: its fields joined by
     colons ("SHAPE, SKIN, A2" -> "SHAPE:SKIN:A2"; solver_cpp/README.md, Sensitivities)."""
     return ":".join(field.strip() for field in line.split(","))
-
-
-class ResultsError(RuntimeError):
-    pass
 
 
 @dataclass

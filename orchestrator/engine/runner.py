@@ -28,7 +28,8 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from .decks import DeckError, deck_key, sensitivity_blocks
+from ..core.errors import DeckError, DeckRejected, EngineFailed
+from .decks import deck_key, sensitivity_blocks
 from .locate import find_engine
 from .results import EngineResults
 
@@ -36,18 +37,6 @@ DEFAULT_TIMEOUT_S = 600.0
 SENSITIVITY_OUTPUT = "sensitivity"        # objective output: dr/d(engine parameter), one vector per deck line
 SENSITIVITY_LINES = "sensitivity_lines"   # in the log instead: the lines, in the row order of their .npy
 SENSITIVITY_DIR = "sensitivities"
-
-
-class EngineError(RuntimeError):
-    """Base class of the engine's failures."""
-
-
-class DeckRejected(EngineError):
-    """calfit-fe exited 2: the deck or mesh is wrong; the message names file and line."""
-
-
-class EngineFailed(EngineError):
-    """calfit-fe exited 4, was killed by a signal, or ran past its timeout."""
 
 
 @dataclass(frozen=True)
@@ -79,7 +68,7 @@ def solve_once(model, deck_text: str, failure: str) -> np.ndarray:
     """One engine run of a model's deck text in a scratch folder, the model's mesh include written beside it: the
     displacement of every node of the deck. RuntimeError(failure) when the engine does not converge (a phantom's
     truth or a one-off solve, not an evaluation of a fit: those go through `Evaluator` and its log)."""
-    from ..model.forward import write_mesh_include
+    from .runner import write_mesh_include
 
     with tempfile.TemporaryDirectory(prefix="calfit-solve-") as scratch:
         write_mesh_include(model, Path(scratch))
@@ -707,3 +696,12 @@ class Evaluator:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def write_mesh_include(model, folder: Path) -> Path:
+    """Write the model's mesh include into folder (atomically) and return its path."""
+    target = Path(folder) / "mesh.inp"
+    temporary = target.with_suffix(".inp.tmp")
+    temporary.write_text(model.mesh_text)
+    temporary.replace(target)
+    return target

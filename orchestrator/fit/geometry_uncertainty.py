@@ -131,9 +131,8 @@ def skin_mode_lines(model, count: int) -> list[str]:
 def skin_pressure_sensitivities(model, theta: Sequence[float], count: int) -> dict[str, np.ndarray]:
     """du/d(mode) of the skin's modes k = 1 .. count (`skin_mode_lines`; nodal (M, 2) each) of the model at theta,
     from one engine run (only these lines: the model's own are not needed here)."""
-    from ..model.forward import write_mesh_include
     from ..engine.results import EngineResults, sensitivity_name
-    from ..engine.runner import DEFAULT_TIMEOUT_S, run_engine, run_timeout
+    from ..engine.runner import DEFAULT_TIMEOUT_S, run_engine, run_timeout, write_mesh_include
 
     lines = skin_mode_lines(model, count)
     with tempfile.TemporaryDirectory(prefix="calfit-geometry-") as scratch:

@@ -54,8 +54,8 @@ import numpy as np
 from scipy import ndimage
 
 from ..core.frame import RigidMotion, mm_to_index
+from ..core.tissues import BONE
 from ..measure.prefilter import PREFILTER_SIGMA_PX, Prefilter, rician_variance_ratio
-from ..imaging.segment import BONE
 
 AIR_BAND_PX = 3               # pixels of air outside the skin of I0 kept in the region
 NUISANCE_ITERATIONS = 8       # at most this many Gauss-Newton steps on the nuisances per evaluation
@@ -96,9 +96,9 @@ class IntegratedDIC:
     def __init__(self, mesh, unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm,
                  motion: RigidMotion, *, prefilter_px: float = PREFILTER_SIGMA_PX, air_band_px: int = AIR_BAND_PX,
                  noise_sigma: tuple[float, float] | None = None, brightness: str = "affine"):
+        from ..measure.dic import _signal_noise  # the windows' own estimate of each image's noise where it has signal
         from ..model.forward import MeshInterpolator
         from .objectives import _array_sha
-        from ..measure.dic import _signal_noise   # the windows' own estimate of each image's noise where it has signal
 
         unloaded, loaded = np.asarray(unloaded, float), np.asarray(loaded, float)
         if unloaded.shape != loaded.shape or unloaded.shape != np.shape(labels):
@@ -328,8 +328,8 @@ def identify_integrated(setup, run_dir, *, effects: Sequence[str] = (), start: S
     folder: they share no cache key, the fingerprints differ, but the logs grow large). Returns (FitResult, the
     objective, a summary: the noise floor, misfit over it, the fitted nuisances, the parameters' linearised standard
     deviations (`parameter_covariance`, not inflated by a misfit above the floor), wall time)."""
-    from .identify import levenberg_marquardt, residual_jacobian
     from ..engine.runner import Evaluator
+    from .identify import levenberg_marquardt, residual_jacobian
 
     began = time.perf_counter()
     objective = IntegratedDIC.from_setup(setup, **options)

@@ -47,8 +47,9 @@ from typing import Sequence
 
 import numpy as np
 
+from ..core.linalg import symmetric_roots
 from ..model.forward import LegModel
-from .objectives import _array_sha, symmetric_roots
+from .objectives import _array_sha
 
 
 class LevelsModel:

@@ -28,24 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.decks import KPA_PER_MPA, text_sha256
-from ..model.forward import MeshInterpolator, field_on_pixels
+from ..core.linalg import symmetric_roots
+from ..core.units import KPA_PER_MPA
+from ..engine.decks import text_sha256
 from ..imaging.mismatch import ContourMismatch, MismatchResult
+from ..model.forward import MeshInterpolator, field_on_pixels
 
 
 def leg_rows(nodal: np.ndarray, n_nodes: int) -> np.ndarray:
     """The rows of the mesh an objective was built on: its nodes come first in every deck (an explicit garment
     band's follow them), so a nodal array of the engine is cut to them."""
     return np.asarray(nodal, float)[:n_nodes]
-
-
-def symmetric_roots(covariance: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """(C^-1/2, C^1/2), the symmetric roots of a covariance, so that a whitened residual r_i stays attached to
-    measurement i; ValueError naming `what` when C is not positive definite."""
-    values, vectors = np.linalg.eigh(covariance)
-    if values[0] <= 0:
-        raise ValueError(f"{what} is not positive definite")
-    return (vectors / np.sqrt(values)) @ vectors.T, (vectors * np.sqrt(values)) @ vectors.T
 
 
 def _array_sha(*arrays) -> str:

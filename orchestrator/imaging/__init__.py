@@ -6,11 +6,11 @@ displacement fields are (2, H, W) arrays in mm (u_x, u_y) or callables u(x_mm, y
 labels 0 background, 1 fat (with skin), 2 muscle, 3 bone, >= 4 muscle compartments.
 """
 
-from .align import align_on_bones, bone_centroids, resample_rigid
 from ..case.folder import Case, DisplacementPoints, ModelChoice, read_case, read_model_choice, write_case_folder
-from ..measure.dic import DICResult, correlate, grid_centres, roi_centres
 from ..core.errors import CaseError, ImagingError
 from ..core.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
+from ..measure.dic import DICResult, correlate, grid_centres, roi_centres
+from .align import align_on_bones, bone_centroids, resample_rigid
 from .mismatch import ContourMismatch, MismatchResult, contour_pixels
 from .segment import dice, segment_t1
 from .warp import warp_image, warp_labels

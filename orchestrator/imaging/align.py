@@ -28,7 +28,8 @@ from skimage import morphology
 
 from ..core.errors import ImagingError
 from ..core.frame import RigidMotion, mm_to_index, pixel_centres_mm
-from .segment import BONE, segment_t1
+from ..core.tissues import BONE
+from .segment import segment_t1
 
 
 def bone_centroids(labels: np.ndarray, pixel_size_mm) -> list[tuple[np.ndarray, float]]:

@@ -62,11 +62,12 @@ from scipy import ndimage, optimize
 from scipy.spatial.transform import Rotation
 from skimage import morphology
 
-from .align import bone_centroids
+from ..case.volume import RigidMotion3D, Volume
 from ..core.errors import ImagingError
 from ..core.frame import mm_to_index
-from .segment import BONE, segment_t1
-from ..case.volume import RigidMotion3D, Volume
+from ..core.tissues import BONE
+from .align import bone_centroids
+from .segment import segment_t1
 
 MIN_POINTS_PER_SLICE = 20    # an unloaded slice with fewer bone and rim points takes no part (its std is noise)
 MIN_OVERLAP = 0.5            # share of the bone and rim points that must fall inside the loaded slab

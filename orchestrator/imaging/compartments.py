@@ -28,8 +28,7 @@ import numpy as np
 from scipy import ndimage
 from skimage import draw, filters, measure, morphology, segmentation
 
-from ..case.folder import FIRST_COMPARTMENT
-from .segment import MUSCLE
+from ..core.tissues import FIRST_COMPARTMENT, MUSCLE
 
 LINE_DIRECTIONS = 24
 

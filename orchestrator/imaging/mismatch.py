@@ -29,10 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from ..case.folder import FIRST_COMPARTMENT
 from ..core.frame import displacement_on_grid
+from ..core.tissues import FAT, FIRST_COMPARTMENT, MUSCLE
 
-FAT, MUSCLE = 1, 2
 TISSUE_NAMES = {FAT: "fat", MUSCLE: "muscle"}
 
 

@@ -63,10 +63,9 @@ import numpy as np
 from scipy import ndimage, signal
 from skimage import filters, morphology
 
-from ..case.folder import FIRST_COMPARTMENT
 from ..core.errors import ImagingError
+from ..core.tissues import BACKGROUND, BONE, FAT, FIRST_COMPARTMENT, MUSCLE
 
-BACKGROUND, FAT, MUSCLE, BONE = 0, 1, 2, 3
 TISSUE_NAMES = {BACKGROUND: "background", FAT: "fat", MUSCLE: "muscle", BONE: "bone"}
 CALF_BONES = ("tibia", "fibula")
 RIM_GRID_MM = 0.1          # the grid on which a rim's thickness is measured

@@ -85,7 +85,8 @@ from skimage.feature import match_template
 
 from ..case.folder import DisplacementPoints
 from ..core.frame import RigidMotion, index_to_mm
-from ..imaging.mismatch import FAT, MUSCLE, contour_pixels, tissue_mask
+from ..core.tissues import FAT, MUSCLE
+from ..imaging.mismatch import contour_pixels, tissue_mask
 from .prefilter import EdgeResiduals, Prefilter, rician_variance_ratio
 
 SEARCH_FACTOR = 4

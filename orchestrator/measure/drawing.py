@@ -54,9 +54,9 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage import measure
 
-from ..case.folder import BONE, MUSCLE
-from .dic import estimate_noise_sigma
+from ..core.tissues import BONE, MUSCLE
 from ..imaging.mismatch import tissue_mask
+from .dic import estimate_noise_sigma
 
 MIN_SAMPLES, MAX_SAMPLES = 3, 6   # point samples per pixel side tested for (module text)
 DETECTION_ALPHA = 1e-4     # the comb test's level, over all the S tried

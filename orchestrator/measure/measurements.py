@@ -61,16 +61,16 @@ from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from ..case.folder import DisplacementPoints
+from ..core.files import write_json
+from ..core.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
+from ..core.tissues import FAT, MUSCLE
 from ..imaging.chemical_shift import fat_signal
 from ..imaging.coherence import coherence_sentence, texture_coherence
+from ..imaging.mismatch import tissue_mask
 from .dic import attainable_confidence, correlate, grid_centres, roi_centres
 from .drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
-from ..core.frame import RigidMotion, index_to_mm, mm_to_index, pixel_centres_mm
-from ..imaging.mismatch import tissue_mask
-from ..imaging.segment import FAT, MUSCLE
 from .prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
 from .windows import WindowOperators, textured
-from ..core.files import write_json
 
 WINDOW_CHOICES = (16, 32, 64)
 DEFAULT_WINDOW_PX = 32
@@ -581,7 +581,7 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
                        level: int = 1) -> None:
     """The table, the arrays, the summary and the picture (of garment level `level`, `level_files`), each written
     to a temporary name then renamed."""
-    from ..report.figures import dic_vectors_figure
+    from .figure import dic_vectors_figure
 
     run_dir = Path(run_dir)
     files = level_files(level)

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from ..core.linalg import symmetric_roots
 from ..model.forward import MeshInterpolator, field_on_pixels
-from ..fit.objectives import symmetric_roots
 
 SKIN_BAND_MM = 5.0
 BANDS = ("fat within 5 mm of the skin", "other fat", "muscle")

@@ -50,8 +50,14 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
-from .dic import (denoised_hessian, edge_strength, on_window_square, spline_gradient, window_pixel_sets,
-                  zero_normalised_steepest_descent)
+from .dic import (
+    denoised_hessian,
+    edge_strength,
+    on_window_square,
+    spline_gradient,
+    window_pixel_sets,
+    zero_normalised_steepest_descent,
+)
 from .prefilter import Prefilter, rician_variance_ratio
 
 

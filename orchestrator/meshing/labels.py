@@ -58,8 +58,16 @@ import numpy as np
 from scipy import ndimage
 from scipy.ndimage import gaussian_filter1d
 
-from .curves import (Curve, OutlineError, SpacingRules, lowpass_closed, offset_points, outline_error, smooth_points,
-                     unit_normals)
+from .curves import (
+    Curve,
+    OutlineError,
+    SpacingRules,
+    lowpass_closed,
+    offset_points,
+    outline_error,
+    smooth_points,
+    unit_normals,
+)
 from .mesh import Mesh
 from .triangulate import BONE_KEY_OFFSET, is_tissue, mesh_curves
 

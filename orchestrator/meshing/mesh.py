@@ -28,26 +28,14 @@ from typing import Sequence, TextIO
 
 import numpy as np
 
+from ..core.tissues import COMPARTMENT_PREFIX, MUSCLE_SET, element_set_of_label
+
 ELEMENT_TYPES = {3: "CPE3", 6: "CPE6"}
 ITEMS_PER_SET_LINE = 16  # Abaqus/CalculiX read at most 16 entries per data line
 FACE_CORNERS = np.array([[0, 1], [1, 2], [2, 0]])  # face k (1-based) joins these corners
 FACE_MIDSIDE = np.array([3, 4, 5])  # T6 mid-side node of face k
 
 
-FAT_SET = "FAT"
-MUSCLE_SET = "MUSCLE"
-COMPARTMENT_PREFIX = "COMPARTMENT"
-
-
-def tissue_name(region_id: int) -> str:
-    """Element-set name of a tissue label (1 fat, 2 muscle, >= 4 compartments)."""
-    if region_id == 1:
-        return FAT_SET
-    if region_id == 2:
-        return MUSCLE_SET
-    if region_id >= 4:
-        return f"{COMPARTMENT_PREFIX}{region_id}"
-    raise ValueError(f"label {region_id} is not a soft tissue (1 fat, 2 muscle, >= 4 compartments)")
 
 
 def muscle_sets(element_sets: Sequence[str]) -> list[str]:
@@ -130,7 +118,7 @@ class Mesh:
     def element_sets(self) -> dict[str, np.ndarray]:
         """Tissue name -> 0-based element indices (FAT, MUSCLE, COMPARTMENT4, ...)."""
         return {
-            tissue_name(int(region)): np.flatnonzero(self.element_regions == region)
+            element_set_of_label(int(region)): np.flatnonzero(self.element_regions == region)
             for region in np.unique(self.element_regions)
         }
 

@@ -30,16 +30,14 @@ from typing import Callable
 import numpy as np
 import triangle
 
+from ..core.errors import MeshingError
+from ..core.tissues import element_set_of_label
 from .curves import Curve, SpacingRules, resample, spacing_limits
-from .mesh import FACE_MIDSIDE, Mesh, add_midside_nodes, face_edges, signed_areas, tissue_name
+from .mesh import FACE_MIDSIDE, Mesh, add_midside_nodes, face_edges, signed_areas
 
 BONE_KEY_OFFSET = 1000
 BOUNDARY_AREA_RATIO = 0.55
 MARKER_OFFSET = 2  # Triangle reserves markers 0 and 1
-
-
-class MeshingError(RuntimeError):
-    """The curves or the request cannot give a valid mesh; the message says why."""
 
 
 def is_tissue(key: int) -> bool:
@@ -297,7 +295,7 @@ def _build_mesh(refined: dict, curves: list[Curve], order: int) -> Mesh:
     for pair in tissue_pairs:
         on_interface = np.isin(markers, [m for m, s in curve_sides.items() if tuple(sorted(s)) == pair])
         if np.any(on_interface):
-            node_sets[f"{tissue_name(pair[0])}_{tissue_name(pair[1])}"] = face_nodes(on_interface)
+            node_sets[f"{element_set_of_label(pair[0])}_{element_set_of_label(pair[1])}"] = face_nodes(on_interface)
 
     skin_element, skin_face = np.nonzero(on_skin)
     skin_faces = np.column_stack([skin_element, skin_face + 1]).astype(np.int64)

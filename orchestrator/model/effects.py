@@ -48,18 +48,15 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..engine.decks import KPA_PER_MPA
-from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
+from ..core.errors import EffectError
 from ..core.materials import engine_constant
+from ..core.units import KPA_PER_MPA
 from ..meshing.mesh import compartment_sets, muscle_sets
+from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
 
 SECOND_BONE = "BONE2"
 PROFILE_NAME = "GARMENT"
 SKIN_SURFACE = "SKIN"
-
-
-class EffectError(ValueError):
-    """An unknown effect, or one that the mesh of the run cannot carry."""
 
 
 @dataclass(frozen=True)

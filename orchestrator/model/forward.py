@@ -20,21 +20,34 @@ order: C10 of fat, C10 of muscle, Kv of fat, Kv of muscle.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from ..engine.decks import KPA_PER_MPA, disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
-from .heterogeneity import group_elsets_text, groups_for
-from ..case.folder import GARMENTS
-from ..core.materials import (AVRIL, AVRIL_START_KPA, CONSTANT_ORDER, HIGHER_ORDER_SCALE_KPA, LINEAR_CONSTANTS,
-                              MaterialError, TissueLaw, deck_material, default_bounds, default_start, engine_constant,
-                              sum_only_pairs, tissue_name, tissue_set)
+from ..core.errors import MaterialError
+from ..core.materials import (
+    AVRIL,
+    AVRIL_START_KPA,
+    CONSTANT_ORDER,
+    GARMENTS,
+    HIGHER_ORDER_SCALE_KPA,
+    LINEAR_CONSTANTS,
+    TissueLaw,
+    deck_material,
+    default_bounds,
+    default_start,
+    engine_constant,
+    sum_only_pairs,
+    tissue_set,
+)
+from ..core.tissues import parameter_tissue
+from ..core.units import KPA_PER_MPA
+from ..engine.decks import disk_deck, leg_garment_deck, leg_laplace_deck, text_sha256
 from ..meshing import Mesh
 from ..meshing.mesh import muscle_sets
+from .heterogeneity import group_elsets_text, groups_for
 
 LEG_PARAMETERS = ("C10_fat", "C10_muscle", "Kv_fat", "Kv_muscle")   # the first paper's law in fat and muscle
 BAND_PROFILE = "band_profile"   # the band's own effect: its prestretch varying around the leg (`effects`)
@@ -308,7 +321,7 @@ class LegModel:
                                 if not ok)
             raise ValueError(f"the leg mesh has no {missing} elements; check the segmentation labels")
         # element set -> tissue, in the mesh's order (the deck's materials keep the first paper's order)
-        self.set_tissue = {name: ("fat" if name == "FAT" else tissue_name(name) if name in own else "muscle")
+        self.set_tissue = {name: ("fat" if name == "FAT" else parameter_tissue(name) if name in own else "muscle")
                            for name in ["FAT"] + muscle_sets(element_sets)}
         for tissue, law in laws.items():
             if law.incompressible and not self.hybrid:
@@ -524,10 +537,3 @@ class DiskModel:
                          description=f"theta (kPa) = {list(map(float, theta))}")
 
 
-def write_mesh_include(model, folder: Path) -> Path:
-    """Write the model's mesh include into folder (atomically) and return its path."""
-    target = Path(folder) / "mesh.inp"
-    temporary = target.with_suffix(".inp.tmp")
-    temporary.write_text(model.mesh_text)
-    temporary.replace(target)
-    return target

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..engine.decks import KPA_PER_MPA
+from ..core.units import KPA_PER_MPA
 from .regions import LegFrame
 
 OPEN, STICKING, SLIPPING = 0, 1, 2   # Abaqus's CSTATUS, as the engine writes it (contact_status)

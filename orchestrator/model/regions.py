@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from ..core.tissues import tissue_of_label
 from ..imaging.align import bone_centroids
 from ..imaging.mismatch import FIRST_COMPARTMENT
-from ..imaging.segment import BONE, FAT, MUSCLE
 
 SECTORS = 12                   # 30-degree sectors
 DEPTH_BANDS_MM = (0.0, 5.0, 10.0, 20.0, 40.0, np.inf)
@@ -29,16 +29,6 @@ DIRECTIONS = ("anterior", "anterolateral", "lateral", "posterolateral", "posteri
               "anteromedial")
 QUARTERS = ("anterior", "lateral", "posterior", "medial")
 IMAGE_SIDES = ("image right", "image top", "image left", "image bottom")   # the quarters' names without bones
-
-
-def tissue_name(label: int) -> str:
-    if label == FAT:
-        return "fat"
-    if label == MUSCLE:
-        return "muscle"
-    if label >= FIRST_COMPARTMENT:
-        return "muscle"
-    return "bone" if label == BONE else "outside the leg"
 
 
 @dataclass
@@ -80,7 +70,7 @@ class LegFrame:
 
     def tissues(self, points_mm: np.ndarray) -> list[str]:
         rows, cols = self._pixels(points_mm)
-        return [tissue_name(int(v)) for v in self.labels[rows, cols]]
+        return [tissue_of_label(int(v)) for v in self.labels[rows, cols]]
 
     def depth_mm(self, points_mm: np.ndarray) -> np.ndarray:
         rows, cols = self._pixels(points_mm)

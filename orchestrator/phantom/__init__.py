@@ -10,8 +10,16 @@ from .case import write_case
 from .geometry import COMPARTMENTS, LANDMARK_NAMES, CalfGeometry, CalfShape, Tissue
 from .kspace3d import KspacePhantom, Leg3D, LegMotion, make_kspace_case, write_kspace_volume_case
 from .mri import LegGeometry, LegShape, MRIContrast, MRIPhantom
-from .render import (CalfPhantom, Phantom, as_displacement_fn, bone_clamped_compression, loaded_labels,
-                     make_loaded_image, material_points, render_unloaded)
+from .render import (
+                     CalfPhantom,
+                     Phantom,
+                     as_displacement_fn,
+                     bone_clamped_compression,
+                     loaded_labels,
+                     make_loaded_image,
+                     material_points,
+                     render_unloaded,
+)
 
 __all__ = ["COMPARTMENTS", "LANDMARK_NAMES", "CalfGeometry", "CalfPhantom", "CalfShape", "KspacePhantom", "Leg3D",
            "LegGeometry", "LegMotion", "LegShape", "MRIContrast", "MRIPhantom", "Phantom", "T1Contrast", "Tissue",

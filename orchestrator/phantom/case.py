@@ -30,11 +30,19 @@ from pathlib import Path
 import numpy as np
 
 from ..case._formats import write_png16
-from ..case.folder import DisplacementPoints, GarmentLevel, replace_folder, write_case_folder
+from ..case.folder import DisplacementPoints, GarmentLevel, write_case_folder
+from ..core.files import replace_folder
 from ..core.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
 from ..imaging.segment import segment_t1
-from .render import (CalfPhantom, Phantom, as_displacement_fn, bone_clamped_compression, loaded_labels,
-                     make_loaded_image, render_unloaded)
+from .render import (
+    CalfPhantom,
+    Phantom,
+    as_displacement_fn,
+    bone_clamped_compression,
+    loaded_labels,
+    make_loaded_image,
+    render_unloaded,
+)
 
 
 def write_case(folder, phantom: Phantom | None = None, displacement=None, *, rigid: RigidMotion | None = None,

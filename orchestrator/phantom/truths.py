@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.forward import TABLE2_CENTRAL_KPA
 from ..core.materials import TissueLaw
+from ..model.forward import TABLE2_CENTRAL_KPA
 
 # C10 fat, C10 muscle, Kv fat, Kv muscle (kPa): around the spread of Avril et al. Table 1
 PHYSIOLOGICAL_KPA = ((2.0, 9.0), (6.0, 20.0), (50.0, 200.0), (35.0, 140.0))

@@ -51,12 +51,12 @@ from typing import Sequence
 import numpy as np
 from scipy import ndimage
 
-from ..model.forward import LEG_PARAMETERS, LegModel, MeshInterpolator, field_on_pixels
 from ..case._formats import write_png16
-from ..case.folder import replace_folder
-from ..core.frame import mm_to_index, pixel_centres_mm
 from ..case.volume import RigidMotion3D, volume_affine, write_nifti_volume
+from ..core.files import replace_folder
+from ..core.frame import mm_to_index, pixel_centres_mm
 from ..meshing import Mesh
+from ..model.forward import LEG_PARAMETERS, LegModel, MeshInterpolator, field_on_pixels
 from .appearance import T1Contrast, TextureField, add_rician_noise, bias_field
 from .geometry import LANDMARK_NAMES, CalfGeometry, CalfShape
 from .mesh import truth_mesh
@@ -201,8 +201,8 @@ def solve_slice(phantom: CalfPhantom, theta_kPa: Sequence[float], tension_N_per_
                 n_elements: int = 2000) -> tuple[np.ndarray, Mesh]:
     """The plane-strain displacement (2, H, W) mm of the slice at theta_kPa under the garment, on the slice's
     pixels, with the truth mesh it was solved on."""
-    from ..fit.objectives import leg_rows
     from ..engine.runner import solve_once
+    from ..fit.objectives import leg_rows
 
     mesh = truth_mesh(phantom, n_elements=n_elements)
     model = LegModel(mesh, tension_N_per_mm)

@@ -8,136 +8,11 @@ from pathlib import Path
 import numpy as np
 
 from ..core.digits import with_uncertainty
-from ..engine.results import MMHG_PER_KPA
+from ..core.units import MMHG_PER_KPA
 
 import matplotlib
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402  (the backend is chosen before pyplot is imported)
-
-DPI = 150
-
-
-def _image_axes(ax, image: np.ndarray, pixel_size_mm) -> None:
-    dy, dx = pixel_size_mm
-    height, width = image.shape
-    low, high = np.percentile(image, [1, 99.5])
-    ax.imshow(image, cmap="gray", vmin=low, vmax=high, extent=(0, width * dx, height * dy, 0), interpolation="nearest")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_aspect("equal")
-
-
-def dic_vectors_figure(path: Path, image: np.ndarray, pixel_size_mm, table, summary: dict) -> Path:
-    """The measured displacements drawn on the unloaded image: kept windows as arrows coloured by magnitude
-    (mm, with a colour bar), rejected windows as crosses, a scale arrow, the counts in the legend."""
-    kept = table.kept
-    figure, ax = plt.subplots(figsize=(7.5, 7.0))
-    _image_axes(ax, image, pixel_size_mm)
-    position, displacement = table.position_mm, table.displacement_mm
-    magnitude = np.hypot(displacement[kept, 0], displacement[kept, 1])
-    largest = float(np.max(magnitude)) if magnitude.size else 1.0
-    spacing = summary.get("step_px", 16) * min(pixel_size_mm)
-    scale = largest / (1.5 * spacing) if largest > 0 else 1.0   # the largest arrow spans 1.5 window steps
-    arrows = ax.quiver(position[kept, 0], position[kept, 1], displacement[kept, 0], displacement[kept, 1], magnitude,
-                       cmap="viridis", angles="xy", scale_units="xy", scale=scale, width=0.003)
-    figure.colorbar(arrows, ax=ax, shrink=0.8, label="displacement relative to the bones (mm)")
-    rejected = ~kept & np.all(np.isfinite(position), axis=1)
-    if rejected.any():
-        ax.plot(position[rejected, 0], position[rejected, 1], "x", color="tab:red", markersize=4,
-                label=f"rejected windows ({int(rejected.sum())})")
-    reference = float(f"{largest:.1g}") if largest > 0 else 1.0
-    ax.quiverkey(arrows, 0.80, 1.02, reference, f"{reference:g} mm", labelpos="E", coordinates="axes")
-    ax.plot([], [], marker=r"$\rightarrow$", linestyle="none", color="tab:green",
-            label=f"kept windows ({int(kept.sum())} of {len(kept)})")
-    ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
-    ax.set_title(f"DIC, {summary['window_px']} px windows ({summary['window_px'] * pixel_size_mm[1]:.1f} mm), "
-                 f"arrows x{1 / scale:.0f}", fontsize=10)
-    figure.tight_layout()
-    figure.savefig(path, dpi=DPI)
-    plt.close(figure)
-    return Path(path)
-
-
-def compartments_figure(path: Path, image: np.ndarray, pixel_size_mm, compartments) -> Path:
-    """The muscle compartments found in I0 (`imaging.compartments`), each tinted and named at its centroid,
-    over the septa they rest on (red), for the user to check before trusting the `compartments` effect."""
-    from ..imaging.compartments import FIRST_COMPARTMENT
-    from ..model.regions import compartment_names
-
-    figure, ax = plt.subplots(figsize=(7.5, 7.0))
-    _image_axes(ax, image, pixel_size_mm)
-    dy, dx = pixel_size_mm
-    extent = (0, image.shape[1] * dx, image.shape[0] * dy, 0)
-    labels = compartments.labels
-    found = sorted(int(v) for v in np.unique(labels[labels >= FIRST_COMPARTMENT]))
-    names = compartment_names(labels, pixel_size_mm) if found else {}
-    colours = plt.get_cmap("tab10")
-    tint = np.zeros(image.shape + (4,))
-    for k, label in enumerate(found):
-        tint[labels == label] = (*colours(k % 10)[:3], 0.35)
-        rows, cols = np.nonzero(labels == label)
-        ax.text((cols.mean() + 0.5) * dx, (rows.mean() + 0.5) * dy, str(k + 1), color="white", fontsize=12,
-                ha="center", va="center", weight="bold")
-        ax.plot([], [], "s", color=colours(k % 10), label=names[label])
-    ax.imshow(tint, extent=extent, interpolation="nearest")
-    septa = np.ma.masked_where(~compartments.septa, np.ones(image.shape))
-    ax.imshow(septa, cmap=matplotlib.colors.ListedColormap(["red"]), extent=extent, interpolation="nearest")
-    ax.plot([], [], "-", color="red", label="septa found")
-    ax.legend(loc="lower left", fontsize=7, framealpha=0.8)
-    ax.set_title(f"muscle compartments found at the septa of I0: {len(found)}" if found else
-                 "no muscle compartments found: no septum closes one", fontsize=10)
-    figure.tight_layout()
-    figure.savefig(path, dpi=DPI)
-    plt.close(figure)
-    return Path(path)
-
-
-def diagnosis_figure(path: Path, image: np.ndarray, pixel_size_mm, maps, mesh, patch_elements: np.ndarray | None = None,
-                     place: str = "", title: str = "") -> Path:
-    """The residual of the identified model (u_model - u_measured) as arrows coloured by length (mm, colour bar)
-    on the unloaded image, the 30-degree sectors of `regions` about the leg centre with their anatomical names, and
-    the place of the proposed local stiffness change shaded; `title` says which garment level it is, when several."""
-    from matplotlib.collections import PolyCollection
-    from scipy.spatial import cKDTree
-
-    positions = np.asarray(maps.positions_mm, float)
-    residual = np.asarray(maps.residual_mm, float)
-    centre = np.asarray(maps.centre_mm, float)
-    figure, ax = plt.subplots(figsize=(8.0, 7.5))
-    _image_axes(ax, image, pixel_size_mm)
-    if patch_elements is not None and len(patch_elements):
-        corners = mesh.nodes[mesh.elements[np.asarray(patch_elements), :3]]
-        ax.add_collection(PolyCollection(corners, facecolors="tab:orange", edgecolors="none", alpha=0.45,
-                                         label=f"local stiffness change: {place}"))
-    radius = 0.5 * float(min(image.shape[0] * pixel_size_mm[0], image.shape[1] * pixel_size_mm[1]))
-    for k, name in enumerate(maps.sector_names):
-        angle = np.radians(k * 360.0 / len(maps.sector_names))
-        ax.plot([centre[0], centre[0] + radius * np.cos(angle)], [centre[1], centre[1] - radius * np.sin(angle)],
-                color="white", linewidth=0.5, alpha=0.5)
-        middle = np.radians(maps.sector_centre_deg[k])
-        ax.text(centre[0] + 0.9 * radius * np.cos(middle), centre[1] - 0.9 * radius * np.sin(middle),
-                name.split(" sector ")[0] + f"\n{maps.sector_centre_deg[k]:.0f} deg", color="white", fontsize=6,
-                ha="center", va="center")
-    length = np.hypot(residual[:, 0], residual[:, 1])
-    largest = float(length.max()) if length.size else 1.0
-    places = np.unique(positions, axis=0)   # several garment levels share their windows' places
-    spacing = float(np.median(cKDTree(places).query(places, k=2)[0][:, 1])) if len(places) > 1 else 1.0
-    scale = largest / (1.5 * spacing) if largest > 0 else 1.0
-    arrows = ax.quiver(positions[:, 0], positions[:, 1], residual[:, 0], residual[:, 1], length, cmap="magma",
-                       angles="xy", scale_units="xy", scale=scale, width=0.003)
-    figure.colorbar(arrows, ax=ax, shrink=0.8, label="residual u_model - u_measured (mm)")
-    reference = float(f"{largest:.1g}") if largest > 0 else 1.0
-    ax.quiverkey(arrows, 0.80, 0.10, reference, f"{reference:g} mm", labelpos="E", coordinates="axes", color="white",
-                 labelcolor="white")
-    if patch_elements is not None and len(patch_elements):
-        ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
-    ax.set_title((f"{title}\n" if title else "") + f"residual of the identified model, arrows x{1 / scale:.0f}"
-                 + (f"\nlargest share: {maps.worst_region}" if maps.worst_region else ""), fontsize=9, loc="left")
-    figure.tight_layout()
-    figure.savefig(path, dpi=DPI)
-    plt.close(figure)
-    return Path(path)
+from ..core.plotting import extent, image_axes, landmark_markers, plt, save, scattered_map, zoom_to
 
 
 # ----------------------------------------------------------------------------- the report's figures
@@ -146,32 +21,14 @@ TISSUE_COLOURS = {1: ("fat", "#f2c14e"), 2: ("muscle", "#c0392b"), 3: ("bone", "
 COMPARTMENT_COLOURS = "tab10"
 
 
-def _save(figure, path: Path) -> Path:
-    figure.savefig(path, dpi=DPI, bbox_inches="tight")
-    plt.close(figure)
-    return Path(path)
-
-
-def _extent(shape, pixel_size_mm) -> tuple[float, float, float, float]:
-    return (0.0, shape[1] * pixel_size_mm[1], shape[0] * pixel_size_mm[0], 0.0)
-
-
-def _landmark_markers(ax, landmarks: dict[str, tuple[float, float]], colour: str = "white") -> None:
-    """Numbered markers at the landmarks, named in the legend (1 great_saphenous, ...)."""
-    for number, (name, (x, y)) in enumerate(landmarks.items(), start=1):
-        ax.plot(x, y, "o", markersize=9, markerfacecolor="black", markeredgecolor=colour, markeredgewidth=1.2,
-                label=f"{number} {name}")
-        ax.text(x, y, str(number), color=colour, fontsize=6.5, ha="center", va="center", weight="bold")
-
-
 def images_figure(path: Path, unloaded: np.ndarray, loaded: np.ndarray, pixel_size_mm,
                   titles=("I0, without the garment", "I1, with the garment (aligned on the bones)")) -> Path:
     """The two slices side by side (Avril et al. Fig. 1), axes in mm."""
     figure, axes = plt.subplots(1, 2, figsize=(11.0, 5.2))
     for ax, image, title in zip(axes, (unloaded, loaded), titles):
-        _image_axes(ax, image, pixel_size_mm)
+        image_axes(ax, image, pixel_size_mm)
         ax.set_title(title, fontsize=10)
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh, pixel_size_mm,
@@ -187,7 +44,7 @@ def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh,
     warnings = segmentation_checks(labels, pixel_size_mm) if warnings is None else list(warnings)
 
     figure, ax = plt.subplots(figsize=(8.0, 7.5))
-    _image_axes(ax, image, pixel_size_mm)
+    image_axes(ax, image, pixel_size_mm)
     tint = np.zeros(labels.shape + (4,))
     handles = []
     for label, (name, colour) in TISSUE_COLOURS.items():
@@ -198,13 +55,13 @@ def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh,
     for k, label in enumerate(compartments):
         tint[labels == label] = (*cycle(k % 10)[:3], 0.40)
         handles.append(Patch(color=cycle(k % 10), alpha=0.6, label=f"muscle compartment {k + 1}"))
-    ax.imshow(tint, extent=_extent(labels.shape, pixel_size_mm), interpolation="nearest")
+    ax.imshow(tint, extent=extent(labels.shape, pixel_size_mm), interpolation="nearest")
     corners = mesh.nodes[mesh.elements[:, :3]]
     edges = np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]], corners[:, [2, 0]]])
     ax.add_collection(LineCollection(edges, colors="black", linewidths=0.25, alpha=0.7))
     handles.append(matplotlib.lines.Line2D([], [], color="black", linewidth=0.6,
                                            label=f"mesh: {len(mesh.elements)} {mesh.element_type}"))
-    _landmark_markers(ax, landmarks)
+    landmark_markers(ax, landmarks)
     for warning in warnings:
         x, y = warning.position_mm
         ax.plot(x, y, "o", markersize=16, markerfacecolor="none", markeredgecolor="magenta", markeredgewidth=1.8)
@@ -213,12 +70,12 @@ def segmentation_figure(path: Path, image: np.ndarray, labels: np.ndarray, mesh,
     if warnings:
         handles.append(matplotlib.lines.Line2D([], [], marker="o", linestyle="none", markersize=9, markerfacecolor="none",
                                                markeredgecolor="magenta", label=f"segmentation unsure ({len(warnings)})"))
-    _zoom_to(ax, labels > 0, pixel_size_mm)
+    zoom_to(ax, labels > 0, pixel_size_mm)
     landmark_handles, _ = ax.get_legend_handles_labels()
     ax.legend(handles=handles + landmark_handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
     ax.set_title("segmentation of I0 and the finite-element mesh"
                  + (f"; {len(warnings)} place{'s' if len(warnings) > 1 else ''} unsure" if warnings else ""), fontsize=10)
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def contour_distance_figure(path: Path, panels: list[tuple[str, np.ndarray]], unloaded: np.ndarray, pixel_size_mm,
@@ -230,19 +87,19 @@ def contour_distance_figure(path: Path, panels: list[tuple[str, np.ndarray]], un
     figure, axes = plt.subplots(1, count, figsize=(4.6 * count, 4.8), squeeze=False)
     axes = axes[0]
     for ax, (title, image) in zip(axes, images):
-        _image_axes(ax, image, pixel_size_mm)
+        image_axes(ax, image, pixel_size_mm)
         ax.set_title(title, fontsize=9)
     shown = None
     for ax, (title, distance) in zip(axes[len(images):], panels):
-        _image_axes(ax, unloaded, pixel_size_mm)
+        image_axes(ax, unloaded, pixel_size_mm)
         ax.images[0].set_alpha(0.45)
         shown = ax.imshow(np.ma.masked_invalid(distance), cmap="viridis", vmin=0.0, vmax=d_max_mm,
-                          extent=_extent(distance.shape, pixel_size_mm), interpolation="nearest")
-        _zoom_to(ax, np.isfinite(distance), pixel_size_mm)
+                          extent=extent(distance.shape, pixel_size_mm), interpolation="nearest")
+        zoom_to(ax, np.isfinite(distance), pixel_size_mm)
         ax.set_title(title, fontsize=9)
     if shown is not None:
         figure.colorbar(shown, ax=list(axes[len(images):]), shrink=0.8, label="contour distance d_k (mm)")
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmarks: dict[str, tuple[float, float]],
@@ -255,7 +112,7 @@ def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmar
     finite = pressure_kPa[np.isfinite(pressure_kPa)]
     low, high = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
     shown = ax.imshow(np.ma.masked_invalid(pressure_kPa), cmap="cividis", vmin=low, vmax=high,
-                      extent=_extent(pressure_kPa.shape, pixel_size_mm), interpolation="nearest")
+                      extent=extent(pressure_kPa.shape, pixel_size_mm), interpolation="nearest")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_aspect("equal")
@@ -271,34 +128,12 @@ def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmar
         mean, std = landmark_values.get(name, (np.nan, np.nan))
         named[f"{name}: {with_uncertainty(mean, std, 'kPa')} "
               f"({with_uncertainty(mean * MMHG_PER_KPA, std * MMHG_PER_KPA, 'mmHg')})"] = position
-    _landmark_markers(ax, named)
-    _zoom_to(ax, np.isfinite(pressure_kPa), pixel_size_mm)
+    landmark_markers(ax, named)
+    zoom_to(ax, np.isfinite(pressure_kPa), pixel_size_mm)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8, frameon=False)
     ax.set_title("hydrostatic pressure at the central parameters; landmarks: mean +- std (parameters and tension)",
                  fontsize=9)
-    return _save(figure, path)
-
-
-def _scattered_map(positions_mm: np.ndarray, values: np.ndarray, mask: np.ndarray, pixel_size_mm) -> np.ndarray:
-    """Values at scattered points interpolated linearly over the pixels of `mask` (NaN elsewhere and outside the
-    points' convex hull)."""
-    from scipy.interpolate import griddata
-
-    rows, cols = np.nonzero(mask)
-    out = np.full(mask.shape, np.nan)
-    if len(positions_mm) >= 3:
-        out[rows, cols] = griddata(positions_mm, values, ((cols + 0.5) * pixel_size_mm[1], (rows + 0.5) * pixel_size_mm[0]),
-                                   method="linear")
-    return out
-
-
-def _zoom_to(ax, mask: np.ndarray, pixel_size_mm, margin_mm: float = 6.0) -> None:
-    """Show only the part of the image around the mask (the leg), axes still in mm of the image frame."""
-    rows, cols = np.nonzero(mask)
-    if rows.size:
-        dy, dx = pixel_size_mm
-        ax.set_xlim(cols.min() * dx - margin_mm, (cols.max() + 1) * dx + margin_mm)
-        ax.set_ylim((rows.max() + 1) * dy + margin_mm, rows.min() * dy - margin_mm)
+    return save(figure, path)
 
 
 def residual_figure(path: Path, image: np.ndarray, leg: np.ndarray, pixel_size_mm, positions_mm: np.ndarray,
@@ -322,7 +157,7 @@ def residual_figure(path: Path, image: np.ndarray, leg: np.ndarray, pixel_size_m
         scale = reference / 5.0            # a displacement of `reference` mm is drawn 5 mm long
         for column, (title, residual) in enumerate(fits):
             ax = axes[0, column]
-            _image_axes(ax, image, pixel_size_mm)
+            image_axes(ax, image, pixel_size_mm)
             ax.images[0].set_alpha(0.5)
             options = dict(angles="xy", scale_units="xy", scale=scale, width=0.005)
             measured_arrows = ax.quiver(positions[:, 0], positions[:, 1], measured[:, 0], measured[:, 1],
@@ -332,7 +167,7 @@ def residual_figure(path: Path, image: np.ndarray, leg: np.ndarray, pixel_size_m
             ax.quiverkey(measured_arrows, 0.80, 0.06, reference, f"{reference:g} mm", labelpos="N", coordinates="axes",
                          fontproperties={"size": 7})
             ax.legend(loc="upper left", fontsize=7, framealpha=0.85)
-            _zoom_to(ax, leg, pixel_size_mm)
+            zoom_to(ax, leg, pixel_size_mm)
             ax.set_title(f"{title}\ndisplacements", fontsize=9)
         first = 1
     for column, (title, residual) in enumerate(fits):
@@ -342,19 +177,19 @@ def residual_figure(path: Path, image: np.ndarray, leg: np.ndarray, pixel_size_m
                 (first, magnitude, "magma", (0.0, largest), f"|residual|, RMS {np.sqrt(np.mean(magnitude ** 2)):.3f} mm"),
                 (first + 1, radial, "RdBu_r", (-radial_max, radial_max), "radial residual")):
             ax = axes[row, column]
-            _image_axes(ax, image, pixel_size_mm)
+            image_axes(ax, image, pixel_size_mm)
             ax.images[0].set_alpha(0.35)
-            shown = ax.imshow(np.ma.masked_invalid(_scattered_map(positions, values, leg, pixel_size_mm)), cmap=cmap,
-                              vmin=limits[0], vmax=limits[1], extent=_extent(leg.shape, pixel_size_mm),
+            shown = ax.imshow(np.ma.masked_invalid(scattered_map(positions, values, leg, pixel_size_mm)), cmap=cmap,
+                              vmin=limits[0], vmax=limits[1], extent=extent(leg.shape, pixel_size_mm),
                               interpolation="nearest")
             ax.plot(positions[:, 0], positions[:, 1], ".", color="white", markersize=1.2)
-            _zoom_to(ax, leg, pixel_size_mm)
+            zoom_to(ax, leg, pixel_size_mm)
             ax.set_title(f"{title}\n{heading}", fontsize=9)
             if column == len(fits) - 1:
                 label = ("|u_model - u_measured| (mm)" if row == first
                          else "radial residual (mm, + the model lies outwards)")
                 figure.colorbar(shown, ax=list(axes[row]), shrink=0.9, label=label)
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def ranking_figure(path: Path, ranking: list[dict], alpha: float) -> Path:
@@ -370,7 +205,7 @@ def ranking_figure(path: Path, ranking: list[dict], alpha: float) -> Path:
     ax.set_ylabel("catalog effect")
     ax.legend(loc="lower right", fontsize=8)
     ax.set_title("which missing effect the residual points to (red: significant)", fontsize=10)
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def misfit_figure(path: Path, fits: list[tuple[str, float]], explained_factor: float,
@@ -394,7 +229,7 @@ def misfit_figure(path: Path, fits: list[tuple[str, float]], explained_factor: f
     ax.tick_params(axis="x", labelsize=8, labelrotation=15)
     ax.legend(fontsize=8)
     ax.set_title("misfit before and after the refits", fontsize=10)
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def intervals_figure(path: Path, names: list[str], units: list[str], identified, lower, upper, poorly: list[str],
@@ -419,7 +254,7 @@ def intervals_figure(path: Path, names: list[str], units: list[str], identified,
     figure.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, bbox_to_anchor=(0.5, -0.04))
     figure.suptitle(title, fontsize=9)
     figure.tight_layout()
-    return _save(figure, path)
+    return save(figure, path)
 
 
 def band_figure(path: Path, band: dict, direction) -> Path:
@@ -480,22 +315,17 @@ def band_figure(path: Path, band: dict, direction) -> Path:
     axes[-1].set_xlim(0.0, 360.0)
     axes[-1].set_xticks(np.arange(0.0, 361.0, 45.0))
     figure.tight_layout()
-    return _save(figure, path)
+    return save(figure, path)
 
 
 # ----------------------------------------------------------------------------- the study report's figures
-
-
-def save_figure(figure, path: Path) -> Path:
-    """Write a figure of the study report (PNG, the report's resolution) and free it."""
-    return _save(figure, path)
 
 
 def study_profile_figure(heights_mm, panels, named_heights: dict[str, float], kind: str, *, mmhg: bool = False,
                          reference: float | None = None):
     """Quantities along the leg, one panel each: panels are (label, values, low, high, unit) by height, low/high
     the band (None: no band). The named heights of the compression standard (B, B1, C, D) are dashed lines."""
-    from ..engine.results import MMHG_PER_KPA
+    from ..core.units import MMHG_PER_KPA
 
     heights = np.asarray(heights_mm, float)
     columns = min(len(panels), 2)

@@ -64,12 +64,12 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from ..engine.decks import KPA_PER_MPA
-from ..meshing.mesh import tissue_name
-from ..engine.results import MMHG_PER_KPA
-from ..engine.results import EngineResults
+from ..core.errors import RunFolderError
+from ..core.files import read_json
 from ..core.run_lock import holds_run_folder
-from ..core.files import RunFolderError, read_json
+from ..core.tissues import element_set_of_label
+from ..core.units import KPA_PER_MPA, MMHG_PER_KPA
+from ..engine.results import EngineResults
 from ..run.setup import load_run
 
 OUTPUT_FOLDER = "paraview"
@@ -98,7 +98,7 @@ def write_paraview(run_dir: str | Path, out_dir: str | Path | None = None) -> li
     units = list(identification.get("unit_of") or model.space.unit_of)
     field_data = {name: np.array([value]) for name, value in zip(names, theta)}
     for region in np.unique(setup.mesh.element_regions):
-        field_data[TISSUE_LABEL_PREFIX + tissue_name(int(region))] = np.array([int(region)], np.int32)
+        field_data[TISSUE_LABEL_PREFIX + element_set_of_label(int(region))] = np.array([int(region)], np.int32)
     if model.band is not None:
         field_data[TISSUE_LABEL_PREFIX + "GARMENT"] = np.array([GARMENT_LABEL], np.int32)
     comment = ("calfit identified model of " + str(run_dir.resolve()) + "; units mm, kPa; parameters: "

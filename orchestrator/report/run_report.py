@@ -32,23 +32,22 @@ from pathlib import Path
 import jinja2
 import numpy as np
 
-from . import figures
-from ..engine.decks import template_dir
-from ..diagnose.diagnosis import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT, Refit, level_rows, model_label, refit_model
-from ..run.discretization import discretization_line
 from ..core.digits import interval_uncertainty, rounded
-from ..model.forward import MeshInterpolator, field_on_pixels
+from ..core.files import read_json, replace_folder
+from ..core.run_lock import holds_run_folder
+from ..core.tissues import BONE
+from ..core.units import MMHG_PER_KPA
+from ..diagnose.diagnosis import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT, Refit, level_rows, model_label, refit_model
+from ..engine.decks import template_dir
 from ..fit.identify import pressure_spreads
-from ..case.folder import replace_folder
-from ..imaging.segment import BONE
+from ..fit.objectives import leg_rows
 from ..imaging.warp import warp_image
 from ..measure.measurements import FILES as MEASURE_FILES
-from ..fit.objectives import leg_rows
-from ..run.stages import floor_sentence, identified_data, sum_only_lines
-from ..engine.results import MMHG_PER_KPA
-from ..core.run_lock import holds_run_folder
-from ..core.files import read_json
+from ..model.forward import MeshInterpolator, field_on_pixels
+from ..run.discretization import discretization_line
 from ..run.setup import load_run
+from ..run.stages import floor_sentence, identified_data, sum_only_lines
+from . import figures
 
 REPORT_TEMPLATE = "report.html.j2"
 REPORT_JSON = "report.json"

@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from ..core.digits import interval_uncertainty
-from ..case.folder import replace_folder
+from ..core.files import replace_folder
+from ..core.units import MMHG_PER_KPA
 from .run_report import _figure, _section, _strict_json, _table, render_page
-from ..engine.results import MMHG_PER_KPA
 
 REPORT_FOLDER = "report"
 BAND_SIGMAS = 2.0    # the pressure bands: +- 2 standard deviations (about 95 %)
@@ -152,7 +152,8 @@ def _answers(done, rows, failing, pressures, volume) -> dict:
 
 
 def _profiles_section(done, parameters, pressures, volume, figure_dir) -> dict:
-    from .figures import save_figure, study_profile_figure
+    from ..core.plotting import save as save_figure
+    from .figures import study_profile_figure
 
     heights = np.array([row["height_mm"] for row in done])
     order = np.argsort(heights)
@@ -188,7 +189,8 @@ def _profiles_section(done, parameters, pressures, volume, figure_dir) -> dict:
 
 
 def _distributions_section(done, parameters, figure_dir) -> dict:
-    from .figures import save_figure, study_distribution_figure
+    from ..core.plotting import save as save_figure
+    from .figures import study_distribution_figure
 
     panels = [(name, [r["case"] for r in done], [r[name] for r in done], [r[f"{name}_low"] for r in done],
                [r[f"{name}_high"] for r in done]) for name in parameters]

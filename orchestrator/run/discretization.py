@@ -26,8 +26,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..fit.objectives import DisplacementResidualObjective
 from ..engine.runner import OK, Evaluator
+from ..fit.objectives import DisplacementResidualObjective
 
 FINER_FACTOR = 2
 

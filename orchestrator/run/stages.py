@@ -19,37 +19,63 @@ them at once, each level's own misfit and residual maps reported (`diagnose`).""
 from __future__ import annotations
 
 import tempfile
+from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from dataclasses import asdict
-
-from ..diagnose.diagnosis import (ALPHA, diagnose, judged_ratio, level_maps, local_refit_unneeded, patch_elements,
-                                  refit, refit_model, refit_verdict, residual_maps, settle_ties, summarize_fit,
-                                  weigh_local)
+from ..case.folder import read_model_choice
 from ..core.digits import interval_uncertainty, rounded, with_uncertainty
-from .discretization import discretization_check, discretization_line
-from ..model.effects import effect
-from ..report.figures import diagnosis_figure
-from ..model.garment_state import band_state
-from ..model.heterogeneity import stiffness_field_kpa
-from ..fit.identify import (NOISE_DRAWS, FitResult, levenberg_marquardt, monte_carlo, multistart, noise_monte_carlo,
-                            pressure_spreads, pressure_uncertainty, table1_starts)
-from ..fit.geometry_uncertainty import (INTERFACE_UNCERTAINTY_PX, SKIN_UNCERTAINTY_PX, covariance_of,
-                                        discard_without_columns, geometry_columns, measured_skin_sigma,
-                                        skin_perimeter_mm)
+from ..core.files import read_json, write_json
+from ..core.run_lock import holds_run_folder
+from ..core.units import MMHG_PER_KPA
+from ..diagnose.diagnosis import (
+    ALPHA,
+    diagnose,
+    judged_ratio,
+    level_maps,
+    local_refit_unneeded,
+    patch_elements,
+    refit,
+    refit_model,
+    refit_verdict,
+    residual_maps,
+    settle_ties,
+    summarize_fit,
+    weigh_local,
+)
+from ..diagnose.figure import diagnosis_figure
+from ..engine.runner import LOG_NAME, EvaluationLog, Evaluator
+from ..fit.geometry_uncertainty import (
+    INTERFACE_UNCERTAINTY_PX,
+    SKIN_UNCERTAINTY_PX,
+    covariance_of,
+    discard_without_columns,
+    geometry_columns,
+    measured_skin_sigma,
+    skin_perimeter_mm,
+)
 from ..fit.geometry_uncertainty import read_covariance as read_geometry_covariance
 from ..fit.geometry_uncertainty import write as write_geometry
-from ..case.folder import read_model_choice
-from ..measure.prefilter import PREFILTER_SIGMA_PX
-from ..measure.measurements import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
+from ..fit.identify import (
+    NOISE_DRAWS,
+    FitResult,
+    levenberg_marquardt,
+    monte_carlo,
+    multistart,
+    noise_monte_carlo,
+    pressure_spreads,
+    pressure_uncertainty,
+    table1_starts,
+)
 from ..fit.levels import AtTension
-from ..core.run_lock import holds_run_folder
-from ..engine.results import MMHG_PER_KPA
-from ..engine.runner import LOG_NAME, EvaluationLog, Evaluator
-from ..core.files import read_json, write_json
+from ..measure.measurements import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
+from ..measure.prefilter import PREFILTER_SIGMA_PX
+from ..model.effects import effect
+from ..model.garment_state import band_state
+from ..model.heterogeneity import stiffness_field_kpa
+from .discretization import discretization_check, discretization_line
 from .setup import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
 
 OBJECTIVES = ("contour", "displacement")

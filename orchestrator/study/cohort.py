@@ -45,12 +45,13 @@ from typing import Callable
 
 import numpy as np
 
-from ..diagnose.diagnosis import ALPHA
 from ..core.digits import rounded
+from ..core.errors import RunFolderError
+from ..core.files import atomic_write_text, read_json, write_json
+from ..diagnose.diagnosis import ALPHA
 from ..fit.identify import pressure_spreads
-from ..run.stages import run_diagnose, run_identify, run_montecarlo, run_pressures
-from ..core.files import RunFolderError, atomic_write_text, read_json, write_json
 from ..report.study_report import cell_uncertainty, write_study_report
+from ..run.stages import run_diagnose, run_identify, run_montecarlo, run_pressures
 from .volume_cases import SLICES_JSON, is_volume_case, slice_volume_case
 
 ROW_FILE = "row.json"

@@ -37,16 +37,16 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import tomllib
 
 from ..case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, write_case_folder
 from ..case.folder import _model_choice as check_model_table
-from ..core.errors import CaseError
-from ..core.files import RunFolderError, read_json, write_json
+from ..core.errors import CaseError, RunFolderError
+from ..core.files import read_json, write_json
 
 SLICES_JSON = "slices.json"
 SLICES_FOLDER = "slices"
@@ -199,8 +199,8 @@ def read_volume_case(folder: str | Path) -> VolumeCase:
 def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple[list[SliceCase], dict]:
     """Cut the volume case into slice cases under out/slices (module text); returns them, by height, and the record
     written to out/slices.json. A record already there is reused when it was cut at the same heights."""
-    from ..imaging.align3d import align_volumes_on_bones, resample_on_slice
     from ..case.volume import read_volume
+    from ..imaging.align3d import align_volumes_on_bones, resample_on_slice
 
     say = report or (lambda line: None)
     case = read_volume_case(folder)

@@ -78,6 +78,7 @@ def _leg(name, n_elements, order):
 
 def _leg_follower(name, n_elements, increments):
     from leg_decks import nonuniform_follower_text
+
     from orchestrator.meshing import leg_slice_mesh
 
     text = nonuniform_follower_text(leg_slice_mesh(n_elements, order=2), increments)
@@ -87,6 +88,7 @@ def _leg_follower(name, n_elements, increments):
 
 def _leg_garment(name, n_elements):
     from leg_decks import garment_text
+
     from orchestrator.meshing import garment_band, leg_slice_mesh
 
     leg = leg_slice_mesh(n_elements, order=2)
@@ -96,7 +98,12 @@ def _leg_garment(name, n_elements):
 
 
 def _leg_garment_friction(name, n_elements):
-    from leg_decks import GARMENT_FRICTION, GARMENT_FRICTION_RELEASE, garment_friction_text
+    from leg_decks import (
+        GARMENT_FRICTION,
+        GARMENT_FRICTION_RELEASE,
+        garment_friction_text,
+    )
+
     from orchestrator.meshing import garment_band, leg_slice_mesh
 
     leg = leg_slice_mesh(n_elements, order=2)

@@ -22,8 +22,17 @@ from .appearance3d import Appearance3D, KspaceContrast
 from .case import KspacePhantom, build_phantom, make_kspace_case, solve_truth, write_kspace_volume_case
 from .ccx import CcxError
 from .leg3d import Leg3D, LegAlongHeight
-from .mechanics3d import (GarmentLoad, HiddenEffects3D, Layering, LegMesh3D, LegSolution3D, leg_mesh_3d,
-                          plane_strain_difference, section_mesh, solve_leg3d)
+from .mechanics3d import (
+                          GarmentLoad,
+                          HiddenEffects3D,
+                          Layering,
+                          LegMesh3D,
+                          LegSolution3D,
+                          leg_mesh_3d,
+                          plane_strain_difference,
+                          section_mesh,
+                          solve_leg3d,
+)
 
 __all__ = ["AcquiredImage", "Appearance3D", "CcxError", "DisplacementGrid", "GarmentLoad", "HiddenEffects3D",
            "KspaceContrast", "KspacePhantom", "Layering", "Leg3D", "LegAlongHeight", "LegMesh3D", "LegMotion",

@@ -44,7 +44,6 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import erf
 
-
 SUBPLANE_SPACING_MM = 1.0
 FIXED_POINT_TOLERANCE_MM = 1e-5
 FIXED_POINT_MAX_ITERATIONS = 200

@@ -38,14 +38,23 @@ from typing import Sequence
 import numpy as np
 
 from ...case._formats import write_png16
-from ...case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, DisplacementPoints, replace_folder, write_case_folder
+from ...case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, DisplacementPoints, write_case_folder
+from ...core.files import replace_folder
 from ...core.frame import pixel_centres_mm
 from ..mri.anatomy import LegShape
 from .acquisition import AcquiredImage, DisplacementGrid, LegMotion, Scanner, grid_heights, material_points
 from .appearance3d import Appearance3D, KspaceContrast
 from .leg3d import Leg3D, LegAlongHeight
-from .mechanics3d import (DEFAULT_SECTION_ELEMENTS, FINE_SECTION_ELEMENTS, LEG_PARAMETERS, HiddenEffects3D, Layering,
-                          LegSolution3D, leg_mesh_3d, solve_leg3d)
+from .mechanics3d import (
+    DEFAULT_SECTION_ELEMENTS,
+    FINE_SECTION_ELEMENTS,
+    LEG_PARAMETERS,
+    HiddenEffects3D,
+    Layering,
+    LegSolution3D,
+    leg_mesh_3d,
+    solve_leg3d,
+)
 
 PARAMETERS_FILE = "parameters.json"      # the name `study.make_phantom_case` gives it
 LEG_MARGIN_MM = 3.0                       # the skin stays this far inside the field of view in both sessions

@@ -67,10 +67,11 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ...engine.decks import KPA_PER_MPA, numbers, render
 from ...core.frame import pixel_centres_mm
+from ...core.units import KPA_PER_MPA
+from ...engine.decks import numbers, render
 from ...meshing import Mesh, MeshingError, mesh_from_labels
-from ...meshing.mesh import ITEMS_PER_SET_LINE, muscle_sets
+from ...meshing.mesh import ITEMS_PER_SET_LINE
 from ..geometry import COMPARTMENTS, FIRST_COMPARTMENT_LABEL
 from .ccx import DEFAULT_TIMEOUT_S, CcxError, CcxRun, run_ccx
 from .leg3d import Leg3D
@@ -666,10 +667,10 @@ def plane_strain_difference(solution: LegSolution3D) -> dict:
     plane (`*DLOAD`: what remains is the 3D solution's departure from plane strain and the discretization), and
     `engine_laplace`, the engine's own Laplace law (REFERENCE=1 for the unloaded law, the deformed membrane for
     the deformed one), whose pressure is distributed along the skin its own way (solver_cpp/README.md)."""
-    from ...model.forward import LegModel
     from ...core.materials import TissueLaw
-    from ...fit.objectives import leg_rows
     from ...engine.runner import solve_once
+    from ...fit.objectives import leg_rows
+    from ...model.forward import LegModel
 
     if solution.effects != HiddenEffects3D():
         raise ValueError("the plane-strain check compares the baseline physics; solve without hidden effects")
