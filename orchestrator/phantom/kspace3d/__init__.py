@@ -19,7 +19,13 @@ independently of any other program's renderer:
 
 from .acquisition import AcquiredImage, DisplacementGrid, LegMotion, Scanner
 from .appearance3d import Appearance3D, KspaceContrast
-from .case import KspacePhantom, build_phantom, make_kspace_case, solve_truth, write_kspace_volume_case
+from .case import (
+                          KspacePhantom,
+                          build_phantom,
+                          make_kspace_case,
+                          solve_truth,
+                          write_kspace_volume_case,
+)
 from .ccx import CcxError
 from .leg3d import Leg3D, LegAlongHeight
 from .mechanics3d import (

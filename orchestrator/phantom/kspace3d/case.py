@@ -38,11 +38,22 @@ from typing import Sequence
 import numpy as np
 
 from ...case._formats import write_png16
-from ...case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, DisplacementPoints, write_case_folder
+from ...case.folder import (
+    DEFAULT_TENSION_REL_UNCERTAINTY,
+    DisplacementPoints,
+    write_case_folder,
+)
 from ...core.files import replace_folder
 from ...core.frame import pixel_centres_mm
 from ..mri.anatomy import LegShape
-from .acquisition import AcquiredImage, DisplacementGrid, LegMotion, Scanner, grid_heights, material_points
+from .acquisition import (
+    AcquiredImage,
+    DisplacementGrid,
+    LegMotion,
+    Scanner,
+    grid_heights,
+    material_points,
+)
 from .appearance3d import Appearance3D, KspaceContrast
 from .leg3d import Leg3D, LegAlongHeight
 from .mechanics3d import (

@@ -25,6 +25,12 @@ reference point of any scanner point (x, y, z) is exact: `reference_point`. Labe
 section's labels at the reference point (0 air, 1 fat and skin, 2 muscle, 3 bone), landmarks at a height are the
 reference landmarks carried by Phi. At z = z_ref Phi is the identity.
 
+The outline's hoop curvature at height z is exact (`skin_curvature`): the skin lies beyond r_s, so step 1 moves it
+by d_s(phi) along its ray, and its outline at z is the polar curve R(phi) = r(phi) + d_s(phi, z) (r the reference
+skin's trigonometric polynomial, d_s = (1 - share) (r_s - r_f) (g - 1), every factor with closed-form derivatives in
+phi), scaled by s(z) and moved rigidly: kappa = (R^2 + 2 R'^2 - R R'') / (s (R^2 + R'^2)^(3/2)), the curvature of a
+curve in polar form (e.g. do Carmo, Differential Geometry of Curves and Surfaces, sec. 1-5, ex. 8).
+
 The tibia and the fibula are carried by steps 2-3 only: they scale with the leg, turn with it and drift, so that
 their cross-sections and the line between them change with height (what lets a 3D alignment on the bones find an
 axial slide, `imaging.align3d`).
@@ -176,6 +182,27 @@ class Leg3D:
         X, Y = self.reference_point(x, y, z_mm)
         return self.geometry.labels_at(X, Y, compartments=compartments)
 
+    def skin_curvature(self, phi, z_mm) -> np.ndarray:
+        """Exact hoop curvature (1/mm, positive where convex) of the section's outline at heights z, where the
+        reference section's ray phi (leg frame, about the leg centre) meets it (module text)."""
+        phi, z_mm = np.broadcast_arrays(np.asarray(phi, float), np.asarray(z_mm, float))
+        g, a = self.geometry, self.along
+        unit = np.exp(1j * phi)
+        r, r1, r2 = _profile_with_derivatives(g.skin.radius, unit)
+        fat = [s - f for s, f in zip(_profile_with_derivatives(g.skin_inner.radius, unit),
+                                     _profile_with_derivatives(g.fascia.radius, unit))]
+        rise = (z_mm - a.reference_height_mm) / 100.0
+        # g = exp(rise (a - b sin phi)): g' = -g rise b cos phi, g'' = g ((rise b cos phi)^2 + rise b sin phi)
+        back = rise * a.fat_back_per_100mm
+        factor = np.exp(rise * a.fat_per_100mm - back * np.sin(phi))
+        factor1 = -factor * back * np.cos(phi)
+        factor2 = factor * ((back * np.cos(phi)) ** 2 + back * np.sin(phi))
+        share = 1.0 - a.fat_change_inwards
+        R = r + share * fat[0] * (factor - 1.0)
+        R1 = r1 + share * (fat[1] * (factor - 1.0) + fat[0] * factor1)
+        R2 = r2 + share * (fat[2] * (factor - 1.0) + 2.0 * fat[1] * factor1 + fat[0] * factor2)
+        return (R * R + 2.0 * R1 * R1 - R * R2) / ((R * R + R1 * R1) ** 1.5 * self.scale(z_mm))
+
     def landmarks_at(self, z_mm: float) -> dict[str, tuple[float, float]]:
         """The reference section's five landmarks carried to height z (image frame, mm)."""
         out = {}
@@ -209,3 +236,9 @@ class Leg3D:
         return Leg3D(self.shape, along)
 
 
+def _profile_with_derivatives(profile, unit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """f, df/dphi and d2f/dphi2 of a trigonometric polynomial f = Re(sum_k c_k e^{i k phi}) at unit = e^{i phi}."""
+    c = profile.coefficients
+    k = np.arange(len(c))
+    powers = unit[..., None] ** k
+    return ((powers @ c).real, (powers @ (1j * k * c)).real, (powers @ (-(k ** 2) * c)).real)
