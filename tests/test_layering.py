@@ -1,13 +1,43 @@
-"""The orchestrator's rooms import one way (DESIGN.md: data flows one way through the pipeline): no module imports,
-even inside a function, one that imports it back; every template in one folder."""
+"""The orchestrator's stages import one way (docs/design.md: data flows one way through the pipeline): import-linter
+holds pyproject.toml's stage contract (a stage imports only from the stages below it) and is shown to break on an
+upward import; no module imports, even inside a function, one that imports it back; every template in one folder."""
 
 import ast
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import orchestrator
 from orchestrator.engine.decks import template_dir
 
 PACKAGE = Path(orchestrator.__file__).parent
+PYPROJECT = PACKAGE.parent / "pyproject.toml"
+LINT_IMPORTS = Path(sys.executable).with_name("lint-imports")
+
+
+def _lint_imports(config: Path, package_parent: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([str(LINT_IMPORTS), "--no-cache", str(config)], capture_output=True, text=True,
+                          cwd=package_parent, env={"PYTHONPATH": str(package_parent), "PATH": ""}, timeout=120)
+
+
+def test_every_stage_imports_only_from_the_stages_below_it():
+    result = _lint_imports(PYPROJECT, PACKAGE.parent)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "1 kept, 0 broken" in result.stdout
+
+
+def test_the_stage_contract_breaks_on_an_import_from_a_lower_stage_to_a_higher_one(tmp_path):
+    # under another name: the editable install would find the real package first
+    copy = tmp_path / "stages_copy"
+    shutil.copytree(PACKAGE, copy, ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+    units = copy / "core" / "units.py"
+    units.write_text(units.read_text() + "\nfrom ..report import run_report  # upward\n")
+    config = tmp_path / "pyproject.toml"
+    config.write_text(PYPROJECT.read_text().replace('"orchestrator"', '"stages_copy"').replace('orchestrator.', 'stages_copy.'))
+    result = _lint_imports(config, tmp_path)
+    assert result.returncode == 1 and "0 kept, 1 broken" in result.stdout, result.stdout
+    assert "stages_copy.core.units -> stages_copy.report.run_report" in result.stdout
 
 
 def _module_name(path: Path) -> str:
