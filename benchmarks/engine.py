@@ -29,7 +29,7 @@
    most 40 for the release, contact and settling, under 2 s); on --garment-ccx-elements (2,000) the same beside
    CalculiX, with their ratio and agreement (leg and band apart too); with friction both run CalculiX's
    node-to-surface contact (whose friction gives the slider's closed form) with the release in 200 increments
-   (tests/leg_decks.py garment_friction_text; solver_cpp/README.md, Contact).
+   (tests/support/leg_decks.py garment_friction_text; solver_cpp/README.md, Contact).
 4. Parameter sensitivities on the paper-size slice under a Laplace-law garment (uniform
    tension, a TYPE=FOURIER profile with no terms): *SENSITIVITY for 10 parameters (C10
    and D1 of fat and muscle, the garment TENSION, profile coefficients A1, B1, A2, B2,
@@ -447,7 +447,7 @@ def follower(args, root: Path) -> None:
     mesh = leg_slice_mesh(5500, order=2)
     print(f"\nleg-like slice under a non-uniform follower pressure ({mesh.n_dof} DOF, at most 1/{FOLLOWER_INCREMENTS} "
           "of the load per increment; unsymmetric tangent)")
-    text = nonuniform_follower_text(mesh, FOLLOWER_INCREMENTS)   # tests/leg_decks.py
+    text = nonuniform_follower_text(mesh, FOLLOWER_INCREMENTS)   # tests/support/leg_decks.py
     result = _median_runs(args, root, "follower", lambda folder: write_leg_deck(folder, text))
     if not result:
         return
@@ -485,8 +485,8 @@ GARMENT_CCX_TIMEOUT_S = 1800.0
 def explicit_garment(args, root: Path) -> None:
     """The garment's targets on the --garment-elements deck (5k DOF: Newton iterations and wall time), then the same
     put-on on the --garment-ccx-elements deck beside CalculiX (ratio and agreement): with 1,000 elements the two
-    contact discretizations differ by 0.62 % of max |u|, with 2,000 by 0.31 % (tests/ccx_reference). With friction
-    CalculiX runs the deck of tests/leg_decks.py garment_friction_text (node-to-surface contact, the release in 200
+    contact discretizations differ by 0.62 % of max |u|, with 2,000 by 0.31 % (tests/support/ccx_reference). With friction
+    CalculiX runs the deck of tests/support/leg_decks.py garment_friction_text (node-to-surface contact, the release in 200
     increments, where its face-to-face friction depends on its increments), and so does calfit-fe beside it."""
     for n_elements, with_ccx in ((args.garment_elements, False), (args.garment_ccx_elements, True)):
         leg = leg_slice_mesh(n_elements, order=2)
@@ -496,7 +496,7 @@ def explicit_garment(args, root: Path) -> None:
               f"band elements, {n_dof} DOF; inflate, let go, contact + release, settle): penalty contact, "
               f"frictionless and with friction mu = {GARMENT_FRICTION}" + (", beside CalculiX" if with_ccx else ""))
         for mu in (0.0, GARMENT_FRICTION):
-            name, text = f"garment{n_elements}-mu{mu:g}", garment_text(leg, band, mu)   # tests/leg_decks.py
+            name, text = f"garment{n_elements}-mu{mu:g}", garment_text(leg, band, mu)   # tests/support/leg_decks.py
             result = _median_runs(args, root, name, lambda folder: write_leg_deck(folder, text))
             if not result:
                 continue
@@ -518,10 +518,10 @@ def explicit_garment(args, root: Path) -> None:
 
 def garment_friction_versus_ccx(args, root: Path, leg, band, n_dof: int) -> None:
     """calfit-fe and CalculiX on the garment deck with friction whose release is converged in its increments
-    (tests/leg_decks.py garment_friction_text: CalculiX's node-to-surface contact, the release in 200 increments)."""
+    (tests/support/leg_decks.py garment_friction_text: CalculiX's node-to-surface contact, the release in 200 increments)."""
     name, text = f"garment{len(leg.elements)}-friction-reference", garment_friction_text(leg, band)
     print(f"  mu = {GARMENT_FRICTION:g} beside CalculiX: node-to-surface contact in both (CalculiX's face-to-face "
-          "friction depends on its increments: tests/test_engine_friction.py), the release in 200 increments in both")
+          "friction depends on its increments: tests/engine/test_engine_friction.py), the release in 200 increments in both")
     result = _median_runs(args, root, name, lambda folder: write_leg_deck(folder, text))
     if not result:
         return

@@ -6,7 +6,7 @@ Cases: the foreign cases blind-04 (control, nothing hidden) and blind-01 (muscle
 /work/shared/foreign-cases; their points.csv is ignored, their garment is p = T kappa0 of the undeformed skin, which
 calfit fits with the catalog effect `unloaded_curvature`; blind-01 also gets `drainage`, what it hides), and one
 engine-made case of each of calfit's renderers (`CalfPhantom`, `MRIPhantom`) at a random truth (seed 1, as
-tests/test_identify_images.py; 4,000 CPE6 for the truth, images and case.toml only, a scanner motion).
+tests/fit/test_identify_images.py; 4,000 CPE6 for the truth, images and case.toml only, a scanner motion).
 
 For each case, on one prepared run folder (the same segmentation, bone alignment and 1,000-CPE6 mesh for both):
 - windows: `calfit identify` as it is today (`pipeline.run_identify`: DIC windows, LM from the default start, the

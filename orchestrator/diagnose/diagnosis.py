@@ -125,7 +125,7 @@ PATCHES_KEPT = 3             # candidate places for a local stiffness change rep
 BAND_VARIANTS_NOT_RANKED = {
     "band stiffness": "a band stiffer by a factor s carries s T at the same stretch, and the tissues' moduli scaled by "
                       "s then give the same displacements (both x1.5 moved the leg by 3.3 um of 0.98 mm, "
-                      "tests/test_garment.py; 3.1 um at mu = 0.3): displacements cannot tell it from the tissues' "
+                      "tests/model/test_garment.py; 3.1 um at mu = 0.3): displacements cannot tell it from the tissues' "
                       "scale; the tension's uncertainty carries it into the pressures (Table 4)",
 }
 

@@ -86,7 +86,7 @@ class IntegratedDIC:
     noise_sigma: the raw noise of (I0, I1), default estimated as the windows do. brightness: the model of the grey
     levels' change besides the motion, "affine" (an affine gain that moves with the tissue, the default), "scanner"
     (a gain and a log-quadratic bias field fixed in the scanner) or "none" (`_warp`). On the small phantom of
-    tests/test_integrated_dic.py, whose coil bias is fixed in the scanner, the three leave the same noiseless
+    tests/fit/test_integrated_dic.py, whose coil bias is fixed in the scanner, the three leave the same noiseless
     residual at the truth (4.5-4.8 % of the noise variance) and the same parameters to 0.5 %: the coil bias is not
     what limits I-DIC there."""
 
@@ -275,7 +275,7 @@ class IntegratedDIC:
         whitened residual. Its pixels are not independent: r_w = w G * (e_1 - e_0), e the raw noise of variance
         (s_0^2 + s_1^2) rho, so J^T S J = sum_y (s_0^2 + s_1^2) rho(y) (G * wJ)(y) (G * wJ)(y)^T (G symmetric; both
         images' noise taken on I0's grid). (J^T J)^-1 alone, as if the pixels were independent, is 2.7 x too narrow in
-        standard deviation with the 1-pixel prefilter on the phantom of tests/test_integrated_dic.py, where this
+        standard deviation with the 1-pixel prefilter on the phantom of tests/fit/test_integrated_dic.py, where this
         sandwich matched the spread of 40 noise draws within 20 %."""
         jacobian = np.asarray(jacobian, float)
         spread = []

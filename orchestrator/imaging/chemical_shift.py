@@ -25,7 +25,7 @@ is therefore smoothed first by a Gaussian of PROFILE_SMOOTHING_PX, which makes t
 is the one of SIGMA_FACTORS x that Gaussian that fits all the profiles best; per profile, m and f are linear and
 (b, e) found on a grid of EDGE_GRID_MM. Over the interface's points, e - b regressed on the normal's components
 (a robust least squares, Huber weights) gives w and delta with their standard errors. Septa and streaks that
-cross a profile scatter it; the regression does not care which way. Measured (tests/test_chemical_shift.py, and
+cross a profile scatter it; the regression does not care which way. Measured (tests/imaging/test_chemical_shift.py, and
 the development cases): on scenes made as a scanner makes them, shifts of 1.4, -1.8, 1.2 and -1.5 px read 1.34,
 -1.77, 0.98 and -1.43 px (the narrower of the two bands, fascia and shift overlapping, is read a little too
 narrow where it is under the blur); on the other program's k-space calves, 1.4 px along x read 1.21 +- 0.05 px, and

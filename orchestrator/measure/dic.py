@@ -62,7 +62,7 @@ What each window reports (as DICe does: users see what was trusted):
   affine basis weighted by rho), hence H_s = H - s_f^2 g^2 M (errors in
   variables; without it the predicted variance is 30-70 % short on texture as
   weak as muscle's in T1; with M unweighted, windows half in air over-predicted
-  the variance along the skin 1.6 times, tests/test_window_noise.py). The
+  the variance along the skin 1.6 times, tests/measure/test_window_noise.py). The
   error of the images' edges (`prefilter`) is added by
   `DICResult.with_edge_variance` once the windows' residuals have calibrated it;
 - `uncertainty_px`, `anisotropy`: the largest standard deviation and the ratio

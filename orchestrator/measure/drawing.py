@@ -29,7 +29,7 @@ power at 4 cycles as a weak comb (calfit's first phantom: n R^2 = 8 there). Fine
 boundaries within 1 / (MAX_SAMPLES sqrt(12)) px. Measured: the other program's four cases S = 3 at p = 6e-13 to 7e-20
 (both images); calfit's two phantoms, and its second drawn anti-aliased with a bright skin, none; its second
 point-sampled (`MRIPhantom(anti_aliased=False)`) S = 3 with a bright skin (p = 3e-13), none with its grey skin, whose
-steps of 1/9 are under three times the scatter (tests/test_drawing.py, README).
+steps of 1/9 are under three times the scatter (tests/measure/test_drawing.py, README).
 
 The windows' error (`drawn_boundaries_factor`). The boundaries are the labels' contours (the leg's outline and the
 muscle's boundary, leaving out the bones, which do not move), smoothed along their arc over ALONG_ARC_PX so that the

@@ -28,7 +28,7 @@ the spline is exact). a_e and a_n are the shares of the edges' error and of the 
 into its parameters (`dic._absorbed_share`): an edge's error lies where the steepest-descent images are largest, so the
 match takes more of it than of the noise. Windows whose residual the model does not predict are left out of the estimate
 (`fit_error_model`), by a bound that counts an edge's few independent values (`residual_bound`). On images carrying
-exactly the modelled error (tests/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and
+exactly the modelled error (tests/measure/test_edge_error_model.py) the estimate is 13 % low on average (34 % before a_e and
 that bound): the match takes the most on the edge's own pixels, and the line is fitted pixel by pixel. The kept part
 computed per pixel, diag((I - P) C (I - P)), recovers it within a few per cent, but then the windows of the second
 phantom were over-predicted (its control at 0.81 x the floor): the error left is in how the pixels' errors add up in a
@@ -229,7 +229,7 @@ def residual_bound(window: EdgeResiduals, prefilter: Prefilter, alpha: float, ed
     are Satterthwaite's (sum mu)^2 / sum mu^2 over the pixels one prefiltered value spreads over (the window's pixels
     over them without edges). Counting every pixel alike instead set the bound too low for windows across an edge:
     the calibration then dropped the windows whose edge error happened to be large, and s_edge^2 came out 30 % low on
-    images carrying exactly the modelled error (tests/test_edge_error_model.py)."""
+    images carrying exactly the modelled error (tests/measure/test_edge_error_model.py)."""
     total = window.expected(edge_variance_px2, kappa)
     squares = (kappa ** 2 * window.count + 2.0 * kappa * edge_variance_px2 * window.z
                + edge_variance_px2 ** 2 * window.zz)

@@ -144,7 +144,7 @@ def _skin_weights(segment: np.ndarray, order: int) -> np.ndarray:
     """Each skin node's weight in a line integral around the loop (segment i joins nodes i and i + 1): the
     trapezoid rule on linear faces; Simpson's rule on quadratic ones (corner, mid-side, corner: the loop's nodes
     alternate, a corner first), whose corner and mid-side contact pressures the penalty makes err in opposite
-    senses (tests/test_garment.py), so that only a rule exact for the quadratic face sums them right."""
+    senses (tests/model/test_garment.py), so that only a rule exact for the quadratic face sums them right."""
     if order == 1:
         return 0.5 * (segment + np.roll(segment, 1))
     face = segment[0::2] + segment[1::2]

@@ -1,6 +1,6 @@
 """calfit-fe against CalculiX (ccx 2.20) on the same standard-keyword decks.
 
-The reference displacements are CalculiX's, stored under tests/ccx_reference/ with the
+The reference displacements are CalculiX's, stored under tests/support/ccx_reference/ with the
 decks it ran and the script that regenerates them (regenerate.py). Cases: a quarter
 annulus (inner radius 1 clamped, follower pressure outside) with NEO HOOKE in CPE6 and
 CPE3; the same annulus with the Avril law (ccx: ARRUDA-BOYCE mu = 2 C10, lambda_m = 1e4,
@@ -9,9 +9,9 @@ with MOONEY-RIVLIN, REDUCED POLYNOMIAL N=3, ARRUDA-BOYCE and ELASTIC; and the le
 slice of orchestrator.meshing (two tissues, clamped bones, follower pressure on the skin,
 CPE6 and CPE3; CPE6 under a pressure varying around the leg in 6 increments, whose
 tangent is unsymmetric, and under the explicit garment band, put on with penalty contact, frictionless and
-with Coulomb friction: tests/leg_decks.py). Criterion of issues 2 and 14: nodal displacements agree within 0.5 % of
+with Coulomb friction: tests/support/leg_decks.py). Criterion of issues 2 and 14: nodal displacements agree within 0.5 % of
 max |u|. With friction calfit-fe takes the release in 50 increments where CalculiX took 200 (both converged in
-their increments: tests/ccx_reference/regenerate.py says by how much), which keeps the fast test fast.
+their increments: tests/support/ccx_reference/regenerate.py says by how much), which keeps the fast test fast.
 
 CalculiX expands plane-strain elements to 3D wedges internally, so before trusting it we
 check its stored results against our closed forms (annulus BVP, homogeneous states).
@@ -31,7 +31,7 @@ from engine_closed_forms import Law, annulus, stretches_for_stress
 from engine_run import run_ccx, run_engine
 from fe_cases import ring, unit_square
 
-HERE = Path(__file__).resolve().parent / "ccx_reference"
+HERE = Path(__file__).resolve().parents[1] / "support" / "ccx_reference"
 _spec = importlib.util.spec_from_file_location("ccx_regenerate", HERE / "regenerate.py")
 regen = importlib.util.module_from_spec(_spec)
 sys.modules["ccx_regenerate"] = regen  # dataclasses look their module up there
@@ -55,7 +55,7 @@ def _engine_deck(name: str) -> str:
         return regen.engine_release(stored, case.meta["engine_release"])
     if case is None or case.meta["kind"] == "leg":
         return stored  # the stored deck is the reference; calfit-fe runs it as it is
-    assert case.ccx_deck == stored, f"{name}: the generated deck changed; run tests/ccx_reference/regenerate.py"
+    assert case.ccx_deck == stored, f"{name}: the generated deck changed; run tests/support/ccx_reference/regenerate.py"
     return case.engine_deck
 
 

@@ -153,7 +153,7 @@ def test_calculix_node_to_surface_friction_gives_the_same_forces(tmp_path, mu):
     boundary, and from there on it gives 0.19994 (10, 30, 100 increments; calfit-fe 0.19994). calfit-fe locates the
     touch within the increment and gives the same with any count (test above)."""
     text, top = slider_deck(mu=mu, shift=0.004, increments=10)
-    text = node_to_surface(text)   # tests/engine_run.py
+    text = node_to_surface(text)   # tests/support/engine_run.py
     fe = run_engine(text, tmp_path / "fe")
     assert fe.returncode == 0, fe.stderr
     reaction = np.asarray(fe.vtu(1).point_data["reaction"])[top, :2].sum(axis=0)

@@ -2,7 +2,7 @@
 [model.<tissue>] tables, the parameters they make, the deck materials they write, and the engine sensitivities
 mapped onto them (Kv of a D1 law through D1 = 1/Kv).
 
-- Errors of the [model.<tissue>] tables: tests/test_case_model.py.
+- Errors of the [model.<tissue>] tables: tests/case/test_case_model.py.
 - Parameter names `<constant>_<tissue>`, by constant then tissue; the first paper's model keeps its four.
 - Deck materials: MOONEY-RIVLIN, POLYNOMIAL N=2 (three terms), NEO HOOKE with D1 = 0, REDUCED POLYNOMIAL when
   the stiffening effect adds C20 to neo_hooke; refused: stiffening on a law that has C20, incompressible on

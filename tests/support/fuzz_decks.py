@@ -2,7 +2,7 @@
 
 The engine's contract (solver_cpp/README.md): exit 0 converged, 2 a bad deck named by `FILE:LINE: what is
 wrong`, 3 not converged (with the reason), 4 any other failure; never a signal, never a hang. Each input is
-one seeded mutation (or a few) of one deck of `tests/ccx_reference` small enough to solve in milliseconds:
+one seeded mutation (or a few) of one deck of `tests/support/ccx_reference` small enough to solve in milliseconds:
 numbers out of range (1e308, nan, inf, huge and negative integers), deleted, duplicated, swapped and truncated
 lines, a truncated file, wrong element connectivity (unknown, repeated or negative node ids), degenerate and
 inverted elements, coincident nodes, flipped characters and binary garbage.
@@ -205,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     engine = args.engine
     if engine is None:
-        sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+        sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
         from orchestrator.engine.locate import find_engine
         engine = str(find_engine())
     summary = fuzz(engine, args.inputs, args.seed, args.workers, args.keep, args.timeout)

@@ -7,7 +7,7 @@ the band turns by 2 pi through its contact, so the contact pressure integrates t
 ring's force balance, Laplace's law p = T / r summed; it holds over a bridge, where the band runs straight); with
 friction mu, Coulomb's law holds node by node (|t_T| = mu p_N where the skin slips, <= mu p_N where it sticks),
 friction moves T around the leg, and the skin has slipped over the band while it closed. On the dented leg of
-tests/test_garment.py the band bridges the dent (posterior, the bottom of the image): the bridge is found there,
+tests/model/test_garment.py the band bridges the dent (posterior, the bottom of the image): the bridge is found there,
 with the gap that the distance to the band's inner surface gives. Measured: see the issue note (contact integral
 within 0.4-0.75 % of 2 pi T; mu = 0.3 sticks everywhere at the end after 0.29 mm of slip; mu = 0.02 ends with 13
 nodes on the cone).

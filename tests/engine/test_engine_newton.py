@@ -149,7 +149,7 @@ def test_results_do_not_depend_on_the_machines_load(tmp_path):
     import sys
     from pathlib import Path
 
-    deck_text = (Path(__file__).resolve().parent / "ccx_reference" / "leg_follower_cpe6.inp").read_text()
+    deck_text = (Path(__file__).resolve().parents[1] / "support" / "ccx_reference" / "leg_follower_cpe6.inp").read_text()
     quiet = run_engine(deck_text, tmp_path / "quiet")
     burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
     try:
@@ -167,7 +167,7 @@ def test_results_do_not_depend_on_the_machines_load(tmp_path):
 def _leg_follower_deck() -> str:
     from pathlib import Path
 
-    return (Path(__file__).resolve().parent / "ccx_reference" / "leg_follower_cpe6.inp").read_text()
+    return (Path(__file__).resolve().parents[1] / "support" / "ccx_reference" / "leg_follower_cpe6.inp").read_text()
 
 
 def test_the_thread_count_changes_no_digit(tmp_path):

@@ -1,6 +1,6 @@
 """Regenerate the CalculiX reference results used by tests/test_engine_ccx.py.
 
-    cd /work/main && PYTHONPATH=. .venv/bin/python tests/ccx_reference/regenerate.py [CASE ...]
+    cd /work/main && PYTHONPATH=. .venv/bin/python tests/support/ccx_reference/regenerate.py [CASE ...]
 
 Each case is one standard-keyword deck (written here as `<case>.inp`) that CalculiX
 (`ccx -i`, version 2.20, plane-strain elements expanded to 3D internally) solves; the
@@ -12,7 +12,7 @@ up to terms of order 1/lambda_m^2). The leg-like slice deck comes from
 orchestrator.meshing.leg_slice_deck (two tissues, clamped bones, follower pressure on the
 skin; Table 2 values of Avril et al.); the same slice under a pressure varying around the
 leg, and under the explicit garment band (penalty contact, frictionless, and with friction through CalculiX's
-node-to-surface contact), come from tests/leg_decks.py.
+node-to-surface contact), come from tests/support/leg_decks.py.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE.parent.parent))
+sys.path.insert(0, str(HERE.parents[2]))
 
 from engine_closed_forms import Law  # noqa: E402
 from engine_run import run_ccx  # noqa: E402
@@ -38,7 +38,7 @@ SYM = [("INNER", 1, 2), ("XSYM", 1, 1), ("YSYM", 2, 2)]
 # one sector, 3.4 % of the leg's own max |u|), with 2,000 by 0.31 % (1.2 %): the two contact discretizations
 # (node-to-segment on straight sub-segments here, CalculiX's face-to-face on quadratic faces) converge together.
 GARMENT_ELEMENTS = 2000
-# With friction, the release converged in its increments (tests/leg_decks.py garment_friction_text says by how much):
+# With friction, the release converged in its increments (tests/support/leg_decks.py garment_friction_text says by how much):
 # calfit-fe takes it in 50 increments where CalculiX took 200, which keeps the fast test fast.
 GARMENT_FRICTION_ENGINE_RELEASE = (0.02, 1.0, 1e-5, 0.02)
 

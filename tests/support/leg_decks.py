@@ -1,7 +1,7 @@
 """The leg decks that calfit-fe and CalculiX both run, beyond the plain leg slice: the slice under a garment pressure
 that varies around the leg (a follower load whose tangent is unsymmetric) and the leg under the explicit garment
 band with friction (penalty contact in both codes). Written as one self-contained text each (the mesh inline), so
-that tests/ccx_reference/ can store what CalculiX ran and benchmarks/engine.py times the same decks."""
+that tests/support/ccx_reference/ can store what CalculiX ran and benchmarks/engine.py times the same decks."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def garment_text(leg, band, friction_mu: float, **deck_options) -> str:
 
 
 # The garment with friction beside CalculiX: its node-to-surface contact (its face-to-face friction depends on its
-# increments: tests/test_engine_friction.py) and a release converged in its increments. Measured on the 2,000-element
+# increments: tests/engine/test_engine_friction.py) and a release converged in its increments. Measured on the 2,000-element
 # deck: calfit-fe's release in 5 (the deck's default), 10, 25, 50 and 100 increments is 1.1 %, 0.69 %, 0.13 %, 0.048 %
 # and 0.008 % of max |u| from 200 increments; CalculiX's in 200 (485 s) is 0.25 % from calfit-fe's in 200 and 0.26 %
 # from calfit-fe's in 50. With its own increments (0.2 down to 1e-3) it was 0.24 % from calfit-fe's converged release;

@@ -19,7 +19,7 @@ What can be identified: in plane strain an incompressible tissue has I1bar = I2b
 only through their sum. The run must say so before the fit (setup line) and after it (neither identifiable), the
 sum's interval must hold the truth (and the sum be within 10 % where that interval is narrow enough to call it
 identified: the Monte-Carlo reports it, `sums`); the muscle's C10 (its C01 fixed) is identifiable and within 10 %,
-its error one of the Monte-Carlo's draws (within 3.29 of their standard deviations: tests/intervals.py).
+its error one of the Monte-Carlo's draws (within 3.29 of their standard deviations: tests/support/intervals.py).
 """
 
 from __future__ import annotations

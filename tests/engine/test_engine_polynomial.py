@@ -14,7 +14,7 @@ Mooney-Rivlin law (C10, C01, C20) of Bouten and Drapier, Table 1: POLYNOMIAL N=2
    is F S F^T / J with S = 2 dW/dC by the complex step of W itself (no derivative formula shared with the
    engine); rollers and a follower pressure (stretches solved for sigma_xx = 0, sigma_yy = -p), and a general
    prescribed F carried by every element.
-3. CalculiX (ccx 2.20) on the same decks, stored under tests/ccx_reference/polynomial/ (regenerate with
+3. CalculiX (ccx 2.20) on the same decks, stored under tests/support/ccx_reference/polynomial/ (regenerate with
    `PYTHONPATH=. .venv/bin/python tests/test_engine_polynomial.py`): homogeneous squares compressed by 30 %
    with N=2 and N=3 (against the closed form too, which pins CalculiX's order of the constants and its
    two-line layout) and Cook's membrane with N=2 (a non-homogeneous state). The `ccx`-marked test re-runs
@@ -43,7 +43,7 @@ from fe_cases import cook_membrane, deck, edge_loads, fmt, unit_square
 
 from orchestrator.engine.results import EngineResults
 
-REFERENCE = Path(__file__).resolve().parent / "ccx_reference" / "polynomial"
+REFERENCE = Path(__file__).resolve().parents[1] / "support" / "ccx_reference" / "polynomial"
 
 
 class PolynomialLaw(Law):
