@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from ..case.folder import read_model_choice
-from ..core.digits import interval_uncertainty, rounded, with_uncertainty
+from ..core.digits import PLUS_MINUS, interval_uncertainty, rounded, with_uncertainty
 from ..core.files import read_json, write_json
 from ..core.run_lock import holds_run_folder
 from ..core.units import MMHG_PER_KPA
@@ -190,17 +190,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     such as drainage need it: CPE3 is too stiff in dilatation)."""
     run_dir = Path(run_dir)
     objective = choose_objective(objective, method)
-    # a default mesh found too coarse is meshed again (below) from where its fit ended; a run resumed after that
-    # goes on from the same place on the same finer mesh, so that its evaluations replay (another identification in
-    # the folder, with other effects, keeps the finer mesh and starts as it would)
-    refinement = (read_json(run_dir / REFINEMENT_JSON, "calfit identify")
-                  if n_elements is None and start is None and (run_dir / REFINEMENT_JSON).is_file() else None)
-    if refinement:
-        n_elements = refinement["finer_elements"]
-        if refinement["effects"] == list(effects):
-            start = refinement["start"]
-        else:
-            refinement = None
+    refinement, n_elements, start = _resumed_refinement(run_dir, n_elements, start, effects)
     setup = _setup(case_dir, run_dir, n_elements, order, objective)
     if objective == "contour" and setup.case.levels:
         raise ValueError(f"the contour mismatch compares I0 with one loaded image, and {setup.case.files['toml']} has "
@@ -209,16 +199,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     local_workers = 1 if scheduler else workers   # the DIC's processes and the skin's threads, on this machine
     measured = None   # the measurements of every garment level, the first level's first
     if objective == "displacement":
-        levels = range(1, len(setup.case.tensions) + 1)
-        if source == "dic" and any(read_window_table(run_dir, level) is None for level in levels):
-            run_measure(case_dir, run_dir, window_px=window_px, workers=local_workers)
-        if setup.case.levels:
-            # skin uncertainties stored per level without their columns (before the levels' common skin error was
-            # kept) cannot be joined: they are estimated again below
-            discard_without_columns(run_dir, levels)
-        # the first fit weighs the measurement's error alone, whatever skin uncertainty an earlier or interrupted
-        # identification left in the run folder: a resumed run then replays the same fits as an uninterrupted one
-        measured = setup.level_measurements(source, with_geometry=False)
+        measured = _first_measurements(setup, case_dir, run_dir, source, window_px, local_workers)
     setup.model = setup.model_with(effects, sensitivities=(method == "lm" and engine_sensitivities))
     base = list(start) if start is not None else setup.model.base_start
     # a start of the laws' constants (effects off), or a whole theta (a fit carried to a finer mesh)
@@ -236,42 +217,104 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                           else setup.mismatch_objective(), "identify")
     geometry = None
     if measured is not None and source == "dic" and skin_uncertainty:
-        # the uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit
-        # again with it in the weights (geometry_uncertainty); every garment level's windows under its own tension,
-        # with the columns that make it kept, from which the joint fit forms the covariance between the levels.
-        # Estimated again where that fit ends, until it ends where it was estimated: a first fit without it can be
-        # dragged far (a foreign case's, by a missing tension profile, to the bounds of C10 and Kv of fat, where the
-        # skin's uncertainty came out 8 times what it is at the fit it then weighed)
-        pixel = min(setup.case.pixel_size_mm)
-        variance = setup.skin_mode_variance_mm2
-        if skin_sigma_mm is None:   # the skin's error as its own spectrum measured it (geometry_uncertainty)
-            skin_sigma_mm = (SKIN_UNCERTAINTY_PX * pixel if variance is None else measured_skin_sigma(
-                skin_perimeter_mm(setup.mesh), variance, setup.skin_cutoff_mm))
-        options = dict(effects=setup.model.effects, skin_sigma_mm=skin_sigma_mm,
-                       interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=setup.skin_cutoff_mm)
-        first, passes = best, []
-        for _ in range(SKIN_PASSES):
-            estimated_at = best.theta
-            for level, level_measured in enumerate(measured, start=1):
-                stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
-                if stored is None or not np.allclose(stored[1]["theta"], estimated_at, rtol=1e-9):
-                    columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options,
-                                                                 local_workers)
-                    kept = (columns, weights) if setup.case.levels else ()
-                    write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
-            weighed = setup.level_measurements(source)   # with the skin's uncertainty just written
-            fits_again, best = fit_from([estimated_at], setup.objective_of(weighed),
-                                        "identify again, with the skin's uncertainty")
-            passes.append(fits_again)
-            moved = np.abs(setup.model.space.to_x(best.theta) - setup.model.space.to_x(estimated_at))
-            settled = _settled(moved, best)
-            if settled:
-                break
-        fits = [first] + [fit for fits_again in passes for fit in fits_again]
-        measured = weighed
-        geometry = dict(read_geometry_covariance(run_dir, 2 * len(measured[0]))[1],
-                        measurement_share_of_variance=_measurement_share(measured), passes=len(passes),
-                        settled=settled)
+        fits, best, measured, geometry = _fit_with_skin_uncertainty(setup, run_dir, source, measured, fits, best,
+                                                                    fit_from, skin_sigma_mm, local_workers)
+    result = _identification_record(setup, case_dir, run_dir, method, objective, source, measured, fits, best,
+                                    geometry)
+    if measured is not None:
+        # whether the misfit's floor holds on this mesh: its discretization error against the measurements' noise
+        check = discretization_check(setup, best.theta, measured[0], run_dir, workers=workers, timeout_s=timeout_s)
+        result["discretization"] = check
+        result["setup_lines"].append(discretization_line(check))
+        if check.get("checked") and not check["adequate"] and n_elements is None:
+            # the default mesh is too coarse for these measurements: meshed again with the check's finer mesh and
+            # fitted from where this fit ended (once: a mesh the user asks for, as this one is, is kept and judged)
+            _discard_mesh(run_dir)
+            write_json(run_dir / REFINEMENT_JSON, {
+                "finer_elements": check["finer_elements"], "effects": list(effects), "start": list(best.theta),
+                "coarser_mesh": {"elements": check["elements"], "best": result["best"],
+                                 "misfit_over_floor": result["misfit_over_floor"], "discretization": check}})
+            return run_identify(case_dir, run_dir, method=method, objective=objective, data=data,
+                                window_px=window_px, starts=starts, order=setup.mesh.order, effects=effects,
+                                engine_sensitivities=engine_sensitivities, skin_sigma_mm=skin_sigma_mm,
+                                skin_uncertainty=skin_uncertainty, workers=workers, scheduler=scheduler,
+                                timeout_s=timeout_s, progress=progress, verbose=verbose)
+    if refinement:
+        _say_refinement(result, refinement, len(setup.mesh.elements))
+    write_json(run_dir / "identification.json", result)
+    return result
+
+
+def _resumed_refinement(run_dir: Path, n_elements: int | None, start, effects: Sequence[str]):
+    """(the refinement record or None, n_elements, start) of an identification resumed after its default mesh was
+    found too coarse. A run resumed after that goes on from the same place on the same finer mesh, so that its
+    evaluations replay; another identification in the folder, with other effects, keeps the finer mesh and starts
+    as it would."""
+    if n_elements is not None or start is not None or not (run_dir / REFINEMENT_JSON).is_file():
+        return None, n_elements, start
+    refinement = read_json(run_dir / REFINEMENT_JSON, "calfit identify")
+    if refinement["effects"] == list(effects):
+        return refinement, refinement["finer_elements"], refinement["start"]
+    return None, refinement["finer_elements"], start
+
+
+def _first_measurements(setup: RunSetup, case_dir, run_dir: Path, source: str, window_px: int, workers: int):
+    """The measurements of every garment level (the first level's first), measured now from the images if the run
+    folder has none yet, weighed by the measurement's error alone: whatever skin uncertainty an earlier or
+    interrupted identification left in the run folder, a resumed run then replays the same fits as an uninterrupted
+    one."""
+    levels = range(1, len(setup.case.tensions) + 1)
+    if source == "dic" and any(read_window_table(run_dir, level) is None for level in levels):
+        run_measure(case_dir, run_dir, window_px=window_px, workers=workers)
+    if setup.case.levels:
+        # skin uncertainties stored per level without their columns (before the levels' common skin error was
+        # kept) cannot be joined: they are estimated again (`_fit_with_skin_uncertainty`)
+        discard_without_columns(run_dir, levels)
+    return setup.level_measurements(source, with_geometry=False)
+
+
+def _fit_with_skin_uncertainty(setup: RunSetup, run_dir: Path, source: str, measured, fits, best, fit_from,
+                               skin_sigma_mm: float | None, workers: int):
+    """The uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit again
+    with it in the weights (geometry_uncertainty); every garment level's windows under its own tension, with the
+    columns that make it kept, from which the joint fit forms the covariance between the levels. Estimated again
+    where that fit ends, until it ends where it was estimated: a first fit without it can be dragged far (a foreign
+    case's, by a missing tension profile, to the bounds of C10 and Kv of fat, where the skin's uncertainty came out
+    8 times what it is at the fit it then weighed). Returns (fits, best, measured with it, geometry record)."""
+    pixel = min(setup.case.pixel_size_mm)
+    variance = setup.skin_mode_variance_mm2
+    if skin_sigma_mm is None:   # the skin's error as its own spectrum measured it (geometry_uncertainty)
+        skin_sigma_mm = (SKIN_UNCERTAINTY_PX * pixel if variance is None else measured_skin_sigma(
+            skin_perimeter_mm(setup.mesh), variance, setup.skin_cutoff_mm))
+    options = dict(effects=setup.model.effects, skin_sigma_mm=skin_sigma_mm,
+                   interface_sigma_mm=INTERFACE_UNCERTAINTY_PX * pixel, cutoff_mm=setup.skin_cutoff_mm)
+    first, passes = best, []
+    for _ in range(SKIN_PASSES):
+        estimated_at = best.theta
+        for level, level_measured in enumerate(measured, start=1):
+            stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
+            if stored is None or not np.allclose(stored[1]["theta"], estimated_at, rtol=1e-9):
+                columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options,
+                                                             workers)
+                kept = (columns, weights) if setup.case.levels else ()
+                write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
+        weighed = setup.level_measurements(source)   # with the skin's uncertainty just written
+        fits_again, best = fit_from([estimated_at], setup.objective_of(weighed),
+                                    "identify again, with the skin's uncertainty")
+        passes.append(fits_again)
+        moved = np.abs(setup.model.space.to_x(best.theta) - setup.model.space.to_x(estimated_at))
+        settled = _settled(moved, best)
+        if settled:
+            break
+    fits = [first] + [fit for fits_again in passes for fit in fits_again]
+    geometry = dict(read_geometry_covariance(run_dir, 2 * len(weighed[0]))[1],
+                    measurement_share_of_variance=_measurement_share(weighed), passes=len(passes), settled=settled)
+    return fits, best, weighed, geometry
+
+
+def _identification_record(setup: RunSetup, case_dir, run_dir: Path, method: str, objective: str, source: str,
+                           measured, fits, best, geometry: dict | None) -> dict:
+    """identification.json's content: the data, the model, the fits, the floor and each level's own fit."""
     scorer = setup.objective_of(measured) if measured is not None else setup.mismatch_objective()
     result = {"case_dir": str(Path(case_dir).resolve()), "method": method, "objective": objective,
               "data": {"source": source if measured is not None else "contours",
@@ -296,37 +339,21 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
         result["misfit_over_floor"] = best.cost / result["noise_floor"]
         if source == "dic":
             result["floor_calibration"] = floor_calibration(run_dir)
-    if measured is not None and setup.case.levels:
-        result["levels"] = _level_fits(setup, scorer, measured, best.theta)
-    if measured is not None:
-        # whether the misfit's floor holds on this mesh: its discretization error against the measurements' noise
-        check = discretization_check(setup, best.theta, measured[0], run_dir, workers=workers, timeout_s=timeout_s)
-        result["discretization"] = check
-        result["setup_lines"].append(discretization_line(check))
-        if check.get("checked") and not check["adequate"] and n_elements is None:
-            # the default mesh is too coarse for these measurements: meshed again with the check's finer mesh and
-            # fitted from where this fit ended (once: a mesh the user asks for, as this one is, is kept and judged)
-            _discard_mesh(run_dir)
-            write_json(run_dir / REFINEMENT_JSON, {
-                "finer_elements": check["finer_elements"], "effects": list(effects), "start": list(best.theta),
-                "coarser_mesh": {"elements": check["elements"], "best": result["best"],
-                                 "misfit_over_floor": result["misfit_over_floor"], "discretization": check}})
-            return run_identify(case_dir, run_dir, method=method, objective=objective, data=data,
-                                window_px=window_px, starts=starts, order=setup.mesh.order, effects=effects,
-                                engine_sensitivities=engine_sensitivities, skin_sigma_mm=skin_sigma_mm,
-                                skin_uncertainty=skin_uncertainty, workers=workers, scheduler=scheduler,
-                                timeout_s=timeout_s, progress=progress, verbose=verbose)
-    if refinement:
-        coarser = refinement["coarser_mesh"]
-        result["coarser_mesh"] = coarser
-        check = coarser["discretization"]
-        result["setup_lines"].insert(-1, f"meshed again with {len(setup.mesh.elements)} elements: on the default "
-                                         f"{check['elements']} the misfit at the fit was "
-                                         f"{check['misfit_over_floor_mesh']:.2f} x the floor and "
-                                         f"{check['misfit_over_floor_finer']:.2f} x on the finer mesh, a "
-                                         "discretization error above what the noise hides")
-    write_json(run_dir / "identification.json", result)
+        if setup.case.levels:
+            result["levels"] = _level_fits(setup, scorer, measured, best.theta)
     return result
+
+
+def _say_refinement(result: dict, refinement: dict, elements: int) -> None:
+    """The identification's setup lines say that the default mesh was found too coarse and meshed again."""
+    coarser = refinement["coarser_mesh"]
+    result["coarser_mesh"] = coarser
+    check = coarser["discretization"]
+    result["setup_lines"].insert(-1, f"meshed again with {elements} elements: on the default "
+                                     f"{check['elements']} the misfit at the fit was "
+                                     f"{check['misfit_over_floor_mesh']:.2f} x the floor and "
+                                     f"{check['misfit_over_floor_finer']:.2f} x on the finer mesh, a "
+                                     "discretization error above what the noise hides")
 
 
 def _discard_mesh(run_dir: Path) -> None:
@@ -664,8 +691,9 @@ def pressure_summary(result: dict) -> list[str]:
                      f"{with_uncertainty(mean * MMHG_PER_KPA, total * MMHG_PER_KPA):>12} | "
                      f"{rounded(parameters, parameters):>10} {rounded(tension, tension):>14} | "
                      f"{rounded(plus, total):>8} {rounded(minus, total):>8}")
-    lines.append("pressure: mean over the parameters' draws +- both spreads in quadrature; parameters: std over the "
-                 f"draws (Table 3); tension: the pressure's change for +-{rel} of it, one standard deviation (Table 4)")
+    lines.append(f"pressure: mean over the parameters' draws {PLUS_MINUS} both spreads in quadrature; parameters: std "
+                 f"over the draws (Table 3); tension: the pressure's change for {PLUS_MINUS}{rel} of it, one standard "
+                 "deviation (Table 4)")
     for level in result.get("levels", []):
         lines.append(f"garment level {level['level']}: {level['image']} at {level['tension_N_per_mm']:g} N/mm")
         lines += pressure_summary(level)
@@ -677,7 +705,7 @@ def intervals_summary(result: dict) -> list[str]:
     lines = [f"{'parameter':<12} {'lower':>8} {'upper':>8} {'central':>8}  identification"]
     for k, name in enumerate(result["names"]):
         if noise:
-            flag = (f"+-{100 * result['relative_half_width'][k]:.1f} % " +
+            flag = (f"{PLUS_MINUS}{100 * result['relative_half_width'][k]:.1f} % " +
                     ("identifiable" if result["identifiable"][k] else "NOT identifiable") +
                     (", ON A BOUND" if name in result["on_bound"] else ""))
         else:
@@ -710,7 +738,3 @@ def fit_summary(fit: dict, names: Sequence[str], units: Sequence[str] | None = N
     return (f"{fit['method']}: {values}; misfit {fit['cost']:.5g}; {fit['iterations']} iterations, "
             f"{fit['evaluations']} evaluations, {fit['engine_runs']} engine runs ({fit['from_log']} from the log), "
             f"{fit['wall_time_s']:.1f} s")
-
-
-def relative_errors(theta: Sequence[float], truth: Sequence[float]) -> np.ndarray:
-    return np.abs(np.asarray(theta) - np.asarray(truth)) / np.asarray(truth)
