@@ -1,6 +1,7 @@
 # calfit: set-up, demo and tests on a fresh Debian machine.
 #   make demo   set-up + the main job (built-in phantom leg, end to end)
 #   make test   set-up + the whole fast test suite (C++ unit tests + pytest)
+#   make accept-gold   the engine's gold standards (tests/engine/gold/*.json) written again: take a reviewed change
 # Other targets: setup, test-slow, bench, fuzz (100,000 mutated decks), sanitize (ASan + UBSan build, ctest and
 # the fuzz corpus), clean.
 
@@ -13,7 +14,7 @@ ENGINE_SOURCES := $(shell find solver_cpp -type f \( -name '*.cpp' -o -name '*.h
 # the editable install maps each module to its file: a module added or moved needs it made again (seconds)
 PACKAGE_SOURCES := $(shell find orchestrator -name "*.py")
 
-.PHONY: setup system-packages demo test test-slow test-cpp bench fuzz sanitize clean
+.PHONY: setup system-packages demo test test-slow test-cpp accept-gold bench fuzz sanitize clean
 
 setup: system-packages $(VENV)/.installed
 
@@ -49,6 +50,9 @@ test-cpp: setup
 # built once. Alone on this 2-core machine it took 630 s; on two workers, 408 s.
 test: test-cpp
 	$(PY) -m pytest -m "not slow" -q --durations=15 -n auto --dist loadscope
+
+accept-gold: setup
+	$(PY) tests/engine/test_engine_gold.py --accept
 
 test-slow: setup
 	$(PY) -m pytest -m slow -q --durations=15
