@@ -23,6 +23,10 @@ import numpy as np
 
 from ..core.errors import ResultsError
 
+# what an evaluation of a deck came to (runner, progress), as its record in the run folder's log says
+OK, NOT_CONVERGED, BAD_DECK, ENGINE_FAILED, TIMEOUT = "ok", "not_converged", "bad_deck", "engine_failed", "timeout"
+FAILED_STATUSES = (NOT_CONVERGED, BAD_DECK, ENGINE_FAILED, TIMEOUT)
+
 
 def sensitivity_name(line: str) -> str:
     """The engine's name for the column of a plain `*SENSITIVITY` line as calfit writes it: its fields joined by

@@ -34,7 +34,8 @@ from typing import Sequence
 import numpy as np
 from scipy import optimize
 
-from ..engine.runner import OK, Evaluator
+from ..engine.results import OK
+from ..engine.runner import Evaluator
 
 FD_STEP = 1e-3           # forward-difference step in ln(theta): 0.1 %
 MAX_LM_STEP = 1.0        # largest LM step in x: a factor e in a constant, `scale` in an effect parameter

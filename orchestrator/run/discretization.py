@@ -26,7 +26,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..engine.runner import OK, Evaluator
+from ..engine.results import OK
+from ..engine.runner import Evaluator
 from ..fit.objectives import DisplacementResidualObjective
 
 FINER_FACTOR = 2

@@ -21,7 +21,7 @@ from orchestrator.diagnose.diagnosis import (
     score_effect,
     settled,
 )
-from orchestrator.engine.runner import OK
+from orchestrator.engine.results import OK
 from orchestrator.fit.identify import linearised_standard_errors
 from orchestrator.fit.objectives import DisplacementResidualObjective
 from orchestrator.measure.measurements import Measurements

@@ -19,8 +19,9 @@ import re
 import pytest
 
 from orchestrator.cli import main
-from orchestrator.engine import runner
-from orchestrator.engine.runner import BAD_DECK, NOT_CONVERGED, OK, Progress
+from orchestrator.engine import progress as progress_module
+from orchestrator.engine.progress import Progress
+from orchestrator.engine.results import BAD_DECK, NOT_CONVERGED, OK
 
 ESCAPE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
@@ -74,7 +75,7 @@ def test_plain_line_shows_counts_log_failures_and_misfit(plain_environment):
 
 def test_plain_lines_come_at_most_every_few_seconds(plain_environment, monkeypatch):
     stream = io.StringIO()
-    monkeypatch.setattr(runner, "PROGRESS_PLAIN_EVERY_S", 0.0)   # every evaluation may print
+    monkeypatch.setattr(progress_module, "PROGRESS_PLAIN_EVERY_S", 0.0)   # every evaluation may print
     progress = Progress("montecarlo", stream=stream)
     sweep(progress, size=12)
     progress.close()
@@ -96,7 +97,7 @@ def test_short_batches_do_not_flicker_and_long_stages_count_without_a_total(plai
     progress.close()
     assert quick.getvalue() == ""
     # the same stage, had it run longer than PROGRESS_SHOW_AFTER_S: its evaluations counted, no total
-    monkeypatch.setattr(runner, "PROGRESS_SHOW_AFTER_S", 0.0)
+    monkeypatch.setattr(progress_module, "PROGRESS_SHOW_AFTER_S", 0.0)
     slow = io.StringIO()
     progress = Progress("identify", stream=slow)
     for k in range(5):

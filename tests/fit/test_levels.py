@@ -27,8 +27,8 @@ from orchestrator.case.folder import (
 from orchestrator.core.errors import CaseError
 from orchestrator.core.frame import RigidMotion
 from orchestrator.engine.decks import deck_key
-from orchestrator.engine.results import EngineResults
-from orchestrator.engine.runner import BAD_DECK, OK, Evaluator
+from orchestrator.engine.results import BAD_DECK, OK, EngineResults
+from orchestrator.engine.runner import Evaluator
 from orchestrator.fit.identify import residual_jacobian
 from orchestrator.fit.levels import AtTension, JointDisplacementObjective, LevelsModel
 from orchestrator.fit.objectives import DisplacementResidualObjective

@@ -12,7 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orchestrator.engine.runner import OK, Evaluator
+from orchestrator.engine.results import OK
+from orchestrator.engine.runner import Evaluator
 from orchestrator.fit.identify import levenberg_marquardt, nelder_mead
 from orchestrator.fit.objectives import DisplacementResidualObjective
 from orchestrator.model.forward import DiskModel
