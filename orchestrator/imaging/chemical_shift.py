@@ -44,6 +44,8 @@ import numpy as np
 from scipy import ndimage, special, stats
 from scipy.spatial import cKDTree
 
+from ..core.digits import PLUS_MINUS
+
 PROFILE_HALF_MM = 3.0     # a profile reaches this far into each tissue: beyond the blur, within the fat layer
 PLATEAU_MM = 0.8          # the tissues' levels read over this much of each end of a profile (the contrast check)
 PROFILE_STEP_MM = 0.05
@@ -95,8 +97,8 @@ class FatShift:
         px, py = self.in_pixels(pixel_size_mm)
         dy, dx = (float(v) for v in pixel_size_mm)
         sx, sy = self.standard_error_mm[0] / dx, self.standard_error_mm[1] / dy
-        measured = (f"({px:+.2f} +- {sx:.2f}, {py:+.2f} +- {sy:.2f}) px along (x, y), from {self.profiles} profiles "
-                    "across the fat/muscle interface")
+        measured = (f"({px:+.2f} {PLUS_MINUS} {sx:.2f}, {py:+.2f} {PLUS_MINUS} {sy:.2f}) px along (x, y), from "
+                    f"{self.profiles} profiles across the fat/muscle interface")
         if self.significant:
             return (f"chemical shift: the fat's signal lies {measured}; the fat/muscle interface is moved back by it "
                     f"(p = {self.p_value:.1g} that there is none)")

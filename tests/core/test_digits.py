@@ -4,16 +4,16 @@ import math
 
 import pytest
 
-from orchestrator.core.digits import decimals, rounded, with_uncertainty
+from orchestrator.core.digits import decimals, rounded, significant, with_uncertainty
 
 
 @pytest.mark.parametrize("value, uncertainty, text", [
-    (2.5091588, 0.2568, "2.51 +- 0.26 kPa"),             # the phantom's landmark pressure with the tension's spread
-    (2.5091588, 0.0009166, "2.50916 +- 0.00092 kPa"),    # the parameters' spread alone: the value keeps its digits
-    (3.14159, 0.0996, "3.14 +- 0.10 kPa"),               # an uncertainty that rounds up to the next decade
-    (1234.5, 560.0, "1230 +- 560 kPa"),                  # places left of the point
-    (-0.01234, 0.0031, "-0.0123 +- 0.0031 kPa"),
-    (12.0, 0.5, "12.00 +- 0.50 kPa"),
+    (2.5091588, 0.2568, "2.51 ± 0.26 kPa"),             # the phantom's landmark pressure with the tension's spread
+    (2.5091588, 0.0009166, "2.50916 ± 0.00092 kPa"),    # the parameters' spread alone: the value keeps its digits
+    (3.14159, 0.0996, "3.14 ± 0.10 kPa"),               # an uncertainty that rounds up to the next decade
+    (1234.5, 560.0, "1230 ± 560 kPa"),                  # places left of the point
+    (-0.01234, 0.0031, "-0.0123 ± 0.0031 kPa"),
+    (12.0, 0.5, "12.00 ± 0.50 kPa"),
 ])
 def test_value_and_uncertainty_share_the_uncertainty_s_second_significant_place(value, uncertainty, text):
     assert with_uncertainty(value, uncertainty, "kPa") == text
@@ -41,5 +41,15 @@ def test_calfit_pressures_prints_the_whole_spread_with_its_digits():
               "central_kPa": [2.4066642], "tension_N_per_mm": 0.16, "tension_rel": 0.1, "plus_kPa": [2.6495072],
               "minus_kPa": [2.1642128]}     # a pressures.json without the spreads: taken from Table 4
     line = pressure_summary(result)[1]
-    assert "2.41 +- 0.24" in line and "18.0 +- 1.8" in line      # kPa and mmHg, the tension's spread included
+    assert "2.41 ± 0.24" in line and "18.0 ± 1.8" in line        # kPa and mmHg, the tension's spread included
     assert "0.0024" in line and "0.0024375" not in line          # the parameters' share, two significant digits
+    assert "+-" not in "\n".join(pressure_summary(result))       # one sign, as the report prints it
+
+
+@pytest.mark.parametrize("value, text", [
+    (3.6, "3.60"), (12.4, "12.4"), (106.0, "106"), (0.9707, "0.971"), (46.14, "46.1"), (-0.04684, "-0.0468"),
+    (618.6, "619"), (9.996, "10.0"), (0.0, "0.00"),
+    (9.74e-05, "9.74e-05"), (1234567.0, "1.23e+06"),      # exponent notation below 0.001 and from a million up
+])
+def test_a_number_without_an_uncertainty_keeps_the_significant_digits_a_table_states(value, text):
+    assert significant(value, 3) == text
