@@ -10,7 +10,7 @@
 3. `calfit identify`: Levenberg-Marquardt on the measured displacements from Avril et al.'s Table 2
    central values, the engine's sensitivities, then again with the skin's uncertainty in the weights;
 4. `calfit montecarlo`: 95 % intervals over the measurement noise, and which parameters are identifiable;
-5. `calfit pressures`: the five landmark pressures, their spread (Table 3) and the tension +-10 % (Table 4);
+5. `calfit pressures`: the five landmark pressures, their spread (Table 3) and the tension ±10 % (Table 4);
 6. `calfit diagnose`: the misfit against its floor and the ranking of the effects the model lacks;
 7. `calfit report`: the HTML page; its path is printed last.
 The phantom and every evaluation are kept in DIR, so running the demo again resumes.
@@ -104,7 +104,7 @@ def run_full(args: argparse.Namespace) -> int:
     names = identification["parameters"]
     notice(args, "[4/7] Monte-Carlo intervals over the measurement noise")
     montecarlo = run_montecarlo(run_dir, draws=args.draws, workers=args.workers, progress=progress)
-    notice(args, "[5/7] landmark pressures: 30 draws in the intervals, tension +-10 %")
+    notice(args, "[5/7] landmark pressures: 30 draws in the intervals, tension ±10 %")
     pressures = run_pressures(run_dir, workers=args.workers, progress=progress)
     notice(args, "[6/7] diagnosis: misfit against its floor, missing effects")
     diagnosis = run_diagnose(run_dir, workers=args.workers, progress=progress)

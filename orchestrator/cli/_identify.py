@@ -13,7 +13,7 @@ residual weighted by the DIC covariance. The uncertainty of the model's skin is 
 and the fit repeated with it in the weights (--skin-uncertainty sets it, mm RMS; default: the error the skin's
 own spectrum shows, 0.05 pixel where it cannot tell).
 --objective contour fits the contour mismatch M of Avril et al. instead (Nelder-Mead, 400 T3 by default).
---starts table1 runs from the initial values of Avril et al. Table 1 (each parameter +-10 %).
+--starts table1 runs from the initial values of Avril et al. Table 1 (each parameter ±10 %).
 Every evaluation is logged in RUN_DIR/evaluations.jsonl: run the same command again after an interruption and
 it resumes without repeating one. Writes RUN_DIR/identification.json (which data, misfit against its floor).
 --effects adds catalog effects (`calfit diagnose --catalog`), their parameters fitted from zero.

@@ -6,7 +6,7 @@
 noise (the default after a fit to measured displacements): 95 % intervals from refits to N synthetic data
 sets (default 200) drawn from the measurements' covariance (overlapping DIC windows and the model's
 geometry uncertainty included; inflated by the misfit over its floor when above 1), two Gauss-Newton steps
-each with the engine's sensitivities. A parameter is identifiable when its interval lies within +-10 % of its
+each with the engine's sensitivities. A parameter is identifiable when its interval lies within ±10 % of its
 value; one whose draws pile on the search box's edge is reported as on a bound.
 threshold (Avril et al.; the only choice after the contour mismatch): profiles along each parameter, then N
 log-uniform draws (default 400) in the box they bound (within a factor 2); draws whose misfit is at most the

@@ -5,7 +5,7 @@
 Draws the parameters uniformly in the Monte-Carlo intervals, solves each draw and reads the
 hydrostatic pressure -tr(sigma)/3 at the five landmarks of case.toml: mean, standard deviation
 and coefficient of variation (Table 3); then the central values with the garment tension
-+-10 % (Table 4). Writes RUN_DIR/pressures.json.
+±10 % (Table 4). Writes RUN_DIR/pressures.json.
 """
 
 from __future__ import annotations
