@@ -1,7 +1,7 @@
 // Deck keywords -> Model: *SENSITIVITY, the parameters whose du/dtheta the last step reports (solver_cpp/README.md,
-// Sensitivities); model/parameters.cpp resolves each data line.
+// Sensitivities); deck/sensitivity_parameters.cpp resolves each data line.
 #include "deck/model_builder.hpp"
-#include "model/parameters.hpp"
+#include "deck/sensitivity_parameters.hpp"
 
 #include <cctype>
 #include <set>

@@ -1,10 +1,11 @@
 // ModelBuilder, internal to the deck parser: deck keywords -> Model, one handler per keyword, each in the file of
-// its keyword family (model_builder.cpp: the keyword table, the checks and lookups the handlers share, the whole-model
-// checks; model_mesh.cpp: *NODE, *ELEMENT, *NSET, *ELSET, *SURFACE; model_materials.cpp: *MATERIAL, *HYPERELASTIC,
-// *ELASTIC, *SOLID SECTION; model_steps.cpp: *STEP, *STATIC, *BOUNDARY, *CLOAD, *DLOAD, output requests, *END STEP;
-// model_garment.cpp: *TENSION PROFILE, *LAPLACE PRESSURE; model_kinematics.cpp: *VOLUME CHANGE, *AXIAL STRETCH,
-// *RIGID MOTION; model_contact.cpp: *SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE;
-// model_sensitivity.cpp: *SENSITIVITY). The rest of the engine calls build_model (model/model.hpp).
+// its keyword family (model_builder.cpp: the keyword table, the checks and lookups the handlers share, the
+// whole-model checks; keywords_mesh.cpp: *NODE, *ELEMENT, *NSET, *ELSET, *SURFACE; keywords_materials.cpp:
+// *MATERIAL, *HYPERELASTIC, *ELASTIC, *SOLID SECTION; keywords_steps.cpp: *STEP, *STATIC, *BOUNDARY, *CLOAD, *DLOAD,
+// output requests, *END STEP; keywords_garment.cpp: *TENSION PROFILE, *LAPLACE PRESSURE; keywords_kinematics.cpp:
+// *VOLUME CHANGE, *AXIAL STRETCH, *RIGID MOTION; keywords_contact.cpp: *SURFACE INTERACTION, *SURFACE BEHAVIOR,
+// *FRICTION, *CONTACT PAIR, *MODEL CHANGE, *GAP PROFILE; keywords_sensitivity.cpp: *SENSITIVITY, whose data lines
+// sensitivity_parameters.cpp resolves). The rest of the engine calls build_model (deck/build_model.hpp).
 #pragma once
 
 #include "deck/deck_reader.hpp"
@@ -86,7 +87,7 @@ private:
   void heading(const KeywordBlock& b);
   void finish(const SourceLocation& last);
 
-  // ---- model_mesh.cpp: *NODE, *ELEMENT, *NSET, *ELSET, *SURFACE ------------------------------------------------
+  // ---- keywords_mesh.cpp: *NODE, *ELEMENT, *NSET, *ELSET, *SURFACE ------------------------------------------------
   void node(const KeywordBlock& b);
   void element(const KeywordBlock& b);
   template <typename Resolve>
@@ -96,7 +97,7 @@ private:
   void surface(const KeywordBlock& b);
   void check_geometry(const ElementDef& e) const;
 
-  // ---- model_materials.cpp: *MATERIAL, *HYPERELASTIC, *ELASTIC, *SOLID SECTION ---------------------------------
+  // ---- keywords_materials.cpp: *MATERIAL, *HYPERELASTIC, *ELASTIC, *SOLID SECTION ---------------------------------
   void material(const KeywordBlock& b);
   void check_material_complete() const;
   static constexpr std::size_t kConstantsPerLine = 8;  // CalculiX's material data lines
@@ -108,7 +109,7 @@ private:
   void elastic(const KeywordBlock& b);
   void solid_section(const KeywordBlock& b);
 
-  // ---- model_steps.cpp: *STEP, *STATIC, *BOUNDARY, *CLOAD, *DLOAD, output requests, *END STEP -------------------
+  // ---- keywords_steps.cpp: *STEP, *STATIC, *BOUNDARY, *CLOAD, *DLOAD, output requests, *END STEP ------------------
   void step(const KeywordBlock& b);
   void static_procedure(const KeywordBlock& b);
   void boundary(const KeywordBlock& b);
@@ -117,20 +118,20 @@ private:
   void output_request(const KeywordBlock& b);
   void end_step(const KeywordBlock& b);
 
-  // ---- model_garment.cpp: *TENSION PROFILE, *LAPLACE PRESSURE --------------------------------------------------
+  // ---- keywords_garment.cpp: *TENSION PROFILE, *LAPLACE PRESSURE --------------------------------------------------
   void tension_profile(const KeywordBlock& b);
   static void read_table_profile(const KeywordBlock& b, TensionProfile& p);
   static void read_fourier_profile(const KeywordBlock& b, TensionProfile& p);
   void laplace_pressure(const KeywordBlock& b);
 
-  // ---- model_kinematics.cpp: *VOLUME CHANGE, *AXIAL STRETCH, *RIGID MOTION -------------------------------------
+  // ---- keywords_kinematics.cpp: *VOLUME CHANGE, *AXIAL STRETCH, *RIGID MOTION -------------------------------------
   static const DataLine& one_data_line(const KeywordBlock& b, std::size_t count, const std::string& what);
   void volume_change(const KeywordBlock& b);
   void axial_stretch(const KeywordBlock& b);
   void rigid_motion(const KeywordBlock& b);
   void check_not_rigid(int node, const SourceLocation& where) const;
 
-  // ---- model_contact.cpp: *SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE,
+  // ---- keywords_contact.cpp: *SURFACE INTERACTION, *SURFACE BEHAVIOR, *FRICTION, *CONTACT PAIR, *MODEL CHANGE,
   // *GAP PROFILE ------------------------------------------------------------------------------------------------
   void surface_interaction(const KeywordBlock& b);
   InteractionDef& interaction_for(const KeywordBlock& b);
@@ -141,7 +142,7 @@ private:
   void model_change(const KeywordBlock& b);
   void gap_profile(const KeywordBlock& b);
 
-  // ---- model_sensitivity.cpp: *SENSITIVITY ----------------------------------------------------------------------
+  // ---- keywords_sensitivity.cpp: *SENSITIVITY ---------------------------------------------------------------------
   void sensitivity(const KeywordBlock& b);
   void resolve_sensitivities();
 };

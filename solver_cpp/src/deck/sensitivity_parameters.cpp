@@ -1,5 +1,5 @@
-// Sensitivity parameter kinds: see parameters.hpp.
-#include "model/parameters.hpp"
+// Sensitivity parameter kinds: see sensitivity_parameters.hpp.
+#include "deck/sensitivity_parameters.hpp"
 #include "element/triangle.hpp"
 
 #include <algorithm>

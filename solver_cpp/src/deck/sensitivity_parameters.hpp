@@ -15,7 +15,7 @@
 //   RIGID MOTION, <nset>, UX|UY|ANGLE  a component of the set's last-step *RIGID MOTION (0 when
 //                                      absent: the set must then be clamped by *BOUNDARY)
 //
-// A new kind is one resolver function in parameters.cpp and one row in its table.
+// A new kind is one resolver function in sensitivity_parameters.cpp and one row in its table.
 // A *SENSITIVITY, NAME= block combines its lines, each ending with a weight, into one parameter.
 #pragma once
 

@@ -180,7 +180,7 @@ struct ParameterScope {
   bool prescribed = false;                 // theta moves prescribed displacements
 };
 
-// One *SENSITIVITY data line, resolved against the model (model/parameters.hpp).
+// One *SENSITIVITY data line, resolved against the model (deck/sensitivity_parameters.hpp).
 struct SensitivityParameter {
   std::string name;  // e.g. MATERIAL:MUSCLE:C10, TENSION:SKIN, PROFILE:GARMENT:A2
   SourceLocation where;

@@ -153,7 +153,7 @@ Eigen::VectorXd StaticAnalysis::increment_residual(const ParameterState& state, 
 }
 
 // sensitivity.hpp, (4)-(5). The parameters are material constants, or a volume change or the axial stretch that
-// the last step brings in (deck/model_sensitivity.cpp refuses others with friction): dR/dtheta at fixed u and
+// the last step brings in (deck/keywords_sensitivity.cpp refuses others with friction): dR/dtheta at fixed u and
 // history is that of the elements they act on, (2) under this increment's kinematics.
 void StaticAnalysis::propagate_path_sensitivities() {
   const std::vector<SensitivityParameter>& parameters = model_.sensitivity.parameters;
