@@ -22,7 +22,10 @@ from __future__ import annotations
 import argparse
 
 from ..core.errors import EffectError, RunFolderError
-from ..diagnose.diagnosis import ALPHA, Diagnosis, Refit, comparison_lines, level_lines, ranking_lines
+from ..diagnose.diagnosis import Diagnosis
+from ..diagnose.refit import Refit
+from ..diagnose.score import ALPHA
+from ..diagnose.verdict import comparison_lines, level_lines, ranking_lines
 from ..model.effects import describe, parse_effects
 from ..run.stages import run_diagnose
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options

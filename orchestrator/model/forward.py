@@ -234,20 +234,7 @@ class LegModel:
     tissues: dict | None = None
 
     def __post_init__(self):
-        from ..meshing import garment_band
-
-        if self.garment not in GARMENTS:
-            raise ValueError(f"garment must be one of {GARMENTS}, got {self.garment!r}")
-        if self.friction_mu < 0.0 or (self.friction_mu > 0.0 and self.garment != "explicit"):
-            raise ValueError(f"a friction coefficient ({self.friction_mu}) needs garment = 'explicit' and must be >= 0")
-        if self.garment == "explicit" and self.tension_profile:
-            raise ValueError("a tabulated tension profile belongs to Laplace's law (p = T / r), and this model fits the "
-                             "explicit garment ([model] garment = \"explicit\" in case.toml): leave the profile out, "
-                             "or fit Laplace's law")
-        if "friction" in self.effects and self.friction_mu > 0.0:
-            raise ValueError("the friction coefficient is both fixed (friction_mu, [model] friction) and fitted "
-                             "(the friction effect): give one")
-
+        self._check_garment_options()
         sets = self.mesh.element_sets()
         self._set_laws(list(sets))
         self.effects = tuple(self.effects)
@@ -262,6 +249,29 @@ class LegModel:
         self.space = self._law_space().join(_effect_space(self.effects, element_sets, list(self.mesh.node_sets),
                                                           self.garment))
         _effect_space(list(self.fixed_effects), element_sets, list(self.mesh.node_sets), self.garment)  # they fit?
+        self.mesh_text = self._mesh_include_text()
+        self.mesh_sha = text_sha256(self.mesh_text)
+
+    def _check_garment_options(self) -> None:
+        """The garment's options agree with each other: a known garment, friction only on the explicit band and
+        given once, a tabulated tension profile only with Laplace's law."""
+        if self.garment not in GARMENTS:
+            raise ValueError(f"garment must be one of {GARMENTS}, got {self.garment!r}")
+        if self.friction_mu < 0.0 or (self.friction_mu > 0.0 and self.garment != "explicit"):
+            raise ValueError(f"a friction coefficient ({self.friction_mu}) needs garment = 'explicit' and must be >= 0")
+        if self.garment == "explicit" and self.tension_profile:
+            raise ValueError("a tabulated tension profile belongs to Laplace's law (p = T / r), and this model fits the "
+                             "explicit garment ([model] garment = \"explicit\" in case.toml): leave the profile out, "
+                             "or fit Laplace's law")
+        if "friction" in self.effects and self.friction_mu > 0.0:
+            raise ValueError("the friction coefficient is both fixed (friction_mu, [model] friction) and fitted "
+                             "(the friction effect): give one")
+
+    def _mesh_include_text(self) -> str:
+        """The deck's mesh include: the leg (its elements u/p when hybrid), the explicit band and its sectors when
+        there is one, and the effects' element sets. Sets self.band and self.band_sectors."""
+        from ..meshing import garment_band
+
         self.band = garment_band(self.mesh, self.tension_N_per_mm) if self.garment == "explicit" else None
         mesh_text = self.band.include_text(self.mesh) if self.band else self.mesh.include_text()
         # the band's sectors, once: every deck of a model with band_profile writes their volume changes
@@ -272,8 +282,7 @@ class LegModel:
         if self.hybrid:   # the leg's element block only: the band stays a compressible displacement element
             leg_block = f"*ELEMENT, TYPE={self.mesh.element_type}, ELSET=EALL"
             mesh_text = mesh_text.replace(leg_block, f"*ELEMENT, TYPE={self.mesh.element_type}H, ELSET=EALL", 1)
-        self.mesh_text = mesh_text + group_elsets_text(self.groups)
-        self.mesh_sha = text_sha256(self.mesh_text)
+        return mesh_text + group_elsets_text(self.groups)
 
     @property
     def _all_effects(self) -> tuple[str, ...]:

@@ -37,7 +37,9 @@ from ..core.files import read_json, replace_folder
 from ..core.run_lock import holds_run_folder
 from ..core.tissues import BONE
 from ..core.units import MMHG_PER_KPA
-from ..diagnose.diagnosis import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT, Refit, level_rows, model_label, refit_model
+from ..diagnose.refit import Refit, refit_model
+from ..diagnose.score import ALPHA, EXPLAINED_FACTOR, FLOOR_AGREEMENT
+from ..diagnose.verdict import level_rows, model_label
 from ..engine.decks import template_dir
 from ..fit.identify import pressure_spreads
 from ..fit.objectives import leg_rows

@@ -48,7 +48,7 @@ import numpy as np
 from ..core.digits import rounded
 from ..core.errors import RunFolderError
 from ..core.files import atomic_write_text, read_json, write_json
-from ..diagnose.diagnosis import ALPHA
+from ..diagnose.score import ALPHA
 from ..fit.identify import pressure_spreads
 from ..report.study_report import cell_uncertainty, write_study_report
 from ..run.stages import run_diagnose, run_identify, run_montecarlo, run_pressures

@@ -20,7 +20,7 @@ import pytest
 from hidden_physics import assert_found_or_nothing, identified_and_diagnosed
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.diagnose.diagnosis import candidate_effects, garment_model
+from orchestrator.diagnose.candidates import candidate_effects, garment_model
 from orchestrator.engine.results import EngineResults
 from orchestrator.engine.runner import run_engine, write_mesh_include
 from orchestrator.model.forward import TABLE2_CENTRAL_KPA, LegModel

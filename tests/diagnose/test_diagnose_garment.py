@@ -17,11 +17,8 @@ import numpy as np
 import pytest
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.diagnose.diagnosis import (
-    candidate_effects,
-    garment_model,
-    refit_model,
-)
+from orchestrator.diagnose.candidates import candidate_effects, garment_model
+from orchestrator.diagnose.refit import refit_model
 from orchestrator.engine.decks import sensitivity_blocks
 from orchestrator.model.forward import LegModel
 from orchestrator.phantom import CalfPhantom
@@ -189,7 +186,7 @@ def test_the_bands_runs_beside_the_probe_give_the_columns_they_give_one_after_th
     import json
 
     from orchestrator.case.folder import DisplacementPoints
-    from orchestrator.diagnose.diagnosis import GarmentRuns, garment_columns
+    from orchestrator.diagnose.candidates import GarmentRuns, garment_columns
     from orchestrator.engine.runner import Evaluator
     from orchestrator.fit.objectives import DisplacementResidualObjective
     from orchestrator.measure.measurements import points_measurements

@@ -32,7 +32,7 @@ from hidden_physics import OEDEMA_SECTOR_DEG, oedema
 from renderers import RENDERERS, phantom
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.diagnose.diagnosis import ALPHA
+from orchestrator.diagnose.score import ALPHA
 from orchestrator.model.regions import SECTORS
 from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.run.stages import run_diagnose, run_identify

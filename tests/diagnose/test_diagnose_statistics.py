@@ -1,4 +1,4 @@
-"""The statistics of the diagnosis (orchestrator.diagnose.diagnosis) on linear models where the answers are exact."""
+"""The statistics of the diagnosis (orchestrator.diagnose) on linear models where the answers are exact."""
 
 from types import SimpleNamespace
 
@@ -6,21 +6,19 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from orchestrator.diagnose.diagnosis import (
+from orchestrator.diagnose.diagnosis import Diagnosis
+from orchestrator.diagnose.maps import residual_maps
+from orchestrator.diagnose.refit import Refit, settled
+from orchestrator.diagnose.score import (
     EXPLAINED_FACTOR,
     FLOOR_AGREEMENT,
-    Diagnosis,
     EffectScore,
-    Refit,
     design_effect,
     information_criteria,
-    local_refit_unneeded,
     neighbour_correlation,
-    refit_verdict,
-    residual_maps,
     score_effect,
-    settled,
 )
+from orchestrator.diagnose.verdict import local_refit_unneeded, refit_verdict
 from orchestrator.engine.results import OK
 from orchestrator.fit.identify import linearised_standard_errors
 from orchestrator.fit.objectives import DisplacementResidualObjective
@@ -229,7 +227,8 @@ def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_w
     identifiable, the additive parameter is identifiable because its interval excludes zero; a direction the data
     do not see gives an unbounded interval. The verdict's words name the identified model's constants that the
     refit leaves loose, not the effect's own parameters."""
-    from orchestrator.diagnose.diagnosis import linearized_intervals, unfixed_constants
+    from orchestrator.diagnose.refit import linearized_intervals
+    from orchestrator.diagnose.verdict import unfixed_constants
 
     rng = np.random.default_rng(3)
     space = ParameterSpace(("C10_fat", "C10_muscle", "dv_muscle"), (0.1, 0.1, -1.0), (100.0, 100.0, 1.0),

@@ -149,7 +149,7 @@ def test_the_explicit_bands_levels_are_one_band_of_a_fabric_as_stiff_as_each_ten
 def test_an_effect_added_to_several_levels_is_in_every_levels_deck(leg):
     """What the diagnosis of several socks does to a model (`diagnose.with_changes`): the effect goes into the one
     leg model that every level solves, each level keeping its tension."""
-    from orchestrator.diagnose.diagnosis import garment_model, with_changes
+    from orchestrator.diagnose.candidates import garment_model, with_changes
 
     model, _ = leg
     levels = LevelsModel(model, TENSIONS)
