@@ -58,14 +58,14 @@ test-slow: setup
 	$(PY) -m pytest -m slow -q --durations=15
 
 fuzz: setup
-	$(PY) tests/fuzz_decks.py --inputs 100000 --seed 1
+	$(PY) tests/support/fuzz_decks.py --inputs 100000 --seed 1
 
 SANITIZE_BUILD := build-sanitize
 sanitize: setup
 	cmake -S . -B $(SANITIZE_BUILD) -DCMAKE_BUILD_TYPE=RelWithDebInfo -DCALFIT_SANITIZE=ON
 	cmake --build $(SANITIZE_BUILD) -j $$(nproc)
 	ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1 ctest --test-dir $(SANITIZE_BUILD) --output-on-failure
-	ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1 $(PY) tests/fuzz_decks.py \
+	ASAN_OPTIONS=detect_leaks=1 UBSAN_OPTIONS=print_stacktrace=1 $(PY) tests/support/fuzz_decks.py \
 	  --engine $(SANITIZE_BUILD)/solver_cpp/calfit-fe --inputs 3000 --seed 1 --timeout 120
 
 bench: setup
