@@ -19,7 +19,6 @@ them at once, each level's own misfit and residual maps reported (`diagnose`).""
 from __future__ import annotations
 
 import tempfile
-from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
 
@@ -30,29 +29,12 @@ from ..core.digits import PLUS_MINUS, interval_uncertainty, rounded, with_uncert
 from ..core.files import read_json, write_json
 from ..core.run_lock import holds_run_folder
 from ..core.units import MMHG_PER_KPA
-from ..diagnose.diagnosis import (
-    ALPHA,
-    diagnose,
-    judged_ratio,
-    level_maps,
-    local_refit_unneeded,
-    patch_elements,
-    refit,
-    refit_model,
-    refit_verdict,
-    residual_maps,
-    settle_ties,
-    summarize_fit,
-    weigh_local,
-)
-from ..diagnose.figure import diagnosis_figure
 from ..engine.runner import LOG_NAME, EvaluationLog, Evaluator
 from ..fit.geometry_uncertainty import (
     INTERFACE_UNCERTAINTY_PX,
     SKIN_UNCERTAINTY_PX,
     covariance_of,
     discard_without_columns,
-    geometry_columns,
     measured_skin_sigma,
     skin_perimeter_mm,
 )
@@ -60,7 +42,6 @@ from ..fit.geometry_uncertainty import read_covariance as read_geometry_covarian
 from ..fit.geometry_uncertainty import write as write_geometry
 from ..fit.identify import (
     NOISE_DRAWS,
-    FitResult,
     levenberg_marquardt,
     monte_carlo,
     multistart,
@@ -70,12 +51,19 @@ from ..fit.identify import (
     table1_starts,
 )
 from ..fit.levels import AtTension
-from ..measure.measurements import DEFAULT_WINDOW_PX, measure_dic, read_window_table, write_measurements
+from ..measure.measurements import (
+    DEFAULT_WINDOW_PX,
+    measure_dic,
+    read_window_table,
+    write_measurements,
+)
 from ..measure.prefilter import PREFILTER_SIGMA_PX
-from ..model.effects import effect
 from ..model.garment_state import band_state
-from ..model.heterogeneity import stiffness_field_kpa
+from .diagnose_stage import run_diagnose  # noqa: F401 (the stage imported from here, as every stage)
 from .discretization import discretization_check, discretization_line
+from .identified import floor_calibration, identified_data
+from .identified import level_images as _level_images
+from .identified import level_skin_columns as _level_skin_columns
 from .setup import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
 
 OBJECTIVES = ("contour", "displacement")
@@ -363,20 +351,6 @@ def _discard_mesh(run_dir: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def floor_calibration(run_dir: Path) -> dict:
-    """How the DIC's error model, on which the floor rests, was calibrated on the case's own images (measure):
-    each image's noise, the edges' error of position found in the windows' residuals, how far those residuals agree
-    with what the model predicts of them (1 where it holds), and the windows kept or rejected by reason."""
-    summary = read_json(Path(run_dir) / "measurements.json", "calfit measure")
-    return {"prefilter_px": summary.get("prefilter_px", 0.0), "image_noise_sigma": summary["noise_sigma"],
-            "image_noise_sigma_estimated": summary.get("noise_sigma_estimated", summary["noise_sigma"]),
-            "edge_position_sigma_px": float(np.sqrt(summary.get("edge_variance_px2", 0.0))),
-            "residual_over_predicted": summary.get("noise_scale"), "windows": summary["windows"],
-            "kept": summary["kept"], "status": summary["status"], "point_sampling": summary.get("point_sampling"),
-            "fat_shift_mm": summary.get("fat_shift_mm"), "texture_coherence": summary.get("texture_coherence"),
-            "through_plane_warning": summary.get("through_plane_warning")}
-
-
 def floor_sentence(calibration: dict) -> str:
     """One sentence saying how the floor was calibrated (`floor_calibration`)."""
     rejected = ", ".join(f"{count} {status}" for status, count in calibration["status"].items() if status != "kept")
@@ -422,11 +396,6 @@ def _measurement_share(measured) -> float:
     return float(noise / total)
 
 
-def _level_images(setup: RunSetup) -> list[str]:
-    """The loaded image of every garment level, the case's own first."""
-    return [setup.case.files["loaded"].name] + [level.path.name for level in setup.case.levels]
-
-
 def _level_fits(setup: RunSetup, scorer, measured, theta) -> list[dict]:
     """Each garment level of a joint fit: its image, tension, measurements and own misfit over its own floor (the
     evaluation at theta is read back from the run's log)."""
@@ -442,12 +411,6 @@ def _level_fits(setup: RunSetup, scorer, measured, theta) -> list[dict]:
         rows.append({"image": image, "tension_N_per_mm": tension, "count": len(level_measured),
                      "misfit": misfit, "misfit_over_floor": None if misfit is None else misfit / floor})
     return rows
-
-
-def identified_data(identification: dict) -> str:
-    """The data source an identification used ("points" or "dic"), for the stages after it."""
-    source = identification.get("data", {}).get("source", "points")
-    return "points" if source in ("points", "points.csv") else source
 
 
 @holds_run_folder()
@@ -529,152 +492,6 @@ def _band_on_the_leg(setup: RunSetup, theta: Sequence[float], model: AtTension |
         results = setup.solve(theta, Path(scratch), model)
         state = band_state(results, setup.mesh, setup.model.band, setup.frame(), setup.model.friction_at(theta))
     return {"theta": [float(v) for v in theta], **state.as_dict()}
-
-
-def _stiffness_field(model, fit, frame) -> dict | None:
-    """The refit's C10 by tissue and quarter of the leg where its effects give groups their own materials."""
-    refitted = refit_model(model, fit.effects[len(model.effects):])
-    return stiffness_field_kpa(refitted, fit.theta, frame) if refitted.groups else None
-
-
-@holds_run_folder()
-def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
-                 engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
-                 timeout_s: float = 120.0, progress: bool = True, verbose: bool = False) -> dict:
-    """Diagnose the identified model of a run; refit with `refit_effects`: "auto" (the best-ranked effect when it
-    is significant, with those the score cannot tell from it), "none", effect names, or "auto" and names.
-    Writes and returns diagnosis.json."""
-    run_dir = Path(run_dir)
-    shown = progress
-    setup = load_run(run_dir)
-    identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
-    if identification["objective"] != "displacement":
-        raise ValueError("the diagnosis compares the model with measured displacements (DIC from the images, or "
-                         "points.csv): identify with --objective displacement (the default) first")
-    # several socks: every effect is scored on all the levels at once (one deck per level, whitened together)
-    model = setup.fit_model(identification.get("effects", ()), sensitivities=engine_sensitivities)
-    objective = setup.displacement_objective(identified_data(identification))
-
-    def evaluator_for(m, progress=None, workers=workers):
-        # the ranking probes every candidate effect at once; a refit adds one or two
-        added = [name for name in m.effects if name not in model.effects]
-        stage = ("diagnose" if not added else f"diagnose + {', '.join(added)}" if len(added) <= 2
-                 else "diagnose, ranking the candidate effects")
-        return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
-                         progress=shown if progress is None else progress and shown, verbose=verbose, label=stage)
-
-    theta = identification["best"]["theta"]
-    frame = setup.frame()
-    diagnosis = diagnose(evaluator_for, model, theta, objective, frame, alpha=alpha,
-                         engine_sensitivities=engine_sensitivities, progress=shown,
-                         side_by_side=bool(scheduler) or workers > 1)
-    with evaluator_for(model) as evaluator:
-        before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), objective)
-    requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
-    top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
-    names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
-    names += [n for n in requested if n not in ("auto", "none") and n not in names]
-    after, after_maps, after_level_maps = [], [], []
-    refit_failures, residuals = {}, {}
-    for name in names:
-        try:
-            fit, residual = refit(evaluator_for, model, theta, [name], objective)
-        except RuntimeError as error:   # the engine cannot solve the refitted model somewhere: said, not fatal
-            refit_failures[name] = str(error)
-            continue
-        after.append(fit)
-        residuals[name] = residual
-        after_maps.append(residual_maps(objective.positions_mm, residual, frame))
-        after_level_maps.append(level_maps(objective, residual, frame))
-    settle_ties(diagnosis, after)
-    for fit in after:
-        fit.stiffness_field = _stiffness_field(model, fit, frame)
-    best = diagnosis.ranking[0].effect if diagnosis.ranking else None
-    best_refit = next((f for f in after if f.effects[-1:] == [best]), None)   # None: not refitted, or it failed
-    if best_refit is not None:
-        best_refit.own_floor = _refit_own_floor(setup, identification, best_refit, residuals[best])
-    diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
-    if best in refit_failures:
-        # a prediction the refit could not check is not an explanation
-        diagnosis.explained = False
-        diagnosis.verdict += f"; but its refit failed ({refit_failures[best]}), so that is not confirmed"
-    check = identification.get("discretization") or {}
-    if check.get("checked") and not check["adequate"]:
-        # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
-        diagnosis.verdict += f"; caution: {discretization_line(check)}"
-    unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
-    if unexplained and diagnosis.maps.worst_region:
-        maps = diagnosis.maps
-        diagnosis.verdict += (f"; the residual is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f}"
-                              f" mm, {100 * maps.worst_region_share:.0f} % of the squared residual)")
-    local = None
-    if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
-        patch = diagnosis.patches[0]
-        unneeded = local_refit_unneeded(diagnosis, patch, None if best_refit is None else judged_ratio(best_refit))
-        if unneeded:
-            diagnosis.verdict += f"; {unneeded}"
-            local = {"patch": asdict(patch), "refitted": False, "explains": False, "reason": unneeded,
-                     "verdict": diagnosis.verdict}
-        else:
-            fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
-            fit.stiffness_field = _stiffness_field(model, fit, frame)
-            local = weigh_local(diagnosis, patch, before, fit, after)
-            after.append(fit)
-            after_maps.append(residual_maps(objective.positions_mm, residual, frame))
-            after_level_maps.append(level_maps(objective, residual, frame))
-    warning = (floor_calibration(run_dir).get("through_plane_warning") if identified_data(identification) == "dic"
-               else None)
-    if warning:
-        # an error model that does not hold judges every effect wrongly: the verdict says so first
-        diagnosis.explained = False
-        diagnosis.verdict = f"caution: {warning}; {diagnosis.verdict}"
-    result = diagnosis.as_dict()
-    result["before"] = before.as_dict()
-    result["refits"] = [fit.as_dict() for fit in after]
-    result["refit_failures"] = refit_failures
-    result["maps_after"] = [asdict(m) for m in after_maps]
-    if diagnosis.levels:
-        for k, (row, image, tension) in enumerate(zip(result["levels"], _level_images(setup), setup.case.tensions)):
-            row.update(image=image, tension_N_per_mm=tension, worst_region=diagnosis.level_maps[k].worst_region)
-        result["level_maps_after"] = [[asdict(m) for m in maps] for maps in after_level_maps]
-    result["local"] = local
-    write_json(run_dir / "diagnosis.json", result)
-    patch = (patch_elements(model, local["patch"]["effect"]), local["patch"]["place"]) if local else (None, "")
-    diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
-                     setup.mesh, *patch, title="every garment level, one arrow each" if diagnosis.levels else "")
-    for k, maps in enumerate(diagnosis.level_maps, 1):
-        diagnosis_figure(run_dir / f"diagnosis-level-{k}.png", setup.case.unloaded, setup.case.pixel_size_mm, maps,
-                         setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
-                                                   f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
-    return result
-
-
-def _level_skin_columns(setup, theta, measured, level: int, options: dict, workers: int = 1):
-    """`geometry_columns` of garment level `level`'s measurements, under that level's tension."""
-    tension = None if level == 1 else setup.case.tensions[level - 1]
-    return geometry_columns(setup, theta, measured, tension_N_per_mm=tension, workers=workers, **options)
-
-
-def _refit_own_floor(setup, identification: dict, fit, residual_mm: np.ndarray) -> dict | None:
-    """The refit's misfit against the noise floor with the skin's uncertainty estimated again at the refit's
-    parameters (`geometry_uncertainty`, as the identification did at the baseline fit's), for DIC data refitted with
-    catalog effects; None otherwise. Its residual (mm, each level's fitted rigid motion removed) is weighed again:
-    no run of the model, only those of the skin's modes."""
-    geometry = identification.get("geometry_uncertainty")
-    if geometry is None or any(effect(name).apply is None for name in fit.effects):
-        return None
-    options = dict(effects=tuple(fit.effects), skin_sigma_mm=geometry["skin_sigma_mm"],
-                   interface_sigma_mm=geometry["interface_sigma_mm"], cutoff_mm=geometry["cutoff_mm"])
-    measured = []
-    for level, level_measured in enumerate(setup.level_measurements("dic", with_geometry=False), start=1):
-        columns, weights, _ = _level_skin_columns(setup, fit.theta, level_measured, level, options)
-        kept = (columns, weights) if setup.case.levels else ()   # the joint fit's blocks between levels
-        measured.append(level_measured.with_model_covariance(
-            covariance_of(columns, weights), f"skin uncertain by {geometry['skin_sigma_mm']:.3f} mm RMS, at the refit",
-            *kept))
-    own = setup.objective_of(measured)
-    misfit = own.cost_of(own.weigh(np.asarray(residual_mm, float).ravel()))
-    return {"misfit": misfit, "misfit_over_floor": misfit / own.noise_floor(len(fit.theta))}
 
 
 def pressure_summary(result: dict) -> list[str]:

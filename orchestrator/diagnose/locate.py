@@ -1,0 +1,109 @@
+"""Locate. When the misfit is above the floor, every place a local stiffness change may take is scored the same way,
+as a one-parameter effect: the material groups of `heterogeneity` (15-degree sectors, depth bands), contiguous in
+one tissue kind over 1 to 6 sectors (up to 90 degrees) and a run of bands, its column the sum of its groups' dr/dln
+E (E every modulus of the group, the `local` probe, one engine run). The best places that share no group are
+reported (tissue, sector, depth, area; Bonferroni over the N places tried), and the best is refitted (`patch:...`).
+Its BIC counts the choice of the place among N, 2 ln N on top of its parameter's ln n (a prior 1/N on each place).
+It explains when it reaches EXPLAINED_FACTOR x the floor with a BIC below the baseline's; when a catalog effect
+explained the residual too, the lower BIC wins, and a local change that wins takes "explained" away from the
+catalog (`weigh_local`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy import stats
+
+from ..model.forward import LegModel
+from ..model.heterogeneity import (
+    SECTOR_DEG,
+    Group,
+    groups_for,
+    patch_candidates,
+    patch_groups,
+    patch_name,
+)
+from ..model.regions import LegFrame
+from .score import ALPHA, ORTHOGONAL_ROUNDOFF
+
+PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
+
+
+
+@dataclass
+class PatchScore:
+    """A candidate place for a local stiffness change: contiguous material groups of one tissue (module text)."""
+
+    effect: str                       # patch:<groups>, the effect that refits it
+    tissue: str                       # fat or muscle
+    sector_deg: list[float]           # [start, end], display angles counter-clockwise
+    centre_deg: float
+    depth_mm: list[float]             # [min, max] distance to the skin of its elements' centroids
+    area_cm2: float
+    place: str                        # "muscle, posterior sector 240-330 deg, 12-35 mm under the skin"
+    statistic: float
+    p_value: float                    # Bonferroni over the candidates tried
+    predicted_misfit: float
+    predicted_ratio: float            # stiffness in the patch / stiffness of the tissue, linearized
+    significant: bool = False
+    places_tried: int = 1             # candidates scored: the choice of this one costs 2 ln N on BIC
+
+
+
+def locate(r: np.ndarray, J: np.ndarray, local: np.ndarray, groups: Sequence[Group], frame: LegFrame,
+           chi2_to_misfit: float, deff: float, misfit: float, alpha: float = ALPHA,
+           keep: int = PATCHES_KEPT) -> list[PatchScore]:
+    """Score every candidate patch (`heterogeneity.patch_candidates`) as a one-parameter effect whose column is
+    the sum of its groups' dr/dlnE (module text); the best `keep` places that share no group, best first."""
+    Q, _ = np.linalg.qr(J)
+    r_perp = r - Q @ (Q.T @ r)
+    local_perp = local - Q @ (Q.T @ local)
+    candidates = patch_candidates(list(groups))
+    scored = []
+    for members, start, width in candidates:
+        g = local[:, members].sum(axis=1)
+        g_perp = local_perp[:, members].sum(axis=1)
+        norm2 = float(g_perp @ g_perp)
+        if norm2 <= (ORTHOGONAL_ROUNDOFF * np.linalg.norm(g)) ** 2:
+            continue
+        projection = float(g_perp @ r_perp)
+        scored.append((projection ** 2 / norm2, -projection / norm2, members, start, width))
+    scored.sort(key=lambda item: -item[0])
+    chosen, used = [], set()
+    for reduction, step, members, start, width in scored:
+        if used & set(members):
+            continue
+        used |= set(members)
+        statistic = reduction / deff
+        p_value = float(min(1.0, stats.chi2.sf(statistic, 1) * len(candidates)))
+        chosen.append(_patch_score([groups[k] for k in members], start, width, frame, statistic, p_value,
+                                   misfit - reduction * chi2_to_misfit, float(np.exp(step)), p_value < alpha,
+                                   len(candidates)))
+        if len(chosen) == keep:
+            break
+    return chosen
+
+
+
+def _patch_score(members: Sequence[Group], start: int, width: int, frame: LegFrame, statistic: float,
+                 p_value: float, predicted_misfit: float, ratio: float, significant: bool,
+                 places_tried: int) -> PatchScore:
+    low, high = start * SECTOR_DEG, (start + width) * SECTOR_DEG
+    centre = ((low + high) / 2.0) % 360.0
+    depth = [min(g.depth_range_mm[0] for g in members), max(g.depth_range_mm[1] for g in members)]
+    tissue = members[0].kind
+    place = (f"{tissue}, {frame.direction(centre)} sector {low % 360:.0f}-{high % 360 or 360:.0f} deg, "
+             f"{depth[0]:.0f}-{depth[1]:.0f} mm under the skin")
+    return PatchScore(patch_name([g.name for g in members]), tissue, [low % 360.0, high % 360.0 or 360.0], centre, depth,
+                      sum(g.area_mm2 for g in members) / 100.0, place, statistic, p_value, predicted_misfit, ratio,
+                      significant, places_tried)
+
+
+
+def patch_elements(model: LegModel, patch_effect: str) -> np.ndarray:
+    """0-based elements of the model's mesh in a patch (to draw it)."""
+    members = set(patch_groups(patch_effect))
+    groups = groups_for(model.mesh, [patch_effect])
+    return np.concatenate([g.elements for g in groups if g.name in members] or [np.zeros(0, int)])

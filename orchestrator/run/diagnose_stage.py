@@ -1,0 +1,180 @@
+"""The diagnose stage (diagnosis.json): the identified model of a run diagnosed on its measured displacements
+(`diagnose.diagnosis`), refitted with the effects it names, its verdict judged, the local change weighed, and the
+residual drawn (diagnosis.png, one per garment level with several socks)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..core.files import read_json, write_json
+from ..core.run_lock import holds_run_folder
+from ..diagnose.diagnosis import diagnose
+from ..diagnose.figure import diagnosis_figure
+from ..diagnose.locate import patch_elements
+from ..diagnose.maps import level_maps, residual_maps
+from ..diagnose.refit import refit, refit_model, summarize_fit
+from ..diagnose.score import ALPHA
+from ..diagnose.verdict import (
+    judged_ratio,
+    local_refit_unneeded,
+    refit_verdict,
+    settle_ties,
+    weigh_local,
+)
+from ..engine.runner import Evaluator
+from ..fit.geometry_uncertainty import covariance_of
+from ..fit.identify import FitResult
+from ..model.effects import effect
+from ..model.heterogeneity import stiffness_field_kpa
+from .discretization import discretization_line
+from .identified import (
+    floor_calibration,
+    identified_data,
+    level_images,
+    level_skin_columns,
+)
+from .setup import load_run
+
+
+def _stiffness_field(model, fit, frame) -> dict | None:
+    """The refit's C10 by tissue and quarter of the leg where its effects give groups their own materials."""
+    refitted = refit_model(model, fit.effects[len(model.effects):])
+    return stiffness_field_kpa(refitted, fit.theta, frame) if refitted.groups else None
+
+
+@holds_run_folder()
+def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
+                 engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
+                 timeout_s: float = 120.0, progress: bool = True, verbose: bool = False) -> dict:
+    """Diagnose the identified model of a run; refit with `refit_effects`: "auto" (the best-ranked effect when it
+    is significant, with those the score cannot tell from it), "none", effect names, or "auto" and names.
+    Writes and returns diagnosis.json."""
+    run_dir = Path(run_dir)
+    shown = progress
+    setup = load_run(run_dir)
+    identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
+    if identification["objective"] != "displacement":
+        raise ValueError("the diagnosis compares the model with measured displacements (DIC from the images, or "
+                         "points.csv): identify with --objective displacement (the default) first")
+    # several socks: every effect is scored on all the levels at once (one deck per level, whitened together)
+    model = setup.fit_model(identification.get("effects", ()), sensitivities=engine_sensitivities)
+    objective = setup.displacement_objective(identified_data(identification))
+
+    def evaluator_for(m, progress=None, workers=workers):
+        # the ranking probes every candidate effect at once; a refit adds one or two
+        added = [name for name in m.effects if name not in model.effects]
+        stage = ("diagnose" if not added else f"diagnose + {', '.join(added)}" if len(added) <= 2
+                 else "diagnose, ranking the candidate effects")
+        return Evaluator(m, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,
+                         progress=shown if progress is None else progress and shown, verbose=verbose, label=stage)
+
+    theta = identification["best"]["theta"]
+    frame = setup.frame()
+    diagnosis = diagnose(evaluator_for, model, theta, objective, frame, alpha=alpha,
+                         engine_sensitivities=engine_sensitivities, progress=shown,
+                         side_by_side=bool(scheduler) or workers > 1)
+    with evaluator_for(model) as evaluator:
+        before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), objective)
+    requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
+    top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
+    names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
+    names += [n for n in requested if n not in ("auto", "none") and n not in names]
+    after, after_maps, after_level_maps = [], [], []
+    refit_failures, residuals = {}, {}
+    for name in names:
+        try:
+            fit, residual = refit(evaluator_for, model, theta, [name], objective)
+        except RuntimeError as error:   # the engine cannot solve the refitted model somewhere: said, not fatal
+            refit_failures[name] = str(error)
+            continue
+        after.append(fit)
+        residuals[name] = residual
+        after_maps.append(residual_maps(objective.positions_mm, residual, frame))
+        after_level_maps.append(level_maps(objective, residual, frame))
+    settle_ties(diagnosis, after)
+    for fit in after:
+        fit.stiffness_field = _stiffness_field(model, fit, frame)
+    best = diagnosis.ranking[0].effect if diagnosis.ranking else None
+    best_refit = next((f for f in after if f.effects[-1:] == [best]), None)   # None: not refitted, or it failed
+    if best_refit is not None:
+        best_refit.own_floor = _refit_own_floor(setup, identification, best_refit, residuals[best])
+    diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
+    if best in refit_failures:
+        # a prediction the refit could not check is not an explanation
+        diagnosis.explained = False
+        diagnosis.verdict += f"; but its refit failed ({refit_failures[best]}), so that is not confirmed"
+    check = identification.get("discretization") or {}
+    if check.get("checked") and not check["adequate"]:
+        # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
+        diagnosis.verdict += f"; caution: {discretization_line(check)}"
+    unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
+    if unexplained and diagnosis.maps.worst_region:
+        maps = diagnosis.maps
+        diagnosis.verdict += (f"; the residual is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f}"
+                              f" mm, {100 * maps.worst_region_share:.0f} % of the squared residual)")
+    local = None
+    if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
+        patch = diagnosis.patches[0]
+        unneeded = local_refit_unneeded(diagnosis, patch, None if best_refit is None else judged_ratio(best_refit))
+        if unneeded:
+            diagnosis.verdict += f"; {unneeded}"
+            local = {"patch": asdict(patch), "refitted": False, "explains": False, "reason": unneeded,
+                     "verdict": diagnosis.verdict}
+        else:
+            fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
+            fit.stiffness_field = _stiffness_field(model, fit, frame)
+            local = weigh_local(diagnosis, patch, before, fit, after)
+            after.append(fit)
+            after_maps.append(residual_maps(objective.positions_mm, residual, frame))
+            after_level_maps.append(level_maps(objective, residual, frame))
+    warning = (floor_calibration(run_dir).get("through_plane_warning") if identified_data(identification) == "dic"
+               else None)
+    if warning:
+        # an error model that does not hold judges every effect wrongly: the verdict says so first
+        diagnosis.explained = False
+        diagnosis.verdict = f"caution: {warning}; {diagnosis.verdict}"
+    result = diagnosis.as_dict()
+    result["before"] = before.as_dict()
+    result["refits"] = [fit.as_dict() for fit in after]
+    result["refit_failures"] = refit_failures
+    result["maps_after"] = [asdict(m) for m in after_maps]
+    if diagnosis.levels:
+        for k, (row, image, tension) in enumerate(zip(result["levels"], level_images(setup), setup.case.tensions)):
+            row.update(image=image, tension_N_per_mm=tension, worst_region=diagnosis.level_maps[k].worst_region)
+        result["level_maps_after"] = [[asdict(m) for m in maps] for maps in after_level_maps]
+    result["local"] = local
+    write_json(run_dir / "diagnosis.json", result)
+    patch = (patch_elements(model, local["patch"]["effect"]), local["patch"]["place"]) if local else (None, "")
+    diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
+                     setup.mesh, *patch, title="every garment level, one arrow each" if diagnosis.levels else "")
+    for k, maps in enumerate(diagnosis.level_maps, 1):
+        diagnosis_figure(run_dir / f"diagnosis-level-{k}.png", setup.case.unloaded, setup.case.pixel_size_mm, maps,
+                         setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
+                                                   f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
+    return result
+
+
+def _refit_own_floor(setup, identification: dict, fit, residual_mm: np.ndarray) -> dict | None:
+    """The refit's misfit against the noise floor with the skin's uncertainty estimated again at the refit's
+    parameters (`geometry_uncertainty`, as the identification did at the baseline fit's), for DIC data refitted with
+    catalog effects; None otherwise. Its residual (mm, each level's fitted rigid motion removed) is weighed again:
+    no run of the model, only those of the skin's modes."""
+    geometry = identification.get("geometry_uncertainty")
+    if geometry is None or any(effect(name).apply is None for name in fit.effects):
+        return None
+    options = dict(effects=tuple(fit.effects), skin_sigma_mm=geometry["skin_sigma_mm"],
+                   interface_sigma_mm=geometry["interface_sigma_mm"], cutoff_mm=geometry["cutoff_mm"])
+    measured = []
+    for level, level_measured in enumerate(setup.level_measurements("dic", with_geometry=False), start=1):
+        columns, weights, _ = level_skin_columns(setup, fit.theta, level_measured, level, options)
+        kept = (columns, weights) if setup.case.levels else ()   # the joint fit's blocks between levels
+        measured.append(level_measured.with_model_covariance(
+            covariance_of(columns, weights), f"skin uncertain by {geometry['skin_sigma_mm']:.3f} mm RMS, at the refit",
+            *kept))
+    own = setup.objective_of(measured)
+    misfit = own.cost_of(own.weigh(np.asarray(residual_mm, float).ravel()))
+    return {"misfit": misfit, "misfit_over_floor": misfit / own.noise_floor(len(fit.theta))}
