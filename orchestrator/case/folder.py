@@ -1,4 +1,4 @@
-"""Read and write a case folder (DESIGN.md, "The case folder").
+"""Read and write a case folder (docs/design.md, "The case folder"; every key: docs/case-folder.md).
 
 A case is ``case.toml`` + the unloaded image I0 + the loaded image I1, with an
 optional label map of I0 (0 background, 1 fat with skin, 2 muscle, 3 bone,

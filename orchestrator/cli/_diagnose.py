@@ -1,4 +1,4 @@
-"""Where the identified model fails and which physical effect is missing (DESIGN.md, effect catalog).
+"""Where the identified model fails and which physical effect is missing (docs/method/diagnosis.md).
 
     calfit diagnose RUN_DIR [--refit auto|none|EFFECT[,EFFECT]|auto,EFFECT] [--alpha 0.01] [--no-engine-sensitivities]
                     [--workers N] [--json] [--quiet]

@@ -1,7 +1,7 @@
 """The image frame of a case and rigid motions in it.
 
 Every position in a case is in millimetres in the frame of the unloaded image
-I0 (DESIGN.md, "The case folder"): origin at the top-left corner, x to the
+I0 (docs/design.md, "The case folder"): origin at the top-left corner, x to the
 right (columns), y downwards (rows); pixel (row i, column j) has its centre at
 ((j + 0.5) dx, (i + 0.5) dy), with ``pixel_size_mm = (dy, dx)`` (row, column).
 

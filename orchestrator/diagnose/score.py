@@ -8,7 +8,7 @@ the identified parameters theta of p fitted parameters. The misfit is F = s^2 r.
 identification's cost, s^2 the mean variance of one component); for a correct model its expectation is the
 noise floor F_0 = s^2 (n - p - k) / n, and r.r is chi^2 with n - p - k degrees of freedom.
 
-Which effect is missing (DESIGN.md). For every catalog effect not in the model, G = dr/dphi at phi = 0
+Which effect is missing (docs/method/diagnosis.md). For every catalog effect not in the model, G = dr/dphi at phi = 0
 (n x q, its q parameters), from the engine's sensitivities when it gives them (one run), otherwise by
 forward differences of step `scale`. Its part that the fitted parameters cannot absorb is
 G_perp = G - J (J^T J)^-1 J^T G (J = dr/dx, x the optimizer's variables). Linearized, refitting with

@@ -8,9 +8,9 @@ pixel and the errors average out over a window, as `prefilter`'s edge term has t
 pixel grid (or its diagonal) its pixels cross alike for tens of pixels: their errors add up over a window, which takes
 them for motion, and its residual, on which `prefilter` calibrates s_edge^2, does not show them. On the other
 program's calf cases (a 3 x 3 renderer) that error, computed from their true meshes, is what held the fat more than
-5 mm under the skin at chi^2/n 1.26 against the true field (0.92 without it; README, `benchmarks/error_budget.py
---sampling`). A scanner does not draw so (its image is band-limited by the k-space it acquires), nor do renderers that
-anti-alias their samples (calfit's two phantoms); only point-sampled renders do.
+5 mm under the skin at chi^2/n 1.26 against the true field (0.92 without it; docs/validation/error-model.md,
+`benchmarks/error_budget.py --sampling`). A scanner does not draw so (its image is band-limited by the k-space it
+acquires), nor do renderers that anti-alias their samples (calfit's two phantoms); only point-sampled renders do.
 
 Detection (`detect_point_sampling`). The coverage of each pixel the leg's outline crosses is read from its grey level
 between the levels either side of it along the normal (air outside, LEVEL_DEPTH_PX away; the tissue inside), and a
@@ -29,7 +29,7 @@ power at 4 cycles as a weak comb (calfit's first phantom: n R^2 = 8 there). Fine
 boundaries within 1 / (MAX_SAMPLES sqrt(12)) px. Measured: the other program's four cases S = 3 at p = 6e-13 to 7e-20
 (both images); calfit's two phantoms, and its second drawn anti-aliased with a bright skin, none; its second
 point-sampled (`MRIPhantom(anti_aliased=False)`) S = 3 with a bright skin (p = 3e-13), none with its grey skin, whose
-steps of 1/9 are under three times the scatter (tests/measure/test_drawing.py, README).
+steps of 1/9 are under three times the scatter (tests/measure/test_drawing.py, docs/validation/error-model.md).
 
 The windows' error (`drawn_boundaries_factor`). The boundaries are the labels' contours (the leg's outline and the
 muscle's boundary, leaving out the bones, which do not move), smoothed along their arc over ALONG_ARC_PX so that the

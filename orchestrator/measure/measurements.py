@@ -1,6 +1,6 @@
 """Measured displacements, from the two images (DIC) or from points.csv: what the fit compares the model with.
 
-Images first (DESIGN.md). A user brings two slices, not a table. `measure_dic` measures the displacement of
+Images first (docs/method/dic.md). A user brings two slices, not a table. `measure_dic` measures the displacement of
 the tissue relative to the bones between them (Bouten and Drapier sec. 2.2 and 3.1):
 
 1. windows of `window_px` (16, 32 or 64) on a grid inside the leg, every `step_px` (default half a window),
@@ -29,7 +29,7 @@ the tissue's motion (a garment that shows in the loaded image; a sharp outline d
 staircase does not move with the tissue), that error reaches those windows. With respect_outline, a window centred
 more than a margin inside the outline (the prefilter's radius + 1 pixel: the smoothing spreads the edge that far)
 matches only the pixels at least that far inside; the windows on the outline keep it. Its operators and covariance
-follow the same pixels. Measured (README, "From the images to the displacements"), before calfit recognised their
+follow the same pixels. Measured (docs/validation/error-model.md), before calfit recognised their
 point-sampled drawing (`imaging.drawing`): on the other program's four cases the deep fat's chi^2/n against the true
 field falls from 1.26 to 1.18 (the skin band 0.97 -> 0.96), but the
 parameters' standard errors grow by 3-38 % and the windows near the skin are less accurate (deep fat, radial: 0.026

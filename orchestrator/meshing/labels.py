@@ -1,7 +1,7 @@
 """Image-to-mesh: a conforming triangle mesh of the soft tissues from a label image.
 
 Labels: 0 background, 1 fat (with skin), 2 muscle, 3 bone, >= 4 muscle compartments;
-pixel size (row, column) in mm. Positions are in the image frame of DESIGN.md: pixel
+pixel size (row, column) in mm. Positions are in the image frame of docs/design.md: pixel
 (i, j) covers [j dx, (j+1) dx] x [i dy, (i+1) dy], centre ((j + 0.5) dx, (i + 0.5) dy).
 
 Method.

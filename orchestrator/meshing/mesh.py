@@ -1,7 +1,7 @@
 """The triangle mesh of a leg slice and its two outputs: a deck include and VTU.
 
 `Mesh` holds what the engine needs from meshing: node positions (mm, image frame of
-DESIGN.md: x to the right, y downwards), linear (CPE3) or quadratic (CPE6)
+docs/design.md: x to the right, y downwards), linear (CPE3) or quadratic (CPE6)
 triangles, a tissue id per element, node sets (bones) and the skin as element
 faces. Indices are 0-based in Python and 1-based in the deck.
 

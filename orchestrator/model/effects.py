@@ -1,4 +1,4 @@
-"""The effect catalog (DESIGN.md, "Missing physics"): named, switchable pieces of physics, off in the
+"""The effect catalog (docs/design.md, "The effect catalog"): named, switchable pieces of physics, off in the
 baseline model of Avril et al., each with its parameters, its physical reading, its realization in the
 deck (`decks.StepEffects` and the materials) and the `*SENSITIVITY` lines that give the engine's
 du/d(parameter) at the current point (at zero when the effect is off: what the score test needs).
@@ -97,7 +97,7 @@ class LegDeckState:
 @dataclass(frozen=True)
 class Effect:
     name: str
-    adds: str          # what it adds, one line (DESIGN.md table)
+    adds: str          # what it adds, one line (docs/method/diagnosis.md table)
     physics: str       # why it may be missing in a real calf, and what it does to the residual
     parameter_list: Callable[[Sequence[str], Sequence[str]], tuple[EffectParameter, ...]]
     apply: Callable[[LegDeckState, dict[str, float]], None] | None

@@ -1,6 +1,6 @@
 """Write a phantom case folder, with its ground truth kept apart.
 
-The case folder is what a user would bring (DESIGN.md, "The case folder"):
+The case folder is what a user would bring (docs/design.md, "The case folder"):
 case.toml with the five landmarks of the first paper, unloaded.png and
 loaded.png (16-bit), labels.png (by default the segmentation of the unloaded
 image, as a user would make it, not the phantom's exact labels) and

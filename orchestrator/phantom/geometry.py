@@ -45,7 +45,7 @@ class Tissue(IntEnum):
     DEEP_VEIN = 8
 
 
-# Case labels (DESIGN.md): veins count as the tissue they sit in (first paper, section 2.2.4).
+# Case labels (docs/design.md, "The case folder"): veins count as the tissue they sit in (first paper, section 2.2.4).
 LABEL_OF = {Tissue.BACKGROUND: 0, Tissue.SKIN: 1, Tissue.FAT: 1, Tissue.SUPERFICIAL_VEIN: 1,
             Tissue.FASCIA: 2, Tissue.MUSCLE: 2, Tissue.DEEP_VEIN: 2, Tissue.CORTEX: 3, Tissue.MARROW: 3}
 COMPARTMENTS = ("anterior", "lateral", "deep_posterior", "superficial_posterior")

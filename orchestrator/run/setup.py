@@ -1,6 +1,6 @@
 """From a case folder to a run folder, and phantom cases made by the engine.
 
-`prepare_run` does once what every later command of a run needs (DESIGN.md data flow): read the case,
+`prepare_run` does once what every later command of a run needs (docs/design.md, "The data flow"): read the case,
 segment I0 if the case has no labels, align the loaded image on the bones (rigid motion, Bouten and Drapier
 sec. 3.1), segment the aligned loaded image, check that the leg lies inside both images and that the garment
 compressed it (`imaging.field_checks`), cut the muscle into compartments at the septa seen in I0 when the

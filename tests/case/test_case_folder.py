@@ -1,4 +1,4 @@
-"""Case folder reading and writing (DESIGN.md, "The case folder").
+"""Case folder reading and writing (docs/design.md, "The case folder").
 
 A good folder reads back what was written, in every image format; every bad
 folder of the table raises one CaseError, a single sentence naming the file,

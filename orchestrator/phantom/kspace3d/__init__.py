@@ -3,7 +3,7 @@
 The first two phantoms draw a 2D slice and deform it by a plane-strain field. A scanner does not draw pixels: it
 acquires a band-limited part of k-space through a slice some millimetres thick of a 3D leg, with the fat displaced
 along the readout by the chemical shift and a coil profile fixed to the scanner, and the leg may tilt or slide
-along its axis between the sessions (DESIGN.md, "Images that calfit did not make"). This package makes such images
+along its axis between the sessions (docs/design.md, "Images that calfit did not make"). This package makes such images
 independently of any other program's renderer:
 
 - `leg3d`: the second phantom's section (`mri.LegGeometry`) carried along the leg by an invertible map (taper,

@@ -3,7 +3,7 @@
 `make_kspace_case` solves the 3D leg (`mechanics3d`, CalculiX), images one slice in two sessions as a scanner does
 (`acquisition`) and writes:
 
-- the case folder, what a user brings (DESIGN.md, "The case folder"): case.toml ([case] name and pixel_size_mm,
+- the case folder, what a user brings (docs/design.md, "The case folder"): case.toml ([case] name and pixel_size_mm,
   which is omitted for DICOM since the files carry it; [garment] tension_N_per_mm and tension_rel_uncertainty;
   [landmarks] of the leg at the slice's height), unloaded.png and loaded.png (16-bit, fat ~ intensity_scale) or
   unloaded.dcm and loaded.dcm with their geometry tags; no labels and no points unless asked;
