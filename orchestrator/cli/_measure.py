@@ -15,9 +15,9 @@ edges are drawn from the tissue). For every kept window: its displacement relati
 covariance; overlapping windows' correlation is kept for the fit. With --respect-outline, windows centred inside
 the leg leave out the pixels next to its outline and the air beyond (the skin's windows keep them): for images
 whose outline carries an error of its own (measured on another program's images: the deep fat's errors then match
-their model, at the cost of 3-38 % on the parameters' standard errors; not the default,
-docs/validation/error-model.md). Writes RUN_DIR/measurements.csv (every window, kept or why not), measurements.png (the vectors
-on the image), measurements.json (summary) and measurements.npz. The windows are matched in --workers processes
+their model, at the cost of 3-38 % on the parameters' standard errors; not the default, docs/validation/error-model.md).
+Writes RUN_DIR/measurements.csv (every window, kept or why not), measurements.png (the vectors on the image),
+measurements.json (summary) and measurements.npz. The windows are matched in --workers processes
 (default: 2 or the core count), with the same results as in one.
 `calfit identify` runs this itself when the case has no points.csv.
 """
