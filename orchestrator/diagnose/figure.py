@@ -46,6 +46,8 @@ def diagnosis_figure(path: Path, image: np.ndarray, pixel_size_mm, maps, mesh, p
     reference = float(f"{largest:.1g}") if largest > 0 else 1.0
     ax.quiverkey(arrows, 0.80, 0.10, reference, f"{reference:g} mm", labelpos="E", coordinates="axes", color="white",
                  labelcolor="white")
+    ax.set_xlim(0.0, image.shape[1] * pixel_size_mm[1])      # the sector lines stop at the image's edge
+    ax.set_ylim(image.shape[0] * pixel_size_mm[0], 0.0)
     if patch_elements is not None and len(patch_elements):
         ax.legend(loc="lower left", fontsize=8, framealpha=0.8)
     ax.set_title((f"{title}\n" if title else "") + f"residual of the identified model, arrows x{1 / scale:.0f}"

@@ -5,15 +5,20 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib
 import numpy as np
 
-from ..core.digits import with_uncertainty
+from ..core.digits import PLUS_MINUS, with_uncertainty
+from ..core.plotting import (
+    extent,
+    image_axes,
+    landmark_markers,
+    plt,
+    save,
+    scattered_map,
+    zoom_to,
+)
 from ..core.units import MMHG_PER_KPA
-
-import matplotlib
-
-from ..core.plotting import extent, image_axes, landmark_markers, plt, save, scattered_map, zoom_to
-
 
 # ----------------------------------------------------------------------------- the report's figures
 
@@ -105,7 +110,7 @@ def contour_distance_figure(path: Path, panels: list[tuple[str, np.ndarray]], un
 def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmarks: dict[str, tuple[float, float]],
                     landmark_values: dict[str, tuple[float, float]]) -> Path:
     """Hydrostatic pressure -tr(sigma)/3 in the soft tissues at the central parameters (Avril et al. Fig. 5):
-    colour bar in kPa with mmHg beside it, the landmarks numbered and named with their mean +- standard deviation
+    colour bar in kPa with mmHg beside it, the landmarks numbered and named with their mean ± standard deviation
     (`landmark_values`: the parameters' draws and the tension's uncertainty together, `report.pressure_spreads`),
     to the digits that deviation allows."""
     figure, ax = plt.subplots(figsize=(8.6, 7.2))
@@ -131,8 +136,8 @@ def pressure_figure(path: Path, pressure_kPa: np.ndarray, pixel_size_mm, landmar
     landmark_markers(ax, named)
     zoom_to(ax, np.isfinite(pressure_kPa), pixel_size_mm)
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), fontsize=8, frameon=False)
-    ax.set_title("hydrostatic pressure at the central parameters; landmarks: mean +- std (parameters and tension)",
-                 fontsize=9)
+    ax.set_title(f"hydrostatic pressure at the central parameters; landmarks: mean {PLUS_MINUS} std (parameters and "
+                 "tension)", fontsize=9)
     return save(figure, path)
 
 
@@ -210,26 +215,45 @@ def ranking_figure(path: Path, ranking: list[dict], alpha: float) -> Path:
 
 def misfit_figure(path: Path, fits: list[tuple[str, float]], explained_factor: float,
                   floor_agreement: float | None = None) -> Path:
-    """Misfit over its noise floor for the identified model and each refit, with the floor (1), the ratio up to which
-    the error model agrees with the measured errors (a refit above it has not reached the floor) and the level at
-    which an effect is said to explain the residual."""
+    """`misfit_plot` written to path."""
+    return save(misfit_plot(fits, explained_factor, floor_agreement), path)
+
+
+def misfit_title(count: int) -> str:
+    """What the misfit figure compares: the identified model alone (count 1), or it and its refits."""
+    if count <= 1:
+        return "misfit of the identified model (no refit ran)"
+    return "misfit before and after the refit" + ("s" if count > 2 else "")
+
+
+def misfit_plot(fits: list[tuple[str, float]], explained_factor: float, floor_agreement: float | None = None):
+    """Misfit over its noise floor for the identified model and each refit (bars, each ratio written under its bar
+    with the model's name), with the floor (1), the ratio up to which the error model agrees with the measured
+    errors (a refit above it has not reached the floor) and the level at which an effect is said to explain the
+    residual; the lines' legend beside the axes: no text lies over a line. Returns the figure."""
     labels = [label for label, _ in fits]
     ratios = [ratio for _, ratio in fits]
     figure, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(fits) + 2.0), 4.2))
-    bars = ax.bar(labels, ratios, color=["tab:gray"] + ["tab:blue"] * (len(fits) - 1))
-    ax.bar_label(bars, labels=[f"{r:.2f}x" for r in ratios], fontsize=8)
+    positions = np.arange(len(fits))
+    ax.bar(positions, ratios, color=["tab:gray"] + ["tab:blue"] * (len(fits) - 1))
+    # the ratio under its bar, not over it: a ratio near a line (0.98x under the floor) would be written across it
+    ax.set_xticks(positions, [f"{label}\n{ratio:.2f}x" for label, ratio in zip(labels, ratios)])
     ax.axhline(1.0, color="black", linestyle="-", label="noise floor")
     if floor_agreement is not None:
         ax.axhline(floor_agreement, color="black", linestyle=":",
                    label=f"at the floor within the error model's agreement ({floor_agreement:g}x)")
     ax.axhline(explained_factor, color="black", linestyle="--", label=f"explained ({explained_factor:g}x the floor)")
+    highest = max(max(ratios), explained_factor)
     if max(ratios) > 20 * min(ratios):
         ax.set_yscale("log")
+        ax.set_ylim(top=highest * 1.6)
+    else:
+        ax.set_ylim(0.0, highest * 1.12)
     ax.set_ylabel("misfit / noise floor")
     ax.tick_params(axis="x", labelsize=8, labelrotation=15)
-    ax.legend(fontsize=8)
-    ax.set_title("misfit before and after the refits", fontsize=10)
-    return save(figure, path)
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    ax.set_title(misfit_title(len(fits)), fontsize=10)
+    return figure
 
 
 def intervals_figure(path: Path, names: list[str], units: list[str], identified, lower, upper, poorly: list[str],
@@ -335,7 +359,7 @@ def study_profile_figure(heights_mm, panels, named_heights: dict[str, float], ki
     for ax, (label, values, low, high, unit) in zip(axes.ravel(), panels):
         if low is not None and high is not None:
             ax.fill_between(heights, np.asarray(low, float), np.asarray(high, float), color="#5b8db8", alpha=0.3,
-                            linewidth=0, label="95 % band" if kind != "pressure" else "+- 2 std")
+                            linewidth=0, label="95 % band" if kind != "pressure" else f"{PLUS_MINUS} 2 std")
         ax.plot(heights, np.asarray(values, float), "o-", color="#1f4e79", markersize=4, label=label)
         if reference is not None:
             ax.axhline(reference, color="0.3", linestyle=":", linewidth=1)
