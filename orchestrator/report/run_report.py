@@ -17,8 +17,14 @@ its figures and tables:
   radial maps before and after the refit on shared scales, the residual per sector, where a local stiffness
   change would help, and the contour distances before and after.
 
+Every number of a table is shown with the digits its uncertainty allows (`core.digits`, GUM sec. 7.2.6: the
+uncertainty to two significant digits, the value to the same place): a parameter to its interval's, a landmark's
+pressure to its whole spread (the parameters' and the tension's) in every table, the same number wherever it is
+shown; a sector's residual to its standard error. A number that has no uncertainty (a starting value, a misfit, a
+test statistic) has SIGNIFICANT significant digits, and each table's header gives the units.
+
 The report is built as a plain dict (`build_report`): sections of paragraphs, alerts, tables (id, header,
-rows) and figures (file, caption). report.json is that dict; the template only lays it out, so the page and
+rows, the uncertainty that sets each number's digits, the significance of the rest) and figures (file, caption). report.json is that dict; the template only lays it out, so the page and
 the JSON cannot disagree. Everything is written into a staging folder that replaces `report/` at the end.
 """
 
@@ -32,7 +38,13 @@ from pathlib import Path
 import jinja2
 import numpy as np
 
-from ..core.digits import interval_uncertainty, rounded
+from ..core.digits import (
+    PLUS_MINUS,
+    decimals,
+    interval_uncertainty,
+    rounded,
+    significant,
+)
 from ..core.files import read_json, replace_folder
 from ..core.run_lock import holds_run_folder
 from ..core.tissues import BONE
@@ -53,6 +65,10 @@ from . import figures
 
 REPORT_TEMPLATE = "report.html.j2"
 REPORT_JSON = "report.json"
+SIGNIFICANT = 3              # the significant digits of a table's number that has no uncertainty
+# AIC and BIC are read by their differences between models (one of less than 2 tells nothing): shown to the
+# place of an uncertainty of 1, their first decimal
+INFORMATION_CRITERION_UNCERTAINTY = 1.0
 
 
 def contour_distances(setup, nodal: np.ndarray):
@@ -64,11 +80,12 @@ def contour_distances(setup, nodal: np.ndarray):
 
 
 def _table(table_id: str, title: str, header: list[str], rows: list[list], note: str = "",
-           uncertainties: list[list] | None = None) -> dict:
-    """A table; `uncertainties`, the shape of `rows`, gives the uncertainty that sets each number's digits (None:
-    four significant digits)."""
+           uncertainties: list[list] | None = None, significant_digits: int | None = None) -> dict:
+    """A table; `uncertainties`, the shape of `rows`, gives the uncertainty that sets each number's digits; a
+    number without one has `significant_digits` significant digits (None: `digits.FALLBACK_SIGNIFICANT`, 4, as
+    `digits.rounded` shows it)."""
     return {"id": table_id, "title": title, "header": header, "rows": rows, "note": note,
-            "uncertainties": uncertainties}
+            "uncertainties": uncertainties, "significant": significant_digits}
 
 
 def _figure(file: str, caption: str) -> dict:
@@ -105,12 +122,15 @@ def _strict_json(value):
     return value
 
 
-def format_cell(value, uncertainty: float | None = None) -> str:
-    """How a table cell shows a value: a number to the digits its uncertainty allows (`digits`; 4 significant
-    digits without one), the rest as text (the test of the page reads the numbers back with this precision)."""
+def format_cell(value, uncertainty: float | None = None, significant_digits: int | None = None) -> str:
+    """How a table cell shows a value: a number to the digits its uncertainty allows (`digits`); without a usable
+    uncertainty, to `significant_digits` significant digits (None: 4, `digits.rounded`); the rest as text (the
+    test of the page reads the numbers back with this precision)."""
     if isinstance(value, bool) or value is None:
         return {True: "yes", False: "no", None: "-"}[value]
     if isinstance(value, float):
+        if significant_digits is not None and decimals(uncertainty) is None:
+            return significant(value, significant_digits)
         return rounded(value, uncertainty)
     return str(value)
 
@@ -155,7 +175,7 @@ def build_report(setup, identification: dict, montecarlo: dict | None, pressures
     case = setup.case
     effects = identification.get("effects", [])
     sections = [_images_section(setup, staging), _measurements_section(setup, staging),
-                _identification_section(setup, identification, staging)]
+                _identification_section(setup, identification, montecarlo, staging)]
     if montecarlo:
         sections.append(_montecarlo_section(identification, montecarlo, truth, staging))
     if montecarlo and pressures:
@@ -197,8 +217,9 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
                               "std from the parameters (kPa)", "std from the tension (kPa)"], rows,
                              "Hydrostatic pressure -tr(sigma)/3: mean over parameter draws within their intervals; "
                              "std of the parameters' draws (Table 3) and of the garment tension's uncertainty "
-                             f"(+-{100 * pressures['tension_rel']:g} % as one standard deviation, Table 4), added in "
-                             "quadrature. Each number has the digits its uncertainty allows.", uncertainties))
+                             f"({PLUS_MINUS}{100 * pressures['tension_rel']:g} % as one standard deviation, Table 4), added in "
+                             "quadrature. Each number has the digits its uncertainty allows.", uncertainties,
+                             significant_digits=SIGNIFICANT))
     names, theta = identification["parameters"], identification["best"]["theta"]
     unit_of = identification.get("unit_of") or ["kPa"] * len(names)
     rows = []
@@ -213,7 +234,10 @@ def _answers(identification: dict, montecarlo: dict | None, pressures: dict | No
     spread = _interval_sigmas(montecarlo, len(names))
     tables.append(_table("answers_parameters", "Identified parameters",
                          ["parameter", "identified", "interval low", "interval high", "unit", "verdict"], rows,
-                         uncertainties=[[None, u, u, u, None, None] for u in spread]))
+                         "Each value to the digits its 95 % interval allows (a quarter of its width as the standard "
+                         "uncertainty)." if montecarlo else
+                         f"No interval yet: {SIGNIFICANT} significant digits.",
+                         uncertainties=[[None, u, u, u, None, None] for u in spread], significant_digits=SIGNIFICANT))
     if diagnosis:
         verdict = f"Diagnosis: {diagnosis['verdict']}."
     elif "misfit_over_floor" in identification:
@@ -258,9 +282,10 @@ def _measurements_section(setup, staging: Path) -> dict | None:
                                                                "by digital image correlation, on I0.")])
 
 
-def _identification_section(setup, identification: dict, staging: Path) -> dict:
+def _identification_section(setup, identification: dict, montecarlo: dict | None, staging: Path) -> dict:
     case, px = setup.case, setup.case.pixel_size_mm
     names = identification["parameters"]
+    unit_of = identification.get("unit_of") or ["kPa"] * len(names)
     model = setup.model_with(identification.get("effects", ()))
     nodal = leg_rows(setup.solve(identification["best"]["theta"], staging / "identified", model).displacement(),
                      len(setup.mesh.nodes))
@@ -270,10 +295,16 @@ def _identification_section(setup, identification: dict, staging: Path) -> dict:
     figures.contour_distance_figure(staging / "warped_dk.png", [("contour distances d_k", result.distance_mm)],
                                     case.unloaded, px, d_max, warped=warped)
     fits = identification["fits"]
+    spread = _interval_sigmas(montecarlo, len(names))
     table1 = _table("table1", "Table 1: identification from several starting points",
-                    ["start " + n for n in names] + ["misfit"] + ["found " + n for n in names]
-                    + ["iterations", "engine runs"],
-                    [f["start"] + [f["cost"]] + f["theta"] + [f["iterations"], f["engine_runs"]] for f in fits])
+                    [f"start {n} ({u})" for n, u in zip(names, unit_of)] + ["misfit (mm^2)"]
+                    + [f"found {n} ({u})" for n, u in zip(names, unit_of)] + ["iterations", "engine runs"],
+                    [f["start"] + [f["cost"]] + f["theta"] + [f["iterations"], f["engine_runs"]] for f in fits],
+                    ("The values found to the digits their 95 % interval (Table 2) allows; the starts and the misfits, "
+                     if montecarlo else "No interval yet: every number ")
+                    + f"{SIGNIFICANT} significant digits.",
+                    uncertainties=[[None] * len(names) + [None] + spread + [None, None] for _ in fits],
+                    significant_digits=SIGNIFICANT)
     paragraphs = [f"Contour mismatch at the identified parameters: M = sum d_k^2 = {result.value_mm2:.1f} mm^2 over "
                   f"{result.contour_pixel_count} contour pixels (RMS {result.rms_mm:.3f} mm)."]
     if "misfit_over_floor" in identification:
@@ -310,7 +341,8 @@ def _montecarlo_section(identification: dict, montecarlo: dict, truth: dict | No
         title = (f"Table 2: parameter intervals ({100 * montecarlo['confidence']:.0f} % Monte-Carlo over the "
                  f"measurement noise, {montecarlo['draws'] - montecarlo['failed']} refitted draws)")
         if poorly:
-            alerts.append(f"Not identifiable: {', '.join(poorly)} (95 % interval wider than +-10 % of the value).")
+            alerts.append(f"Not identifiable: {', '.join(poorly)} (95 % interval wider than {PLUS_MINUS}10 % of the "
+                          "value).")
         if montecarlo["on_bound"]:
             alerts.append(f"On a bound of the search box: {', '.join(montecarlo['on_bound'])}.")
         alerts += sum_only_lines(montecarlo)
@@ -330,7 +362,9 @@ def _montecarlo_section(identification: dict, montecarlo: dict, truth: dict | No
                                [u if isinstance(v, float) else None for v, u in zip(row[1:], spread)])
                      for row in rows]
     table2 = _table("table2", title, [""] + [f"{n} ({u})" for n, u in zip(names, unit_of)], rows,
-                    uncertainties=uncertainties)
+                    "Each column to the digits its interval allows (a quarter of its width as the standard "
+                    "uncertainty); the half width, two significant digits.", uncertainties=uncertainties,
+                    significant_digits=SIGNIFICANT)
     return _section("montecarlo", "Uncertainty of the parameters", paragraphs=paragraphs, alerts=alerts,
                     tables=[table2], figures_=[_figure("intervals.png", "Parameter intervals as error bars, "
                                                                         "each in its unit.")])
@@ -346,28 +380,38 @@ def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -
     pressure_kPa[~soft] = np.nan
     parameters, _, total = pressure_spreads(pressures)
     values = {name: (pressures["mean_kPa"][k], total[k]) for k, name in enumerate(pressures["landmarks"])}
+    mmhg = [u * MMHG_PER_KPA for u in total]
     figures.pressure_figure(staging / "pressure.png", pressure_kPa, px,
                             {name: case.landmarks[name] for name in pressures["landmarks"]}, values)
+    # a landmark's pressure, in every table, to the digits of its whole spread (the parameters' and the tension's,
+    # the top of the page): the same number wherever it is shown; the spreads themselves to two significant digits
     table3 = _table("table3", f"Table 3: landmark pressures over {pressures['draws']} draws in the intervals "
                               f"({pressures['failed']} failed)",
                     ["landmark", "mean (kPa)", "mean (mmHg)", "std (kPa)", "std (mmHg)", "CV (%)"],
                     [[n, m, m * MMHG_PER_KPA, s, s * MMHG_PER_KPA, c] for n, m, s, c in
                      zip(pressures["landmarks"], pressures["mean_kPa"], parameters, pressures["cv_percent"])],
-                    uncertainties=[[None, s, s * MMHG_PER_KPA, s, s * MMHG_PER_KPA, c] for s, c in
-                                   zip(parameters, pressures["cv_percent"])])
-    table4 = _table("table4", f"Table 4: garment tension +-{100 * pressures['tension_rel']:.0f} %",
-                    ["landmark", "pressure (kPa)", "T +10 % (kPa)", "deviation (%)", "T -10 % (kPa)", "deviation (%)"],
+                    "std and CV: the spread of the pressure over the parameters' draws, two significant digits. The "
+                    "means to the digits of the pressure's whole standard deviation, the parameters' and the garment "
+                    "tension's (the top of the page).",
+                    uncertainties=[[None, u, v, s, s * MMHG_PER_KPA, c] for s, c, u, v in
+                                   zip(parameters, pressures["cv_percent"], total, mmhg)],
+                    significant_digits=SIGNIFICANT)
+    rel = f"{100 * pressures['tension_rel']:g} %"
+    table4 = _table("table4", f"Table 4: garment tension {PLUS_MINUS}{rel}",
+                    ["landmark", "pressure (kPa)", f"T +{rel} (kPa)", "deviation (%)", f"T -{rel} (kPa)",
+                     "deviation (%)"],
                     [[n, b, p, dp, m, dm] for n, b, p, dp, m, dm in
                      zip(pressures["landmarks"], pressures["central_kPa"], pressures["plus_kPa"],
                          pressures["plus_deviation_percent"], pressures["minus_kPa"],
                          pressures["minus_deviation_percent"])],
-                    # the model's pressure at given parameters and tension: known to the parameters' spread
-                    uncertainties=[[None, s, s, 100 * s / abs(b), s, 100 * s / abs(b)]
-                                   for s, b in zip(parameters, pressures["central_kPa"])])
+                    "The pressures at the central parameters, to the digits of the landmark's whole standard "
+                    f"deviation (as in Table 3); the deviations from the first column, {SIGNIFICANT} significant "
+                    "digits.",
+                    uncertainties=[[None, u, u, None, u, None] for u in total], significant_digits=SIGNIFICANT)
     tables, shown = [table3, table4], [_figure("pressure.png", "Hydrostatic pressure -tr(sigma)/3 at the central "
                                                                 "parameters (Avril et al. Fig. 5), the landmarks named "
-                                                                "with their mean +- std (the parameters' and the "
-                                                                "tension's).")]
+                                                                f"with their mean {PLUS_MINUS} std (the parameters' "
+                                                                "and the tension's).")]
     if pressures.get("band"):
         tables_, figure_ = _band_parts(setup, pressures["band"], staging)
         tables += tables_
@@ -383,7 +427,8 @@ def _band_parts(setup, band: dict, staging: Path) -> tuple[list[dict], dict]:
     rows = [["contact pressure, mean over the skin (kPa)", pressure["mean"]],
             ["contact pressure, largest (kPa)", pressure["max"]],
             ["band hoop force, mean (N/mm)", tension["mean"]],
-            ["band hoop force, smallest to largest (N/mm)", f"{tension['min']:.4g} to {tension['max']:.4g}"],
+            ["band hoop force, smallest to largest (N/mm)",
+             f"{significant(tension['min'], SIGNIFICANT)} to {significant(tension['max'], SIGNIFICANT)}"],
             ["skin in contact, sticking (%)", 100 * share["sticking"]],
             ["skin in contact, slipping (%)", 100 * share["slipping"]],
             ["skin under a bridge (%)", 100 * share["open"]],
@@ -393,7 +438,8 @@ def _band_parts(setup, band: dict, staging: Path) -> tuple[list[dict], dict]:
               f"{b['length_mm']:.1f} mm of skin, the band up to {b['max_gap_mm']:.2f} mm off it"]
              for b in band["bridges"]]
     table = _table("band", f"The garment band on the leg (friction mu = {band['friction_mu']:g}), at the central "
-                           "parameters", ["", "value"], rows)
+                           "parameters", ["", "value"], rows, f"{SIGNIFICANT} significant digits.",
+                   significant_digits=SIGNIFICANT)
     caption = ("The explicit garment band on the leg at the central parameters: its contact pressure around the "
                "leg, each skin node coloured by its contact status (open where the band bridges a hollow of the "
                "skin, shaded), the band's hoop force" + (", the friction shear and the skin's slip over the band "
@@ -407,6 +453,10 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
     floor = diagnosis["noise_floor"]
     fits = [diagnosis["before"]] + diagnosis["refits"]
     labels = ["identified model"] + [model_label(f["effects"]) for f in diagnosis["refits"]]
+    # what the figures and tables compare: the identified model alone when no refit ran
+    compared = ("before and after the refit" + ("s" if len(fits) > 2 else "") if len(fits) > 1
+                else "of the identified model")
+    alone = "" if len(fits) > 1 else " No refit ran."
     maps, maps_after = diagnosis["maps"], diagnosis.get("maps_after", [])
     if diagnosis.get("level_maps"):   # several socks: the first level's points here, every level's own map below
         maps, maps_after = diagnosis["level_maps"][0], [m[0] for m in diagnosis.get("level_maps_after", [])]
@@ -437,27 +487,39 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                       "|g_perp| / |g|", "significant"],
                      [[k, s["effect"], ", ".join(s["parameters"]), s["statistic"], s["p_value"],
                        s["predicted_misfit"] / floor, ", ".join(f"{v:.2f}" for v in s["orthogonal_fraction"]),
-                       s["significant"]] for k, s in enumerate(diagnosis["ranking"], 1)])
-    comparison = _table("comparison", "Before and after the refit",
+                       s["significant"]] for k, s in enumerate(diagnosis["ranking"], 1)],
+                     f"{SIGNIFICANT} significant digits; |g_perp| / |g|, two decimals.", significant_digits=SIGNIFICANT)
+    comparison = _table("comparison", "Misfit " + compared + ("" if len(fits) > 1 else " (no refit ran)"),
                         ["model", "k", "misfit (mm^2)", "misfit / floor", "misfit / floor, the skin's uncertainty at "
                          "this fit", "AIC", "BIC", "M (mm^2)", "parameters [95 % interval, linearized at the fit]"],
                         [[label, len(f["parameters"]), f["misfit"], f["misfit_over_floor"],
                           (f.get("own_floor") or {}).get("misfit_over_floor"), f["aic"], f["bic"], m,
-                          Refit(**f).parameter_text()]
-                         for label, f, m in zip(labels, fits, mismatch_values)])
+                          parameter_text(f)]
+                         for label, f, m in zip(labels, fits, mismatch_values)],
+                        f"AIC and BIC to their first decimal (a difference of less than 2 tells the models apart no "
+                        f"more than chance); the other numbers {SIGNIFICANT} significant digits; each parameter to the "
+                        "digits its interval allows.",
+                        uncertainties=[[None] * 5 + [INFORMATION_CRITERION_UNCERTAINTY] * 2 + [None, None] for _ in fits],
+                        significant_digits=SIGNIFICANT)
     tables = [ranking, comparison]
     if diagnosis.get("levels"):
         before, after = Refit(**diagnosis["before"]), [Refit(**fit) for fit in diagnosis["refits"]]
         tables.append(_table("levels", "Misfit over each garment level's own noise floor, before and after the refit, "
                                        "and where that level's residual is largest",
                              ["level", "image", "tension (N/mm)"] + labels + ["largest share of the residual"],
-                             level_rows(diagnosis["levels"], before, after)))
+                             level_rows(diagnosis["levels"], before, after), f"{SIGNIFICANT} significant digits.",
+                             significant_digits=SIGNIFICANT))
     names = maps.get("sector_names") or [f"{c:.0f} deg" for c in maps["sector_centre_deg"]]
     sectors = _table("sectors", "Residual per sector around the leg (angles counter-clockwise on the image from its "
                                 "+x axis, 90 deg at the top; anterior towards the tibia, lateral towards the fibula)",
                      ["sector", "RMS residual (mm)", "mean radial (mm, + outwards)", "measurements"],
                      [[name, rms, radial, count] for name, rms, radial, count in
-                      zip(names, maps["sector_rms_mm"], maps["sector_radial_mm"], maps["sector_count"])])
+                      zip(names, maps["sector_rms_mm"], maps["sector_radial_mm"], maps["sector_count"])],
+                     "Each to the digits of its standard error over the sector's measurements: RMS / sqrt(2 n) for "
+                     "the RMS, RMS / sqrt(n) for the mean.",
+                     uncertainties=[sector_uncertainties(rms, count)
+                                    for rms, count in zip(maps["sector_rms_mm"], maps["sector_count"])],
+                     significant_digits=SIGNIFICANT)
     paragraphs = [
         f"Misfit {diagnosis['misfit']:.4g} mm^2 against a noise floor of {floor:.4g} mm^2 (chi^2 = "
         f"{diagnosis['chi2']:.1f} over {diagnosis['n_residuals']} residuals, lack-of-fit p = "
@@ -471,10 +533,11 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                           f"({100 * maps['worst_region_share']:.0f} %, RMS {maps['worst_region_rms_mm']:.3f} mm).")
     shown = [_figure("ranking.png", "Catalog effects ranked by the score test; the dashed line is the significance "
                                     "level."),
-             _figure("misfit.png", "Misfit over its noise floor before and after each refit."),
+             _figure("misfit.png", f"Misfit over its noise floor {compared}.{alone}"),
              _figure("residuals_before_after.png", "Measured and model displacements (top), the residual's "
-                                                   "magnitude and its radial component (+ outwards) before and "
-                                                   "after the refit, on shared scales (mm).")]
+                                                   f"magnitude and its radial component (+ outwards) {compared}"
+                                                   + (", on shared scales" if len(fits) > 1 else "")
+                                                   + f" (mm).{alone}")]
     if _copy_figure(setup.run_dir / "diagnosis.png", staging):
         patch = (diagnosis.get("local") or {}).get("patch")
         shown.append(_figure("diagnosis.png", "Residual of the identified model by sector"
@@ -485,12 +548,43 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
             shown.append(_figure(f"diagnosis-level-{level['level']}.png",
                                  f"Residual of the identified model at garment level {level['level']} "
                                  f"({level['image']}, {level['tension_N_per_mm']:g} N/mm), by sector."))
-    shown.append(_figure("dk_before_after.png", "Contour distances d_k before and after the refit (mm)."))
+    shown.append(_figure("dk_before_after.png", f"Contour distances d_k {compared} (mm).{alone}"))
     verdict = [f"{diagnosis['verdict']}."]
     lacking = diagnosis["lack_of_fit_p"] < ALPHA     # the identified model misses something: say it loudly
     return _section("diagnosis", "Diagnosis: where the model fails and which effect is missing",
                     paragraphs=([] if lacking else verdict) + paragraphs, alerts=verdict if lacking else [],
                     tables=tables + [sectors], figures_=shown)
+
+
+def sector_uncertainties(rms: float | None, count: int) -> list:
+    """What sets the digits of a sector's row (sector, RMS, mean radial, count): the standard errors of an RMS and
+    of a mean over `count` residuals that scatter by about their RMS (None: no measurement in the sector)."""
+    if rms is None or not count or not np.isfinite(rms):
+        return [None] * 4
+    return [None, rms / np.sqrt(2.0 * count), rms / np.sqrt(count), None]
+
+
+def parameter_text(fit: dict) -> str:
+    """A fit's parameters (diagnosis.json's "before" or a refit) as the comparison table shows them: name = value
+    [95 % interval], each to the digits its interval allows, marked where the interval is wider than identify's
+    identifiability rule; the value with SIGNIFICANT digits where the fit has no interval."""
+    intervals = fit.get("intervals")
+    if not intervals:
+        return ", ".join(f"{n} = {significant(v, SIGNIFICANT)}" for n, v in zip(fit["parameters"], fit["theta"]))
+    parts = []
+    for name, value, low, high, ok in zip(fit["parameters"], fit["theta"], intervals["lower"], intervals["upper"],
+                                          intervals["identifiable"]):
+        if low is not None and high is not None:
+            u = interval_uncertainty(low, high)
+        elif low is not None or high is not None:   # one side the data do not see: the half the other gives
+            u = abs(value - (high if low is None else low)) / 2.0
+        else:
+            u = None
+        shown = (lambda v: rounded(v, u)) if decimals(u) is not None else (lambda v: significant(v, SIGNIFICANT))
+        lower = "below unbounded" if low is None else shown(low)
+        upper = "above unbounded" if high is None else shown(high)
+        parts.append(f"{name} = {shown(value)} [{lower}, {upper}]" + ("" if ok else " not identifiable"))
+    return ", ".join(parts)
 
 
 def _measured_displacements(setup, identification: dict, count: int) -> np.ndarray | None:

@@ -7,7 +7,7 @@ It is laid out by the run report's page (`report.render_page`, templates/report.
 - how many cases fit their model, and which do not.
 Then:
 - profiles along the leg (a volume): each parameter with its 95 % Monte-Carlo interval as a band, the garment's
-  interface pressure (Laplace's law, 2 pi T / perimeter) and the landmark pressures with +- 2 standard deviations,
+  interface pressure (Laplace's law, 2 pi T / perimeter) and the landmark pressures with ± 2 standard deviations,
   the misfit over the noise floor, the named heights marked;
 - the distributions over the cases: each parameter's value and interval case by case, and a table of medians
   and ranges;
@@ -32,7 +32,7 @@ from ..core.units import MMHG_PER_KPA
 from .run_report import _figure, _section, _strict_json, _table, render_page
 
 REPORT_FOLDER = "report"
-BAND_SIGMAS = 2.0    # the pressure bands: +- 2 standard deviations (about 95 %)
+BAND_SIGMAS = 2.0    # the pressure bands: ± 2 standard deviations (about 95 %)
 FITS_FACTOR = 1.2    # without a diagnosis, a case fits when its misfit is within this factor of its noise floor
 
 
@@ -175,7 +175,7 @@ def _profiles_section(done, parameters, pressures, volume, figure_dir) -> dict:
         save_figure(study_profile_figure(heights[order], pressure_panels, named, "pressure", mmhg=True),
                     figure_dir / "profile_pressures.png")
         figures_.append(_figure("profile_pressures.png", "Pressure along the leg (kPa, mmHg on the right axis): the "
-                                "garment's on the skin and at each landmark, with +- 2 standard deviations (the "
+                                "garment's on the skin and at each landmark, with ± 2 standard deviations (the "
                                 "parameters' spread and the tension's uncertainty)."))
     misfit = [(r.get("misfit_over_floor") or np.nan) for r in ordered]
     save_figure(study_profile_figure(heights[order], [("misfit / noise floor", misfit, None, None, "")], named, "misfit",
