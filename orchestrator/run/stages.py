@@ -26,6 +26,7 @@ import numpy as np
 
 from ..case.folder import read_model_choice
 from ..core.digits import PLUS_MINUS, interval_uncertainty, rounded, with_uncertainty
+from ..core.errors import RunFolderError
 from ..core.files import read_json, write_json
 from ..core.run_lock import holds_run_folder
 from ..core.units import MMHG_PER_KPA
@@ -455,6 +456,13 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
     run_dir = Path(run_dir)
     setup = load_run(run_dir)
     montecarlo = read_json(run_dir / "montecarlo.json", "calfit montecarlo RUN_DIR")
+    identification = read_json(run_dir / "identification.json", "calfit identify CASE_DIR --out RUN_DIR")
+    # the identified model, its effects included: the intervals hold their parameters too
+    setup.model = setup.model_with(identification.get("effects", ()))
+    if len(montecarlo["central"]) != setup.model.space.size:
+        raise RunFolderError(f"{run_dir / 'montecarlo.json'} holds {len(montecarlo['central'])} parameters and the "
+                             f"identified model ({', '.join(setup.model.space.names)}) has {setup.model.space.size}: "
+                             "run calfit montecarlo RUN_DIR again after the identification")
     objective = setup.pressure_objective()
     # the pressure objective's cost is the largest landmark pressure, not a misfit: kept off the progress line
     with Evaluator(setup.model, objective, run_dir, workers=workers, scheduler=scheduler, timeout_s=timeout_s,

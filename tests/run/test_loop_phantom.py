@@ -28,6 +28,7 @@ import pytest
 from killing import calfit_command, counting_wrapper, kill_after, log_lines
 
 from orchestrator.cli import main
+from orchestrator.core.errors import RunFolderError
 from orchestrator.model.forward import LEG_PARAMETERS
 from orchestrator.phantom.cases import make_phantom_case
 from orchestrator.run.setup import PARAMETERS_FILE, read_json
@@ -167,3 +168,23 @@ def test_monte_carlo_and_pressures_run_again_replay_everything(study):
     assert len(log_lines(run)) == logged
     assert again["lower"] == montecarlo["lower"] and again["upper"] == montecarlo["upper"]
     assert again_pressures["mean_kPa"] == pressures["mean_kPa"]
+
+
+def test_pressures_are_those_of_the_identified_model_with_its_effects(phantom, tmp_path):
+    """A run identified with a catalog effect: the Monte-Carlo's intervals hold the effect's parameter, and the
+    pressures are drawn from the model that has it (the model without it cannot take those parameters); a
+    Monte-Carlo left from another identification is refused with a sentence that says what to run."""
+    case, _, _ = phantom
+    run = tmp_path / "run"
+    identification = run_identify(case, run, method="lm", objective="displacement", workers=2, n_elements=400,
+                                  order=2, effects=["unloaded_curvature"], skin_uncertainty=False, progress=False)
+    assert identification["parameters"][-1] == "alpha_unloaded"
+    montecarlo = run_montecarlo(run, method="noise", draws=10, workers=2, progress=False)
+    assert len(montecarlo["central"]) == 5
+    pressures = run_pressures(run, draws=4, workers=2, progress=False)
+    assert pressures["failed"] == 0 and len(pressures["mean_kPa"]) == 5
+    stale = dict(montecarlo, central=montecarlo["central"][:4], lower=montecarlo["lower"][:4],
+                 upper=montecarlo["upper"][:4])
+    (run / "montecarlo.json").write_text(json.dumps(stale))
+    with pytest.raises(RunFolderError, match="run calfit montecarlo RUN_DIR again"):
+        run_pressures(run, draws=4, workers=2, progress=False)
