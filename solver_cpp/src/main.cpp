@@ -2,8 +2,7 @@
 // the results (see solver_cpp/README.md) and maps every outcome to an exit code:
 // 0 converged, 2 bad deck or mesh, 3 not converged (last converged state written),
 // 4 any other failure.
-#include "deck/deck_reader.hpp"
-#include "model/model.hpp"
+#include "deck/build_model.hpp"
 #include "output/writers.hpp"
 #include "solver/newton.hpp"
 #include "solver/sensitivity.hpp"

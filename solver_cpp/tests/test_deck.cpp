@@ -2,7 +2,7 @@
 // the included file's own line numbers, GENERATE sets, OP=NEW, *HYPERELASTIC, POLYNOMIAL
 // (two data lines for N = 3), and errors that name the file and line.
 #include "check.hpp"
-#include "model/model.hpp"
+#include "deck/build_model.hpp"
 
 #include <filesystem>
 #include <fstream>

@@ -8,7 +8,7 @@
 //    tension profile, T3 and T6); REFERENCE=0 is the deck without REFERENCE to the bit.
 //  - Deck errors: REFERENCE outside [0, 1], not a number; the file and line named.
 #include "check.hpp"
-#include "model/model.hpp"
+#include "deck/build_model.hpp"
 #include "solver/newton.hpp"
 
 #include <cmath>

@@ -12,7 +12,7 @@
 //  - SparseSystem::solve_refined: an old factorization refined against a changed matrix
 //    gives that matrix's solution.
 #include "check.hpp"
-#include "model/model.hpp"
+#include "deck/build_model.hpp"
 #include "solver/newton.hpp"
 #include "solver/sensitivity.hpp"
 #include "solver/sparse_system.hpp"

@@ -6,17 +6,14 @@
 // comma separated.
 #pragma once
 
+#include "model/source_location.hpp"
+
 #include <optional>
 #include <stdexcept>
 #include <string>
 #include <vector>
 
 namespace calfit {
-
-struct SourceLocation {
-  std::string file;
-  int line = 0;
-};
 
 // Error in the user's input: reported as "FILE:LINE: message", exit code 2.
 std::string printable(const std::string& text);

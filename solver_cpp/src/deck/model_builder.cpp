@@ -3,6 +3,7 @@
 // read, so that every error names the line that caused it and says the fix.
 // This file: the Model's lookups, the keyword table and build(), the checks and lookups the handlers share, and
 // the whole-model checks; the handlers are in the files of their keyword families (see model_builder.hpp).
+#include "deck/build_model.hpp"
 #include "deck/model_builder.hpp"
 #include "element/triangle.hpp"
 #include "material/material.hpp"

@@ -4,10 +4,10 @@
 #pragma once
 
 #include "contact/node_to_segment.hpp"
-#include "deck/deck_reader.hpp"
 #include "element/triangle.hpp"
 #include "material/laws.hpp"
 #include "material/material.hpp"
+#include "model/source_location.hpp"
 
 #include <Eigen/Dense>
 #include <functional>
@@ -238,8 +238,5 @@ struct Model {
   Eigen::Vector2d gap_center(const GapProfile& profile) const;
   ParameterState parameter_state() const;       // materials, profiles, the last step's loads
 };
-
-// Parses the deck at `path` and checks the mesh; throws DeckError on bad input.
-Model build_model(const std::string& path);
 
 }  // namespace calfit
