@@ -4,8 +4,8 @@
 // 4 any other failure.
 #include "deck/build_model.hpp"
 #include "output/writers.hpp"
-#include "solver/newton.hpp"
 #include "solver/sensitivity.hpp"
+#include "solver/static_analysis.hpp"
 
 #include <dlfcn.h>
 #include <sched.h>

@@ -9,7 +9,7 @@
 //  - Deck errors: REFERENCE outside [0, 1], not a number; the file and line named.
 #include "check.hpp"
 #include "deck/build_model.hpp"
-#include "solver/newton.hpp"
+#include "solver/static_analysis.hpp"
 
 #include <cmath>
 #include <filesystem>

@@ -13,9 +13,9 @@
 //    gives that matrix's solution.
 #include "check.hpp"
 #include "deck/build_model.hpp"
-#include "solver/newton.hpp"
 #include "solver/sensitivity.hpp"
 #include "solver/sparse_system.hpp"
+#include "solver/static_analysis.hpp"
 
 #include <array>
 #include <cmath>

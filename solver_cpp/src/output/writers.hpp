@@ -4,6 +4,7 @@
 #pragma once
 
 #include "model/model.hpp"
+#include "solver/field_output.hpp"
 #include "solver/newton.hpp"
 
 #include <string>

@@ -1,11 +1,12 @@
-// Helpers shared by the files of StaticAnalysis (newton.cpp: increments and Newton iterations; analysis_loads.cpp:
-// the loads and kinematics of a step; analysis_contact.cpp: garment contact; analysis_assembly.cpp: residual,
-// tangent and field output; analysis_parameters.cpp: what the parameter sensitivities need). Internal to them.
+// Helpers shared by the files of StaticAnalysis (static_analysis.cpp: the unknowns; newton.cpp: increments and
+// Newton iterations; analysis_loads.cpp: the loads and kinematics of a step; analysis_contact.cpp: garment contact;
+// analysis_assembly.cpp: residual, tangent and field output; analysis_parameters.cpp: what the parameter
+// sensitivities need). Internal to them.
 #pragma once
 
 #include "element/mixed_element.hpp"
 #include "load/edge_loads.hpp"
-#include "solver/newton.hpp"
+#include "solver/static_analysis.hpp"
 
 #include <chrono>
 #include <map>

@@ -1,4 +1,4 @@
-// StaticAnalysis: the line search along a Newton correction (see line_search() in newton.hpp).
+// StaticAnalysis: the line search along a Newton correction (see line_search() in static_analysis.hpp).
 #include "solver/analysis_support.hpp"
 
 #include <algorithm>

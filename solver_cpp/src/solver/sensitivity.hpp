@@ -40,7 +40,7 @@
 #pragma once
 
 #include "model/model.hpp"
-#include "solver/newton.hpp"
+#include "solver/static_analysis.hpp"
 
 #include <Eigen/Dense>
 #include <string>
