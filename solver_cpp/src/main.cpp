@@ -4,27 +4,17 @@
 // 4 any other failure.
 #include "deck/build_model.hpp"
 #include "output/writers.hpp"
+#include "platform/thread_policy.hpp"
 #include "solver/sensitivity.hpp"
 #include "solver/static_analysis.hpp"
 
-#include <dlfcn.h>
-#include <sched.h>
-#include <unistd.h>
-
-#include <algorithm>
 #include <chrono>
-#include <climits>
 #include <cstdlib>
 #include <filesystem>
-#include <fstream>
 #include <iostream>
 #include <new>
 #include <string>
-#include <thread>
-
-#ifdef _OPENMP
-#include <omp.h>
-#endif
+#include <vector>
 
 namespace {
 
@@ -68,84 +58,6 @@ bool parse_arguments(int argc, char** argv, Arguments& args) {
   return !args.deck.empty();
 }
 
-// The BLAS under CHOLMOD runs on one thread whatever --threads says: a threaded dgemm splits its sums by thread
-// and changed the leg deck's displacements by 5e-15 mm between 1 and 2 threads, where the element loops, each
-// element on its own and gathered in a fixed order, give the same bytes on any count; on plane slices its
-// supernodes are small and the second thread bought little (solver_cpp/README.md, Threads). OpenBLAS exposes its
-// setter as a C symbol, looked up at run time so that another BLAS links too.
-void set_blas_threads(int threads) {
-  using Setter = void (*)(int);
-  if (void* symbol = dlsym(RTLD_DEFAULT, "openblas_set_num_threads")) reinterpret_cast<Setter>(symbol)(threads);
-}
-
-int usable_cpus() {
-  cpu_set_t set;
-  CPU_ZERO(&set);
-  if (sched_getaffinity(0, sizeof set, &set) == 0) return std::max(1, CPU_COUNT(&set));
-  return std::max(1u, std::thread::hardware_concurrency());
-}
-
-// Threads of the whole system runnable now (/proc/stat procs_running) less this process's own (state R in
-// /proc/self/task/*/stat: the BLAS workers spinning at load would otherwise pass for another program); -1 when
-// /proc cannot tell.
-int others_runnable() {
-  std::ifstream stat("/proc/stat");
-  int running = -1;
-  for (std::string line; std::getline(stat, line);)
-    if (line.rfind("procs_running ", 0) == 0) running = std::atoi(line.c_str() + 14);
-  if (running < 0) return -1;
-  int own = 0;
-  std::error_code error;
-  for (const auto& task : std::filesystem::directory_iterator("/proc/self/task", error)) {
-    std::ifstream task_stat(task.path() / "stat");
-    std::string text;
-    std::getline(task_stat, text);
-    const std::size_t close = text.rfind(')');
-    if (close != std::string::npos && close + 2 < text.size() && text[close + 2] == 'R') ++own;
-  }
-  return std::max(0, running - own);
-}
-
-// The default thread count: OMP_NUM_THREADS when the caller set it, else the CPUs of this process that other
-// programs leave idle now (sampled three times 2 ms apart, the fewest busy counted: a passing burst is ignored, a
-// busy program is seen every time), at least 1. Two threads on a 2-core machine beside one busy program ran 2.4x
-// slower than one thread, beside two 14x (benchmarks/threads.py); the element loops give the same bytes on any
-// count, so the choice changes the time of a run, not its digits.
-int default_threads() {
-  if (const char* given = std::getenv("OMP_NUM_THREADS")) {
-    const int n = std::atoi(given);
-    if (n > 0) return n;
-  }
-  const int cpus = usable_cpus();
-  int busy = INT_MAX;
-  for (int sample = 0; sample < 3; ++sample) {
-    if (sample > 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));
-    const int others = others_runnable();
-    if (others >= 0) busy = std::min(busy, others);
-  }
-  if (busy == INT_MAX) return cpus;
-  return std::clamp(cpus - busy, 1, cpus);
-}
-
-// OpenMP's worker threads spin after every parallel region and OpenBLAS's after every BLAS call: on a machine
-// with few cores each steals the other's core (assembling 800 T6 took 5 times longer than with them asleep).
-// libgomp reads OMP_WAIT_POLICY when it is loaded, before main, so a process started without it restarts
-// itself once with PASSIVE. OpenBLAS starts its worker threads when it is loaded too, and they spin (sched_yield)
-// for a while even when --threads keeps them idle (a sixth of a 22.5k-DOF run's samples on the second core with
-// --threads 1): the restart also sets OPENBLAS_NUM_THREADS=1 (set_blas_threads), so that none is started, and
-// OMP_NUM_THREADS to the count chosen (default_threads), so that the restarted process keeps it. If the restart
-// fails it carries on as it is.
-void restart_with_thread_environment(const Arguments& args, char** argv) {
-  bool changed = false;
-  if (std::getenv("OMP_WAIT_POLICY") == nullptr) changed = setenv("OMP_WAIT_POLICY", "PASSIVE", 1) == 0;
-  const char* blas = std::getenv("OPENBLAS_NUM_THREADS");
-  if ((blas == nullptr || std::string(blas) != "1") && setenv("OPENBLAS_NUM_THREADS", "1", 1) == 0) changed = true;
-  const std::string threads = std::to_string(args.threads);
-  const char* omp = std::getenv("OMP_NUM_THREADS");
-  if ((omp == nullptr || threads != omp) && setenv("OMP_NUM_THREADS", threads.c_str(), 1) == 0) changed = true;
-  if (changed) execv("/proc/self/exe", argv);
-}
-
 std::string default_outdir(const std::string& deck) {
   std::filesystem::path p(deck);
   if (p.extension() == ".inp") p.replace_extension();
@@ -161,10 +73,10 @@ int main(int argc, char** argv) {
     std::cerr << kUsageText;
     return kUsage;
   }
-  if (args.threads == 0) args.threads = default_threads();
-  restart_with_thread_environment(args, argv);
+  if (args.threads == 0) args.threads = platform::default_threads();
+  platform::restart_with_thread_environment(args.threads, argv);
   if (args.outdir.empty()) args.outdir = default_outdir(args.deck);
-  set_blas_threads(1);
+  platform::set_blas_threads(1);
   const auto start = std::chrono::steady_clock::now();
   auto log = [&](const std::string& line) {
     if (!args.quiet) std::cout << line << '\n';
