@@ -19,10 +19,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE.parents[1] / "support"), str(HERE.parent)]
 
-from engine_closed_forms import Law  # noqa: E402
-from fe_cases import cook_membrane, deck, edge_loads, fmt, ring, unit_square  # noqa: E402
+from engine_closed_forms import Law
+from fe_cases import cook_membrane, deck, edge_loads, fmt, ring, unit_square
 
-from orchestrator.meshing import leg_slice_deck, leg_slice_mesh  # noqa: E402
+from orchestrator.meshing import leg_slice_deck, leg_slice_mesh
 
 DECKS = HERE / "decks"
 
