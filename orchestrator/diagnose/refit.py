@@ -106,12 +106,19 @@ def refit_model(model: LegModel, effects: Sequence[str]) -> LegModel:
 
 def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str], objective, *,
           max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
+    """`refit_whitened`, its residual as u_model - u_measured (mm) at the points."""
+    summary, r = refit_whitened(evaluator_factory, model, theta, effects, objective, max_iterations=max_iterations)
+    return summary, objective.residual_mm(r)
+
+
+def refit_whitened(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str], objective, *,
+                   max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and, unless
     that fit settled (`settled`), from the usual start (Avril et al. Table 2 central values); the better fit is kept.
     The second start matters when the missing effect dragged the baseline fit to a bound or far from the tissue's
     values; after a fit at the noise floor with no parameter on a bound it could only move chi^2 within the noise
     (with friction, refits from two starts took 110 of a diagnosis's 123 runs).
-    Returns the fit and its residual u_model - u_measured (mm) at the points."""
+    Returns the fit and its whitened residual r (`objectives.DisplacementResidualObjective.weigh`)."""
     extended = refit_model(model, effects)
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
     # one-sided difference, and Levenberg-Marquardt may not leave the bound
@@ -126,8 +133,7 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
         record = evaluator(fit.theta)
     # named by the effects asked for: the garment's band model lists none (bridging) or friction alone
     summary = replace(summarize_fit(extended, fit, record, objective), effects=list(model.effects) + list(effects))
-    return summary, objective.residual_mm(residuals_of(record))
-
+    return summary, residuals_of(record)
 
 
 def settled(model: LegModel, record: dict, objective, alpha: float = ALPHA) -> bool:

@@ -4,20 +4,23 @@ residual drawn (diagnosis.png, one per garment level with several socks)."""
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from ..core.errors import EffectError
 from ..core.files import read_json, write_json
 from ..core.run_lock import holds_run_folder
 from ..diagnose.diagnosis import diagnose
-from ..diagnose.figure import diagnosis_figure
+from ..diagnose.figure import diagnosis_figure, path_figure, path_maps_figure
 from ..diagnose.locate import patch_elements
 from ..diagnose.maps import level_maps, residual_maps
 from ..diagnose.refit import refit, refit_model, summarize_fit
 from ..diagnose.score import ALPHA
+from ..diagnose.stepwise import identified_only, path_verdict, stepwise
 from ..diagnose.verdict import (
     judged_ratio,
     local_refit_unneeded,
@@ -28,7 +31,7 @@ from ..diagnose.verdict import (
 from ..engine.runner import Evaluator
 from ..fit.geometry_uncertainty import covariance_of
 from ..fit.identify import FitResult
-from ..model.effects import effect
+from ..model.effects import effect, parse_effects
 from ..model.heterogeneity import stiffness_field_kpa
 from .discretization import discretization_line
 from .identified import (
@@ -50,9 +53,13 @@ def _stiffness_field(model, fit, frame) -> dict | None:
 def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
                  engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
                  timeout_s: float = 120.0, progress: bool = True, verbose: bool = False) -> dict:
-    """Diagnose the identified model of a run; refit with `refit_effects`: "auto" (the best-ranked effect when it
-    is significant, with those the score cannot tell from it), "none", effect names, or "auto" and names.
-    Writes and returns diagnosis.json."""
+    """Diagnose the identified model of a run; refit with `refit_effects`: "auto" (the forward-backward path,
+    `diagnose.stepwise`: the best candidates refitted, the one that pays added, ranked again on the new residual,
+    until the floor or nothing significant), "none", effect names (each refitted on the identified model alone, as
+    the one step of old), or "auto" and names. Writes and returns diagnosis.json: the identified model's ranking
+    and its candidates' refits ("ranking", "refits"), the "path" (one entry per step: effects, misfit over floor,
+    BIC, parameters with 95 % intervals) and the "final" model (effects, misfit over floor, explained, alternatives);
+    the verdict says the path in one sentence ("verdict_first_step": the first refit's, as it was said alone)."""
     run_dir = Path(run_dir)
     shown = progress
     setup = load_run(run_dir)
@@ -80,11 +87,19 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     with evaluator_for(model) as evaluator:
         before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), objective)
     requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
-    top = diagnosis.ranking[0] if diagnosis.ranking and diagnosis.ranking[0].significant else None
-    names = ([top.effect] + top.tied_with if top and "auto" in requested else [])
-    names += [n for n in requested if n not in ("auto", "none") and n not in names]
-    after, after_maps, after_level_maps = [], [], []
-    refit_failures, residuals = {}, {}
+    stepping = "auto" in requested
+    path = (stepwise(evaluator_for, model, objective, frame, diagnosis, before, alpha=alpha,
+                     own_floor=lambda fit, residual: _refit_own_floor(setup, identification, fit, residual),
+                     engine_sensitivities=engine_sensitivities, progress=shown,
+                     side_by_side=bool(scheduler) or workers > 1)
+            if stepping else identified_only(model, diagnosis, before))
+    # the refits of the identified model's candidates, the path's first, are the diagnosis' "refits"
+    after = [t.fit for t in path.first_tried if t.fit is not None]
+    refit_failures = {t.effect: t.failure for t in path.first_tried if t.failure}
+    residuals = {t.effect: t.residual_mm for t in path.first_tried if t.fit is not None}
+    after_maps = [residual_maps(objective.positions_mm, residuals[fit.effects[-1]], frame) for fit in after]
+    after_level_maps = [level_maps(objective, residuals[fit.effects[-1]], frame) for fit in after]
+    names = [n for n in requested if n not in ("auto", "none") and n not in residuals and n not in refit_failures]
     for name in names:
         try:
             fit, residual = refit(evaluator_for, model, theta, [name], objective)
@@ -100,13 +115,18 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         fit.stiffness_field = _stiffness_field(model, fit, frame)
     best = diagnosis.ranking[0].effect if diagnosis.ranking else None
     best_refit = next((f for f in after if f.effects[-1:] == [best]), None)   # None: not refitted, or it failed
-    if best_refit is not None:
+    if best_refit is not None and best_refit.own_floor is None:
         best_refit.own_floor = _refit_own_floor(setup, identification, best_refit, residuals[best])
-    diagnosis.explained, diagnosis.verdict = refit_verdict(diagnosis, after)
+    stepped_explained, stepped_verdict = path_verdict(path, diagnosis)
+    first_explained, first_verdict = refit_verdict(diagnosis, after)
     if best in refit_failures:
         # a prediction the refit could not check is not an explanation
-        diagnosis.explained = False
-        diagnosis.verdict += f"; but its refit failed ({refit_failures[best]}), so that is not confirmed"
+        first_explained = False
+        first_verdict += f"; but its refit failed ({refit_failures[best]}), so that is not confirmed"
+    # the path's verdict when it was walked; the first refit's (as the one step of old) when effects were named
+    diagnosis.explained, diagnosis.verdict = ((stepped_explained, stepped_verdict) if stepping
+                                              else (first_explained, first_verdict))
+    catalog = [path.final.fit] if len(path.steps) > 1 else after   # what a local change is weighed against
     check = identification.get("discretization") or {}
     if check.get("checked") and not check["adequate"]:
         # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
@@ -119,7 +139,9 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     local = None
     if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
         patch = diagnosis.patches[0]
-        unneeded = local_refit_unneeded(diagnosis, patch, None if best_refit is None else judged_ratio(best_refit))
+        ratio = (path.final.misfit_over_floor if len(path.steps) > 1
+                 else None if best_refit is None else judged_ratio(best_refit))
+        unneeded = local_refit_unneeded(diagnosis, patch, ratio)
         if unneeded:
             diagnosis.verdict += f"; {unneeded}"
             local = {"patch": asdict(patch), "refitted": False, "explains": False, "reason": unneeded,
@@ -127,7 +149,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         else:
             fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
             fit.stiffness_field = _stiffness_field(model, fit, frame)
-            local = weigh_local(diagnosis, patch, before, fit, after)
+            local = weigh_local(diagnosis, patch, before, fit, catalog)
             after.append(fit)
             after_maps.append(residual_maps(objective.positions_mm, residual, frame))
             after_level_maps.append(level_maps(objective, residual, frame))
@@ -147,7 +169,19 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
             row.update(image=image, tension_N_per_mm=tension, worst_region=diagnosis.level_maps[k].worst_region)
         result["level_maps_after"] = [[asdict(m) for m in maps] for maps in after_level_maps]
     result["local"] = local
+    result["verdict_first_step"] = first_verdict
+    result["path"] = [step.as_dict() for step in path.steps]
+    # the final model explains the measurements when it reaches their floor, unless the error model does not hold
+    # there or a local stiffness change fits better than the catalog's effects
+    result["final"] = path.final_dict(doubt=bool(warning) or bool(local and local.get("explains")))
+    path_maps = [diagnosis.maps] + [residual_maps(objective.positions_mm, step.residual_mm, frame)
+                                    for step in path.steps[1:]]
+    result["path_maps"] = [asdict(m) for m in path_maps]
     write_json(run_dir / "diagnosis.json", result)
+    if len(path.steps) > 1:
+        path_figure(run_dir / "diagnosis-path.png", result["path"])
+        path_maps_figure(run_dir / "diagnosis-path-maps.png", setup.case.unloaded, setup.case.pixel_size_mm,
+                         path_maps, result["path"])
     patch = (patch_elements(model, local["patch"]["effect"]), local["patch"]["place"]) if local else (None, "")
     diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
                      setup.mesh, *patch, title="every garment level, one arrow each" if diagnosis.levels else "")
@@ -156,6 +190,25 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
                          setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
                                                    f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
     return result
+
+
+def requested_effects(text: str | Sequence[str] | None, run_dir) -> tuple[str, ...]:
+    """The effects `calfit identify --effects` names: catalog names, comma-separated; the list a diagnosis' verdict
+    prints ("drainage, then unloaded_curvature", "a + b"); or "final", the final model of RUN_DIR/diagnosis.json
+    (its effects, the identified model's included)."""
+    if not text:
+        return ()
+    if isinstance(text, str) and text.strip() == "final":
+        path = Path(run_dir) / "diagnosis.json"
+        final = read_json(path, "calfit diagnose").get("final") if path.is_file() else None
+        if final is None:
+            raise EffectError(f"--effects final takes the final model of {path}, and "
+                              + ("that diagnosis has none (written before the diagnosis walked its path)"
+                                 if path.is_file() else "there is none")
+                              + f": run calfit diagnose {run_dir} first")
+        return parse_effects(final["effects"])
+    names = re.split(r",|\bthen\b|\+", text) if isinstance(text, str) else list(text)
+    return parse_effects([name.strip() for name in names if name.strip()])
 
 
 def _refit_own_floor(setup, identification: dict, fit, residual_mm: np.ndarray) -> dict | None:
