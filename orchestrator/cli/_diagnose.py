@@ -10,11 +10,13 @@ covariance and the model's geometry uncertainty), the residual per tissue and pe
 (named by anatomy: "fat, posterior sector 240-270 deg, 0-5 mm under the skin"), and for every catalog
 effect not in the model its score
 statistic, p-value (corrected for residuals correlated in space) and the misfit a refit with it
-would reach. Then refits with the best-ranked effect when it is significant (--refit auto), with
-the effects named, or not at all, and prints the before/after table (misfit, AIC, BIC,
-parameters). Writes RUN_DIR/diagnosis.json; `calfit report RUN_DIR` draws the residual maps
-before and after side by side. `calfit identify CASE --out RUN --effects NAME` fits a model with
-an effect from the start.
+would reach. Then (--refit auto) walks the path: the best candidates refitted, the one that pays
+added, the catalog ranked again on the new residual, an effect later ones make unneeded removed,
+until the model reaches its floor or nothing significant is left; or refits with the effects named,
+or not at all. Prints the before/after table (misfit, AIC, BIC, parameters), the path (misfit over
+the floor at each step) and the verdict in one sentence. Writes RUN_DIR/diagnosis.json ("path",
+"final"); `calfit report RUN_DIR` draws the error falling and each step's residual side by side.
+`calfit identify CASE --out RUN --effects final` fits the final model (or --effects NAME,... any).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from ..core.errors import EffectError, RunFolderError
 from ..diagnose.diagnosis import Diagnosis
 from ..diagnose.refit import Refit
 from ..diagnose.score import ALPHA
+from ..diagnose.stepwise import path_lines
 from ..diagnose.verdict import comparison_lines, level_lines, ranking_lines
 from ..model.effects import describe, parse_effects
 from ..run.stages import run_diagnose
@@ -66,7 +69,10 @@ def run(args: argparse.Namespace) -> int:
         lines += [""] + comparison_lines(before, after)
     if result.get("levels"):
         lines += [""] + level_lines(result["levels"], before, after)
+    if len(result.get("path", [])) > 1 or (result.get("final") or {}).get("stopping", {}).get("tried"):
+        lines += [""] + path_lines(result["path"], result["final"])
     lines.append(f"{result['engine_runs']} engine runs for the ranking, {result['wall_time_s']:.1f} s; "
                  f"written to {args.run_dir}/diagnosis.json")
+    lines.append(f"verdict: {result['verdict']}")
     emit(args, result, lines)
     return 0

@@ -16,7 +16,9 @@ own spectrum shows, 0.05 pixel where it cannot tell).
 --starts table1 runs from the initial values of Avril et al. Table 1 (each parameter ±10 %).
 Every evaluation is logged in RUN_DIR/evaluations.jsonl: run the same command again after an interruption and
 it resumes without repeating one. Writes RUN_DIR/identification.json (which data, misfit against its floor).
---effects adds catalog effects (`calfit diagnose --catalog`), their parameters fitted from zero.
+--effects adds catalog effects (`calfit diagnose --catalog`), their parameters fitted from zero; --effects final
+takes the final model of the run folder's diagnosis (`calfit diagnose RUN_DIR`), and the list its verdict prints
+("drainage, then unloaded_curvature") is taken as it is.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import argparse
 
 from ..core.errors import CaseError, EffectError, ImagingError
 from ..measure.measurements import DEFAULT_WINDOW_PX, WINDOW_CHOICES
-from ..model.effects import parse_effects
+from ..run.diagnose_stage import requested_effects
 from ..run.setup import DATA_SOURCES
 from ..run.stages import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, floor_sentence, run_identify
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, notice, parallel_options
@@ -55,7 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--order", type=int, choices=(1, 2),
                         help="1: CPE3; 2: CPE6 (default; 1 with --objective contour, as in Avril et al.)")
     parser.add_argument("--effects", help="comma-separated catalog effects whose parameters are fitted too "
-                                           "(calfit diagnose --catalog lists them)")
+                                           "(calfit diagnose --catalog lists them), or final: the final model of "
+                                           "the diagnosis in --out")
     parser.add_argument("--skin-uncertainty", type=float, metavar="MM",
                         help="RMS uncertainty of the segmented skin's shape, mm (default: measured on the skin's "
                              "spectrum; 0.05 pixel where it cannot be)")
@@ -67,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = run_identify(args.case_dir, args.out, method=args.method, objective=args.objective, data=args.data,
                               window_px=args.window, start=args.start, starts=args.starts, n_elements=args.elements,
-                              order=args.order, effects=parse_effects(args.effects),
+                              order=args.order, effects=requested_effects(args.effects, args.out),
                               skin_sigma_mm=args.skin_uncertainty, **parallel_options(args))
     except (CaseError, ImagingError, EffectError, ValueError, RuntimeError) as error:
         return fail(str(error))
