@@ -182,6 +182,7 @@ def build_report(setup, identification: dict, montecarlo: dict | None, pressures
         sections.append(_pressure_section(setup, montecarlo, pressures, staging))
     if diagnosis:
         sections.append(_diagnosis_section(setup, identification, diagnosis, staging))
+        sections.append(_path_section(setup, diagnosis, staging))   # None: the path added nothing
     missing = [command for command, data in (("calfit montecarlo", montecarlo), ("calfit pressures", pressures),
                                              ("calfit diagnose", diagnosis)) if data is None]
     return {
@@ -554,6 +555,62 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
     return _section("diagnosis", "Diagnosis: where the model fails and which effect is missing",
                     paragraphs=([] if lacking else verdict) + paragraphs, alerts=verdict if lacking else [],
                     tables=tables + [sectors], figures_=shown)
+
+
+def _path_section(setup, diagnosis: dict, staging: Path) -> dict | None:
+    """The stepwise diagnosis (diagnosis.json "path", "final"): the error falling as effects are added one at a time,
+    each step's model with its parameters, and the residual of each step side by side; None when the path has
+    no step beyond the identified model."""
+    path, final = diagnosis.get("path") or [], diagnosis.get("final") or {}
+    if len(path) < 2:
+        return None
+
+    def parameters(entry: dict) -> str:
+        shown = []
+        for name, p in entry["parameters"].items():
+            low, high = p.get("lower95"), p.get("upper95")
+            spread = interval_uncertainty(low, high) if low is not None and high is not None else None
+            shown.append(f"{name} = {rounded(p['value'], spread)}" + (
+                f" [{rounded(low, spread)}, {rounded(high, spread)}]" if spread is not None else " [unbounded]"))
+        return ", ".join(shown)
+
+    change = {"identified": "identified model", "added": "+ {}", "removed": "- {}"}
+    steps = _table("path", "The path: one effect added (+) or removed (-) at a time",
+                   ["step", "change", "effects in the model", "misfit / floor", "BIC", "engine runs", "wall time (s)",
+                    "parameters [95 % interval, linearized at the fit]"],
+                   [[e["step"], change[e["action"]].format(e["effect"]), ", ".join(e["effects"]) or "none",
+                     e["misfit_over_floor"], e["bic"], e["engine_runs"], e["wall_time_s"], parameters(e)]
+                    for e in path],
+                   "Misfit over the floor with the skin's uncertainty estimated again at each fit when the images "
+                   f"gave it; BIC to its first decimal; the other numbers {SIGNIFICANT} significant digits.",
+                   uncertainties=[[None] * 4 + [INFORMATION_CRITERION_UNCERTAINTY] + [None] * 3 for _ in path],
+                   significant_digits=SIGNIFICANT)
+    tables = [steps]
+    if final.get("alternatives"):
+        tables.append(_table("alternatives", "Models the data cannot tell from the path's (BIC within 2)",
+                             ["effects", "instead of", "at step", "misfit / floor", "BIC"],
+                             [[", ".join(a["effects"]), a["instead_of"], a["step"], a["misfit_over_floor"], a["bic"]]
+                              for a in final["alternatives"]], "BIC to its first decimal.",
+                             uncertainties=[[None] * 4 + [INFORMATION_CRITERION_UNCERTAINTY]
+                                            for _ in final["alternatives"]], significant_digits=SIGNIFICANT))
+    shown = []
+    if _copy_figure(setup.run_dir / "diagnosis-path.png", staging):
+        shown.append(_figure("diagnosis-path.png", "Misfit over the noise floor at each step of the path (log scale; "
+                                                   "grey: the refits tried at that step; the floor and the error "
+                                                   "model's agreement marked)."))
+    if _copy_figure(setup.run_dir / "diagnosis-path-maps.png", staging):
+        shown.append(_figure("diagnosis-path-maps.png", "Residual of each step's model, side by side."))
+    summary = " -> ".join(f"{e['misfit_over_floor']:.2f}" for e in path) + " x the floor"
+    section = _section("diagnosis-path", "Diagnosis, step by step: the error falling",
+                       paragraphs=[f"{diagnosis['verdict']}.",
+                                   f"Final model: {', '.join(final.get('effects', [])) or 'the identified model'}, "
+                                   f"{final.get('misfit_over_floor', float('nan')):.2f} x the floor, "
+                                   + ("explained" if final.get("explained") else "not explained") + "; "
+                                   "calfit identify CASE --out RUN --effects final fits it, and the Monte-Carlo, the "
+                                   "pressures and this report then use it."],
+                       tables=tables, figures_=shown)
+    section["summary"] = summary
+    return section
 
 
 def sector_uncertainties(rms: float | None, count: int) -> list:
