@@ -177,23 +177,12 @@ def read_image_pair(toml_path: Path, images_table: dict | None, unloaded_path: P
 
 
 def slice_choice(toml_path: Path, table: dict | None) -> SliceChoice | None:
-    """The [images] table checked (its keys are checked against the schema of case.toml before)."""
+    """The [images] table as a SliceChoice (its keys, types and the one choice checked by `schema.ImagesTable`)."""
     if not table:
         return None
-    if len(table) > 1:
-        raise CaseError(toml_path, "[images] gives both slice_index and slice_position_mm",
-                        "keep only one of them (slice_position_mm is the safer: it picks the same place in both series)")
     if "slice_index" in table:
-        index = table["slice_index"]
-        if not isinstance(index, int) or isinstance(index, bool) or index < 0:
-            raise CaseError(toml_path, f"[images] slice_index = {index!r} is not a non-negative whole number",
-                            "give the 0-based index of the slice, in the order of increasing position along the normal")
-        return SliceChoice(index=index)
-    position = table["slice_position_mm"]
-    if not isinstance(position, (int, float)) or isinstance(position, bool) or not math.isfinite(position):
-        raise CaseError(toml_path, f"[images] slice_position_mm = {position!r} is not a number",
-                        "give the position of the slice along the slice normal in mm, e.g. slice_position_mm = -42.5")
-    return SliceChoice(position_mm=float(position))
+        return SliceChoice(index=int(table["slice_index"]))
+    return SliceChoice(position_mm=float(table["slice_position_mm"]))
 
 
 # ----------------------------------------------------------------- one series

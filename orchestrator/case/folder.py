@@ -12,6 +12,10 @@ its tension and optionally its points (`GarmentLevel`); they are fitted jointly 
 
 Reading checks everything before returning and raises one `CaseError` (one
 sentence: file, what is wrong, the fix) at the first problem; it never writes.
+case.toml is read through its declared schema (`schema.CaseToml`: keys, units,
+ranges); what needs the images is checked here: a landmark inside the image, a
+level's file, a header's pixel spacing, and a label map whose labels all mean a tissue (0-3, or a muscle
+compartment 4-31 of at least MIN_COMPARTMENT_MM2).
 Writing goes to a temporary sibling folder renamed into place at the end, so a
 case folder is either complete or absent.
 """
@@ -31,24 +35,33 @@ import tomllib
 
 from ..core.errors import CaseError, MaterialError
 from ..core.files import replace_folder
-from ..core.materials import ELEMENTS, GARMENTS, LAWS, TissueLaw, tissue_set
-from ..core.tissues import BONE, FAT, FIRST_COMPARTMENT, MUSCLE
+from ..core.materials import ELEMENTS, TissueLaw
+from ..core.tissues import (
+    BACKGROUND,
+    BONE,
+    FAT,
+    FIRST_COMPARTMENT,
+    LAST_COMPARTMENT,
+    MUSCLE,
+)
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
-from .dicom_series import IMAGES_KEYS, PIXEL_SIZE_RTOL, read_image_pair
+from .dicom_series import PIXEL_SIZE_RTOL, read_image_pair
+from .schema import (
+    PIXEL_SIZE_RANGE_MM,
+    PIXEL_SIZE_TEXT,
+    CaseToml,
+    GarmentLevelTable,
+    ModelTable,
+    TissueTable,
+    keys_of,
+    parse,
+)
 
 POINTS_COLUMNS = ("x_mm", "y_mm", "ux_mm", "uy_mm")
 DEFAULT_TENSION_REL_UNCERTAINTY = 0.10
 
-_TOML_SCHEMA = {
-    "case": {"name", "pixel_size_mm"},
-    "garment": {"tension_N_per_mm", "tension_rel_uncertainty", "levels"},
-    "landmarks": None,  # any name
-    "images": set(IMAGES_KEYS),  # which slice of a DICOM series
-    "model": None,   # element, garment, friction and a table per tissue: checked by _model_choice
-}
-MODEL_KEYS = ("element", "garment", "friction")
-TISSUE_KEYS = ("law", "terms", "incompressible", "fixed", "bounds", "start")
-LEVEL_KEYS = ("image", "tension_N_per_mm", "points")   # of each [[garment.levels]] table
+_TOML_SCHEMA = keys_of(CaseToml)   # {table: its keys}, as docs/case-folder.md lists them
+MIN_COMPARTMENT_MM2 = 50.0   # a labelled muscle compartment's least area (`imaging.compartments` keeps 150 mm^2)
 
 
 @dataclass(frozen=True)
@@ -145,32 +158,27 @@ def read_case(folder: str | os.PathLike) -> Case:
         raise CaseError(folder, "is not a folder", "give the path of a case folder holding case.toml and the two images")
     toml_path = folder / "case.toml"
     settings = _read_toml(toml_path)
-    unloaded, loaded = read_image_pair(toml_path, settings.get("images"), _find_file(folder, "unloaded", required=True),
+    images = settings.images.model_dump(exclude_none=True) if settings.images is not None else None
+    unloaded, loaded = read_image_pair(toml_path, images, _find_file(folder, "unloaded", required=True),
                                        _find_file(folder, "loaded", required=True))
     if loaded.pixels.shape != unloaded.pixels.shape:
         raise CaseError(loaded.path, f"is {_dims(loaded.pixels)} pixels but {unloaded.path.name} is {_dims(unloaded.pixels)}",
                         "export both slices with the same matrix size and field of view")
-    level_tables = _level_tables(toml_path, settings.get("garment", {}))
+    level_tables = settings.garment.levels
     level_slices = [_level_slice(toml_path, folder, number, entry, (unloaded, loaded))
                     for number, entry in enumerate(level_tables, start=2)]
-    pixel_size = _pixel_size(toml_path, settings.get("case", {}), (unloaded, loaded, *level_slices))
+    pixel_size = _pixel_size(toml_path, settings.case.pixel_size_mm, (unloaded, loaded, *level_slices))
     shape = unloaded.pixels.shape
     extent = (shape[1] * pixel_size[1], shape[0] * pixel_size[0])
 
     labels_path = _find_file(folder, "labels", required=False)
-    labels = _read_labels(labels_path, shape, unloaded.path.name) if labels_path else None
+    labels = _read_labels(labels_path, shape, unloaded.path.name, pixel_size) if labels_path else None
     points_path = folder / "points.csv"
     points = _read_points(points_path, extent) if points_path.exists() else None
-    garment = settings.get("garment")
-    if garment is None:
-        raise CaseError(toml_path, "has no [garment] table", "add [garment] with tension_N_per_mm = <force per unit width>")
-    tension = _positive_number(toml_path, garment, "garment", "tension_N_per_mm", required=True)
-    rel = _positive_number(toml_path, garment, "garment", "tension_rel_uncertainty", required=False, allow_zero=True)
-    landmarks = _landmarks(toml_path, settings.get("landmarks", {}), extent)
-    name = settings.get("case", {}).get("name", folder.name)
-    if not isinstance(name, str) or not name.strip():
-        raise CaseError(toml_path, "[case] name is not a non-empty string", 'write name = "volunteer-01" under [case]')
-    model = _model_choice(toml_path, settings.get("model", {}))
+    garment = settings.garment
+    landmarks = _landmarks(toml_path, settings.landmarks, extent)
+    name = settings.case.name if settings.case.name is not None else folder.name
+    model = model_choice(toml_path, settings.model)
     levels = tuple(_garment_level(toml_path, folder, number, entry, image, extent)
                    for number, (entry, image) in enumerate(zip(level_tables, level_slices), start=2))
 
@@ -184,34 +192,17 @@ def read_case(folder: str | os.PathLike) -> Case:
             files[f"{role}_slice"] = image.series_file    # the file of the slice chosen in a DICOM series
     return Case(folder=folder, name=name, pixel_size_mm=pixel_size,
                 unloaded=unloaded.pixels.astype(float), loaded=loaded.pixels.astype(float),
-                tension_N_per_mm=tension,
-                tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else rel,
+                tension_N_per_mm=garment.tension_N_per_mm,
+                tension_rel_uncertainty=(DEFAULT_TENSION_REL_UNCERTAINTY if garment.tension_rel_uncertainty is None
+                                         else garment.tension_rel_uncertainty),
                 model=model, labels=labels, points=points, landmarks=landmarks, files=files,
                 missing={role: image.missing for role, image in (("unloaded", unloaded), ("loaded", loaded))
                          if image.missing is not None}, levels=levels)
 
 
-def _level_tables(path: Path, garment: dict) -> list[dict]:
-    """The [[garment.levels]] tables, their keys checked."""
-    tables = garment.get("levels", [])
-    if not isinstance(tables, list) or not all(isinstance(entry, dict) for entry in tables):
-        raise CaseError(path, "[garment] levels is not an array of tables",
-                        "write each more loaded image as a [[garment.levels]] table with image and tension_N_per_mm")
-    for index, entry in enumerate(tables, start=1):
-        unknown = sorted(set(entry) - set(LEVEL_KEYS))
-        if unknown:
-            raise CaseError(path, f"[[garment.levels]] number {index} has an unknown key '{unknown[0]}'",
-                            f"use only {', '.join(LEVEL_KEYS)}")
-    return tables
-
-
-def _level_file(path: Path, folder: Path, index: int, entry: dict, key: str, what: str) -> Path:
+def _level_file(path: Path, folder: Path, index: int, entry: GarmentLevelTable, key: str, what: str) -> Path:
     """The file a [[garment.levels]] key names, in the case folder."""
-    name = entry.get(key)
-    if not isinstance(name, str) or not name.strip():
-        raise CaseError(path, f"[[garment.levels]] number {index} has no {key} (the file name of its {what})",
-                        f"add {key} = \"{'loaded-40mmHg.png' if key == 'image' else 'points-40mmHg.csv'}\", a file in "
-                        "the case folder")
+    name = getattr(entry, key)
     target = folder / name
     if target.resolve().parent != folder.resolve():
         raise CaseError(path, f"[[garment.levels]] number {index} {key} = {name!r} is not a file of the case folder",
@@ -222,7 +213,8 @@ def _level_file(path: Path, folder: Path, index: int, entry: dict, key: str, wha
     return target
 
 
-def _level_slice(path: Path, folder: Path, number: int, entry: dict, pair: tuple[SliceFile, SliceFile]) -> SliceFile:
+def _level_slice(path: Path, folder: Path, number: int, entry: GarmentLevelTable,
+                 pair: tuple[SliceFile, SliceFile]) -> SliceFile:
     """The loaded image of the garment level `number` (2, 3, ...), checked against the first level's pair."""
     index = number - 1
     target = _level_file(path, folder, index, entry, "image", "loaded slice")
@@ -238,128 +230,58 @@ def _level_slice(path: Path, folder: Path, number: int, entry: dict, pair: tuple
     return image
 
 
-def _garment_level(path: Path, folder: Path, number: int, entry: dict, image: SliceFile,
+def _garment_level(path: Path, folder: Path, number: int, entry: GarmentLevelTable, image: SliceFile,
                    extent: tuple[float, float]) -> GarmentLevel:
     index = number - 1
-    tension = entry.get("tension_N_per_mm")
-    if tension is None:
-        raise CaseError(path, f"[[garment.levels]] number {index} ({image.path.name}) has no tension_N_per_mm",
-                        "add tension_N_per_mm = <that garment's force per unit width, N/mm> to it")
-    if isinstance(tension, bool) or not isinstance(tension, (int, float)) or not (math.isfinite(tension) and tension > 0):
-        raise CaseError(path, f"[[garment.levels]] number {index} ({image.path.name}) tension_N_per_mm = {tension!r} is "
-                        "not a positive number", "give that garment's tension in N/mm, e.g. tension_N_per_mm = 0.27")
     points_path = (_level_file(path, folder, index, entry, "points", "points (points.csv format)")
-                   if "points" in entry else None)
+                   if entry.points is not None else None)
     points = _read_points(points_path, extent) if points_path is not None else None
-    return GarmentLevel(number, image.pixels.astype(float), float(tension), image.path, points, points_path,
-                        image.missing)
+    return GarmentLevel(number, image.pixels.astype(float), float(entry.tension_N_per_mm), image.path, points,
+                        points_path, image.missing)
 
 
 def _dims(pixels: np.ndarray) -> str:
     return f"{pixels.shape[0]}x{pixels.shape[1]}"
 
 
-def _read_toml(path: Path) -> dict:
+def _read_toml(path: Path) -> CaseToml:
+    """case.toml read and validated against its schema (`schema.CaseToml`)."""
     if not path.is_file():
         raise CaseError(path, "is missing", "create it with a [case] table (name, pixel_size_mm) and a [garment] table")
     try:
-        settings = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
+        settings = tomllib.loads(text)
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CaseError(path, f"is not valid TOML ({exc})", "fix the syntax (tables in [brackets], key = value)") from exc
     if "study" in settings:
         raise CaseError(path, "is a volume case ([study]: slices to cut at several heights), not one slice",
                         f"run `calfit study {path.parent} --out STUDY_DIR`, which cuts it into slice cases")
-    for table, value in settings.items():
-        if table not in _TOML_SCHEMA:
-            raise CaseError(path, f"has an unknown table or key '{table}'", f"use only the tables {', '.join(f'[{t}]' for t in _TOML_SCHEMA)}")
-        if not isinstance(value, dict):
-            raise CaseError(path, f"'{table}' is not a table", f"write it as a [{table}] table")
-        allowed = _TOML_SCHEMA[table]
-        unknown = sorted(set(value) - allowed) if allowed is not None else []
-        if unknown:
-            raise CaseError(path, f"[{table}] has an unknown key '{unknown[0]}'", f"use only {', '.join(sorted(allowed))}")
-    return settings
+    return parse(path, text, settings)
 
 
 def read_model_choice(folder: str | os.PathLike) -> ModelChoice:
-    """The [model] table of a case folder's case.toml alone (no image read)."""
-    toml_path = Path(folder) / "case.toml"
-    return _model_choice(toml_path, _read_toml(toml_path).get("model", {}))
+    """The [model] table of a case folder's case.toml alone (no image read; the whole file is checked)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaseError(folder, "is not a folder", "give the path of a case folder holding case.toml and the two images")
+    toml_path = folder / "case.toml"
+    return model_choice(toml_path, _read_toml(toml_path).model)
 
 
-def _model_choice(path: Path, table: dict) -> ModelChoice:
-    element = table.get("element")
-    if element is not None and element not in ELEMENTS:
-        raise CaseError(path, f"[model] element = {element!r} is not an element calfit fits",
-                        f"write one of {', '.join(repr(e) for e in ELEMENTS)}")
-    garment = table.get("garment", "laplace")
-    if garment not in GARMENTS:
-        raise CaseError(path, f"[model] garment = {garment!r} is not a garment model",
-                        "write garment = \"laplace\" (Laplace's law, the first paper) or \"explicit\" (the band of "
-                        "the second paper)")
-    friction = table.get("friction", 0.0)
-    if isinstance(friction, bool) or not isinstance(friction, (int, float)) or not 0.0 <= friction <= 2.0:
-        raise CaseError(path, f"[model] friction = {friction!r} is not a friction coefficient",
-                        "write a number between 0 (frictionless) and 2")
-    if friction > 0.0 and garment != "explicit":
-        raise CaseError(path, "[model] friction needs the explicit garment (Laplace's law has no tangential traction)",
-                        "add garment = \"explicit\" or remove friction")
-    tissues = {}
-    for key, value in table.items():
-        if isinstance(value, dict):
-            tissues[key] = _tissue_law(path, key, value, element)
-        elif key not in MODEL_KEYS:
-            raise CaseError(path, f"[model] has an unknown key '{key}'",
-                            f"use only {', '.join(MODEL_KEYS)} and a [model.<tissue>] table per tissue")
-    return ModelChoice(element, garment, float(friction), tissues)
+def model_choice(path: Path, table: ModelTable) -> ModelChoice:
+    """The [model] table (validated by `schema.ModelTable`) as a ModelChoice, each tissue's law made."""
+    tissues = {tissue: _tissue_law(path, tissue, entry) for tissue, entry in table.tissues.items()}
+    return ModelChoice(table.element, table.garment, float(table.friction), tissues)
 
 
-def _tissue_law(path: Path, tissue: str, table: dict, element: str | None) -> TissueLaw:
+def _tissue_law(path: Path, tissue: str, table: TissueTable) -> TissueLaw:
     """[model.<tissue>] as a TissueLaw (docs/case-folder.md, "The model")."""
-    where = f"[model.{tissue}]"
     try:
-        tissue_set(tissue)
-    except MaterialError:
-        raise CaseError(path, f"{where} is not a tissue", "name the table [model.fat], [model.muscle] or "
-                        "[model.compartment<label>] for a compartment labelled >= 4 in labels.png") from None
-    unknown = sorted(set(table) - set(TISSUE_KEYS))
-    if unknown:
-        raise CaseError(path, f"{where} has an unknown key '{unknown[0]}'", f"use only {', '.join(TISSUE_KEYS)}")
-    law = table.get("law", "avril")
-    if law not in LAWS:
-        raise CaseError(path, f"{where} law = {law!r} is not a law calfit fits", f"write one of {', '.join(LAWS)}")
-    terms, incompressible = table.get("terms"), table.get("incompressible", False)
-    if terms is not None and (isinstance(terms, bool) or not isinstance(terms, int)):
-        raise CaseError(path, f"{where} terms = {terms!r} is not a whole number", "write terms = 2 or terms = 3")
-    if not isinstance(incompressible, bool):
-        raise CaseError(path, f"{where} incompressible = {incompressible!r} is not true or false",
-                        "write incompressible = true (D1 = 0) or leave it out")
-    if incompressible and element != "CPE6H":
-        raise CaseError(path, f"{where} is incompressible, which displacement elements lock on",
-                        "add element = \"CPE6H\" (u/p elements) to [model]")
-    values = {}
-    for key in ("fixed", "bounds", "start"):
-        entries = table.get(key, {})
-        if not isinstance(entries, dict):
-            raise CaseError(path, f"{where} {key} is not a table of constants",
-                            f"write {key} = {{ C10 = {'[0.5, 20]' if key == 'bounds' else '1.2'} }} (kPa)")
-        for name, value in entries.items():
-            pair = key == "bounds"
-            good = (isinstance(value, list) and len(value) == 2 and all(_is_number(v) for v in value)) if pair \
-                else _is_number(value)
-            if not good:
-                raise CaseError(path, f"{where} {key}.{name} = {value!r} is not {'[lower, upper]' if pair else 'a number'}",
-                                f"write {name} = {'[lower, upper]' if pair else '<value>'} in kPa")
-        values[key] = {name: (tuple(map(float, v)) if key == "bounds" else float(v)) for name, v in entries.items()}
-    try:
-        return TissueLaw(law, terms, incompressible, **values)
+        return TissueLaw(table.law, table.terms, table.incompressible, fixed=dict(table.fixed),
+                         bounds={name: tuple(pair) for name, pair in table.bounds.items()}, start=dict(table.start))
     except MaterialError as error:
-        raise CaseError(path, f"{where}: {error}", "name only the law's constants (C10, C01, C20, C30, Kv), in kPa") \
-            from None
-
-
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+        raise CaseError(path, f"[model.{tissue}]: {error}", "name only the law's constants (C10, C01, C20, C30, Kv), "
+                        "in kPa") from None
 
 
 def _find_file(folder: Path, stem: str, required: bool) -> Path | None:
@@ -377,15 +299,11 @@ def _find_file(folder: Path, stem: str, required: bool) -> Path | None:
     return found[0] if found else None
 
 
-def _pixel_size(toml_path: Path, case_table: dict, slices: tuple[SliceFile, ...]) -> tuple[float, float]:
-    declared = case_table.get("pixel_size_mm")
-    if declared is not None:
-        if (not isinstance(declared, list) or len(declared) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in declared)):
-            raise CaseError(toml_path, f"[case] pixel_size_mm = {declared!r} is not two positive numbers",
-                            "write pixel_size_mm = [row_mm, column_mm], e.g. [0.36, 0.36]")
-        declared = (float(declared[0]), float(declared[1]))
+def _pixel_size(toml_path: Path, declared, slices: tuple[SliceFile, ...]) -> tuple[float, float]:
+    """The pixel size: case.toml's (its range checked by the schema), else the headers', which must agree."""
+    declared = (float(declared[0]), float(declared[1])) if declared is not None else None
     headers = [(s.path, s.header_pixel_size_mm) for s in slices if s.header_pixel_size_mm is not None]
+    low, high = PIXEL_SIZE_RANGE_MM
     for path, spacing in headers:
         if not all(math.isfinite(v) and v > 0 for v in spacing):
             raise CaseError(path, f"has an invalid pixel spacing {spacing} in its header", "fix the header or re-export the slice")
@@ -394,6 +312,10 @@ def _pixel_size(toml_path: Path, case_table: dict, slices: tuple[SliceFile, ...]
             source = f"case.toml says {list(reference)}" if declared is not None else f"{headers[0][0].name} says {list(reference)}"
             raise CaseError(path, f"header gives a pixel spacing of {[round(v, 6) for v in spacing]} mm but {source}",
                             "correct pixel_size_mm in case.toml or use slices from the same acquisition")
+        if declared is None and not all(low <= v <= high for v in spacing):
+            raise CaseError(path, f"header gives a pixel spacing of {[round(v, 6) for v in spacing]} mm, not "
+                            f"{PIXEL_SIZE_TEXT}", "fix the header, or give pixel_size_mm = [row_mm, column_mm] "
+                            "under [case] in case.toml")
     if declared is not None:
         return declared
     if headers:
@@ -402,21 +324,52 @@ def _pixel_size(toml_path: Path, case_table: dict, slices: tuple[SliceFile, ...]
                     "add pixel_size_mm = [row_mm, column_mm] under [case]")
 
 
-def _read_labels(path: Path, shape: tuple[int, int], image_name: str) -> np.ndarray:
+_LABELS_MEANING = (f"labels are 0 background, 1 fat, 2 muscle, 3 bone and {FIRST_COMPARTMENT} to {LAST_COMPARTMENT} "
+                   "muscle compartments")
+
+
+def _read_labels(path: Path, shape: tuple[int, int], image_name: str, pixel_size_mm) -> np.ndarray:
     labels = read_slice(path).pixels
     if labels.shape != shape:
         raise CaseError(path, f"is {_dims(labels)} pixels but {image_name} is {shape[0]}x{shape[1]}",
-                        f"segment {image_name} itself (or run `calfit segment`) so that the label map matches it")
+                        f"export the label map of {image_name} itself, at its {shape[0]}x{shape[1]} pixels, or remove "
+                        f"labels.png (calfit then segments {image_name})")
     if not np.all(labels == np.round(labels)) or labels.min() < 0:
         raise CaseError(path, "holds values that are not non-negative integers",
                         "store labels 0 background, 1 fat, 2 muscle, 3 bone (4 and up for compartments)")
     labels = labels.astype(np.int32)
+    for value in np.unique(labels[labels > LAST_COMPARTMENT]):
+        mask_note = " (255 is what a binary mask stores for its foreground)" if value == 255 else ""
+        raise CaseError(path, f"holds label {value} {_where_label(labels, value, pixel_size_mm)}, which means no "
+                        f"tissue: {_LABELS_MEANING}{mask_note}",
+                        "relabel those pixels with the tissue they show, or 0 outside the leg")
+    area = float(np.prod(pixel_size_mm))
+    for value, count in zip(*np.unique(labels[labels >= FIRST_COMPARTMENT], return_counts=True)):
+        if count * area < MIN_COMPARTMENT_MM2:
+            raise CaseError(path, f"holds label {value} {_where_label(labels, value, pixel_size_mm)}, too small for a "
+                            f"muscle compartment (at least {MIN_COMPARTMENT_MM2:g} mm^2: a calf's are some hundreds)",
+                            "relabel those pixels with the tissue they show (2 for muscle), or give the whole "
+                            "compartment that label")
     tissues = {"fat (label 1)": labels == FAT, "muscle (label 2 or compartments >= 4)": (labels == MUSCLE) | (labels >= FIRST_COMPARTMENT),
                "bone (label 3)": labels == BONE}
     for tissue, mask in tissues.items():
         if not mask.any():
             raise CaseError(path, f"has no {tissue} pixels", "segment the slice again so that fat, muscle and bone are all labelled")
     return labels
+
+
+def _where_label(labels: np.ndarray, value: int, pixel_size_mm) -> str:
+    """Where a label lies, in words: its pixels, area, and whether inside the leg or outside it (at the border)."""
+    from scipy import ndimage
+
+    mask = labels == value
+    rows, cols = np.nonzero(mask)
+    dy, dx = pixel_size_mm
+    around = ndimage.binary_dilation(mask) & ~mask
+    inside = around.any() and np.mean(labels[around] > BACKGROUND) > 0.5
+    place = f"inside the leg around x {cols.mean() * dx:.1f}, y {rows.mean() * dy:.1f} mm" if inside else \
+        f"outside the leg, rows {rows.min()}-{rows.max()}, columns {cols.min()}-{cols.max()}"
+    return f"in {len(rows)} pixels ({len(rows) * dx * dy:.0f} mm^2, {place})"
 
 
 def _read_points(path: Path, extent: tuple[float, float]) -> DisplacementPoints:
@@ -458,30 +411,14 @@ def _read_points(path: Path, extent: tuple[float, float]) -> DisplacementPoints:
     return DisplacementPoints(values[:, :2].copy(), values[:, 2:4].copy(), sigma)
 
 
-def _positive_number(path: Path, table: dict, table_name: str, key: str, required: bool, allow_zero: bool = False):
-    value = table.get(key)
-    if value is None:
-        if required:
-            raise CaseError(path, f"[{table_name}] {key} is missing", f"add {key} = <number> under [{table_name}]")
-        return None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and (value > 0 or (allow_zero and value == 0))
-    if not ok:
-        raise CaseError(path, f"[{table_name}] {key} = {value!r} is not a {'non-negative' if allow_zero else 'positive'} number",
-                        f"give {key} as a number")
-    return float(value)
-
-
 def _landmarks(path: Path, table: dict, extent: tuple[float, float]) -> dict[str, tuple[float, float]]:
+    """The [landmarks] (pairs of numbers, by the schema), each inside the image."""
     landmarks = {}
-    for name, value in table.items():
-        if (not isinstance(value, list) or len(value) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
-            raise CaseError(path, f"landmark '{name}' = {value!r} is not a pair of numbers", f"write {name} = [x_mm, y_mm]")
-        x, y = float(value[0]), float(value[1])
+    for name, (x, y) in table.items():
         if not (0 <= x <= extent[0] and 0 <= y <= extent[1]):
             raise CaseError(path, f"landmark '{name}' at ({x}, {y}) mm lies outside the image ({extent[0]:.1f} x {extent[1]:.1f} mm)",
                             "give landmarks in mm from the top-left corner of the unloaded image (x right, y down)")
-        landmarks[name] = (x, y)
+        landmarks[name] = (float(x), float(y))
     return landmarks
 
 

@@ -1,14 +1,16 @@
 """The tissues' labels and names, the same in every stage.
 
 A label map (labels.png, a segmentation) holds 0 background, 1 fat (with the skin), 2 muscle, 3 bone and 4, 5, ...
-muscle compartments. The mesh's element sets are FAT, MUSCLE and COMPARTMENT4, 5, ...; a material's constants are
-named by the tissue in lower case (C10_fat, Kv_muscle). Places are always named by tissue, never by a label number.
+muscle compartments, up to LAST_COMPARTMENT (a larger label means no tissue: 255 is a binary mask's foreground).
+The mesh's element sets are FAT, MUSCLE and COMPARTMENT4, 5, ...; a material's constants are named by the tissue
+in lower case (C10_fat, Kv_muscle). Places are always named by tissue, never by a label number.
 """
 
 from __future__ import annotations
 
 BACKGROUND, FAT, MUSCLE, BONE = 0, 1, 2, 3
 FIRST_COMPARTMENT = 4
+LAST_COMPARTMENT = 31
 FAT_SET = "FAT"
 MUSCLE_SET = "MUSCLE"
 COMPARTMENT_PREFIX = "COMPARTMENT"

@@ -43,20 +43,17 @@ from pathlib import Path
 import numpy as np
 import tomllib
 
-from ..case.folder import DEFAULT_TENSION_REL_UNCERTAINTY, write_case_folder
-from ..case.folder import _model_choice as check_model_table
+from ..case.folder import (
+    DEFAULT_TENSION_REL_UNCERTAINTY,
+    model_choice,
+    write_case_folder,
+)
+from ..case.schema import TensionProfile, VolumeCaseToml, parse
 from ..core.errors import CaseError, RunFolderError
 from ..core.files import read_json, write_json
 
 SLICES_JSON = "slices.json"
 SLICES_FOLDER = "slices"
-VOLUME_SCHEMA = {
-    "case": {"name", "pixel_size_mm"},
-    "garment": {"tension_N_per_mm", "tension_rel_uncertainty"},
-    "study": {"heights_mm", "every_mm", "compression_heights_mm"},
-    "landmarks": None,
-    "model": None,
-}
 PIXEL_SIZE_RTOL = 0.01
 MAX_SKIN_SHIFT_PX = 1.0   # beyond this shift of the skin between slices, a resampled loaded slice is flagged
 
@@ -129,71 +126,41 @@ def is_volume_case(folder: str | Path) -> bool:
 
 
 def read_volume_case(folder: str | Path) -> VolumeCase:
-    """Read and check case.toml of a volume case and find its two volumes; CaseError naming the file and the fix."""
+    """Read and check case.toml of a volume case (`case.schema.VolumeCaseToml`) and find its two volumes; CaseError
+    naming the file and the fix."""
     folder = Path(folder)
     path = folder / "case.toml"
     text = path.read_text(encoding="utf-8")
     try:
-        settings = tomllib.loads(text)
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise CaseError(path, f"is not valid TOML ({exc})", "fix the syntax (tables in [brackets], key = value)") from exc
-    for table, value in settings.items():
-        if table not in VOLUME_SCHEMA or not isinstance(value, dict):
-            raise CaseError(path, f"has an unknown table or key '{table}'",
-                            f"a volume case has only the tables {', '.join(f'[{t}]' for t in VOLUME_SCHEMA)}")
-        allowed = VOLUME_SCHEMA[table]
-        unknown = sorted(set(value) - allowed) if allowed is not None else []
-        if unknown:
-            raise CaseError(path, f"[{table}] has an unknown key '{unknown[0]}'", f"use only {', '.join(sorted(allowed))}")
-    study = settings["study"]
-    heights = study.get("heights_mm")
-    every = study.get("every_mm")
-    if (heights is None) == (every is None):
-        raise CaseError(path, "[study] needs one of heights_mm and every_mm",
-                        "write heights_mm = [h1, h2, ...] (slice positions in mm) or every_mm = <spacing in mm>")
-    if heights is not None:
-        if not isinstance(heights, list) or not heights or not all(_is_number(h) for h in heights):
-            raise CaseError(path, f"[study] heights_mm = {heights!r} is not a list of numbers",
-                            "write heights_mm = [204.0, 212.0] (mm along the slice normal)")
-        heights = tuple(sorted(float(h) for h in heights))
-    elif not (_is_number(every) and every > 0):
-        raise CaseError(path, f"[study] every_mm = {every!r} is not a positive number", "write every_mm = 10.0")
-    named = study.get("compression_heights_mm", {})
-    if not isinstance(named, dict) or not all(_is_number(h) for h in named.values()):
-        raise CaseError(path, "[study] compression_heights_mm is not a table of heights",
-                        "write compression_heights_mm = { B = 120.0, C = 280.0 } (mm)")
-    garment = settings.get("garment")
-    if garment is None or "tension_N_per_mm" not in garment:
-        raise CaseError(path, "has no [garment] tension_N_per_mm",
-                        "add it under [garment]: a number, or { heights_mm = [...], values = [...] } along the leg")
-    tension_heights, tension_values = _tension_table(path, garment["tension_N_per_mm"])
-    rel = garment.get("tension_rel_uncertainty", DEFAULT_TENSION_REL_UNCERTAINTY)
-    if not (_is_number(rel) and rel >= 0):
-        raise CaseError(path, f"[garment] tension_rel_uncertainty = {rel!r} is not a non-negative number",
-                        "give it as a number (0.10 is 10 %)")
-    case_table = settings.get("case", {})
-    name = case_table.get("name", folder.name)
-    if not isinstance(name, str) or not name.strip():
-        raise CaseError(path, "[case] name is not a non-empty string", 'write name = "volunteer-01" under [case]')
-    pixel_size = case_table.get("pixel_size_mm")
-    if pixel_size is not None and not (isinstance(pixel_size, list) and len(pixel_size) == 2
-                                       and all(_is_number(v) and v > 0 for v in pixel_size)):
-        raise CaseError(path, f"[case] pixel_size_mm = {pixel_size!r} is not two positive numbers",
-                        "write pixel_size_mm = [row_mm, column_mm], or leave it to the volumes' headers")
-    check_model_table(path, settings.get("model", {}))
+    settings = parse(path, text, raw, VolumeCaseToml)
+    study = settings.study
+    heights = tuple(sorted(study.heights_mm)) if study.heights_mm is not None else None
+    tension = settings.garment.tension_N_per_mm
+    if isinstance(tension, TensionProfile):
+        order = np.argsort(tension.heights_mm)
+        tension_heights = tuple(float(tension.heights_mm[i]) for i in order)
+        tension_values = tuple(float(tension.values[i]) for i in order)
+    else:
+        tension_heights, tension_values = (math.nan,), (float(tension),)
+    rel = settings.garment.tension_rel_uncertainty
+    pixel_size = settings.case.pixel_size_mm
+    model_choice(path, settings.model)   # each tissue's law made once here: a wrong constant stops the study now
     unloaded, loaded = _volume_path(folder, "unloaded"), _volume_path(folder, "loaded")
     if unloaded.is_dir() != loaded.is_dir():
         # A DICOM affine is in the patient's LPS frame, a NIfTI one usually in RAS: mixed, the two sessions' frames
         # would differ by a half turn that the alignment on the bones would have to find.
         raise CaseError(folder, f"holds the sessions in two formats ({unloaded.name} and {loaded.name})",
                         "export both as DICOM series or both as NIfTI volumes")
-    return VolumeCase(folder=folder, name=name, unloaded=unloaded, loaded=loaded,
+    return VolumeCase(folder=folder, name=settings.case.name or folder.name, unloaded=unloaded, loaded=loaded,
                       pixel_size_mm=tuple(map(float, pixel_size)) if pixel_size else None,
-                      heights_mm=heights, every_mm=float(every) if every is not None else None,
-                      compression_heights_mm={str(k): float(v) for k, v in named.items()},
+                      heights_mm=heights, every_mm=float(study.every_mm) if study.every_mm is not None else None,
+                      compression_heights_mm={str(k): float(v) for k, v in study.compression_heights_mm.items()},
                       tension_heights_mm=tension_heights, tension_values=tension_values,
-                      tension_rel_uncertainty=float(rel),
-                      landmarks=_landmark_lines(path, settings.get("landmarks", {})), model_toml=_model_tables(text))
+                      tension_rel_uncertainty=DEFAULT_TENSION_REL_UNCERTAINTY if rel is None else float(rel),
+                      landmarks=_landmark_lines(path, settings.landmarks), model_toml=_model_tables(text))
 
 
 def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple[list[SliceCase], dict]:
@@ -337,32 +304,11 @@ def _volume_path(folder: Path, role: str) -> Path:
                     f"put the {role} session in {role}/ (a DICOM series) or {role}.nii.gz (a 3D NIfTI)")
 
 
-def _tension_table(path: Path, value) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    if _is_number(value) and value > 0:
-        return (math.nan,), (float(value),)
-    fix = "write tension_N_per_mm = 0.16, or { heights_mm = [196.0, 300.0], values = [0.20, 0.14] } along the leg"
-    if not isinstance(value, dict) or set(value) != {"heights_mm", "values"}:
-        raise CaseError(path, f"[garment] tension_N_per_mm = {value!r} is neither a number nor a table of heights and values", fix)
-    heights, values = value["heights_mm"], value["values"]
-    if (not isinstance(heights, list) or not isinstance(values, list) or len(heights) != len(values) or len(heights) < 2
-            or not all(_is_number(h) for h in heights) or not all(_is_number(v) and v > 0 for v in values)):
-        raise CaseError(path, "[garment] tension_N_per_mm's heights_mm and values are not two lists of numbers of the "
-                        "same length (at least 2, tensions positive)", fix)
-    order = np.argsort(heights)
-    heights = tuple(float(heights[i]) for i in order)
-    if any(b - a <= 0 for a, b in zip(heights, heights[1:])):
-        raise CaseError(path, "[garment] tension_N_per_mm gives two tensions at one height", "keep one value per height")
-    return heights, tuple(float(values[i]) for i in order)
-
-
 def _landmark_lines(path: Path, table: dict) -> dict[str, np.ndarray]:
+    """The [landmarks] of a volume case (points [x, y, height] or lines of them, by the schema), by height."""
     lines = {}
     for name, value in table.items():
-        points = [value] if isinstance(value, list) and value and not isinstance(value[0], list) else value
-        if (not isinstance(points, list) or not points
-                or not all(isinstance(p, list) and len(p) == 3 and all(_is_number(v) for v in p) for p in points)):
-            raise CaseError(path, f"landmark '{name}' = {value!r} is neither a point [x, y, height] nor a line of them",
-                            f"write {name} = [x_mm, y_mm, height_mm] or {name} = [[x, y, h1], [x, y, h2], ...]")
+        points = [value] if not isinstance(value[0], list) else value
         array = np.array(points, float)
         array = array[np.argsort(array[:, 2])]
         if np.any(np.diff(array[:, 2]) <= 0):
@@ -406,5 +352,3 @@ def _pair(values) -> str:
     return f"{float(values[0]):.3g} x {float(values[1]):.3g}"
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
