@@ -17,6 +17,7 @@ pixels is refused here.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,12 +55,20 @@ def read_slice(path: Path) -> SliceFile:
                ".dcm": _read_dicom, ".nii": _read_nifti, ".nii.gz": _read_nifti}
     if suffix not in readers:
         raise CaseError(path, f"the format '{suffix}' is not supported", "use PNG, TIFF, .npy, DICOM (.dcm) or NIfTI (.nii/.nii.gz)")
+    _check_not_empty(path)
     return _checked_slice(path, *readers[suffix](path))
 
 
 def read_dicom_file(path: Path) -> SliceFile:
     """Read a 2D DICOM slice whatever its file name (a scanner's series files often have no suffix)."""
+    _check_not_empty(path)
     return _checked_slice(path, *_read_dicom(path))
+
+
+def _check_not_empty(path: Path) -> None:
+    if path.is_file() and path.stat().st_size == 0:
+        raise CaseError(path, "is empty (0 bytes)", "copy the slice again from where it was exported (this copy was "
+                        "cut short or never written)")
 
 
 def _checked_slice(path: Path, pixels, spacing) -> SliceFile:
@@ -95,9 +104,30 @@ def _as_2d(path: Path, pixels: np.ndarray) -> np.ndarray:
     return squeezed
 
 
+# how each format's files begin: a file that does not is another format (or none), one that does but fails is damaged
+_SIGNATURES = {"PNG": ((0, b"\x89PNG\r\n\x1a\n"),), "TIFF": ((0, b"II*\x00"), (0, b"MM\x00*"), (0, b"II+\x00"),
+                                                              (0, b"MM\x00+")),
+               "NumPy .npy": ((0, b"\x93NUMPY"),), "DICOM": ((128, b"DICM"),)}
+_LIBRARY_ADVICE = re.compile(r"[^.]*\bforce\s*=\s*True\b[^.]*\.?|[^.]*\bbackend\b[^.]*\.?", re.I)
+
+
 def _failed(path: Path, kind: str, exc: Exception) -> CaseError:
-    reason = str(exc).strip().rstrip(".").splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return CaseError(path, f"cannot be read as {kind} ({reason})", f"re-export it as a valid {kind} file")
+    """The CaseError of a file its reader could not read: not that format at all, or a damaged file of it (then
+    with the reader's reason, its advice to the programmer left out)."""
+    signatures = _SIGNATURES.get(kind, ())
+    try:
+        with path.open("rb") as stream:
+            head = stream.read(256)
+    except OSError as error:
+        return CaseError(path, f"cannot be opened ({error.strerror or error})", "check the file's permissions")
+    if signatures and not any(head[offset:offset + len(magic)] == magic for offset, magic in signatures):
+        begins = "a DICOM file's 'DICM' after its 128-byte preamble" if kind == "DICOM" else f"a {kind} file's signature"
+        return CaseError(path, f"cannot be read as {kind}: it is not a {kind} file (it does not begin with {begins})",
+                         f"give the file the suffix of the format it is in, or export the slice again as {kind}")
+    reason = _LIBRARY_ADVICE.sub("", str(exc)).strip().rstrip(".").splitlines()
+    detail = f" ({reason[0].strip()})" if reason and reason[0].strip() else ""
+    return CaseError(path, f"cannot be read as {kind}: the file is damaged{detail}",
+                     f"copy or export the slice again as {kind}")
 
 
 def _read_png(path: Path):

@@ -6,6 +6,8 @@
   garment squeezes fluid out and the leg loses about 1 % of its area (the phantom: 1.1 %). A loaded leg larger
   than the unloaded one by more than `MAX_GROWTH` (segmentation jitter is about 0.2 %) is the signature of
   the two images swapped, and no garment model can fit it.
+- Each slice holds at least `MIN_GREY_LEVELS` grey levels (background, soft tissue and bone): a blank export, or a
+  mask saved in the image's place, holds one or two, and no threshold can tell a tissue from another there.
 - Pixels with no value (NaN in a float image, given the background's grey level when read) lie in the
   background: within `MISSING_MARGIN_MM` of the leg they would be segmented and measured as if they were
   tissue or skin.
@@ -20,6 +22,18 @@ from ..core.errors import ImagingError
 MAX_BORDER_CONTACT_MM = 1.0
 MAX_GROWTH = 0.005
 MISSING_MARGIN_MM = 2.0
+MIN_GREY_LEVELS = 3
+
+
+def check_grey_levels(image: np.ndarray, image_name: str) -> None:
+    """ImagingError when the image holds fewer than MIN_GREY_LEVELS grey levels (its finite pixels)."""
+    values = np.unique(np.asarray(image)[np.isfinite(image)])
+    if len(values) >= MIN_GREY_LEVELS:
+        return
+    held = (f"a single grey level ({values[0]:g} in every pixel)" if len(values) == 1 else
+            f"only {len(values)} grey levels ({', '.join(f'{v:g}' for v in values)})")
+    raise ImagingError(f"{image_name} holds {held}, so no tissue can be told from another; export the MRI slice "
+                       "itself again (this file is blank or a mask, not an image of the calf)")
 
 
 def check_leg_in_view(labels: np.ndarray, pixel_size_mm, image_name: str) -> None:

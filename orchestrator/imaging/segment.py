@@ -95,7 +95,11 @@ def segment_t1(image: np.ndarray, pixel_size_mm: tuple[float, float], *, smoothi
     # lengths in mm, not pixels: a 2048-pixel slice of the same leg has the same anatomy and the same noise per pixel
     scale_px = smoothing_mm / min(pixel_size_mm)
     smooth = ndimage.gaussian_filter(image, scale_px)
-    dark_level, bright_level = filters.threshold_multiotsu(smooth, classes=3)
+    try:
+        dark_level, bright_level = filters.threshold_multiotsu(smooth, classes=3)
+    except ValueError:   # scikit-image's text speaks of bins: say what the image lacks
+        raise ImagingError("no leg found in the image: it holds too few grey levels for three classes (background, "
+                           "soft tissue, bone); give the MRI slice itself, not a blank or binary image") from None
 
     leg = _bridge_notches(ndimage.binary_fill_holes(largest_component(smooth > dark_level)), skin_closing_mm,
                           pixel_size_mm)

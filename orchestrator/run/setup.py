@@ -42,15 +42,40 @@ from ..engine.runner import write_mesh_include
 from ..fit.geometry_uncertainty import level_file as geometry_level_file
 from ..fit.geometry_uncertainty import read_columns as read_geometry_columns
 from ..fit.geometry_uncertainty import read_covariance as read_geometry_covariance
-from ..fit.objectives import ContourMismatchObjective, DisplacementResidualObjective, LandmarkPressure
+from ..fit.objectives import (
+    ContourMismatchObjective,
+    DisplacementResidualObjective,
+    LandmarkPressure,
+)
 from ..imaging.align import align_on_bones, resample_rigid
 from ..imaging.chemical_shift import FatShift, fat_shift
-from ..imaging.compartments import FIRST_COMPARTMENT, compartment_areas_mm2, find_compartments
-from ..imaging.field_checks import check_compression, check_leg_in_view, check_missing_pixels
+from ..imaging.compartments import (
+    FIRST_COMPARTMENT,
+    compartment_areas_mm2,
+    find_compartments,
+)
+from ..imaging.field_checks import (
+    check_compression,
+    check_grey_levels,
+    check_leg_in_view,
+    check_missing_pixels,
+)
 from ..imaging.segment import SegmentationWarning, segment_t1, segmentation_checks
-from ..measure.measurements import Measurements, dic_measurements, points_measurements, read_window_table
+from ..measure.measurements import (
+    Measurements,
+    dic_measurements,
+    points_measurements,
+    read_window_table,
+)
 from ..measure.measurements import level_files as measure_level_files
-from ..meshing import Mesh, TissueCurves, fat_muscle_normals, mesh_tissue_curves, tissue_curves, with_fat_moved_back
+from ..meshing import (
+    Mesh,
+    TissueCurves,
+    fat_muscle_normals,
+    mesh_tissue_curves,
+    tissue_curves,
+    with_fat_moved_back,
+)
 from ..meshing.curves import ERROR_BAND
 from ..meshing.labels import SHORTEST_SKIN_SHAPE_MM
 from ..model.forward import LegModel
@@ -334,6 +359,9 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
     case = working_case(case_dir)
     unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
+    for image, name in ((case.unloaded, unloaded_name), (case.loaded, loaded_name),
+                        *((level.image, level.path.name) for level in case.levels)):
+        check_grey_levels(image, name)
     # the fat's chemical shift, first on a segmentation that knows none: a fatty marrow it moves against its
     # cortex may be missed there, so the images are segmented again knowing its size (`segment_t1`)
     first = fat_shift_of(case.unloaded, case.labels if case.labels is not None
@@ -343,8 +371,9 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
     segmented_loaded = segment_t1(case.loaded, case.pixel_size_mm, fat_shift_mm=shift_size)
     missing_fraction = {}
+    labels_name = case.files["labels"].name if case.labels is not None else unloaded_name
     for role, name, labels in (("unloaded", unloaded_name, labels_unloaded), ("loaded", loaded_name, segmented_loaded)):
-        check_leg_in_view(labels, case.pixel_size_mm, name)
+        check_leg_in_view(labels, case.pixel_size_mm, labels_name if role == "unloaded" else name)
         if check_missing_pixels(case.missing.get(role), labels > 0, case.pixel_size_mm, name):
             missing_fraction[name] = float(case.missing[role].mean())
     motion = (align_on_bones(case.unloaded, case.loaded, case.pixel_size_mm, labels_unloaded=labels_unloaded,
