@@ -52,7 +52,15 @@ from ..run.stages import (
     run_montecarlo,
     run_pressures,
 )
-from ._common import add_output_arguments, honours_quiet, notice, show_progress
+from ._common import (
+    add_output_arguments,
+    folder,
+    honours_quiet,
+    notice,
+    show_progress,
+    tension,
+    whole_number,
+)
 from ._measure import summary_lines
 from ._solve import describe
 
@@ -66,15 +74,15 @@ DEMO_SCANNER_MOTION = RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="demo-out", help="folder for the case, the run and the report (default demo-out)")
-    parser.add_argument("--workers", type=int, default=2, help="engine evaluations in parallel (default 2)")
-    parser.add_argument("--draws", type=int, default=200, help="Monte-Carlo draws (default 200)")
+    parser.add_argument("--out", type=folder, default="demo-out", help="folder for the case, the run and the report (default demo-out)")
+    parser.add_argument("--workers", type=whole_number(1), default=2, help="engine evaluations in parallel (default 2)")
+    parser.add_argument("--draws", type=whole_number(1), default=200, help="Monte-Carlo draws (default 200)")
     parser.add_argument("--leg-slice", action="store_true", help="only solve the analytic leg slice once")
     parser.add_argument("--volume", action="store_true",
                         help="the whole calf: the 3D phantom leg through calfit study (about 15 minutes)")
-    parser.add_argument("--elements", type=int, default=5500, help="--leg-slice: number of elements (default 5500)")
+    parser.add_argument("--elements", type=whole_number(1), default=5500, help="--leg-slice: number of elements (default 5500)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="--leg-slice: 1: CPE3, 2: CPE6 (default)")
-    parser.add_argument("--tension", type=float, default=0.16, help="garment tension in N/mm (default 0.16, about 20 mmHg)")
+    parser.add_argument("--tension", type=tension, default=0.16, help="garment tension in N/mm (default 0.16, about 20 mmHg)")
     add_output_arguments(parser, json_help=None)
 
 

@@ -25,19 +25,33 @@ from __future__ import annotations
 
 import argparse
 
-from ..core.errors import CaseError, EffectError, ImagingError
 from ..measure.measurements import DEFAULT_WINDOW_PX, WINDOW_CHOICES
 from ..run.diagnose_stage import requested_effects
 from ..run.setup import DATA_SOURCES
-from ..run.stages import OBJECTIVE_ALIASES, OBJECTIVES, fit_summary, floor_sentence, run_identify
-from ._common import add_parallel_arguments, emit, fail, honours_quiet, notice, parallel_options
+from ..run.stages import (
+    OBJECTIVE_ALIASES,
+    OBJECTIVES,
+    fit_summary,
+    floor_sentence,
+    run_identify,
+)
+from ._common import (
+    add_parallel_arguments,
+    emit,
+    fail,
+    folder,
+    honours_quiet,
+    notice,
+    parallel_options,
+    whole_number,
+)
 
 HELP = "fit the tissue parameters of a case (Nelder-Mead or Levenberg-Marquardt)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("case_dir", help="case folder (case.toml, unloaded and loaded images, ...)")
-    parser.add_argument("--out", required=True, help="run folder (created; reused to resume)")
+    parser.add_argument("--out", type=folder, required=True, help="run folder (created; reused to resume)")
     parser.add_argument("--method", choices=("lm", "nm"), default="lm",
                         help="lm: Levenberg-Marquardt with the engine's sensitivities (default); nm: Nelder-Mead")
     parser.add_argument("--objective", choices=("auto",) + OBJECTIVES + tuple(OBJECTIVE_ALIASES), default="auto",
@@ -52,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="initial values of the laws' free constants in kPa, in the order of the fit's parameter "
                              "names (C10_fat C10_muscle Kv_fat Kv_muscle for the first paper's law; default: case.toml's "
                              "start, else Avril et al. Table 2 central values)")
-    parser.add_argument("--elements", type=int, help="elements of the identification mesh (default 2000; 400 with "
+    parser.add_argument("--elements", type=whole_number(1), help="elements of the identification mesh (default 2000; 400 with "
                                                      "--objective contour)")
     parser.add_argument("--order", type=int, choices=(1, 2),
                         help="1: CPE3; 2: CPE6 (default; 1 with --objective contour, as in Avril et al.)")
@@ -72,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
                               window_px=args.window, start=args.start, starts=args.starts, n_elements=args.elements,
                               order=args.order, effects=requested_effects(args.effects, args.out),
                               skin_sigma_mm=args.skin_uncertainty, **parallel_options(args))
-    except (CaseError, ImagingError, EffectError, ValueError, RuntimeError) as error:
+    except (ValueError, RuntimeError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     lines = [fit_summary(fit, result["parameters"], result.get("unit_of")) for fit in result["fits"]]
     lines.append(f"best ({result['objective']}, {result['data']['description']}): "

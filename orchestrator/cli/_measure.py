@@ -27,29 +27,36 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..core.errors import CaseError, ImagingError
 from ..measure.measurements import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
 from ..measure.prefilter import PREFILTER_SIGMA_PX
 from ..run.stages import run_measure
-from ._common import add_output_arguments, emit, fail, honours_quiet
+from ._common import (
+    add_output_arguments,
+    emit,
+    fail,
+    folder,
+    honours_quiet,
+    positive_number,
+    whole_number,
+)
 
 HELP = "measure the tissue displacements between the two images (DIC), relative to the bones"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("case_dir", help="case folder (case.toml, unloaded and loaded images, optional labels)")
-    parser.add_argument("--out", required=True, help="run folder (created; later commands use it)")
+    parser.add_argument("--out", type=folder, required=True, help="run folder (created; later commands use it)")
     parser.add_argument("--window", type=int, choices=WINDOW_CHOICES, default=DEFAULT_WINDOW_PX,
                         help=f"correlation window side in working pixels (default {DEFAULT_WINDOW_PX})")
-    parser.add_argument("--step", type=int, help="grid step in pixels (default half a window)")
-    parser.add_argument("--roi-spacing", type=float, help="spacing of the skin and fascia windows in mm (default: the step)")
+    parser.add_argument("--step", type=whole_number(1), help="grid step in pixels (default half a window)")
+    parser.add_argument("--roi-spacing", type=positive_number, help="spacing of the skin and fascia windows in mm (default: the step)")
     parser.add_argument("--prefilter", type=float, default=PREFILTER_SIGMA_PX,
                         help=f"sigma (pixels) of the Gaussian both images are smoothed with (default {PREFILTER_SIGMA_PX:g}; "
                              "0: none)")
     parser.add_argument("--respect-outline", action="store_true",
                         help="windows centred inside the leg leave out its outline and the air beyond (skin windows "
                              "keep them): for an outline drawn with errors of its own")
-    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+    parser.add_argument("--workers", type=whole_number(1), default=min(2, os.cpu_count() or 1),
                         help="processes the windows are matched in on this machine (default: 2 or the core count)")
     add_output_arguments(parser)
 
@@ -85,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
         summary = run_measure(args.case_dir, args.out, window_px=args.window, step_px=args.step,
                               roi_spacing_mm=args.roi_spacing, prefilter_px=args.prefilter,
                               respect_outline=args.respect_outline, workers=args.workers)
-    except (CaseError, ImagingError, ValueError) as error:
+    except ValueError as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     emit(args, summary, summary_lines(summary, args.out))
     return 0

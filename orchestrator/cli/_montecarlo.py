@@ -19,9 +19,15 @@ from __future__ import annotations
 
 import argparse
 
-from ..core.errors import RunFolderError
 from ..run.stages import intervals_summary, run_montecarlo
-from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
+from ._common import (
+    add_parallel_arguments,
+    emit,
+    fail,
+    honours_quiet,
+    parallel_options,
+    whole_number,
+)
 
 HELP = "parameter intervals by Monte-Carlo: over the measurement noise, or below a misfit threshold (Table 2)"
 
@@ -31,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--method", choices=("auto", "noise", "threshold"), default="auto",
                         help="noise: refits to data drawn from the measurements' covariance (default with measured "
                              "displacements); threshold: Avril et al.'s acceptance (default with the contour mismatch)")
-    parser.add_argument("--draws", type=int, help="random draws (default 200 noise, 400 threshold)")
+    parser.add_argument("--draws", type=whole_number(1), help="random draws (default 200 noise, 400 threshold)")
     parser.add_argument("--threshold-factor", type=float, default=1.5, help="keep misfit <= factor * best (default 1.5)")
     parser.add_argument("--threshold", type=float, help="absolute misfit threshold (overrides the factor)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -43,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = run_montecarlo(args.run_dir, method=args.method, draws=args.draws, threshold=args.threshold,
                                 threshold_factor=args.threshold_factor, seed=args.seed, **parallel_options(args))
-    except (RunFolderError, ValueError, RuntimeError) as error:
+    except (ValueError, RuntimeError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     lines = intervals_summary(result)
     if result["method"] == "threshold":

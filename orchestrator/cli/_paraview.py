@@ -27,16 +27,15 @@ from __future__ import annotations
 
 import argparse
 
-from ..core.errors import RunFolderError
 from ..report.paraview import write_paraview
-from ._common import add_output_arguments, fail, honours_quiet
+from ._common import add_output_arguments, fail, folder, honours_quiet
 
 HELP = "write the identified model (displacement, stress, pressure) as VTU/PVD files for ParaView"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", help="run folder of `calfit identify`")
-    parser.add_argument("--out", metavar="DIR", help="output folder (default: RUN_DIR/paraview)")
+    parser.add_argument("--out", type=folder, metavar="DIR", help="output folder (default: RUN_DIR/paraview)")
     add_output_arguments(parser, json_help=None)
 
 
@@ -44,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         paths = write_paraview(args.run_dir, args.out)
-    except (RunFolderError, ValueError, RuntimeError, OSError) as error:
+    except (ValueError, RuntimeError, OSError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     print("\n".join(str(path) for path in paths))
     return 0

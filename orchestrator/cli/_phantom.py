@@ -18,18 +18,25 @@ import json
 
 from ..model.forward import LEG_PARAMETERS, TABLE2_CENTRAL_KPA
 from ..phantom.cases import make_phantom_case
-from ._common import add_output_arguments, fail, honours_quiet
+from ._common import (
+    add_output_arguments,
+    fail,
+    folder,
+    honours_quiet,
+    tension,
+    whole_number,
+)
 
 HELP = "write a phantom case made by the engine (truth kept apart)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("case_dir", help="case folder to write")
+    parser.add_argument("case_dir", type=folder, help="case folder to write")
     parser.add_argument("--truth", help="truth folder (default CASE_DIR.truth)")
     parser.add_argument("--params", type=float, nargs=4, default=list(TABLE2_CENTRAL_KPA),
                         metavar=("C10F", "C10M", "KVF", "KVM"), help="true parameters in kPa (default Table 2 central)")
-    parser.add_argument("--tension", type=float, default=0.16, help="garment tension N/mm (default 0.16, about 20 mmHg)")
-    parser.add_argument("--elements", type=int, default=8000, help="elements of the engine mesh (default 8000)")
+    parser.add_argument("--tension", type=tension, default=0.16, help="garment tension N/mm (default 0.16, about 20 mmHg)")
+    parser.add_argument("--elements", type=whole_number(1), default=8000, help="elements of the engine mesh (default 8000)")
     parser.add_argument("--order", type=int, choices=(1, 2), default=2, help="1: T3, 2: T6 (default)")
     parser.add_argument("--points-spacing", type=float, default=6.0, help="points.csv grid spacing mm (0: none)")
     parser.add_argument("--points-sigma", type=float, default=0.02, help="noise on points.csv displacements, mm")

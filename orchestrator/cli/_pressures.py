@@ -12,16 +12,22 @@ from __future__ import annotations
 
 import argparse
 
-from ..core.errors import RunFolderError
 from ..run.stages import pressure_summary, run_pressures
-from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
+from ._common import (
+    add_parallel_arguments,
+    emit,
+    fail,
+    honours_quiet,
+    parallel_options,
+    whole_number,
+)
 
 HELP = "pressures at the landmarks with their uncertainty (Tables 3 and 4)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run_dir", help="run folder of `calfit identify` and `calfit montecarlo`")
-    parser.add_argument("--draws", type=int, default=30, help="draws in the intervals (default 30, as the paper)")
+    parser.add_argument("--draws", type=whole_number(1), default=30, help="draws in the intervals (default 30, as the paper)")
     parser.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     add_parallel_arguments(parser)
 
@@ -30,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         result = run_pressures(args.run_dir, draws=args.draws, seed=args.seed, **parallel_options(args))
-    except (RunFolderError, ValueError, RuntimeError) as error:
+    except (ValueError, RuntimeError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     lines = pressure_summary(result)
     lines.append(f"{result['draws']} draws in {result['wall_time_s']:.2f} s; {result['failed']} failed evaluation(s)")

@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..core.errors import RunFolderError
 from ..core.files import read_json
 from ..report.run_report import write_report
 from ..run.setup import PARAMETERS_FILE
@@ -32,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
         truth = (read_json(Path(args.truth) / PARAMETERS_FILE, "calfit phantom")["parameters_kPa"]
                  if args.truth else None)
         page = write_report(args.run_dir, truth)
-    except (RunFolderError, ValueError, RuntimeError) as error:
+    except (ValueError, RuntimeError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     print(page)
     return 0

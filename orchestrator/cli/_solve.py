@@ -12,20 +12,27 @@ import argparse
 import json
 import sys
 
-from ..core.errors import DeckRejected, EngineFailed
+from ..core.errors import EngineFailed
 from ..engine.results import EngineResults
 from ..engine.runner import run_engine
-from ._common import add_output_arguments, honours_quiet, show_progress
+from ._common import (
+    add_output_arguments,
+    folder,
+    honours_quiet,
+    positive_number,
+    show_progress,
+    whole_number,
+)
 
 HELP = "run the FE engine on one deck and summarize the result"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("deck", help="input deck (.inp)")
-    parser.add_argument("-o", "--out", help="output folder (default: DECK without .inp, plus .out)")
-    parser.add_argument("--threads", type=int, default=None,
+    parser.add_argument("-o", "--out", type=folder, help="output folder (default: DECK without .inp, plus .out)")
+    parser.add_argument("--threads", type=whole_number(1), default=None,
                         help="engine threads (default: OMP_NUM_THREADS, else the cores other programs leave idle)")
-    parser.add_argument("--timeout", type=float, default=3600.0, help="seconds before the run is stopped")
+    parser.add_argument("--timeout", type=positive_number, default=3600.0, help="seconds before the run is stopped")
     add_output_arguments(parser, json_help="print the engine's summary.json on stdout")
 
 
@@ -56,10 +63,7 @@ def run(args: argparse.Namespace) -> int:
         # the engine's progress lines are echoed unless the output is JSON or quiet
         outcome = run_engine(args.deck, args.out, threads=args.threads, timeout_s=args.timeout,
                              echo=show_progress(args) and not args.json)
-    except DeckRejected as error:
-        print(error, file=sys.stderr)
-        return 2
-    except EngineFailed as error:
+    except EngineFailed as error:   # exit code 4; a refused deck (DeckRejected, 2) is reported by `cli.main`
         print(error, file=sys.stderr)
         return 4
     results = EngineResults(outcome.outdir)

@@ -23,9 +23,17 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..core.errors import RunFolderError
 from ..study.cohort import STAGES, CaseOptions, run_study
-from ._common import add_output_arguments, emit, fail, honours_quiet, notice
+from ._common import (
+    add_output_arguments,
+    emit,
+    fail,
+    folder,
+    honours_quiet,
+    notice,
+    positive_number,
+    whole_number,
+)
 
 HELP = "a cohort of cases through the whole pipeline on a Dask cluster, one table row per case"
 
@@ -33,19 +41,19 @@ HELP = "a cohort of cases through the whole pipeline on a Dask cluster, one tabl
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("study", help="folder of case folders (each with case.toml and its images), or a volume "
                                       "case (3D volumes and a [study] table of heights)")
-    parser.add_argument("--out", required=True, help="study folder (created; reused to resume)")
-    parser.add_argument("--workers", type=int, default=min(2, os.cpu_count() or 1),
+    parser.add_argument("--out", type=folder, required=True, help="study folder (created; reused to resume)")
+    parser.add_argument("--workers", type=whole_number(1), default=min(2, os.cpu_count() or 1),
                         help="cases in parallel on this machine, one engine each (default: 2 or the core count)")
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="Dask distributed scheduler (e.g. tcp://host:8786): run the cases there")
-    parser.add_argument("--elements", type=int, help="elements of each identification mesh (default 2000)")
-    parser.add_argument("--draws", type=int, help="noise Monte-Carlo draws per case (default 200)")
-    parser.add_argument("--pressure-draws", type=int, default=30,
+    parser.add_argument("--elements", type=whole_number(1), help="elements of each identification mesh (default 2000)")
+    parser.add_argument("--draws", type=whole_number(1), help="noise Monte-Carlo draws per case (default 200)")
+    parser.add_argument("--pressure-draws", type=whole_number(1), default=30,
                         help="parameter draws of each case's pressure study (default 30, as the paper)")
     parser.add_argument("--stages", default=",".join(STAGES),
                         help="comma-separated stages of each case: identify,montecarlo and any of pressures,diagnose "
                              "(default: all four)")
-    parser.add_argument("--timeout", type=float, default=120.0, help="seconds before one engine run is stopped")
+    parser.add_argument("--timeout", type=positive_number, default=120.0, help="seconds before one engine run is stopped")
     add_output_arguments(parser)
 
 
@@ -56,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
                               timeout_s=args.timeout, stages=tuple(s.strip() for s in args.stages.split(",")))
         summary = run_study(args.study, args.out, options, workers=args.workers, scheduler=args.scheduler,
                             report=lambda line: notice(args, line))
-    except (RunFolderError, ValueError, OSError) as error:
+    except (ValueError, OSError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     emit(args, summary, [f"{summary['done']} of {summary['cases']} cases done; failed: "
                          f"{', '.join(summary['failed']) or 'none'}; table: {args.out}/{summary['table']}; "

@@ -6,7 +6,10 @@ the kernel when the process ends, however it ends) and writes who holds it there
 same folder stops at once with a sentence naming the holder. A command that calls another in the same
 process (identify measures first) holds the lock once: the depth is counted per folder in this process.
 Only the commands that make a run folder (measure, identify) create it; the others stop when it is missing
-rather than leave an empty folder behind a mistyped path.
+rather than leave an empty folder behind a mistyped path. A command that made the folder and then fails (a
+case it refuses, a folder that does not exist) removes it again, with the folders it made above it, when it
+holds nothing but the lock (in a folder that was there, the lock it made): a refused command leaves nothing
+behind, and never removes a folder it did not make or anything written in it. An interrupted command (KeyboardInterrupt) keeps its folder as it is.
 """
 
 from __future__ import annotations
@@ -40,10 +43,19 @@ def run_folder_lock(run_dir, create: bool = False):
         finally:
             _held[key][1] -= 1
         return
+    made: list[Path] = []   # the folders made here, deepest first
     if create:
+        for place in (folder, *folder.parents):
+            if place.is_dir():
+                break
+            if place.exists():
+                raise RunFolderError(f"{run_dir} cannot be a run folder: {place} is a file; give the path of a "
+                                     "folder (a new one is made)")
+            made.append(place)
         folder.mkdir(parents=True, exist_ok=True)
     elif not folder.is_dir():
         raise RunFolderError(f"{run_dir} is not a run folder: run `calfit identify CASE_DIR --out {run_dir}` first")
+    lock_made = not (folder / LOCK_NAME).exists()
     stream = open(folder / LOCK_NAME, "a+")
     try:
         fcntl.flock(stream, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -61,12 +73,37 @@ def run_folder_lock(run_dir, create: bool = False):
     _held[key] = [stream, 1]
     try:
         yield
-    finally:
-        del _held[key]
-        stream.seek(0)
-        stream.truncate()
-        fcntl.flock(stream, fcntl.LOCK_UN)
-        stream.close()
+    except Exception:
+        _release(key, stream)
+        _remove_if_empty(made or ([folder] if lock_made else []), folders=bool(made))
+        raise
+    except BaseException:
+        _release(key, stream)
+        raise
+    else:
+        _release(key, stream)
+
+
+def _release(key: str, stream) -> None:
+    del _held[key]
+    stream.seek(0)
+    stream.truncate()
+    fcntl.flock(stream, fcntl.LOCK_UN)
+    stream.close()
+
+
+def _remove_if_empty(made: list[Path], folders: bool = True) -> None:
+    """Remove what a failed command made: its folders (deepest first) while they hold nothing but an empty lock
+    (folders), else the lock it made in a folder that was there before."""
+    for place in made:
+        lock = place / LOCK_NAME
+        try:
+            if lock.is_file() and lock.stat().st_size == 0 and (not folders or len(list(place.iterdir())) == 1):
+                lock.unlink()
+            if folders:
+                place.rmdir()   # refuses a folder that is not empty: what was written in it stays
+        except OSError:
+            return
 
 
 def _describe(holder: str) -> str:

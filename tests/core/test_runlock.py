@@ -89,3 +89,34 @@ def test_a_command_on_a_missing_run_folder_says_so_and_creates_nothing(tmp_path,
     assert finished.returncode == 2
     assert f"{missing} is not a run folder: run `calfit identify CASE_DIR --out {missing}` first" in finished.stderr
     assert not missing.exists()
+
+
+def test_a_failed_command_removes_the_folders_it_made_while_they_are_empty(tmp_path):
+    run = tmp_path / "runs" / "run"
+    with pytest.raises(ValueError):
+        with run_folder_lock(run, create=True):
+            raise ValueError("the case is refused")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_or_interrupted_command_keeps_what_it_wrote(tmp_path):
+    """The work done before the failure stays (run the command again to resume); an interrupted command keeps even
+    an empty folder, as it always has."""
+    written = tmp_path / "written"
+    with pytest.raises(RuntimeError):
+        with run_folder_lock(written, create=True):
+            (written / "evaluations.jsonl").write_text("{}\n")
+            raise RuntimeError("an engine failure")
+    assert (written / "evaluations.jsonl").is_file()
+    interrupted = tmp_path / "interrupted"
+    with pytest.raises(KeyboardInterrupt):
+        with run_folder_lock(interrupted, create=True):
+            raise KeyboardInterrupt
+    assert interrupted.is_dir()
+
+
+def test_a_failed_command_never_removes_a_folder_it_did_not_make(tmp_path):
+    with pytest.raises(ValueError):
+        with run_folder_lock(tmp_path, create=True):
+            raise ValueError("refused")
+    assert tmp_path.is_dir() and not (tmp_path / LOCK_NAME).exists()
