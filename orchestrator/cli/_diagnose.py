@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 
-from ..core.errors import EffectError, RunFolderError
 from ..diagnose.diagnosis import Diagnosis
 from ..diagnose.refit import Refit
 from ..diagnose.score import ALPHA
@@ -61,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
                                                                                     if n not in ("auto", "none")]))
         result = run_diagnose(args.run_dir, refit_effects=refit, alpha=args.alpha,
                               engine_sensitivities=not args.no_engine_sensitivities, **parallel_options(args))
-    except (RunFolderError, EffectError, ValueError, RuntimeError) as error:
+    except (ValueError, RuntimeError) as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     lines = ranking_lines(Diagnosis.from_dict(result))
     before, after = Refit(**result["before"]), [Refit(**fit) for fit in result["refits"]]
