@@ -39,6 +39,7 @@ wall time it took (ranking the previous model's residual, the refits, the backwa
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -66,6 +67,7 @@ SCORE_FRACTION = 0.5     # ...and every other whose statistic is at least half t
 MAX_REFITTED = 5         # ...up to five refits a step
 TIE_BIC = 2.0            # BIC within 2: the data cannot choose between two models (a Bayes factor under e)
 REMOVAL_BIC = 2.0        # backward: an effect goes when the BIC without it is within 2 of the model's, or lower
+NESTED = (("friction", "bridging"),)   # (larger, smaller): the larger's columns hold the smaller's
 
 
 @dataclass
@@ -182,8 +184,14 @@ class _Counted:
 
 
 def refit_candidates(ranking: Sequence[EffectScore], alpha: float = ALPHA) -> list[str]:
-    """The effects refitted at a step (module text), best score first."""
+    """The effects refitted at a step (module text), best score first. Of two nested effects (NESTED: friction's
+    columns hold bridging's and dr/dmu) only the one the score prefers is refitted, by its p-value on its own
+    degrees of freedom: the score's test between them (a band's refit is the dearest there is)."""
     scored = [s for s in ranking if s.p_value < alpha]
+    for larger, smaller in NESTED:
+        pair = [s for s in scored if s.effect in (larger, smaller)]
+        if len(pair) == 2:
+            scored.remove(max(pair, key=lambda s: (s.p_value, s.effect == smaller)))
     if not scored:
         return []
     best = scored[0]
@@ -251,13 +259,15 @@ def _theta_for(model: LegModel, fit: Refit) -> list[float]:
 def stepwise(evaluator_factory, model: LegModel, objective, frame: LegFrame, first: Diagnosis, identified: Refit, *,
              own_floor: Callable[[Refit, np.ndarray], dict | None] | None = None, alpha: float = ALPHA,
              engine_sensitivities: bool = True, progress: bool = True, side_by_side: bool = False,
-             max_steps: int = MAX_STEPS) -> Path:
+             parallel: int = 1, max_steps: int = MAX_STEPS) -> Path:
     """The forward-backward path from the identified model (module text).
 
     evaluator_factory(model, progress=None, workers=None) -> Evaluator, as `diagnose`'s; first: the diagnosis of the
     identified model at its theta (step 0's ranking); identified: its fit (`refit.summarize_fit`); own_floor(fit,
     residual_mm): the floor with the skin's uncertainty estimated again at a fit's parameters, or None (set as the
-    accepted fits' `own_floor`)."""
+    accepted fits' `own_floor`); side_by_side: as `diagnose`'s; parallel: refits run at once, each in a thread with
+    its own evaluator running one engine at a time, silently (a step's refits do not depend on one another; the
+    engine runs one thread, so on two cores two refits take the time of one)."""
     count = _Counted(evaluator_factory)
     base_effects = list(model.effects)
     counted = lambda fit, effects: counted_bic(fit, effects, model.garment, first.n_residuals)   # noqa: E731
@@ -289,10 +299,9 @@ def stepwise(evaluator_factory, model: LegModel, objective, frame: LegFrame, fir
             stopped = "nothing significant"
             break
         scores = {s.effect: s for s in diagnosis.ranking}
-        tried = []
-        for name in refit_candidates(diagnosis.ranking, alpha):
-            tried.append(_try_addition(count, current, name, scores[name], diagnosis.design_effect, objective,
-                                       counted))
+        tried = _side_by_side(lambda factory, name: _try_addition(factory, current, name, scores[name],
+                                                                  diagnosis.design_effect, objective, counted),
+                              count, refit_candidates(diagnosis.ranking, alpha), parallel)
         choice, ties = choose_addition(current.bic, tried, alpha)
         first_tried = tried if len(steps) == 1 else first_tried
         if choice is None:
@@ -308,7 +317,7 @@ def stepwise(evaluator_factory, model: LegModel, objective, frame: LegFrame, fir
         since, diagnosis, tried = mark(), None, []
         while len(steps) - 1 < max_steps:   # backward: the effects added before this one, tried out again
             removed = _try_removals(count, model, base_effects, current, choice.effect, objective, positions, rows,
-                                    alpha, own_floor, counted)
+                                    alpha, own_floor, counted, parallel)
             cost = spent(since)
             if removed is None:   # the refits that removed nothing are the last step's
                 current.engine_runs += cost["engine_runs"]
@@ -329,6 +338,16 @@ def identified_only(model: LegModel, first: Diagnosis, identified: Refit) -> Pat
     return Path([step], "not asked", {"step": 1, "tried": [], "engine_runs": 0, "wall_time_s": 0.0})
 
 
+def _side_by_side(work, count: _Counted, names: Sequence[str], parallel: int) -> list:
+    """[work(factory, name) for name in names], `parallel` at a time in threads whose evaluators run their engine
+    themselves and silently (one worker: no process forked from a thread, as `candidates.GarmentRuns`)."""
+    if parallel < 2 or len(names) < 2:
+        return [work(count, name) for name in names]
+    quiet = lambda model, **options: count(model, progress=False, workers=1)   # noqa: E731
+    with ThreadPoolExecutor(max_workers=min(parallel, len(names))) as pool:
+        return list(pool.map(lambda name: work(quiet, name), names))
+
+
 def _try_addition(count, current: Step, name: str, score: EffectScore, deff: float, objective, counted) -> Tried:
     try:
         fit, r = refit_whitened(count, current.model, current.fit.theta, [name], objective)
@@ -342,26 +361,26 @@ def _try_addition(count, current: Step, name: str, score: EffectScore, deff: flo
 
 
 def _try_removals(count, model: LegModel, base_effects: list[str], current: Step, last: str, objective, positions,
-                  rows, alpha: float, own_floor, counted) -> Step | None:
+                  rows, alpha: float, own_floor, counted, parallel: int = 1) -> Step | None:
     """The backward step after `last` was added: each effect added before it refitted out (module text); the Step
     without the one that goes, or None. The refits tried are kept in current.removals_tried."""
-    options, fits = [], {}
-    for name in current.effects:
-        if name in base_effects or name == last:
-            continue
+    fits = {}
+
+    def without(factory, name: str) -> dict:
         remaining = [e for e in current.effects if e != name]
         reduced = refit_model(model, [e for e in remaining if e not in base_effects])
         try:
-            fit, r = refit_whitened(count, reduced, _theta_for(reduced, current.fit), [], objective)
+            fit, r = refit_whitened(factory, reduced, _theta_for(reduced, current.fit), [], objective)
         except RuntimeError as error:
-            options.append({"effect": name, "bic": None, "failure": str(error)})
-            continue
+            return {"effect": name, "bic": None, "failure": str(error)}
         fit.effects = remaining
-        deff = design_effect(neighbour_correlation(positions, r, rows))
-        options.append({"effect": name, "chi2": fit.chi2, "bic": counted(fit, remaining),
-                        "dof": current.dofs.get(name, 1),
-                        "design_effect": deff, "misfit_over_floor": fit.misfit_over_floor})
         fits[name] = (fit, reduced, objective.residual_mm(r))
+        return {"effect": name, "chi2": fit.chi2, "bic": counted(fit, remaining), "dof": current.dofs.get(name, 1),
+                "design_effect": design_effect(neighbour_correlation(positions, r, rows)),
+                "misfit_over_floor": fit.misfit_over_floor}
+
+    earlier = [name for name in current.effects if name not in base_effects and name != last]
+    options = _side_by_side(without, count, earlier, parallel)
     removal = choose_removal(current.fit.chi2, current.bic, options, alpha)
     current.removals_tried = options
     if removal is None:

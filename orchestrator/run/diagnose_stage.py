@@ -91,7 +91,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     path = (stepwise(evaluator_for, model, objective, frame, diagnosis, before, alpha=alpha,
                      own_floor=lambda fit, residual: _refit_own_floor(setup, identification, fit, residual),
                      engine_sensitivities=engine_sensitivities, progress=shown,
-                     side_by_side=bool(scheduler) or workers > 1)
+                     side_by_side=bool(scheduler) or workers > 1, parallel=workers)
             if stepping else identified_only(model, diagnosis, before))
     # the refits of the identified model's candidates, the path's first, are the diagnosis' "refits"
     after = [t.fit for t in path.first_tried if t.fit is not None]

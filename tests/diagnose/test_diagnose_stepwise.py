@@ -240,6 +240,10 @@ def test_the_candidates_refitted_are_the_best_three_and_those_near_the_best():
     ranking[0].tied_with = ["F"]
     assert refit_candidates(ranking) == ["A", "B", "C", "D", "F"]
     assert refit_candidates([score("F", 3.0, 0.08)]) == []
+    # friction's columns nest bridging's: the score's own test between them chooses which band is refitted
+    band = [score("friction", 40.0, 2e-9), score("bridging", 38.0, 1e-9), score("drainage", 30.0, 1e-7),
+            score("stiffening", 25.0, 1e-6)]
+    assert refit_candidates(band) == ["bridging", "drainage", "stiffening"]
 
 
 def test_the_final_model_is_read_from_the_run_folder(tmp_path):
