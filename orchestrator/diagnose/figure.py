@@ -74,7 +74,8 @@ def path_figure(path: Path, steps: list[dict], agreement: float = FLOOR_AGREEMEN
     ratios = [entry["misfit_over_floor"] for entry in steps]
     for k, entry in enumerate(steps):
         tried = [t["misfit_over_floor"] for t in entry.get("tried", []) if t.get("misfit_over_floor") is not None]
-        ax.plot([k] * len(tried), tried, "o", color="0.6", markersize=4, label="refits tried" if k == 1 else None)
+        ax.plot([k] * len(tried), tried, "o", color="0.6", markersize=4,
+                label="refits tried (the identified fit's weights)" if k == 1 else None)
     ax.plot(x, ratios, "o-", color="tab:blue", linewidth=2, markersize=7, label="the path's model")
     for k, ratio in enumerate(ratios):
         ax.annotate(f"{ratio:.2f}", (k, ratio), textcoords="offset points", xytext=(6, 6), fontsize=8)

@@ -188,16 +188,18 @@ def refit_candidates(ranking: Sequence[EffectScore], alpha: float = ALPHA) -> li
     columns hold bridging's and dr/dmu) only the one the score prefers is refitted, by its p-value on its own
     degrees of freedom: the score's test between them (a band's refit is the dearest there is)."""
     scored = [s for s in ranking if s.p_value < alpha]
+    dropped = set()
     for larger, smaller in NESTED:
         pair = [s for s in scored if s.effect in (larger, smaller)]
-        if len(pair) == 2:
-            scored.remove(max(pair, key=lambda s: (s.p_value, s.effect == smaller)))
+        if len(pair) == 2:   # the worse p-value goes; on a tie, the larger effect
+            dropped.add(max(pair, key=lambda s: (s.p_value, s.effect == larger)).effect)
+    scored = [s for s in scored if s.effect not in dropped]
     if not scored:
         return []
     best = scored[0]
     names = [s.effect for s in scored[:MIN_REFITTED]]
     names += [s.effect for s in scored[MIN_REFITTED:] if s.statistic >= SCORE_FRACTION * best.statistic]
-    names += [name for name in best.tied_with if name not in names]
+    names += [name for name in best.tied_with if name not in names and name not in dropped]
     return names[:MAX_REFITTED]
 
 

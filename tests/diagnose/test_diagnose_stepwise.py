@@ -244,6 +244,8 @@ def test_the_candidates_refitted_are_the_best_three_and_those_near_the_best():
     band = [score("friction", 40.0, 2e-9), score("bridging", 38.0, 1e-9), score("drainage", 30.0, 1e-7),
             score("stiffening", 25.0, 1e-6)]
     assert refit_candidates(band) == ["bridging", "drainage", "stiffening"]
+    band[2].tied_with = ["friction"]   # nor as a tie of the best
+    assert refit_candidates(band[2:] + band[:2]) == ["drainage", "stiffening", "bridging"]
 
 
 def test_the_final_model_is_read_from_the_run_folder(tmp_path):
