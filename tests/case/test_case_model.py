@@ -132,7 +132,7 @@ def test_explicit_garment_case_is_identified_back(explicit_run):
     assert "garment: the explicit band of 0.16 N/mm, penalty contact, frictionless" in result["setup_lines"]
     assert np.all(np.abs(error[[1, 3]]) < 0.05)   # C10 and Kv of muscle
 
-    # the band's diagnosis (issue 29): nothing is hidden in this case, so nothing is significant
+    # the band's diagnosis: nothing is hidden in this case, so nothing is significant
     diagnosis = run_diagnose(run, progress=False)
     assert "drainage" in [score["effect"] for score in diagnosis["ranking"]]
     assert not any(score["significant"] for score in diagnosis["ranking"]), diagnosis["verdict"]

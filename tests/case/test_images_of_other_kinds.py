@@ -1,4 +1,4 @@
-"""Images as other scanners and other legs make them (issue 28): the second renderer's case folder (two images and
+"""Images as other scanners and other legs make them: the second renderer's case folder (two images and
 case.toml, no labels) turned, before calfit sees it, into what a user may bring instead:
 
 - a left leg: both images mirrored left to right (the landmarks with them), so the fibula is on the other side;

@@ -1,4 +1,4 @@
-"""The diagnosis of the second paper's model, the explicit garment band (issue 29).
+"""The diagnosis of the second paper's model, the explicit garment band.
 
 The band's deck (templates/leg_garment.inp.j2) carries the catalog's effects on the tissues and bones, written into
 its last step, once the band is on the leg; the effects of Laplace's law itself (a tension profile, the unloaded

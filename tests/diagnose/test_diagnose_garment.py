@@ -1,4 +1,4 @@
-"""The garment's effects in the diagnosis (issue 13, must-show 3; orchestrator/diagnose/diagnosis.py, "The garment's effects").
+"""The garment's effects in the diagnosis (orchestrator/diagnose/diagnosis.py, "The garment's effects").
 
 - A Laplace-law model gets friction and bridging as candidates (the band's runs give their columns), with its effects
   on the tissues carried by the band; with an effect of Laplace's law itself fitted they are skipped with the reason. The band model fits friction's coefficient mu as

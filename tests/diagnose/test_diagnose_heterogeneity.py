@@ -1,4 +1,4 @@
-"""Heterogeneity that the labels do not hold, and the place where the model fails (issue 15).
+"""Heterogeneity that the labels do not hold, and the place where the model fails.
 
 The muscle compartments are found at the septa of I0 (`imaging.compartments`) and compared with the phantom's
 own compartments. The material groups that carry the `heterogeneity` effect and the local patches partition

@@ -1,4 +1,4 @@
-"""The second paper's model diagnosed from its images (issue 29): Bouten and Drapier's Table 1 Mooney-Rivlin tissues,
+"""The second paper's model diagnosed from its images: Bouten and Drapier's Table 1 Mooney-Rivlin tissues,
 incompressible on u/p elements (CPE6H), under the explicit garment band with Coulomb friction (mu = 0.3), fitted
 with the same model (`phantom.truths.SECOND_PAPER_FIT_TABLES`) from the default start (half of Avril et al.'s
 Table 2 C10, 2 to 6 times the truth).

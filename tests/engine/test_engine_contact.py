@@ -1,4 +1,4 @@
-"""Penalty contact with a smoothed master surface in calfit-fe (issue 3).
+"""Penalty contact with a smoothed master surface in calfit-fe.
 
 1. Shrink fit, plane strain, linear-elastic limit (St Venant-Kirchhoff at strains of
    1e-3): a core annulus 0.5 (clamped) to 1.0, E = 1, inside a ring 0.998 to 1.1,

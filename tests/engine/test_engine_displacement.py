@@ -1,4 +1,4 @@
-"""Displacement-driven verification of calfit-fe (issue 18): what users calibrate on (compression tests,
+"""Displacement-driven verification of calfit-fe: what users calibrate on (compression tests,
 indentation, the second paper's disk, bone motion) is driven by prescribed displacements, not loads.
 
 1. Homogeneous states to 40 % strain, NEO HOOKE, MOONEY-RIVLIN and AVRIL on CPE3, CPE6 and CPE6H, every state

@@ -1,4 +1,4 @@
-"""Mixed u/p elements CPE6H and CPE3H of calfit-fe (issue 3).
+"""Mixed u/p elements CPE6H and CPE3H of calfit-fe.
 
 1. Cook's membrane (corners (0,0), (48,44), (48,60), (0,44); left edge clamped; uniform
    shear on the right edge as consistent dead nodal loads), plane strain, with the

@@ -1,4 +1,4 @@
-"""Identification with the second paper's explicit garment (issue 13): `LegModel(garment="explicit")` writes the
+"""Identification with the second paper's explicit garment: `LegModel(garment="explicit")` writes the
 band of orchestrator.meshing.garment_band around the leg, put on with frictionless penalty contact
 (templates/leg_garment.inp.j2), and asks the engine for du/dtheta through the contact, so that
 Levenberg-Marquardt needs no finite-difference runs.

@@ -1,4 +1,4 @@
-"""Identification from the two images alone, at truths that are not the fit's start (issue 12).
+"""Identification from the two images alone, at truths that are not the fit's start.
 
 Each case is made by the engine from a random truth within physiological ranges (drawn log-uniformly, every
 parameter at least 15 % away from Avril et al.'s Table 2 central values, where the fit starts), on the

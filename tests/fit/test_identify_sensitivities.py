@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt with the engine's sensitivities (issue 7): on the phantom case of the demo (4
+"""Levenberg-Marquardt with the engine's sensitivities: on the phantom case of the demo (4
 parameters of Avril et al., displacement residual at points.csv), the Jacobian from du/dtheta
 (`*SENSITIVITY`) reaches the optimum that finite differences reach, from a start 20-30 % off the
 truth, in at most 15 engine runs (fitted on 600 CPE6, the phantom made on its own mesh)."""

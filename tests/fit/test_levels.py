@@ -1,4 +1,4 @@
-"""Several garment levels of one slice fitted jointly (issue 13, item 2; `orchestrator.fit.levels`).
+"""Several garment levels of one slice fitted jointly (`orchestrator.fit.levels`).
 
 Fast: one evaluation of a `LevelsModel` solves every level (a job sub-folder each) and its
 `JointDisplacementObjective` gives each level's residuals stacked, as each level evaluated alone gives them, with
@@ -464,7 +464,7 @@ def test_two_levels_are_identified_from_the_images_alone(tmp_path, seed):
 
 @pytest.mark.slow
 def test_two_socks_on_the_explicit_band_are_identified_jointly(tmp_path):
-    """The second paper's garment at two tensions (issue 29): a phantom made with the band under 0.16 and 0.32 N/mm
+    """The second paper's garment at two tensions: a phantom made with the band under 0.16 and 0.32 N/mm
     (each level's band of the same size, its fabric stiffer in proportion), on its own 2,000-element mesh, points with
     0.02 mm noise and scanner motion, fitted jointly with the band from case.toml; each sock's band in
     pressures.json."""

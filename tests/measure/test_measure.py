@@ -1,4 +1,4 @@
-"""Displacements measured from the images (issue 12): DIC relative to the bones, its covariance, the windows'
+"""Displacements measured from the images: DIC relative to the bones, its covariance, the windows'
 observation operator, outlier rejection, and `calfit measure` on a case folder.
 
 The error model is checked where the truth is known: a rendered pair whose tissue moves by a known field, so

@@ -1,4 +1,4 @@
-"""The explicit garment band on the leg as a user reads it (`orchestrator.model.garment_state`, issue 29 item 4): its
+"""The explicit garment band on the leg as a user reads it (`orchestrator.model.garment_state`): its
 contact pressure, shear, status and slip around the skin, its bridges and its hoop force, from the engine's own
 outputs (contact_pressure, contact_shear, contact_status, contact_slip).
 
@@ -108,7 +108,7 @@ def test_the_band_bridges_the_dent_and_the_bridge_is_found_there(tmp_path):
 
 
 def test_a_band_knitted_unevenly_keeps_an_uneven_hoop_force_where_friction_holds_it(leg, tmp_path):
-    """The band_profile effect (issue 29: the band's prestretch varying around the leg): the band's natural length
+    """The band_profile effect (the band's prestretch varying around the leg): the band's natural length
     times 1 + 0.05 cos phi. Held at mu = 0.3, the band keeps a hoop force lower where it is longer (measured: the
     force's cos phi part -0.025 N/mm of 0.149, -17 %); at mu = 0.02 it slips (half the skin) until the force is nearly
     even again (-0.002 N/mm). Either way within the capstan bound, max T / min T <= exp(mu 2 pi)."""

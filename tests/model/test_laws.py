@@ -1,4 +1,4 @@
-"""Laws per tissue (issue 13, item 1; orchestrator/core/materials.py, docs/case-folder.md "The model"): case.toml's
+"""Laws per tissue (orchestrator/core/materials.py, docs/case-folder.md "The model"): case.toml's
 [model.<tissue>] tables, the parameters they make, the deck materials they write, and the engine sensitivities
 mapped onto them (Kv of a D1 law through D1 = 1/Kv).
 

@@ -1,4 +1,4 @@
-"""The second paper's model identified back (issue 13, must-show 1): Bouten and Drapier's Mooney-Rivlin tissues
+"""The second paper's model identified back: Bouten and Drapier's Mooney-Rivlin tissues
 (Table 1: adipose C10 1.4, C01 1.0, C20 -0.04 kPa; gastrocnemius C10 0.9, C01 0.6 kPa; bulk moduli of 1e8, i.e.
 incompressible), on u/p elements (CPE6H), under the explicit garment band with Coulomb friction (mu = 0.3).
 

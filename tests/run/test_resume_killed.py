@@ -1,4 +1,4 @@
-"""A Monte-Carlo and a diagnosis killed at random points and started again (issue 17): every evaluation the
+"""A Monte-Carlo and a diagnosis killed at random points and started again: every evaluation the
 killed run finished is read back from the run folder's log (with its engine sensitivities), the engine is
 launched exactly for the evaluations still missing, none is evaluated twice, and the result is the one an
 uninterrupted run gives, number for number.

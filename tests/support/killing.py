@@ -1,4 +1,4 @@
-"""Kill a calfit command part-way and count its engine launches: the helpers of the resume tests (issue 17).
+"""Kill a calfit command part-way and count its engine launches: the helpers of the resume tests.
 
 A command is killed with SIGKILL (no handler runs, as when a machine loses power) once its run folder's log
 holds a given number of evaluations, together with every process it started (its engines and workers: a machine
