@@ -324,6 +324,13 @@ def test_two_hidden_effects_at_once_are_both_in_the_final_model_and_nothing_else
     assert diagnosis["ranking"][0]["significant"] and len(diagnosis["refits"]) >= 3
     assert all((tmp_path / "run" / name).is_file() for name in ("diagnosis-path.png", "diagnosis-path-maps.png"))
 
+    # every refit went through the run's log: a diagnosis started again (as after a kill) runs the engine no more
+    from orchestrator.run.stages import run_diagnose
+
+    again = run_diagnose(tmp_path / "run", workers=2, progress=False)
+    assert [entry["engine_runs"] for entry in again["path"]] == [0] * len(path)
+    assert again["final"]["effects"] == final["effects"] and again["verdict"] == diagnosis["verdict"]
+
     # the final model is the one users get: identified again from the usual start with its effects
     run = shutil.copytree(tmp_path / "run", tmp_path / "final")
     effects = requested_effects("final", run)
