@@ -9,6 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ..core.digits import PLUS_MINUS
 from ..model.heterogeneity import PATCH_PREFIX, patch_groups, stiffness_field_text
 from .diagnosis import Diagnosis
 from .locate import PatchScore
@@ -80,7 +81,7 @@ def unfixed_constants(diagnosis: Diagnosis, fit: Refit) -> str:
     if not loose:
         return ""
     return ("; in that refit the data do not fix " + ", ".join(
-        f"{name} (95 % interval {'unbounded' if half is None else f'+-{100 * half:.1f} %'})" for name, half in loose))
+        f"{name} (95 % interval {'unbounded' if half is None else f'{PLUS_MINUS}{100 * half:.1f} %'})" for name, half in loose))
 
 
 

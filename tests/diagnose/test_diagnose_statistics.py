@@ -257,7 +257,7 @@ def test_a_refits_linearized_intervals_hold_the_truth_95_times_in_100_and_name_w
     refit = Refit(["drainage"], list(space.names), truth.tolist(), 1e-3, 1.0, 100.0, 0.0, 0.0, {},
                   intervals=linearized_intervals(model, truth, [0.2, 0.01, 5.0]))
     words = unfixed_constants(SimpleNamespace(parameters=["C10_fat", "C10_muscle"]), refit)
-    assert words.startswith("; in that refit the data do not fix C10_fat (95 % interval +-")
+    assert words.startswith("; in that refit the data do not fix C10_fat (95 % interval ±")
     assert "dv_muscle" not in words and "C10_muscle" not in words
     assert "[" in refit.parameter_text() and "C10_fat=4.5 [" in refit.parameter_text()
 
