@@ -25,8 +25,6 @@ from __future__ import annotations
 import csv
 import math
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,7 +32,7 @@ import numpy as np
 import tomllib
 
 from ..core.errors import CaseError, MaterialError
-from ..core.files import replace_folder
+from ..core.files import staged_folders
 from ..core.materials import ELEMENTS, TissueLaw
 from ..core.tissues import (
     BACKGROUND,
@@ -464,9 +462,7 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
         pngs = images
     else:   # one common scale, so that every level's grey levels compare with I0's
         pngs, _ = to_uint16([np.asarray(image, float) for image in images])
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
+    with staged_folders(folder) as (staging,):
         text = _case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {}, levels)
         (staging / "case.toml").write_text(text + ("\n" + model_toml.strip() + "\n" if model_toml.strip() else ""),
                                            encoding="utf-8")
@@ -483,10 +479,6 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
             write_png16(staging / "labels.png", np.asarray(labels).astype(np.uint8))
         if points is not None:
             _write_points(staging / "points.csv", points)
-        replace_folder(staging, folder)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return folder
 
 

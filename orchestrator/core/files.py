@@ -12,6 +12,8 @@ import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from .errors import RunFolderError
@@ -45,3 +47,23 @@ def replace_folder(staging: Path, folder: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.rename(staging, folder)
+
+
+@contextmanager
+def staged_folders(*folders: Path) -> Iterator[tuple[Path, ...]]:
+    """Hidden staging folders, one beside each of `folders`, to write into; when the block ends normally each is
+    moved to its folder in turn (`replace_folder`), and when anything is raised (Ctrl-C included) every staging
+    folder not yet moved is removed, so a folder is replaced whole or left as it was."""
+    folders = tuple(Path(folder) for folder in folders)
+    staging = []
+    try:
+        for folder in folders:
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            staging.append(Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent)))
+        yield tuple(staging)
+        while staging:
+            replace_folder(staging[0], folders[len(folders) - len(staging)])
+            staging.pop(0)
+    finally:
+        for left in staging:
+            shutil.rmtree(left, ignore_errors=True)

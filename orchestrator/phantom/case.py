@@ -23,15 +23,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..case._formats import write_png16
 from ..case.folder import DisplacementPoints, GarmentLevel, write_case_folder
-from ..core.files import replace_folder
+from ..core.files import staged_folders
 from ..core.frame import RigidMotion, displacement_on_grid, pixel_centres_mm
 from ..imaging.segment import segment_t1
 from .render import (
@@ -92,9 +90,7 @@ def write_case(folder, phantom: Phantom | None = None, displacement=None, *, rig
             Path(f"loaded-level-{number}.png"), level_points,
             Path(f"points-level-{number}.csv") if level_points is not None else None)))
 
-    truth_folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
-    try:
+    with staged_folders(truth_folder) as (staging,):
         truth = {"case_folder": str(folder), "description": description, **phantom.description(),
                  "image_shape": list(phantom.image_shape), "pixel_size_mm": list(phantom.pixel_size_mm),
                  "noise_seeds": list(noise_seeds),
@@ -118,10 +114,6 @@ def write_case(folder, phantom: Phantom | None = None, displacement=None, *, rig
                           tension_N_per_mm=tension_N_per_mm, tension_rel_uncertainty=tension_rel_uncertainty,
                           labels=case_labels, points=points, landmarks=phantom.geometry.landmarks(),
                           levels=tuple(level for *_, level in extra), overwrite=overwrite)
-        replace_folder(staging, truth_folder)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return folder, truth_folder
 
 

@@ -42,8 +42,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -53,7 +51,7 @@ from scipy import ndimage
 
 from ..case._formats import write_png16
 from ..case.volume import RigidMotion3D, volume_affine, write_nifti_volume
-from ..core.files import replace_folder
+from ..core.files import staged_folders
 from ..core.frame import mm_to_index, pixel_centres_mm
 from ..meshing import Mesh
 from ..model.forward import LEG_PARAMETERS, LegModel, MeshInterpolator, field_on_pixels
@@ -434,11 +432,7 @@ def write_volume_case(folder, truth_folder=None, *, profile: LegProfile = LegPro
                            compression_heights(leg.profile, studied),
                            [(float(h), phantoms[first + k].geometry.landmarks()) for k, h in enumerate(heights)])
 
-    for target in (folder, truth_folder):
-        target.parent.mkdir(parents=True, exist_ok=True)
-    truth_staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
-    case_staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
+    with staged_folders(truth_folder, folder) as (truth_staging, case_staging):
         (truth_staging / "truth.json").write_text(json.dumps(record, indent=2) + "\n", encoding="utf-8")
         for entry, phantom, field_mm in zip(slices, phantoms, fields):
             if entry["studied"]:
@@ -447,12 +441,6 @@ def write_volume_case(folder, truth_folder=None, *, profile: LegProfile = LegPro
         write_nifti_volume(case_staging / "unloaded.nii.gz", unloaded, affine)
         write_nifti_volume(case_staging / "loaded.nii.gz", loaded, affine)
         (case_staging / "case.toml").write_text(case_toml, encoding="utf-8")
-        replace_folder(truth_staging, truth_folder)
-        replace_folder(case_staging, folder)
-    except BaseException:
-        shutil.rmtree(truth_staging, ignore_errors=True)
-        shutil.rmtree(case_staging, ignore_errors=True)
-        raise
     return folder, truth_folder
 
 

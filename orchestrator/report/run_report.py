@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import tempfile
 from pathlib import Path
 
 import jinja2
@@ -45,7 +44,7 @@ from ..core.digits import (
     rounded,
     significant,
 )
-from ..core.files import read_json, replace_folder
+from ..core.files import read_json, staged_folders
 from ..core.run_lock import holds_run_folder
 from ..core.tissues import BONE
 from ..core.units import MMHG_PER_KPA
@@ -154,18 +153,13 @@ def write_report(run_dir: str | Path, truth: dict | None = None) -> Path:
     pressures = _optional_json(run_dir / "pressures.json")
     diagnosis = _optional_json(run_dir / "diagnosis.json")
     final = run_dir / "report"
-    staging = Path(tempfile.mkdtemp(prefix=".report.", dir=run_dir))
-    try:
+    with staged_folders(final) as (staging,):
         report = _strict_json(build_report(setup, identification, montecarlo, pressures, diagnosis, truth, staging))
         (staging / REPORT_JSON).write_text(json.dumps(report, indent=1, allow_nan=False), encoding="utf-8")
         (staging / "index.html").write_text(render_page(report), encoding="utf-8")
         for sub in staging.iterdir():
             if sub.is_dir():
                 shutil.rmtree(sub, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    replace_folder(staging, final)
     return final / "index.html"
 
 

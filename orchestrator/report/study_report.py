@@ -20,14 +20,12 @@ A study's rows are written as each case finishes; the report is rewritten at the
 from __future__ import annotations
 
 import json
-import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..core.digits import interval_uncertainty
-from ..core.files import replace_folder
+from ..core.files import staged_folders
 from ..core.units import MMHG_PER_KPA
 from .run_report import _figure, _section, _strict_json, _table, render_page
 
@@ -40,16 +38,11 @@ def write_study_report(out: str | Path, rows: list[dict], volume: dict | None = 
     """Write out/report/ (module text) from the rows of the study table (in the cases' order) and, for a volume,
     the record of its slices (`volume_study.slice_volume_case`); returns the page's path."""
     out = Path(out)
-    staging = Path(tempfile.mkdtemp(prefix=".report.", dir=out))
-    try:
+    final = out / REPORT_FOLDER
+    with staged_folders(final) as (staging,):
         report = _strict_json(build_study_report(rows, volume, staging))
         (staging / "report.json").write_text(json.dumps(report, indent=1, allow_nan=False), encoding="utf-8")
         (staging / "index.html").write_text(render_page(report), encoding="utf-8")
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    final = out / REPORT_FOLDER
-    replace_folder(staging, final)
     return final / "index.html"
 
 
