@@ -108,7 +108,7 @@ def test_directions_the_data_do_not_fix_leave_their_parameters_undetermined():
 
     rng = np.random.default_rng(3)
     g, h = rng.standard_normal(200), rng.standard_normal(200)
-    c10, c01, kv = 1.4, 1.0, 60.0
+    c10, c01 = 1.4, 1.0
     J = np.column_stack([c10 * g, c01 * g, h])
     x_low, x_high = np.log([0.1, 0.05, 20.0]), np.log([30.0, 30.0, 200.0])
     basis, undetermined = _free_directions(J, 1.0, x_high - x_low, 0.10)

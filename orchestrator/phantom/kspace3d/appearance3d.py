@@ -160,7 +160,7 @@ class Appearance3D:
 
     def _fat(self, w, z, rho, unit, h):
         """Fat with its faint texture, crossed by the septa (sheets in 3D, module text)."""
-        g, c = self.leg.geometry, self.contrast
+        c = self.contrast
         fat = c.fat * (1.0 + c.fat_texture * self.texture["fat"](w.real, w.imag, z))
         covered = self.septa_coverage(w, z, rho, unit, h)
         return covered * c.fat_septum_water, fat * (1.0 - covered)
