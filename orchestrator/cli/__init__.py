@@ -17,6 +17,7 @@ import sys
 from ..core.errors import CalfitError
 from . import (
     _demo,
+    _design,
     _diagnose,
     _identify,
     _measure,
@@ -42,6 +43,7 @@ COMMANDS = {
     "report": _report,
     "paraview": _paraview,
     "study": _study,
+    "design": _design,
 }
 
 
