@@ -8,10 +8,12 @@ mmHg:
 - a minimum r = max(0, min + margin - q), a maximum r = max(0, q - max + margin): zero once met with the margin,
   which is z(probability) times the quantity's standard deviation over the parameters' draws and the tension's
   uncertainty (`uncertainty`; 0 on the first pass);
-- with the graduation (RAL-GZ 387/1, `standards`), between neighbouring slices r = max(0, p_upper - p_lower) on the
-  skin's mean pressure, and at D r = max(0, p_D - 0.7 p_B);
-- weak terms that choose among garments meeting everything alike: the profile's coefficients towards 0 (a uniform
-  knit) and, along a volume, T's second difference towards 0 (a smooth tension where no target holds it).
+- with the graduation (RAL-GZ 387/1, `standards`), between neighbouring slices r = max(0, p_upper - p_lower + margin)
+  on the skin's mean pressure, and at D r = max(0, p_D - 0.7 p_B + margin), the margins those differences' own;
+- weak terms that choose among garments meeting everything alike: T towards the fabric's lowest tension (the
+  lightest garment that meets a minimum; ECONOMY_WEIGHT leaves a minimum short by about ECONOMY_WEIGHT^2 T / (dq/dT),
+  1e-3 mmHg on a calf), the profile's coefficients towards 0 (a uniform knit) and, along a volume, T's second
+  difference towards 0 (a smooth tension where no target holds it).
 
 The Jacobian is the engine's (`slices.evaluate`: d/dT and d/da_k of every quantity, the chain rule for the
 hinges), block by block, since a slice's pressures depend on its own garment only. A step is the damped
@@ -32,6 +34,7 @@ import numpy as np
 from .standards import BELOW_KNEE_SHARE_MAX
 from .targets import Target, Targets
 
+ECONOMY_WEIGHT = 1.0          # mmHg of residual per N/mm above the fabric's lowest tension
 PROFILE_WEIGHT = 2.0          # mmHg of residual per unit of a profile coefficient: prefer a uniform knit
 SMOOTHNESS_WEIGHT = 20.0      # mmHg per N/mm of T's second difference along the leg
 MAX_ITERATIONS = 20
@@ -110,17 +113,22 @@ class Problem:
                     add(max(0.0, over), {k: dq if over > 0 else 0 * dq}, label)
         if self.targets.graduated and self.n_slices > 1:
             for k in range(self.n_slices - 1):
-                rise = responses[k + 1].skin_mean - responses[k].skin_mean
+                rise = responses[k + 1].skin_mean - responses[k].skin_mean + self.margins.get(("graduation", k), 0.0)
                 active = rise > 0
                 add(max(0.0, rise), {k + 1: responses[k + 1].d_skin_mean * active,
                                      k: -responses[k].d_skin_mean * active}, f"graduation [{k}->{k + 1}]")
             if "B" in self.heights and "D" in self.heights:
                 b, d = self.heights.index("B"), self.heights.index("D")
-                over = responses[d].skin_mean - BELOW_KNEE_SHARE_MAX * responses[b].skin_mean
+                over = (responses[d].skin_mean - BELOW_KNEE_SHARE_MAX * responses[b].skin_mean
+                        + self.margins.get(("below knee", 0), 0.0))
                 active = over > 0
                 add(max(0.0, over), {d: responses[d].d_skin_mean * active,
                                      b: -BELOW_KNEE_SHARE_MAX * responses[b].d_skin_mean * active}, "D <= 0.7 B")
-        for k, (_, profile) in enumerate(self.split(v)):
+        lowest = self.targets.design.tension_range_N_per_mm[0]
+        for k, (tension, profile) in enumerate(self.split(v)):
+            unit = np.zeros(self.per_slice)
+            unit[0] = ECONOMY_WEIGHT
+            add(ECONOMY_WEIGHT * (tension - lowest), {k: unit}, f"economy [{k}]")
             for j, c in enumerate(profile):
                 g = np.zeros(self.per_slice)
                 g[1 + j] = PROFILE_WEIGHT
