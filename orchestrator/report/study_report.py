@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.digits import interval_uncertainty
+from ..core.digits import interval_uncertainty, rounded
 from ..core.files import staged_folders
 from ..core.units import MMHG_PER_KPA
 from .run_report import _figure, _section, _strict_json, _table, render_page
@@ -52,6 +52,8 @@ def build_study_report(rows: list[dict], volume: dict | None, figure_dir: Path) 
     pressures = pressure_names(done)
     failing = [row for row in rows if row.get("status") != "done" or row.get("lack_of_fit") or row.get("too_coarse")]
     sections = []
+    if volume is not None and volume.get("slide"):
+        sections.append(_slide_section(volume))
     if volume is not None and done:
         sections.append(_profiles_section(done, parameters, pressures, volume, figure_dir))
     if done:
@@ -75,12 +77,46 @@ def _motion_words(volume: dict) -> str:
     lower), or the rotation and translation where the study's record predates those words."""
     alignment = volume.get("alignment") or {}
     rotation, translation = alignment.get("rotation_deg"), alignment.get("translation_mm")
+    slide = volume.get("slide")
+    if rotation is not None and slide is not None:
+        return (f"the leg turned {rotation[2]:.2f} deg about its axis, tilted {float(np.hypot(*rotation[:2])):.2f} deg "
+                f"and slid {_slide_words(slide['slide_mm'], slide['slide_sd_mm'])} mm along it between the sessions "
+                f"(at the leg's centre at {slide['height_mm']:.1f} mm; the bones' centre "
+                f"{_slide_words(slide['bones_centre_slide_mm'], slide['bones_centre_slide_sd_mm'])} mm)")
     if rotation is not None and translation is not None:
         return (f"the leg turned {rotation[2]:.2f} deg about its axis, tilted {float(np.hypot(*rotation[:2])):.2f} deg "
                 f"and slid {translation[2]:+.2f} mm along it between the sessions (in-plane shift "
                 f"{translation[0]:.2f}, {translation[1]:.2f} mm)")
     return (f"rotation {np.linalg.norm(volume['motion']['rotation_vector_deg']):.2f} deg, "
             f"translation ({', '.join(f'{t:.2f}' for t in volume['motion']['translation_mm'])}) mm")
+
+
+def _slide_words(value: float, sd: float) -> str:
+    """A slide with its standard error, to the error's digits (`core.digits.rounded`)."""
+    if sd is None or not np.isfinite(sd):
+        return f"{value:+.2f}"
+    return f"{'+' if value >= 0 else ''}{rounded(value, sd)} ± {rounded(sd, sd)}"
+
+
+def _slide_section(volume: dict) -> dict:
+    """The slide along the leg between the sessions, as the 3D alignment on the bones found it: at the leg's centre
+    of each studied slice, with its standard error (the delete-one-slice jackknife of the alignment)."""
+    slide = volume["slide"]
+    rows = [[entry["height_mm"], entry["slide_mm"], entry["slide_sd_mm"]] for entry in slide.get("slices", [])] or [
+        [entry["height_mm"], entry.get("slide_mm"), entry.get("slide_sd_mm")] for entry in volume["slices"]]
+    spreads = [[None, sd, None if sd is None else sd / 2.0] for _, _, sd in rows]
+    table = _table("slide", "The slide along the leg at each studied slice", ["height (mm)", "slide (mm)", "std (mm)"],
+                   rows, "The loaded volume's displacement along the slices' normal at the centre of the unloaded "
+                   "slice's leg: a loaded slice shows the leg that much lower (positive: the leg slid towards the "
+                   "knee). A tilted leg slides by different amounts across the slice.", spreads)
+    paragraphs = [(
+        f"The leg slid {_slide_words(slide['slide_mm'], slide['slide_sd_mm'])} mm along itself between the sessions, "
+        f"at the leg's centre at {slide['height_mm']:.1f} mm (the bones' centre: "
+        f"{_slide_words(slide['bones_centre_slide_mm'], slide['bones_centre_slide_sd_mm'])} mm; tilt "
+        f"{slide['tilt_deg']:.2f} deg). The standard error is the spread of the alignment made again without each "
+        f"slice in turn ({slide['jackknife_refits']} refits). Each slice case is cut with the loaded volume "
+        "resampled through this motion, so that its two images see the same tissue.")]
+    return _section("slide", "The slide along the leg", paragraphs, tables=[table])
 
 
 def parameter_names(rows: list[dict]) -> list[str]:

@@ -177,7 +177,8 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
         slices, volume = slice_volume_case(study, out, say)
         cases = [piece.folder for piece in slices]
         extras = {entry["folder"]: {key: entry[key] for key in ("height_mm", "tension_N_per_mm", "skin_shift_px",
-                                                                 "too_coarse") if key in entry}
+                                                                 "too_coarse", "slide_mm", "slide_sd_mm")
+                                           if key in entry}
                   for entry in volume["slices"]}
     else:
         cases, extras = study_cases(Path(study)), {}
@@ -223,7 +224,8 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
                "scheduler": scheduler, "cases_per_hour": 3600.0 * len(todo) / wall if todo else None,
                "worker_peak_rss_mib": memory,
                "table": TABLE_CSV, "parquet": TABLE_PARQUET if (out / TABLE_PARQUET).is_file() else None,
-               "report": str(page.relative_to(out)), "volume_slices": SLICES_JSON if volume is not None else None}
+               "report": str(page.relative_to(out)), "volume_slices": SLICES_JSON if volume is not None else None,
+               "slide": None if volume is None else volume.get("slide")}
     write_json(out / SUMMARY_JSON, summary)
     say(f"{done} of {len(cases)} cases done, {len(summary['failed'])} failed; {wall:.0f} s; table in {out / TABLE_CSV}")
     return summary

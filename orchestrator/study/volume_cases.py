@@ -195,11 +195,14 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
                         f"{_pair(unloaded.pixel_size_mm)} mm", "acquire both sessions with the same matrix and field of view")
     say(f"volumes: {unloaded.shape[2]} unloaded slices at {positions[0]:.1f}-{positions[-1]:.1f} mm every "
         f"{unloaded.slice_spacing_mm:.2g} mm, {loaded.shape[2]} loaded; aligning the loaded volume on the bones")
-    alignment = align_volumes_on_bones(unloaded, loaded)
+    fat_shift_mm = volume_fat_shift_mm(unloaded)
+    alignment = align_volumes_on_bones(unloaded, loaded, fat_shift_mm=fat_shift_mm)
     motion = alignment.motion
-    say(f"the leg moved between the sessions: turned {alignment.turn_deg:.2f} deg, tilted {alignment.tilt_deg:.2f} deg, "
-        f"slid {alignment.slide_mm:+.2f} mm along the leg")
     masks: dict[int, np.ndarray] = {}
+    slide = leg_slide(unloaded, alignment, [piece.slice_index for piece in slices], masks)
+    say(f"the leg moved between the sessions: turned {alignment.turn_deg:.2f} deg, tilted {alignment.tilt_deg:.2f} deg, "
+        f"slid {slide['slide_mm']:+.2f} ± {slide['slide_sd_mm']:.2f} mm along the leg (at the leg's centre, "
+        f"{slide['height_mm']:.1f} mm)")
     shifts = {piece.slice_index: skin_shift_px(unloaded, piece.slice_index, masks) for piece in slices}
     coarse = [piece for piece in slices if shifts[piece.slice_index] > MAX_SKIN_SHIFT_PX]
     if coarse:
@@ -227,9 +230,14 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
     if not slices:
         raise CaseError(case.loaded, "does not hold the leg at any studied height once aligned on the bones",
                         "study heights that both sessions imaged")
+    per_slice = {entry["slice_index"]: entry for entry in slide["slices"]}
     record = {"volume_case": str(case.folder.resolve()), "name": case.name,
               "slices": [{**piece.as_dict(), "skin_shift_px": shifts[piece.slice_index],
-                          "too_coarse": shifts[piece.slice_index] > MAX_SKIN_SHIFT_PX} for piece in slices],
+                          "too_coarse": shifts[piece.slice_index] > MAX_SKIN_SHIFT_PX,
+                          "slide_mm": per_slice[piece.slice_index]["slide_mm"],
+                          "slide_sd_mm": per_slice[piece.slice_index]["slide_sd_mm"],
+                          "leg_centre_mm": per_slice[piece.slice_index]["leg_centre_mm"]} for piece in slices],
+              "slide": {key: value for key, value in slide.items() if key != "slices"},
               "max_skin_shift_px": MAX_SKIN_SHIFT_PX, "requested": requested, "left_out": left_out,
               "slice_spacing_mm": unloaded.slice_spacing_mm, "pixel_size_mm": list(unloaded.pixel_size_mm),
               "compression_heights_mm": case.compression_heights_mm,
@@ -238,6 +246,54 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
     write_json(record_path, record)
     say(f"cut {len(slices)} slices into {out / SLICES_FOLDER}")
     return slices, record
+
+
+def volume_fat_shift_mm(volume) -> float:
+    """The size of the fat's chemical shift on the volume's images (mm; 0 when not significant), read as a slice
+    case's is (across the fat/muscle interface snapped to the image's edges, `imaging.chemical_shift.fat_shift`) on the slice nearest the middle that segments: the bones' segmentation
+    needs it (`align3d._find_bones`)."""
+    from ..core.errors import ImagingError
+    from ..imaging.chemical_shift import fat_shift
+    from ..imaging.segment import segment_t1
+    from ..meshing import fat_muscle_normals, tissue_curves
+
+    count = volume.shape[2]
+    for k in sorted(range(count), key=lambda n: abs(n - (count - 1) / 2)):
+        image = volume.slice_image(k)
+        if not np.isfinite(image).all():
+            continue
+        try:
+            curves = tissue_curves(segment_t1(image, volume.pixel_size_mm), volume.pixel_size_mm, image=image)
+            found = fat_shift(image, *fat_muscle_normals(curves), volume.pixel_size_mm)
+        except ImagingError:
+            continue
+        return float(np.hypot(*found.shift_mm)) if found is not None and found.significant else 0.0
+    return 0.0
+
+
+def leg_slide(volume, alignment, studied: list[int], masks: dict | None = None) -> dict:
+    """How far the leg slid along itself between the sessions, as the 3D alignment found it: the motion's
+    displacement along the slices' normal at the leg's centre (the centroid of the unloaded slice's leg), with
+    its standard error (`align3d.VolumeAlignment.slide_sd_at`), at the middle studied slice and at each studied
+    slice. Not the alignment's own translation, which is the bones' centre's: when the leg tilts, every point
+    slides by a different amount, by the tilt times its distance from the tilt's axis, and the bones lie 20-40 mm
+    from the leg's centre (docs/method/studies.md, "The slide along the leg")."""
+    entries = []
+    for k in studied:
+        leg = leg_mask(volume, k, masks)
+        rows, columns = np.nonzero(leg)
+        centre = volume.affine[:3] @ np.array([rows.mean(), columns.mean(), k, 1.0])
+        entries.append({"slice_index": int(k), "height_mm": float(volume.slice_positions_mm[k]),
+                        "leg_centre_mm": centre.tolist(), "slide_mm": float(alignment.slide_at(centre)),
+                        "slide_sd_mm": float(alignment.slide_sd_at(centre))})
+    middle = entries[len(entries) // 2]
+    bones = np.asarray(alignment.motion.centre_mm, float)
+    return {"slide_mm": middle["slide_mm"], "slide_sd_mm": middle["slide_sd_mm"], "height_mm": middle["height_mm"],
+            "at": "the leg's centre (centroid of the unloaded slice's leg) at the middle studied slice",
+            "bones_centre_slide_mm": float(alignment.slide_at(bones)),
+            "bones_centre_slide_sd_mm": float(alignment.slide_sd_at(bones)),
+            "tilt_deg": float(alignment.tilt_deg), "jackknife_refits": len(alignment.jackknife),
+            "fat_shift_mm": float(alignment.fat_shift_mm), "slices": entries}
 
 
 def skin_shift_px(volume, k: int, masks: dict | None = None) -> float:
@@ -260,12 +316,33 @@ def skin_shift_px(volume, k: int, masks: dict | None = None) -> float:
 
 def leg_mask(volume, k: int, masks: dict | None = None) -> np.ndarray:
     """The leg (every tissue) of slice k, segmented (`imaging.segment.segment_t1`); kept in `masks` when given."""
+    from ..core.errors import ImagingError
     from ..imaging.segment import segment_t1
 
     masks = {} if masks is None else masks
     if k not in masks:
-        masks[k] = segment_t1(volume.slice_image(k), volume.pixel_size_mm) > 0
+        image = volume.slice_image(k)
+        try:
+            masks[k] = segment_t1(image, volume.pixel_size_mm) > 0
+        except ImagingError:   # no bone found in this slice: its leg is still the leg (`leg_outline`)
+            masks[k] = leg_outline(image, volume.pixel_size_mm)
     return masks[k]
+
+
+def leg_outline(image: np.ndarray, pixel_size_mm, smoothing_mm: float = 0.36) -> np.ndarray:
+    """The leg of a slice whose bones `segment_t1` does not find (a slice past the bones' ends, or a thin cortex
+    it misses): the largest region brighter than the darkest of three Otsu classes, holes filled, as
+    `segment_t1` takes it before its bones."""
+    from scipy import ndimage
+    from skimage import filters
+
+    from ..imaging.segment import largest_component
+
+    finite = np.isfinite(image)
+    values = np.where(finite, image, np.nanmin(image) if finite.any() else 0.0)
+    smooth = ndimage.gaussian_filter(values, smoothing_mm / min(pixel_size_mm))
+    dark, _ = filters.threshold_multiotsu(smooth, classes=3)
+    return ndimage.binary_fill_holes(largest_component(smooth > dark))
 
 
 def _chosen_slices(case: VolumeCase, positions: np.ndarray, spacing: float) -> list[int]:
@@ -339,7 +416,7 @@ def _check_pixel_size(case: VolumeCase, unloaded) -> None:
 def _alignment_record(alignment) -> dict:
     values = {}
     for key, value in vars(alignment).items():
-        if key == "motion":
+        if key in ("motion", "jackknife"):
             continue
         if isinstance(value, (int, float, str, bool)) or value is None:
             values[key] = value
