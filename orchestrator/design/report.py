@@ -16,10 +16,13 @@ from ..core.plotting import plt
 
 
 def probability_text(p: float, se: float) -> str:
-    """A probability with its draws' standard error, to the digits that allows ("0.92 ± 0.03"); "1.00" or "0.00"
-    when every draw agrees (no spread to quote)."""
-    if not np.isfinite(se) or se <= 0.0:
+    """A probability with its draws' standard error, to the digits that allows ("0.92 ± 0.03"); three decimals when
+    the draws agree to better than 0.001 (the tension's 400 quantiles then set its resolution); "1.00", "0.00"
+    when every pair agrees."""
+    if p in (0.0, 1.0):
         return f"{p:.2f}"
+    if not np.isfinite(se) or se < 1e-3:   # the draws agree: the tension's quadrature sets the digits
+        return f"{p:.3f}"
     return with_uncertainty(p, se)
 
 
