@@ -154,7 +154,8 @@ def _written(path, text):
 def test_the_command_writes_design_json_and_its_page(identified, tmp_path):
     run, _ = identified
     path = tmp_path / "TARGET.toml"
-    path.write_text(TARGETS.format(extra=""))
+    path.write_text(TARGETS.format(extra="") + "\n[fabric]\nstretch = [1.0, 1.2, 1.4, 1.6]\n"
+                    "tension_N_per_mm = [0.0, 0.08, 0.17, 0.28]\n")
     done = subprocess.run([sys.executable, "-m", "orchestrator.cli", "design", str(run), "--target", str(path),
                            "--out", str(tmp_path / "out"), "--draws", "8", "-q"], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
@@ -162,6 +163,9 @@ def test_the_command_writes_design_json_and_its_page(identified, tmp_path):
     design = json.loads((tmp_path / "out" / "design.json").read_text())
     assert isinstance(design["tension_N_per_mm"], float)
     assert all({"name", "value", "probability_met"} <= set(row) for row in design["targets"])
+    (fabric,) = design["fabric"]
+    assert 1.4 < fabric["stretch"] < 1.6    # about 0.2 N/mm: between the test's 0.17 and 0.28 N/mm
+    assert fabric["knit_circumference_mm"] == pytest.approx(fabric["leg_circumference_mm"] / fabric["stretch"])
     assert (tmp_path / "out" / "report" / "index.html").is_file()
     assert (tmp_path / "out" / "report" / "design-maps.png").is_file()
     bad = tmp_path / "bad.toml"
@@ -169,3 +173,14 @@ def test_the_command_writes_design_json_and_its_page(identified, tmp_path):
     refused = subprocess.run([sys.executable, "-m", "orchestrator.cli", "design", str(run), "--target", str(bad),
                               "--out", str(tmp_path / "out2")], capture_output=True, text=True)
     assert refused.returncode == 2 and "landmark 'femoral'" in refused.stderr and "Traceback" not in refused.stderr
+
+
+def test_a_height_the_run_folder_has_no_slice_for_is_refused_before_any_engine_run(identified, tmp_path):
+    from orchestrator.core.errors import CaseError
+
+    run, _ = identified
+    path = tmp_path / "TARGET.toml"
+    path.write_text('[[target]]\nheight = "B"\nclass = "RAL II"\n')
+    with pytest.raises(CaseError, match='has no slice named B; write slice_height = "B" under \\[design\\]'):
+        run_design(run, path, tmp_path / "out", report=False)
+    assert not (tmp_path / "out").exists()
