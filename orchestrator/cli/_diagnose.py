@@ -30,6 +30,7 @@ from ..diagnose.stepwise import path_lines
 from ..diagnose.verdict import comparison_lines, level_lines, ranking_lines
 from ..model.effects import describe, parse_effects
 from ..run.stages import run_diagnose
+from ..run.timings import timing_line
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
 HELP = "rank the physical effects missing from an identified model, refit with one"
@@ -73,5 +74,6 @@ def run(args: argparse.Namespace) -> int:
     lines.append(f"{result['engine_runs']} engine runs for the ranking, {result['wall_time_s']:.1f} s; "
                  f"written to {args.run_dir}/diagnosis.json")
     lines.append(f"verdict: {result['verdict']}")
+    lines += [line for line in [timing_line(result.get("timings"))] if line]
     emit(args, result, lines)
     return 0

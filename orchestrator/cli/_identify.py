@@ -35,6 +35,7 @@ from ..run.stages import (
     floor_sentence,
     run_identify,
 )
+from ..run.timings import timing_line
 from ._common import (
     add_parallel_arguments,
     emit,
@@ -97,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
         lines.append(floor_sentence(result["floor_calibration"]))
     lines += result.get("setup_lines", [])
     lines.append(f"run folder {args.out}; next: calfit montecarlo {args.out}")
+    lines += [line for line in [timing_line(result.get("timings"))] if line]
     emit(args, result, lines)
     notice(args, f"identification written to {args.out}/identification.json")
     return 0

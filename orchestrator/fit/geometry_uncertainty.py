@@ -71,6 +71,8 @@ INTERFACE_UNCERTAINTY_PX = 0.15
 SHIFT_STEP_MM = 0.1          # the +-h of the interface shifts' central differences
 RESPONSE_FLOOR = 1e-3        # modes whose low-pass response is below this carry no uncertainty
 FILE = "geometry_uncertainty.npz"
+SHIFTS = tuple((interface, sign) for interface in ("skin", "fascia") for sign in (1.0, -1.0))
+COLUMN_RUNS = 1 + len(SHIFTS)   # the engine runs of `geometry_columns`: the skin's modes, each shifted interface
 
 
 def level_file(level: int = 1) -> str:
@@ -156,11 +158,12 @@ def _model_on(setup, mesh, effects, tension_N_per_mm):
                     garment=model.garment, friction_mu=model.friction_mu)
 
 
-def _observed(setup, measurements, theta, effects, offsets, tension_N_per_mm) -> np.ndarray:
-    """What the measurements see of the run's model meshed again with interface_offsets, solved at theta."""
+def _observed(setup, measurements, theta, effects, interface, shift_mm, tension_N_per_mm) -> np.ndarray:
+    """What the measurements see of the run's model meshed again with one interface shifted by shift_mm
+    (`run.setup.RunSetup.shifted_mesh`, made once a run), solved at theta."""
     from ..engine.runner import solve_once
 
-    mesh = setup.mesh_again(len(setup.mesh.elements), interface_offsets=offsets)
+    mesh = setup.shifted_mesh(interface, shift_mm)
     model = _model_on(setup, mesh, effects, tension_N_per_mm)
     displacement = solve_once(model, model.deck(theta, sensitivities=False),
                               f"the engine did not converge on a shifted interface at {list(theta)}")
@@ -175,8 +178,6 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
     made them, under the case's [garment] tension or `tension_N_per_mm` (another garment level's). workers > 1: the
     modes' run and the shifted interfaces' remeshes and solves go side by side in that many threads (an engine
     solves while another interface is meshed), with the same results."""
-    from ..meshing.labels import interface_shift
-
     tension = setup.case.tension_N_per_mm if tension_N_per_mm is None else float(tension_N_per_mm)
     model = _model_on(setup, setup.mesh, effects, tension)
     perimeter = skin_perimeter_mm(model.mesh)
@@ -184,11 +185,10 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
     variances = (offset_variances if model.band is not None else mode_variances)(perimeter, skin_sigma_mm, cutoff_mm)
     setup.tissue_curves()   # made once, before the threads mesh them, as the compartments found in I0
     setup.compartment_labels()
-    shifts = [(interface, sign) for interface in ("skin", "fascia") for sign in (1.0, -1.0)]
+    shifts = SHIFTS
 
     def shifted(interface: str, sign: float) -> np.ndarray:
-        return _observed(setup, measurements, theta, effects, interface_shift(
-            setup.labels_unloaded, setup.case.pixel_size_mm, interface, sign * SHIFT_STEP_MM), tension)
+        return _observed(setup, measurements, theta, effects, interface, sign * SHIFT_STEP_MM, tension)
 
     with ThreadPoolExecutor(max(1, int(workers))) as pool:
         modes = pool.submit(skin_pressure_sensitivities, model, theta, len(variances))

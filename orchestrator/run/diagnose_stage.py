@@ -41,6 +41,7 @@ from .identified import (
     level_skin_columns,
 )
 from .setup import load_run
+from .timings import current_timings, stage, timed
 
 
 def _stiffness_field(model, fit, frame) -> dict | None:
@@ -49,6 +50,7 @@ def _stiffness_field(model, fit, frame) -> dict | None:
     return stiffness_field_kpa(refitted, fit.theta, frame) if refitted.groups else None
 
 
+@timed()
 @holds_run_folder()
 def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha: float = ALPHA,
                  engine_sensitivities: bool = True, workers: int = 1, scheduler: str | None = None,
@@ -81,18 +83,24 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
 
     theta = identification["best"]["theta"]
     frame = setup.frame()
-    diagnosis = diagnose(evaluator_for, model, theta, objective, frame, alpha=alpha,
-                         engine_sensitivities=engine_sensitivities, progress=shown,
-                         side_by_side=bool(scheduler) or workers > 1)
+    with stage("ranking"):
+        diagnosis = diagnose(evaluator_for, model, theta, objective, frame, alpha=alpha,
+                             engine_sensitivities=engine_sensitivities, progress=shown,
+                             side_by_side=bool(scheduler) or workers > 1)
     with evaluator_for(model) as evaluator:
         before = summarize_fit(model, FitResult(**identification["best"]), evaluator(theta), objective)
     requested = [refit_effects] if isinstance(refit_effects, str) else list(refit_effects)
     stepping = "auto" in requested
-    path = (stepwise(evaluator_for, model, objective, frame, diagnosis, before, alpha=alpha,
-                     own_floor=lambda fit, residual: _refit_own_floor(setup, identification, fit, residual),
-                     engine_sensitivities=engine_sensitivities, progress=shown,
-                     side_by_side=bool(scheduler) or workers > 1, parallel=workers)
-            if stepping else identified_only(model, diagnosis, before))
+
+    def own_floor(fit, residual):
+        with stage("skin's uncertainty at the refits"):
+            return _refit_own_floor(setup, identification, fit, residual)
+
+    with stage("stepwise refits"):
+        path = (stepwise(evaluator_for, model, objective, frame, diagnosis, before, alpha=alpha, own_floor=own_floor,
+                         engine_sensitivities=engine_sensitivities, progress=shown,
+                         side_by_side=bool(scheduler) or workers > 1, parallel=workers)
+                if stepping else identified_only(model, diagnosis, before))
     # the refits of the identified model's candidates, the path's first, are the diagnosis' "refits"
     after = [t.fit for t in path.first_tried if t.fit is not None]
     refit_failures = {t.effect: t.failure for t in path.first_tried if t.failure}
@@ -102,7 +110,8 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     names = [n for n in requested if n not in ("auto", "none") and n not in residuals and n not in refit_failures]
     for name in names:
         try:
-            fit, residual = refit(evaluator_for, model, theta, [name], objective)
+            with stage("named refits"):
+                fit, residual = refit(evaluator_for, model, theta, [name], objective)
         except RuntimeError as error:   # the engine cannot solve the refitted model somewhere: said, not fatal
             refit_failures[name] = str(error)
             continue
@@ -116,7 +125,7 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     best = diagnosis.ranking[0].effect if diagnosis.ranking else None
     best_refit = next((f for f in after if f.effects[-1:] == [best]), None)   # None: not refitted, or it failed
     if best_refit is not None and best_refit.own_floor is None:
-        best_refit.own_floor = _refit_own_floor(setup, identification, best_refit, residuals[best])
+        best_refit.own_floor = own_floor(best_refit, residuals[best])
     stepped_explained, stepped_verdict = path_verdict(path, diagnosis)
     first_explained, first_verdict = refit_verdict(diagnosis, after)
     if best in refit_failures:
@@ -147,7 +156,8 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
             local = {"patch": asdict(patch), "refitted": False, "explains": False, "reason": unneeded,
                      "verdict": diagnosis.verdict}
         else:
-            fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
+            with stage("local refit"):
+                fit, residual = refit(evaluator_for, model, theta, [patch.effect], objective)
             fit.stiffness_field = _stiffness_field(model, fit, frame)
             local = weigh_local(diagnosis, patch, before, fit, catalog)
             after.append(fit)
@@ -177,18 +187,20 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     path_maps = [diagnosis.maps] + [residual_maps(objective.positions_mm, step.residual_mm, frame)
                                     for step in path.steps[1:]]
     result["path_maps"] = [asdict(m) for m in path_maps]
+    with stage("figures"):
+        if len(path.steps) > 1:
+            path_figure(run_dir / "diagnosis-path.png", result["path"])
+            path_maps_figure(run_dir / "diagnosis-path-maps.png", setup.case.unloaded, setup.case.pixel_size_mm,
+                             path_maps, result["path"])
+        patch = (patch_elements(model, local["patch"]["effect"]), local["patch"]["place"]) if local else (None, "")
+        diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
+                         setup.mesh, *patch, title="every garment level, one arrow each" if diagnosis.levels else "")
+        for k, maps in enumerate(diagnosis.level_maps, 1):
+            diagnosis_figure(run_dir / f"diagnosis-level-{k}.png", setup.case.unloaded, setup.case.pixel_size_mm,
+                             maps, setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
+                                                             f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
+    result["timings"] = current_timings()   # the figures included: the record is written last
     write_json(run_dir / "diagnosis.json", result)
-    if len(path.steps) > 1:
-        path_figure(run_dir / "diagnosis-path.png", result["path"])
-        path_maps_figure(run_dir / "diagnosis-path-maps.png", setup.case.unloaded, setup.case.pixel_size_mm,
-                         path_maps, result["path"])
-    patch = (patch_elements(model, local["patch"]["effect"]), local["patch"]["place"]) if local else (None, "")
-    diagnosis_figure(run_dir / "diagnosis.png", setup.case.unloaded, setup.case.pixel_size_mm, diagnosis.maps,
-                     setup.mesh, *patch, title="every garment level, one arrow each" if diagnosis.levels else "")
-    for k, maps in enumerate(diagnosis.level_maps, 1):
-        diagnosis_figure(run_dir / f"diagnosis-level-{k}.png", setup.case.unloaded, setup.case.pixel_size_mm, maps,
-                         setup.mesh, *patch, title=f"garment level {k} ({result['levels'][k - 1]['image']}, "
-                                                   f"{result['levels'][k - 1]['tension_N_per_mm']:g} N/mm)")
     return result
 
 

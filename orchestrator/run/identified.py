@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from ..core.files import read_json
-from ..fit.geometry_uncertainty import geometry_columns
+from ..fit.geometry_uncertainty import COLUMN_RUNS, geometry_columns
 from .setup import RunSetup
+from .timings import declare_runs
 
 
 def floor_calibration(run_dir: Path) -> dict:
@@ -41,4 +42,6 @@ def identified_data(identification: dict) -> str:
 def level_skin_columns(setup, theta, measured, level: int, options: dict, workers: int = 1):
     """`geometry_columns` of garment level `level`'s measurements, under that level's tension."""
     tension = None if level == 1 else setup.case.tensions[level - 1]
-    return geometry_columns(setup, theta, measured, tension_N_per_mm=tension, workers=workers, **options)
+    found = geometry_columns(setup, theta, measured, tension_N_per_mm=tension, workers=workers, **options)
+    declare_runs(COLUMN_RUNS)   # solves of their own, not in the run's log
+    return found

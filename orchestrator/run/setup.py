@@ -24,6 +24,8 @@ is interpolated on the pixels and the phantom renders the loaded image by invers
 
 from __future__ import annotations
 
+import threading
+from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
@@ -77,10 +79,11 @@ from ..meshing import (
     with_fat_moved_back,
 )
 from ..meshing.curves import ERROR_BAND
-from ..meshing.labels import SHORTEST_SKIN_SHAPE_MM
+from ..meshing.labels import SHORTEST_SKIN_SHAPE_MM, interface_shift
 from ..model.forward import LegModel
 from ..model.regions import LegFrame
 from .setup_figures import compartments_figure
+from .timings import stage
 
 SETUP_ARRAYS = "setup.npz"
 COMPARTMENTS_FIGURE = "compartments.png"
@@ -126,6 +129,11 @@ class RunSetup:
     _measured: dict = field(default_factory=dict, repr=False, compare=False)
     _tissue_curves: TissueCurves | None = field(default=None, repr=False, compare=False)   # `tissue_curves`
     _compartment_labels: np.ndarray | None = field(default=None, repr=False, compare=False)   # `compartment_labels`
+    # the leg meshed again (`mesh_again`, `shifted_mesh`), once a mesh: the skin's uncertainty at every pass and at
+    # every refit of a diagnosis, and the discretization check, use the same meshes (and so the same observations
+    # of them, which `measure.Measurements.observation` keeps by mesh)
+    _meshes: dict = field(default_factory=dict, repr=False, compare=False)
+    _meshes_lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     def tissue_curves(self) -> TissueCurves:
         """The interfaces of the unloaded labels snapped onto I0's edges, as the run's mesh was made from them
@@ -151,11 +159,41 @@ class RunSetup:
                                                          self.case.pixel_size_mm).labels
         return self._compartment_labels
 
+    def _made_once(self, key, make):
+        """make() the first time key is asked for, in whichever thread asks first; the others wait for it."""
+        with self._meshes_lock:
+            made = self._meshes.get(key)
+            if made is None:
+                made = self._meshes[key] = Future()
+                mine = True
+            else:
+                mine = False
+        if mine:
+            try:
+                made.set_result(make())
+            except BaseException as error:
+                with self._meshes_lock:
+                    del self._meshes[key]   # asked again, made again
+                made.set_exception(error)
+        return made.result()
+
     def mesh_again(self, n_elements: int, interface_offsets=None) -> Mesh:
         """The run's leg meshed again from its curves with n_elements (and interface_offsets: `mesh_tissue_curves`),
         its muscle cut into the compartments the setup found in I0 as the setup cut the run's mesh: the
         discretization check's finer mesh and the skin's shifted ones, which a model with the compartments effect
-        needs."""
+        needs. Without interface_offsets, made once (`_meshes`)."""
+        if interface_offsets is None:
+            return self._made_once(("mesh", int(n_elements)), lambda: self._meshed_again(n_elements, None))
+        return self._meshed_again(n_elements, interface_offsets)
+
+    def shifted_mesh(self, interface: str, distance_mm: float) -> Mesh:
+        """The run's leg meshed again with one interface moved uniformly by distance_mm (`meshing.interface_shift`:
+        the skin outwards, the fascia into the muscle), as many elements as the run's mesh; made once."""
+        return self._made_once(("shifted", interface, float(distance_mm)), lambda: self._meshed_again(
+            len(self.mesh.elements), interface_shift(self.labels_unloaded, self.case.pixel_size_mm, interface,
+                                                     distance_mm)))
+
+    def _meshed_again(self, n_elements: int, interface_offsets) -> Mesh:
         mesh = mesh_tissue_curves(self.tissue_curves(), n_elements=n_elements, order=self.mesh.order,
                                   interface_offsets=interface_offsets)
         found = self.compartment_labels()
@@ -335,7 +373,8 @@ class RunSetup:
         from ..fit.levels import JointDisplacementObjective
         from ..measure.measurements import reference_noise_covariance
 
-        parts = [DisplacementResidualObjective(self.mesh, m) for m in measured]
+        with stage("weights"):   # C^-1/2 of each level's covariance (`core.linalg.symmetric_roots`)
+            parts = [DisplacementResidualObjective(self.mesh, m) for m in measured]
         if len(parts) == 1:
             return parts[0]
         # the levels' DIC windows are the same windows of I0: its noise is in every level's errors
@@ -357,6 +396,15 @@ class RunSetup:
 def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 400, order: int = 1,
                 align: bool = True, compartments: bool = True) -> RunSetup:
     """Read, segment, align and mesh a case; store the result in run_dir (see the module text)."""
+    with stage("segmentation"):
+        case, segmented = _segmented_case(case_dir, align)
+    with stage("meshing"):
+        return _meshed_run(case_dir, run_dir, case, *segmented, n_elements=n_elements, order=order,
+                           compartments=compartments)
+
+
+def _segmented_case(case_dir, align: bool):
+    """The case read, its images checked, segmented and aligned on the bones (`prepare_run`'s first half)."""
     case = working_case(case_dir)
     unloaded_name, loaded_name = case.files["unloaded"].name, case.files["loaded"].name
     for image, name in ((case.unloaded, unloaded_name), (case.loaded, loaded_name),
@@ -364,10 +412,14 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
         check_grey_levels(image, name)
     # the fat's chemical shift, first on a segmentation that knows none: a fatty marrow it moves against its
     # cortex may be missed there, so the images are segmented again knowing its size (`segment_t1`)
-    first = fat_shift_of(case.unloaded, case.labels if case.labels is not None
-                         else segment_t1(case.unloaded, case.pixel_size_mm), case.pixel_size_mm)
+    unshifted = segment_t1(case.unloaded, case.pixel_size_mm) if case.labels is None else None
+    first_labels = case.labels if case.labels is not None else unshifted
+    first_curves = tissue_curves(first_labels, case.pixel_size_mm, image=case.unloaded)
+    first = fat_shift(case.unloaded, *fat_muscle_normals(first_curves), case.pixel_size_mm)
     shift_size = float(np.hypot(*first.shift_mm)) if first is not None and first.significant else 0.0
-    segmented_unloaded = segment_t1(case.unloaded, case.pixel_size_mm, fat_shift_mm=shift_size)
+    # segment_t1 without a shift is the first segmentation again: not made twice
+    segmented_unloaded = (unshifted if unshifted is not None and shift_size == 0.0
+                          else segment_t1(case.unloaded, case.pixel_size_mm, fat_shift_mm=shift_size))
     labels_unloaded = case.labels if case.labels is not None else segmented_unloaded
     segmented_loaded = segment_t1(case.loaded, case.pixel_size_mm, fat_shift_mm=shift_size)
     missing_fraction = {}
@@ -391,12 +443,21 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     for level, (_, _, _, share) in zip(case.levels, prepared_levels):
         if share is not None:
             missing_fraction[level.path.name] = share
+    return case, (labels_unloaded, labels_loaded, loaded_aligned, motion, missing_fraction, segmentation_warnings,
+                  prepared_levels, area_change, (first_labels, first_curves, first))
 
+
+def _meshed_run(case_dir, run_dir, case: Case, labels_unloaded, labels_loaded, loaded_aligned, motion,
+                missing_fraction, segmentation_warnings, prepared_levels, area_change, first, *, n_elements: int,
+                order: int, compartments: bool) -> RunSetup:
+    """The segmented case meshed and stored in run_dir (`prepare_run`'s second half)."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     compartment_info = {"source": "labels" if labels_unloaded.max() >= FIRST_COMPARTMENT else "none"}
-    curves = tissue_curves(labels_unloaded, case.pixel_size_mm, image=case.unloaded)
-    shift = fat_shift(case.unloaded, *fat_muscle_normals(curves), case.pixel_size_mm)
+    first_labels, curves, shift = first   # the interfaces and the chemical shift the segmentation found
+    if not np.array_equal(labels_unloaded, first_labels):   # segmented again, knowing the shift: found again
+        curves = tissue_curves(labels_unloaded, case.pixel_size_mm, image=case.unloaded)
+        shift = fat_shift(case.unloaded, *fat_muscle_normals(curves), case.pixel_size_mm)
     if shift is not None and shift.significant:
         curves = with_fat_moved_back(curves, shift.shift_mm)
     mesh = mesh_tissue_curves(curves, n_elements=n_elements, order=order)
@@ -432,13 +493,6 @@ def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 
     if compartment_info["source"] == "image":   # found at the septa of I0 just now: not searched again
         setup._compartment_labels = compartment_labels
     return setup
-
-
-def fat_shift_of(image: np.ndarray, labels: np.ndarray, pixel_size_mm) -> FatShift | None:
-    """The fat's chemical shift on `image` (`imaging.chemical_shift`), read across the fat/muscle interface of
-    `labels` snapped to the image's edges."""
-    curves = tissue_curves(labels, pixel_size_mm, image=image)
-    return fat_shift(image, *fat_muscle_normals(curves), pixel_size_mm)
 
 
 def working_case(case_dir: str | Path) -> Case:

@@ -19,6 +19,7 @@ them at once, each level's own misfit and residual maps reported (`diagnose`).""
 from __future__ import annotations
 
 import tempfile
+import threading
 from pathlib import Path
 from typing import Sequence
 
@@ -61,11 +62,12 @@ from ..measure.measurements import (
 from ..measure.prefilter import PREFILTER_SIGMA_PX
 from ..model.garment_state import band_state
 from .diagnose_stage import run_diagnose  # noqa: F401 (the stage imported from here, as every stage)
-from .discretization import discretization_check, discretization_line
+from .discretization import FINER_FACTOR, discretization_check, discretization_line
 from .identified import floor_calibration, identified_data
 from .identified import level_images as _level_images
 from .identified import level_skin_columns as _level_skin_columns
 from .setup import SETUP_ARRAYS, SETUP_JSON, RunSetup, load_run, prepare_run
+from .timings import current_timings, stage, timed
 
 OBJECTIVES = ("contour", "displacement")
 REFINEMENT_JSON = "refinement.json"   # a run meshed again: the finer mesh's size, its start, the coarser mesh's fit
@@ -142,19 +144,22 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     run_dir = Path(run_dir)
     setup = _setup(case_dir, run_dir, n_elements, order)
     case = setup.case
-    _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
-                                    landmarks=case.landmarks, window_px=window_px, step_px=step_px,
-                                    roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px,
-                                    respect_outline=respect_outline, workers=workers, fat_shift_mm=setup.fat_shift_mm)
+    with stage("measure"):
+        _, table, summary = measure_dic(case.unloaded, case.loaded, setup.labels_unloaded, case.pixel_size_mm, setup.motion,
+                                        landmarks=case.landmarks, window_px=window_px, step_px=step_px,
+                                        roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px,
+                                        respect_outline=respect_outline, workers=workers,
+                                        fat_shift_mm=setup.fat_shift_mm)
     summary["window_mm"] = window_px * min(case.pixel_size_mm)
     summary["setup_lines"] = setup.setup_lines()
     for level, motion in zip(case.levels, setup.level_motions):
         # the same windows of I0, correlated with this level's image and its own motion of the bones
-        _, level_table, level_summary = measure_dic(case.unloaded, level.image, setup.labels_unloaded,
-                                                    case.pixel_size_mm, motion, landmarks=case.landmarks,
-                                                    window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm,
-                                                    prefilter_px=prefilter_px, respect_outline=respect_outline,
-                                                    workers=workers, fat_shift_mm=setup.fat_shift_mm)
+        with stage("measure"):
+            _, level_table, level_summary = measure_dic(
+                case.unloaded, level.image, setup.labels_unloaded, case.pixel_size_mm, motion,
+                landmarks=case.landmarks, window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm,
+                prefilter_px=prefilter_px, respect_outline=respect_outline, workers=workers,
+                fat_shift_mm=setup.fat_shift_mm)
         level_summary.update(window_mm=summary["window_mm"], level=level.number, image=level.path.name,
                              tension_N_per_mm=level.tension_N_per_mm)
         write_measurements(run_dir, level_table, level_summary, case.unloaded, case.pixel_size_mm, level.number)
@@ -164,6 +169,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
     return summary
 
 
+@timed()
 @holds_run_folder(create=True)
 def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "auto", data: str = "auto",
                  window_px: int = DEFAULT_WINDOW_PX, start: Sequence[float] | None = None, starts: str = "one",
@@ -195,24 +201,30 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
     start_points = [s if len(s) == setup.model.space.size else setup.model.start(s)
                     for s in (table1_starts(base) if starts == "table1" else [base])]
 
-    def fit_from(points, scorer, stage):
-        with Evaluator(setup.at_every_level(setup.model), scorer, run_dir, workers=workers, scheduler=scheduler,
-                       timeout_s=timeout_s, progress=progress, verbose=verbose, label=stage) as evaluator:
+    def fit_from(points, scorer, label, timed_as="fit"):
+        with stage(timed_as), Evaluator(setup.at_every_level(setup.model), scorer, run_dir, workers=workers,
+                                        scheduler=scheduler, timeout_s=timeout_s, progress=progress, verbose=verbose,
+                                        label=label) as evaluator:
             found = ([levenberg_marquardt(evaluator, s) for s in points] if method == "lm"
                      else multistart(evaluator, points))
         return found, min(found, key=lambda fit: fit.cost)
 
+    skin = measured is not None and source == "dic" and skin_uncertainty
+    if skin:
+        _mesh_ahead(setup, measured)
     fits, best = fit_from(start_points, setup.objective_of(measured) if measured is not None
                           else setup.mismatch_objective(), "identify")
     geometry = None
-    if measured is not None and source == "dic" and skin_uncertainty:
+    if skin:
         fits, best, measured, geometry = _fit_with_skin_uncertainty(setup, run_dir, source, measured, fits, best,
                                                                     fit_from, skin_sigma_mm, local_workers)
     result = _identification_record(setup, case_dir, run_dir, method, objective, source, measured, fits, best,
                                     geometry)
     if measured is not None:
         # whether the misfit's floor holds on this mesh: its discretization error against the measurements' noise
-        check = discretization_check(setup, best.theta, measured[0], run_dir, workers=workers, timeout_s=timeout_s)
+        with stage("discretization check"):
+            check = discretization_check(setup, best.theta, measured[0], run_dir, workers=workers,
+                                         timeout_s=timeout_s)
         result["discretization"] = check
         result["setup_lines"].append(discretization_line(check))
         if check.get("checked") and not check["adequate"] and n_elements is None:
@@ -230,6 +242,7 @@ def run_identify(case_dir, run_dir, *, method: str = "lm", objective: str = "aut
                                 timeout_s=timeout_s, progress=progress, verbose=verbose)
     if refinement:
         _say_refinement(result, refinement, len(setup.mesh.elements))
+    result["timings"] = current_timings()
     write_json(run_dir / "identification.json", result)
     return result
 
@@ -262,6 +275,29 @@ def _first_measurements(setup: RunSetup, case_dir, run_dir: Path, source: str, w
     return setup.level_measurements(source, with_geometry=False)
 
 
+def _mesh_ahead(setup: RunSetup, measured) -> threading.Thread:
+    """The meshes the stages after the fit solve on, made (with what the measurements see of them) while the fit's
+    engine runs: the skin's shifted interfaces (`geometry_uncertainty`) and the discretization check's finer mesh.
+    None depends on the parameters; each is made once a run (`RunSetup.shifted_mesh`, `mesh_again`), so a stage
+    that asks for one before it is ready waits for it, and one that failed here is made again there."""
+    from ..fit.geometry_uncertainty import SHIFT_STEP_MM, SHIFTS
+
+    def make() -> None:
+        try:
+            setup.tissue_curves()
+            setup.compartment_labels()
+            for interface, sign in SHIFTS:
+                for level_measured in measured:
+                    level_measured.observation(setup.shifted_mesh(interface, sign * SHIFT_STEP_MM))
+            measured[0].observation(setup.mesh_again(FINER_FACTOR * len(setup.mesh.elements)))
+        except Exception:   # made again, and its error said, where it is needed
+            pass
+
+    thread = threading.Thread(target=make, name="calfit-mesh-ahead", daemon=True)
+    thread.start()
+    return thread
+
+
 def _fit_with_skin_uncertainty(setup: RunSetup, run_dir: Path, source: str, measured, fits, best, fit_from,
                                skin_sigma_mm: float | None, workers: int):
     """The uncertainty of the model's skin, estimated where the measurements put the parameters, then the fit again
@@ -283,13 +319,14 @@ def _fit_with_skin_uncertainty(setup: RunSetup, run_dir: Path, source: str, meas
         for level, level_measured in enumerate(measured, start=1):
             stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
             if stored is None or not np.allclose(stored[1]["theta"], estimated_at, rtol=1e-9):
-                columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level, options,
-                                                             workers)
+                with stage("skin's uncertainty"):
+                    columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level,
+                                                                 options, workers)
                 kept = (columns, weights) if setup.case.levels else ()
                 write_geometry(run_dir, covariance_of(columns, weights), info, level, *kept)
         weighed = setup.level_measurements(source)   # with the skin's uncertainty just written
         fits_again, best = fit_from([estimated_at], setup.objective_of(weighed),
-                                    "identify again, with the skin's uncertainty")
+                                    "identify again, with the skin's uncertainty", "fit with the skin's uncertainty")
         passes.append(fits_again)
         moved = np.abs(setup.model.space.to_x(best.theta) - setup.model.space.to_x(estimated_at))
         settled = _settled(moved, best)
