@@ -26,13 +26,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from orchestrator.core.files import write_json  # noqa: E402
-from orchestrator.design.report import target_lines  # noqa: E402
-from orchestrator.design.stage import run_design  # noqa: E402
-from orchestrator.phantom import CalfPhantom  # noqa: E402
-from orchestrator.phantom.cases import make_phantom_case  # noqa: E402
-from orchestrator.phantom.geometry import CalfGeometry, CalfShape  # noqa: E402
-from orchestrator.run.stages import run_identify, run_montecarlo  # noqa: E402
+from orchestrator.core.files import write_json
+from orchestrator.design.report import target_lines
+from orchestrator.design.stage import run_design
+from orchestrator.phantom import CalfPhantom
+from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.phantom.geometry import CalfGeometry, CalfShape
+from orchestrator.run.stages import run_identify, run_montecarlo
 
 SLICE_TARGETS = """[design]
 tension_range_N_per_mm = [0.05, 0.6]

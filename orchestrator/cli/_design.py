@@ -18,7 +18,16 @@ import argparse
 
 from ..design.report import target_lines
 from ..design.stage import run_design
-from ._common import add_output_arguments, emit, fail, folder, honours_quiet, notice, show_progress, whole_number
+from ._common import (
+    add_output_arguments,
+    emit,
+    fail,
+    folder,
+    honours_quiet,
+    notice,
+    show_progress,
+    whole_number,
+)
 
 HELP = "the garment that meets pressure targets on this leg (tension per height, probabilities, Laplace beside it)"
 

@@ -11,11 +11,18 @@ a `slices.evaluate` without the engine (linear in T, so its derivatives are exac
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
-from .slices import PROFILE_NAMES, REGION_NAMES, DesignSlice, Response, _harmonic, skin_pressures
+from .slices import (
+    PROFILE_NAMES,
+    REGION_NAMES,
+    DesignSlice,
+    Response,
+    harmonic,
+    skin_pressures,
+)
 
 
 def evaluate(piece: DesignSlice, tension: float, profile: Sequence[float], theta=None) -> Response:
@@ -24,7 +31,7 @@ def evaluate(piece: DesignSlice, tension: float, profile: Sequence[float], theta
     factor = piece.factor(profile)
     skin = skin_pressures(points, tension * factor, piece)
     columns = [skin_pressures(points, factor, piece)]
-    columns += [skin_pressures(points, tension * _harmonic(piece, name), piece)
+    columns += [skin_pressures(points, tension * harmonic(piece, name), piece)
                 for name in PROFILE_NAMES[:len(profile)]]
     d_mean = np.array([c["mean"] for c in columns])
     d_regions = {name: np.array([c["local"][skin["argmax"][name]] for c in columns]) for name in REGION_NAMES}

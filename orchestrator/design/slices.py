@@ -24,9 +24,9 @@ curvature. The explicit band has no Laplace load to differentiate: there a forwa
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -242,7 +242,7 @@ def _response(piece, results, tension, profile, sensitivities, keep_fields) -> R
                 d_landmarks[name][j] = float(value)
             direction = np.asarray(du[key], float)[:n_leg][piece.skin_nodes]
             # explicit: T(t) itself; implicit: the skin's curvature moved along du/dv (a central difference)
-            explicit = factor if j == 0 else tension * _harmonic(piece, PROFILE_NAMES[j - 1])
+            explicit = factor if j == 0 else tension * harmonic(piece, PROFILE_NAMES[j - 1])
             size = float(np.max(np.abs(direction))) or 1.0
             eps = 1e-3 / size
             ahead = skin_pressures(x + eps * direction, tension * factor, piece)
@@ -259,7 +259,7 @@ def _response(piece, results, tension, profile, sensitivities, keep_fields) -> R
                     (piece.mesh.nodes + u) if keep_fields else None)
 
 
-def _harmonic(piece: DesignSlice, name: str) -> np.ndarray:
+def harmonic(piece: DesignSlice, name: str) -> np.ndarray:
     k = int(name[1])
     return np.cos(k * piece.deck_angle) if name[0] == "a" else np.sin(k * piece.deck_angle)
 

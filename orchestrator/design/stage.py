@@ -16,8 +16,8 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -145,7 +145,7 @@ def _check_places(targets: Targets, slices: list[DesignSlice], source: Path) -> 
     named = {piece.height_name for piece in slices}
     for target in targets.targets:
         if target.height is not None and target.height not in named:
-            fix = ("write slice_height = \"%s\" under [design] if this slice is at %s" % (target.height, target.height)
+            fix = (f"write slice_height = \"{target.height}\" under [design] if this slice is at {target.height}"
                    if len(slices) == 1 else "name that height in the volume case's [study] compression_heights_mm")
             raise CaseError(targets.path, f"[[target]] {target.index} ({target.name}) holds at {target.height}, and "
                                           f"{source} has no slice named {target.height}", fix)

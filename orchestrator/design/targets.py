@@ -29,11 +29,11 @@ height's maximum.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
+import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ..core.errors import CaseError
@@ -221,7 +221,6 @@ def _target(path: Path, index: int, entry: TargetTable) -> Target:
         if mmhg is not None and kpa is not None:
             raise CaseError(path, f"{where} gives {bound}_mmHg and {bound}_kPa", "give the pressure in one unit")
         bounds[bound] = mmhg if mmhg is not None else (kpa * MMHG_PER_KPA if kpa is not None else None)
-    source = None
     if entry.class_ is not None:
         if places:
             raise CaseError(path, f"{where} gives a class at a {places[0]}",
@@ -278,7 +277,7 @@ def check_consistent(targets: Targets) -> None:
                 if a.index < b.index and _disjoint(a, b):
                     raise CaseError(path, f"[[target]] {a.index} ({a.name} {a.bounds_text}) and [[target]] {b.index} "
                                           f"({b.name} {b.bounds_text}) contradict: no pressure meets both",
-                                    f"loosen or remove one of them")
+                                    "loosen or remove one of them")
     anywhere = [t for t in targets.targets if t.kind == "region" and t.where == "anywhere" and t.max_mmHg is not None]
     for cap in anywhere:
         for target in targets.targets:

@@ -80,7 +80,7 @@ def spread(problem: Problem, slices: list, v, *, draws: int = DEFAULT_DRAWS, ten
     for target in problem.targets.targets:
         met = np.ones((n, len(epsilon)), bool)
         for k in problem.applies(target):
-            q = values(k, lambda r: (r.value(target.kind, target.where), r.gradient(target.kind, target.where)[0]))
+            q = values(k, lambda r, t=target: (r.value(t.kind, t.where), r.gradient(t.kind, t.where)[0]))
             table[(target.index, k)] = q.ravel()
             met &= target.met(q)
         per_draw = met.mean(axis=1)
