@@ -202,7 +202,12 @@ def _solve(piece: DesignSlice, tension: float, profile: Sequence[float], theta: 
     lines = ["TENSION, SKIN"] + [f"PROFILE, GARMENT, {name.upper()}" for name in PROFILE_NAMES[:len(profile)]]
     if sensitivities:
         deck = piece.model.deck(theta, tension_N_per_mm=tension, extra_sensitivities=lines, own_sensitivities=False)
+        # templates/sensitivity.inp.j2 writes the plain block first; the element pressures' derivatives are asked
+        # on it (the fits read du/dtheta alone and never ask them)
         deck = deck.replace("*SENSITIVITY\n", "*SENSITIVITY, PRESSURE=YES\n", 1)
+        if "*SENSITIVITY, PRESSURE=YES\n" not in deck:
+            raise RuntimeError("the leg deck has no plain *SENSITIVITY block for the tension's line: "
+                               "templates/sensitivity.inp.j2 changed; ask PRESSURE=YES there")
     else:
         deck = piece.model.deck(theta, tension_N_per_mm=tension, sensitivities=False)
     with tempfile.TemporaryDirectory(prefix="calfit-design-") as scratch:

@@ -208,6 +208,7 @@ def slice_rows(slices: list[DesignSlice], problem: Problem, v, responses: list, 
     rows = []
     for piece, (tension, profile), fe, law in zip(slices, problem.split(v), responses, laplace_responses):
         rows.append({"slice": piece.name, "height_name": piece.height_name, "height_mm": piece.height_mm,
+                     "effects": list(piece.model.effects), "garment_model": piece.model.garment,
                      "tension_N_per_mm": tension, "profile": [float(c) for c in profile],
                      "landmarks_mmHg": fe.landmarks, "skin_mean_mmHg": fe.skin_mean, "skin_max_mmHg": fe.regions,
                      "laplace_landmarks_mmHg": law.landmarks, "laplace_skin_mean_mmHg": law.skin_mean,

@@ -186,3 +186,27 @@ def test_a_height_the_run_folder_has_no_slice_for_is_refused_before_any_engine_r
     with pytest.raises(CaseError, match='has no slice named B; write slice_height = "B" under \\[design\\]'):
         run_design(run, path, tmp_path / "out", report=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_design_uses_the_effects_the_identification_added(drainage_case, tmp_path):
+    """A leg whose muscle lost 5 % of its fluid, identified with the drainage effect: the design's model carries it
+    at its identified value, and the design on the truth (drainage included) meets the veins' target within its
+    uncertainty."""
+    case, truth_folder = drainage_case
+    run = tmp_path / "run"
+    run_identify(case, run, method="lm", objective="displacement", effects=("drainage",), n_elements=400, order=2,
+                 progress=False)
+    run_montecarlo(run, draws=12, workers=2, progress=False)
+    piece = read_slices(run)[0]
+    assert "drainage" in piece.model.effects
+    dv = piece.theta[piece.model.space.names.index("dv_muscle")]
+    assert dv == pytest.approx(-0.05, abs=0.01)
+    path = tmp_path / "TARGET.toml"
+    path.write_text('[[target]]\nlandmark = "deep_veins"\nmin_mmHg = 15\n')
+    result = run_design(run, path, tmp_path / "out", workers=2, report=False)
+    assert result["slices"][0]["effects"] == ["drainage"]
+    truth = read_json(truth_folder / PARAMETERS_FILE, "the phantom")["parameters_kPa"]
+    theta = [truth.get(name, -0.05 if name == "dv_muscle" else 0.0) for name in piece.model.space.names]
+    veins = result["targets"][0]
+    true = evaluate(piece, result["tension_N_per_mm"], [], theta).landmarks["deep_veins"]
+    assert abs(true - veins["value"]) <= 2 * veins["std_mmHg"] and true >= 15 - 2 * veins["std_mmHg"]
