@@ -194,8 +194,16 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
                                    misfit - score["predicted_reduction"], score["orthogonal_fraction"], score["step"]))
     ranking.sort(key=lambda s: (s.p_value, -s.statistic))
     lack_of_fit = lack_of_fit_p < alpha
+    # an effect is significant on its own score test, Bonferroni over the m effects tried, whatever the omnibus
+    # lack-of-fit test says: that test spreads its n - p - k degrees of freedom over every direction of the residual,
+    # so it misses what the effect's q-dimensional test sees. A one-parameter effect that lowers chi^2 by delta is
+    # seen by the score test from delta ~ chi^2_1(1 - alpha/m) ~ 12 on, by the lack-of-fit test only from
+    # delta ~ z sqrt(2 (n - p - k)) ~ 57 on with n = 300 (blind-04, 150 points: the unloaded-curvature law scored
+    # p = 1.7e-05 at 0.90 x the floor, and the conjunction of both tests said "nothing is missing"). Requiring both
+    # made the test stricter than its stated alpha, not more honest; the score alone already holds the chance of
+    # naming an effect that is absent to alpha (benchmarks/diagnose.py --false-alarms measures it).
     for score in ranking:
-        score.significant = bool(lack_of_fit and score.p_value < alpha / max(len(ranking), 1))
+        score.significant = bool(score.p_value < alpha / max(len(ranking), 1))
     if ranking and ranking[0].significant:
         # effects whose residual signatures the fitted parameters leave nearly alike (e.g. drainage of the muscle
         # and an axial stretch of the whole slice, where the fat is thin): the linear score ranks them by a hair,
@@ -222,16 +230,19 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
 
 def ranking_verdict(ranking: list[EffectScore], misfit: float, floor: float, lack_of_fit: bool) -> tuple[bool, str]:
     ratio = misfit / floor if floor > 0 else np.inf
-    if not lack_of_fit:
-        return False, f"the model fits to the noise floor (misfit {ratio:.2f} x the floor): no effect is missing"
     significant = [s for s in ranking if s.significant]
+    if not lack_of_fit and not significant:
+        return False, f"the model fits to the noise floor (misfit {ratio:.2f} x the floor): no effect is missing"
     if not significant:
         return False, (f"misfit {ratio:.2f} x the noise floor, and no catalog effect explains the residual "
                        "significantly: the missing physics is outside the catalog")
     best = significant[0]
     after = best.predicted_misfit / floor
+    # within the noise as a whole, and yet one effect's signature is in the residual (its own test)
+    seen = ("" if lack_of_fit else f", within the noise as a whole, but {best.effect}'s own test sees its signature "
+                                   f"in the residual (p = {best.p_value:.2g}, Bonferroni over {len(ranking)} effects)")
     if after <= EXPLAINED_FACTOR:
-        return True, (f"misfit {ratio:.2f} x the noise floor; {best.effect} explains it (predicted "
+        return True, (f"misfit {ratio:.2f} x the noise floor{seen}; {best.effect} explains it (predicted "
                       f"{after:.2f} x the floor after the refit)")
-    return False, (f"misfit {ratio:.2f} x the noise floor; the best effect, {best.effect}, would leave "
+    return False, (f"misfit {ratio:.2f} x the noise floor{seen}; the best effect, {best.effect}, would leave "
                    f"{after:.2f} x the floor: no catalog effect explains the residual")

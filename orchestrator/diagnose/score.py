@@ -21,7 +21,8 @@ variance inflation, i.e. an effective sample size n / D); independent noise has 
 smooth misfit pattern a large D, which keeps a smooth model error from passing for many independent
 pieces of evidence. |g_perp| / |g| tells how much of the effect the fitted parameters would mimic
 (0: all of it). Effects are ranked by S; one is significant when its p-value is below alpha / m
-(Bonferroni over the m effects tried) and the misfit itself is above the noise floor (chi^2 test).
+(Bonferroni over the m effects tried), whether or not the misfit as a whole is above the noise floor (the chi^2
+lack-of-fit test, which a faint effect of few parameters passes: `diagnosis.diagnose`).
 """
 
 from __future__ import annotations

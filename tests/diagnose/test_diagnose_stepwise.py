@@ -83,7 +83,8 @@ def _refit(table: Table, model: TableModel, effects) -> tuple[Refit, np.ndarray]
 
 def _diagnosis(table: Table, model: TableModel) -> SimpleNamespace:
     """A ranking on the model's residual: each effect not in it scored (the table's score or the chi^2 its refit
-    drops), significant as `diagnose` says it (Bonferroni over the effects, with the lack of fit)."""
+    drops), significant as `diagnose` says it (its own test, Bonferroni over the effects, whatever the lack of
+    fit says)."""
     from scipy import stats
 
     chi2 = table.of(model.effects)
@@ -97,7 +98,7 @@ def _diagnosis(table: Table, model: TableModel) -> SimpleNamespace:
     ranking.sort(key=lambda s: s.p_value)
     lack_of_fit = stats.chi2.sf(chi2, N - len(model.space.names)) < ALPHA
     for s in ranking:
-        s.significant = bool(lack_of_fit and s.p_value < ALPHA / len(ranking))
+        s.significant = bool(s.p_value < ALPHA / len(ranking))
     maps = ResidualMaps([[0.0, 0.0]] * (N // 2), [[0.0, 0.0]] * (N // 2), {}, [], [], [], [], [0.0, 0.0], 0.0)
     return SimpleNamespace(ranking=ranking, design_effect=1.0, maps=maps, engine_runs=1, wall_time_s=0.0,
                            n_residuals=N, verdict="the ranking's verdict", misfit=1.0, noise_floor=1.0,
@@ -218,6 +219,25 @@ def test_a_model_at_its_floor_adds_nothing(walk):
     assert _effects(path) == [[]] and path.stopped == "nothing significant" and table.refits == []
     assert path.first_tried == [] and path.final_dict()["explained"]
     assert path_verdict(path, SimpleNamespace(verdict="the ranking's verdict")) == (False, "the ranking's verdict")
+
+
+def test_a_faint_effect_below_the_floor_is_still_added_on_its_own_test(walk):
+    # chi^2 990 on 996 degrees of freedom: the lack-of-fit test sees nothing (p = 0.55), A's own test drops 25 for one
+    # parameter (p = 6e-7, below 0.01 / 5): A is added, and the path stops at the floor when nothing more is seen
+    table = Table({frozenset(): 990, frozenset("A"): 965})
+    path = walk(table)
+    assert _effects(path) == [[], ["A"]] and path.stopped == "floor"
+
+
+def test_the_floor_does_not_stop_the_path_before_the_residual_is_ranked_again(walk):
+    # A takes the model to the floor (1000 on 995 degrees of freedom); B's own test still drops 30 on its residual
+    table = Table({frozenset(): 9000, frozenset("A"): 1000, frozenset("B"): 8900, frozenset("AB"): 970})
+    path = walk(table)
+    assert path.steps[1].misfit_over_floor <= FLOOR_AGREEMENT
+    assert _effects(path) == [[], ["A"], ["A", "B"]] and path.stopped == "floor"
+    # and a model at the floor whose residual holds nothing more stops there
+    path = walk(Table({frozenset(): 9000, frozenset("A"): 1000, frozenset("B"): 8900}))
+    assert _effects(path) == [[], ["A"]] and path.stopped == "floor"
 
 
 def test_refits_that_do_not_pay_end_the_path_and_say_why(walk):
