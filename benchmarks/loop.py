@@ -36,6 +36,7 @@ from orchestrator.engine.runner import Evaluator
 from orchestrator.fit.identify import nelder_mead, pressure_uncertainty
 from orchestrator.model.forward import TABLE2_CENTRAL_KPA
 from orchestrator.phantom.cases import make_phantom_case
+from orchestrator.run.blas import single_blas_thread
 from orchestrator.run.setup import prepare_run, read_json
 from orchestrator.run.stages import run_diagnose, run_identify
 from orchestrator.run.timings import timing_line
@@ -47,6 +48,7 @@ def main() -> None:
     parser.add_argument("--only", choices=("images-first",), help="run this measurement alone")
     parser.add_argument("--repeat", type=int, default=1, help="times to run the images-first path (default 1)")
     args = parser.parse_args()
+    single_blas_thread()   # as calfit runs (`run.blas`)
     with tempfile.TemporaryDirectory(prefix="calfit-bench-") as scratch:
         scratch = Path(scratch)
         if args.only == "images-first":

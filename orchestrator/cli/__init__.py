@@ -15,6 +15,7 @@ import argparse
 import sys
 
 from ..core.errors import CalfitError
+from ..run.blas import single_blas_thread
 from . import (
     _demo,
     _design,
@@ -84,6 +85,7 @@ def version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    single_blas_thread()   # beside the engine's and the DIC's processes (`run.blas`)
     try:
         return int(args.handler(args) or 0)
     except CalfitError as error:
