@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +41,7 @@ from ...case.folder import (
     DisplacementPoints,
     write_case_folder,
 )
-from ...core.files import replace_folder
+from ...core.files import staged_folders
 from ...core.frame import pixel_centres_mm
 from ..mri.anatomy import LegShape
 from .acquisition import (
@@ -225,9 +223,7 @@ def make_kspace_case(folder, truth_folder=None, *, theta_kPa: Sequence[float] = 
               "timing_s": {"solve": round(solved - started, 2), "render": round(rendered - solved, 2)}}
     parameters = _parameters(solution, hidden)
 
-    truth_folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
-    try:
+    with staged_folders(truth_folder) as (staging,):
         _write_json(staging / "truth.json", record)
         _write_json(staging / PARAMETERS_FILE, parameters)
         np.save(staging / "displacement_mm.npy", np.ascontiguousarray(field_3d[:2]))
@@ -245,10 +241,6 @@ def make_kspace_case(folder, truth_folder=None, *, theta_kPa: Sequence[float] = 
                               pixel_size_mm=scanner.pixel_size_mm, tension_N_per_mm=tension_N_per_mm,
                               tension_rel_uncertainty=tension_rel_uncertainty, labels=case_labels, points=points,
                               landmarks=landmarks, overwrite=overwrite)
-        replace_folder(staging, truth_folder)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return folder, truth_folder
 
 
@@ -327,11 +319,7 @@ def write_kspace_volume_case(folder, truth_folder=None, *, heights_mm: Sequence[
                            {key: named[key] for key in COMPRESSION_POINTS},
                            [(float(h), leg.landmarks_at(float(h))) for h in heights])
 
-    for target in (folder, truth_folder):
-        target.parent.mkdir(parents=True, exist_ok=True)
-    truth_staging = Path(tempfile.mkdtemp(prefix=f".{truth_folder.name}.", dir=truth_folder.parent))
-    case_staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
+    with staged_folders(truth_folder, folder) as (truth_staging, case_staging):
         from .dicom import new_identities, write_dicom_slice
 
         _write_json(truth_staging / "truth.json", record)
@@ -353,12 +341,6 @@ def write_kspace_volume_case(folder, truth_folder=None, *, heights_mm: Sequence[
                                   identity=identity, instance=k + 1, spacing_mm=spacing,
                                   chemical_shift_px=scanner.chemical_shift_px)
         (case_staging / "case.toml").write_text(case_toml, encoding="utf-8")
-        replace_folder(truth_staging, truth_folder)
-        replace_folder(case_staging, folder)
-    except BaseException:
-        shutil.rmtree(truth_staging, ignore_errors=True)
-        shutil.rmtree(case_staging, ignore_errors=True)
-        raise
     return folder, truth_folder
 
 
@@ -459,9 +441,7 @@ def _write_dicom_case(folder: Path, name: str, images, scanner: Scanner, height_
 
     if folder.exists() and not overwrite:
         raise FileExistsError(f"{folder} already exists; choose another folder or pass overwrite=True")
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
-    try:
+    with staged_folders(folder) as (staging,):
         for identity, role, image in zip(new_identities(("unloaded", "loaded"), name), ("unloaded", "loaded"), images):
             write_dicom_slice(staging / f"{role}.dcm", image, pixel_size_mm=scanner.pixel_size_mm, height_mm=height_mm,
                               slice_thickness_mm=scanner.slice_thickness_mm, identity=identity,
@@ -475,10 +455,6 @@ def _write_dicom_case(folder: Path, name: str, images, scanner: Scanner, height_
             write_png16(staging / "labels.png", np.asarray(labels).astype(np.uint8))
         if points is not None:
             _write_points(staging / "points.csv", points)
-        replace_folder(staging, folder)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
 
 
 def _compression_heights(studied: Sequence[float], widest_mm: float) -> dict[str, float]:
