@@ -368,23 +368,31 @@ def test_a_control_adds_nothing(tmp_path):
     assert "noise floor" in diagnosis["verdict"]
 
 
+def _diagnosed_from_images(tmp_path, theta, hidden, rigid, phantom=None) -> dict:
+    """A phantom case from its images only (no points, no labels) with `hidden` effects, identified and diagnosed as
+    a user runs it; the stepwise diagnosis must end with exactly the hidden effects, at the floor."""
+    from orchestrator.phantom.cases import make_phantom_case
+    from orchestrator.run.stages import run_diagnose, run_identify
+
+    case, _ = make_phantom_case(tmp_path / "case", theta_kPa=theta, effects=hidden, points_spacing_mm=None,
+                                rigid=rigid, **({} if phantom is None else {"phantom": phantom}))
+    identified = run_identify(case, tmp_path / "run", workers=2, progress=False)
+    assert identified["data"]["source"] == "dic"
+    diagnosis = run_diagnose(tmp_path / "run", workers=2, progress=False)
+    print("\n".join(path_lines(diagnosis["path"], diagnosis["final"])), "\n", diagnosis["verdict"])
+    assert sorted(diagnosis["final"]["effects"]) == sorted(hidden), diagnosis["verdict"]
+    assert diagnosis["final"]["misfit_over_floor"] <= 1.2 and diagnosis["final"]["explained"]
+    return diagnosis
+
+
 @pytest.mark.slow
 def test_two_hidden_effects_from_the_images_only(tmp_path):
     """The phantom renderer's images (no points, no labels), the truth on 8,000 CPE6, the fit on calfit's own
     segmentation and mesh (2,000 CPE6), a scanner's rigid motion between the sessions."""
     from orchestrator.core.frame import RigidMotion
-    from orchestrator.phantom.cases import make_phantom_case
-    from orchestrator.run.stages import run_diagnose, run_identify
 
     theta, hidden = _truth(7)
-    case, _ = make_phantom_case(tmp_path / "case", theta_kPa=theta, effects=hidden, points_spacing_mm=None,
-                                rigid=RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)))
-    identified = run_identify(case, tmp_path / "run", workers=2, progress=False)
-    assert identified["data"]["source"] == "dic"
-    diagnosis = run_diagnose(tmp_path / "run", workers=2, progress=False)
-    print("\n".join(path_lines(diagnosis["path"], diagnosis["final"])), "\n", diagnosis["verdict"])
-    assert sorted(diagnosis["final"]["effects"]) == sorted(TWO_HIDDEN), diagnosis["verdict"]
-    assert diagnosis["final"]["misfit_over_floor"] <= 1.2 and diagnosis["final"]["explained"]
+    _diagnosed_from_images(tmp_path, theta, hidden, RigidMotion(1.0, (0.6, -0.4), (75.0, 75.0)))
 
 
 THREE_HIDDEN = {"drainage": {"dv_muscle": -0.05}, "tension_profile": {"a1": 0.08, "b1": -0.05},
@@ -399,17 +407,9 @@ def test_three_hidden_effects_from_the_images_only(tmp_path):
     nothing else, down to the floor."""
     from orchestrator.core.frame import RigidMotion
     from orchestrator.phantom import MRIPhantom
-    from orchestrator.phantom.cases import make_phantom_case
-    from orchestrator.run.stages import run_diagnose, run_identify
 
     theta, _ = _truth(13)
-    case, _ = make_phantom_case(tmp_path / "case", theta_kPa=theta, effects=THREE_HIDDEN, points_spacing_mm=None,
-                                rigid=RigidMotion(-0.8, (0.5, 0.3), (75.0, 75.0)), phantom=MRIPhantom())
-    identified = run_identify(case, tmp_path / "run", workers=2, progress=False)
-    assert identified["data"]["source"] == "dic"
-    diagnosis = run_diagnose(tmp_path / "run", workers=2, progress=False)
-    print("\n".join(path_lines(diagnosis["path"], diagnosis["final"])), "\n", diagnosis["verdict"])
-    assert sorted(diagnosis["final"]["effects"]) == sorted(THREE_HIDDEN), diagnosis["verdict"]
-    assert diagnosis["final"]["misfit_over_floor"] <= 1.2 and diagnosis["final"]["explained"]
+    diagnosis = _diagnosed_from_images(tmp_path, theta, THREE_HIDDEN, RigidMotion(-0.8, (0.5, 0.3), (75.0, 75.0)),
+                                       phantom=MRIPhantom())
     ratios = [entry["misfit_over_floor"] for entry in diagnosis["path"]]
     assert ratios == sorted(ratios, reverse=True)
