@@ -33,7 +33,7 @@ from ..run.stages import run_diagnose
 from ..run.timings import timing_line
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
 
-HELP = "rank the physical effects missing from an identified model, refit with one"
+HELP = "rank the physical effects missing from an identified model, add them one after another down to the floor"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
