@@ -229,15 +229,18 @@ def test_a_faint_effect_below_the_floor_is_still_added_on_its_own_test(walk):
     assert _effects(path) == [[], ["A"]] and path.stopped == "floor"
 
 
-def test_the_floor_does_not_stop_the_path_before_the_residual_is_ranked_again(walk):
-    # A takes the model to the floor (1000 on 995 degrees of freedom); B's own test still drops 30 on its residual
+def test_a_model_an_addition_brings_to_its_floor_ends_the_path_without_ranking_again(walk):
+    # A takes the model to the floor (1000 on 995 degrees of freedom); B would still drop 30 on its residual, but
+    # inside the error model's agreement that drop is no evidence (module text): the path stops at A, ranks nothing
     table = Table({frozenset(): 9000, frozenset("A"): 1000, frozenset("B"): 8900, frozenset("AB"): 970})
     path = walk(table)
     assert path.steps[1].misfit_over_floor <= FLOOR_AGREEMENT
-    assert _effects(path) == [[], ["A"], ["A", "B"]] and path.stopped == "floor"
-    # and a model at the floor whose residual holds nothing more stops there
-    path = walk(Table({frozenset(): 9000, frozenset("A"): 1000, frozenset("B"): 8900}))
     assert _effects(path) == [[], ["A"]] and path.stopped == "floor"
+    assert ("A", "B") not in table.refits and path.stopping["tried"] == []
+    # above the floor the same drop is added: A leaves 1400 on 995 (1.4 x), B drops 430 more
+    path = walk(Table({frozenset(): 9000, frozenset("A"): 1400, frozenset("B"): 8900, frozenset("AB"): 970}))
+    assert path.steps[1].misfit_over_floor > FLOOR_AGREEMENT
+    assert _effects(path) == [[], ["A"], ["A", "B"]] and path.stopped == "floor"
 
 
 def test_refits_that_do_not_pay_end_the_path_and_say_why(walk):
