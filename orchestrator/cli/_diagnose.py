@@ -29,6 +29,7 @@ from ..diagnose.score import ALPHA
 from ..diagnose.stepwise import path_lines
 from ..diagnose.verdict import comparison_lines, level_lines, ranking_lines
 from ..model.effects import describe, parse_effects
+from ..run.diagnose_stage import landmark_pressure_lines
 from ..run.stages import run_diagnose
 from ..run.timings import timing_line
 from ._common import add_parallel_arguments, emit, fail, honours_quiet, parallel_options
@@ -71,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
         lines += [""] + level_lines(result["levels"], before, after)
     if len(result.get("path", [])) > 1 or (result.get("final") or {}).get("stopping", {}).get("tried"):
         lines += [""] + path_lines(result["path"], result["final"])
+    pressures = landmark_pressure_lines((result.get("final") or {}).get("landmark_pressures"))
+    if pressures:
+        lines += ["", "the pressures at the landmarks, from the identified model to the final one:"] + pressures
     lines.append(f"{result['engine_runs']} engine runs for the ranking, {result['wall_time_s']:.1f} s; "
                  f"written to {args.run_dir}/diagnosis.json")
     lines.append(f"verdict: {result['verdict']}")

@@ -28,6 +28,8 @@ from typing import Callable
 
 import numpy as np
 
+from ..model.landmarks import LANDMARK_NAMES
+
 RadiusFn = Callable[[np.ndarray], np.ndarray]
 
 
@@ -50,7 +52,6 @@ LABEL_OF = {Tissue.BACKGROUND: 0, Tissue.SKIN: 1, Tissue.FAT: 1, Tissue.SUPERFIC
             Tissue.FASCIA: 2, Tissue.MUSCLE: 2, Tissue.DEEP_VEIN: 2, Tissue.CORTEX: 3, Tissue.MARROW: 3}
 COMPARTMENTS = ("anterior", "lateral", "deep_posterior", "superficial_posterior")
 FIRST_COMPARTMENT_LABEL = 4
-LANDMARK_NAMES = ("hypodermis_tibia", "deep_veins", "max_pressure", "great_saphenous", "small_saphenous")
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,7 @@ from ..core.digits import (
     rounded,
     significant,
 )
+from ..core.errors import RunFolderError
 from ..core.files import read_json, staged_folders
 from ..core.run_lock import holds_run_folder
 from ..core.tissues import BONE
@@ -251,11 +252,20 @@ def _interval_sigmas(montecarlo: dict | None, count: int) -> list[float | None]:
     return [interval_uncertainty(low, high) for low, high in zip(montecarlo["lower"], montecarlo["upper"])]
 
 
+def _landmarks(setup) -> dict:
+    """The run's landmarks as the pressures read them (case.toml's, or placed from the segmentation), none when
+    they cannot be placed."""
+    try:
+        return setup.landmarks()[0]
+    except RunFolderError:
+        return {}
+
+
 def _images_section(setup, staging: Path) -> dict:
     case, px = setup.case, setup.case.pixel_size_mm
     figures.images_figure(staging / "images.png", case.unloaded, setup.loaded_aligned, px)
     figures.segmentation_figure(staging / "segmentation_mesh.png", case.unloaded, setup.labels_unloaded, setup.mesh,
-                                px, case.landmarks)
+                                px, _landmarks(setup))
     shown = [_figure("images.png", "The two slices: I0 without the garment, I1 with it, aligned on the bones "
                                    "(Avril et al. Fig. 1)."),
              _figure("segmentation_mesh.png", "Segmentation of I0, the finite-element mesh and the landmarks "
@@ -377,7 +387,7 @@ def _pressure_section(setup, montecarlo: dict, pressures: dict, staging: Path) -
     values = {name: (pressures["mean_kPa"][k], total[k]) for k, name in enumerate(pressures["landmarks"])}
     mmhg = [u * MMHG_PER_KPA for u in total]
     figures.pressure_figure(staging / "pressure.png", pressure_kPa, px,
-                            {name: case.landmarks[name] for name in pressures["landmarks"]}, values)
+                            {name: _landmarks(setup)[name] for name in pressures["landmarks"]}, values)
     # a landmark's pressure, in every table, to the digits of its whole spread (the parameters' and the tension's,
     # the top of the page): the same number wherever it is shown; the spreads themselves to two significant digits
     table3 = _table("table3", f"Table 3: landmark pressures over {pressures['draws']} draws in the intervals "

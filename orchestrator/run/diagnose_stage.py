@@ -5,13 +5,14 @@ residual drawn (diagnosis.png, one per garment level with several socks)."""
 from __future__ import annotations
 
 import re
+import tempfile
 from dataclasses import asdict
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from ..core.errors import EffectError
+from ..core.errors import EffectError, RunFolderError
 from ..core.files import read_json, write_json
 from ..core.run_lock import holds_run_folder
 from ..diagnose.diagnosis import diagnose
@@ -30,7 +31,9 @@ from ..diagnose.verdict import (
 )
 from ..engine.runner import Evaluator
 from ..fit.geometry_uncertainty import covariance_of
+from ..core.units import KPA_PER_MPA, MMHG_PER_KPA
 from ..fit.identify import FitResult
+from ..fit.objectives import LandmarkPressure, leg_rows
 from ..model.effects import effect, parse_effects
 from ..model.heterogeneity import stiffness_field_kpa
 from .discretization import discretization_line
@@ -42,6 +45,47 @@ from .identified import (
 )
 from .setup import load_run
 from .timings import current_timings, stage, timed
+
+
+def landmark_pressures(setup, path) -> dict | None:
+    """The hydrostatic pressure -tr(sigma)/3 at the run's landmarks (`RunSetup.landmarks`) under the identified model
+    and under the path's final one, each at its fitted parameters, one engine run each: what the missing physics
+    changes where a garment designer reads the pressure (the deep veins). None when the path added nothing, or the
+    landmarks cannot be placed."""
+    if len(path.steps) < 2:
+        return None
+    try:
+        landmarks, source = setup.landmarks()
+    except RunFolderError:
+        return None
+    objective = LandmarkPressure(setup.mesh, landmarks)
+    found = {"landmarks": objective.names, "landmarks_from": source}
+    with tempfile.TemporaryDirectory(prefix="calfit-landmarks-") as scratch:
+        for key, step in (("baseline_kPa", path.steps[0]), ("final_kPa", path.final)):
+            model = setup.model_with(step.effects)   # the case's own garment: the first level's with several
+            values = dict(zip(step.fit.parameters, step.fit.theta))
+            theta = [float(values.get(name, start)) for name, start in zip(model.space.names, model.start())]
+            try:
+                results = setup.solve(theta, Path(scratch) / key, model)
+            except RuntimeError as error:   # said, not fatal: the diagnosis stands without it
+                return {**found, "failure": str(error)}
+            pressure = leg_rows(results.point_field("pressure"), len(setup.mesh.nodes)) * KPA_PER_MPA
+            found[key] = [float(v) for v in objective.weights @ pressure]
+    return found
+
+
+def landmark_pressure_lines(found: dict | None) -> list[str]:
+    """Human lines: each landmark's pressure under the identified model and under the final one (kPa, mmHg)."""
+    if not found or "final_kPa" not in found:
+        return [] if not found else [f"landmark pressures not computed: {found['failure']}"]
+    lines = [f"{'landmark':<18} {'identified (kPa)':>17} {'final (kPa)':>12} {'change':>8}  (mmHg: identified, final)"]
+    for name, before, after in zip(found["landmarks"], found["baseline_kPa"], found["final_kPa"]):
+        change = f"{100 * (after - before) / abs(before):+.0f} %" if abs(before) > 1e-9 else ""
+        lines.append(f"{name:<18} {before:>17.2f} {after:>12.2f} {change:>8}  "
+                     f"({before * MMHG_PER_KPA:.1f}, {after * MMHG_PER_KPA:.1f})")
+    if found["landmarks_from"] == "segmentation":
+        lines.append("landmarks placed from I0's segmentation (case.toml names none)")
+    return lines
 
 
 def _stiffness_field(model, fit, frame) -> dict | None:
@@ -184,6 +228,8 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     # the final model explains the measurements when it reaches their floor, unless the error model does not hold
     # there or a local stiffness change fits better than the catalog's effects
     result["final"] = path.final_dict(doubt=bool(warning) or bool(local and local.get("explains")))
+    with stage("landmark pressures"):
+        result["final"]["landmark_pressures"] = landmark_pressures(setup, path)
     path_maps = [diagnosis.maps] + [residual_maps(objective.positions_mm, step.residual_mm, frame)
                                     for step in path.steps[1:]]
     result["path_maps"] = [asdict(m) for m in path_maps]

@@ -81,6 +81,7 @@ from ..meshing import (
 from ..meshing.curves import ERROR_BAND
 from ..meshing.labels import SHORTEST_SKIN_SHAPE_MM, interface_shift
 from ..model.forward import LegModel
+from ..model.landmarks import LandmarkError, placed_landmarks
 from ..model.regions import LegFrame
 from .setup_figures import compartments_figure
 from .timings import stage
@@ -386,11 +387,19 @@ class RunSetup:
         """The displacement residual of the run's measurements, of every garment level (`objective_of`)."""
         return self.objective_of(self.level_measurements(data))
 
+    def landmarks(self) -> tuple[dict[str, tuple[float, float]], str]:
+        """(the named positions where pressures are read, where they come from): case.toml's [landmarks], or, when
+        it names none, the first paper's five placed from I0's segmentation (`model.landmarks`, "segmentation")."""
+        if self.case.landmarks:
+            return dict(self.case.landmarks), "case.toml"
+        try:
+            return placed_landmarks(self.frame()), "segmentation"
+        except LandmarkError as error:
+            raise RunFolderError(f"{self.case.folder / 'case.toml'} has no [landmarks] table and {error}: add the "
+                                 "positions (mm, image frame of I0) where pressures are wanted") from None
+
     def pressure_objective(self) -> LandmarkPressure:
-        if not self.case.landmarks:
-            raise RunFolderError(f"{self.case.folder / 'case.toml'} has no [landmarks] table: add the positions "
-                                 "(mm, image frame of I0) where pressures are wanted")
-        return LandmarkPressure(self.mesh, self.case.landmarks)
+        return LandmarkPressure(self.mesh, self.landmarks()[0])
 
 
 def prepare_run(case_dir: str | Path, run_dir: str | Path, *, n_elements: int = 400, order: int = 1,

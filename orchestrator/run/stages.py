@@ -508,6 +508,7 @@ def run_pressures(run_dir, *, draws: int = 30, seed: int = 1, workers: int = 1, 
                                      montecarlo["central"], setup.case.tension_N_per_mm, draws=draws,
                                      tension_rel=setup.case.tension_rel_uncertainty, seed=seed)
     result = stats.as_dict()
+    result["landmarks_from"] = setup.landmarks()[1]
     levels = []
     for level in setup.case.levels:
         # the same draws in the intervals, the same landmarks, under this level's garment
@@ -553,6 +554,9 @@ def pressure_summary(result: dict) -> list[str]:
                      f"{with_uncertainty(mean * MMHG_PER_KPA, total * MMHG_PER_KPA):>12} | "
                      f"{rounded(parameters, parameters):>10} {rounded(tension, tension):>14} | "
                      f"{rounded(plus, total):>8} {rounded(minus, total):>8}")
+    if result.get("landmarks_from") == "segmentation":
+        lines.append("landmarks: case.toml names none, so the first paper's five are placed from I0's segmentation "
+                     "(the veins where they usually run; a [landmarks] table in case.toml puts them elsewhere)")
     lines.append(f"pressure: mean over the parameters' draws {PLUS_MINUS} both spreads in quadrature; parameters: std "
                  f"over the draws (Table 3); tension: the pressure's change for {PLUS_MINUS}{rel} of it, one standard "
                  "deviation (Table 4)")
