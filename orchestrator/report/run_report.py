@@ -514,6 +514,23 @@ def _diagnosis_section(setup, identification: dict, diagnosis: dict, staging: Pa
                              ["level", "image", "tension (N/mm)"] + labels + ["largest share of the residual"],
                              level_rows(diagnosis["levels"], before, after), f"{SIGNIFICANT} significant digits.",
                              significant_digits=SIGNIFICANT))
+    moved = (diagnosis.get("final") or {}).get("landmark_pressures") or {}
+    if "final_kPa" in moved:
+        # what the missing physics changes where a garment designer reads the pressure
+        final = model_label(diagnosis["final"]["effects"])
+        tables.append(_table("landmark_change", f"Pressure at the landmarks under the identified model and under the "
+                                                f"diagnosis' final model ({final})",
+                             ["landmark", "identified (kPa)", "final (kPa)", "identified (mmHg)", "final (mmHg)",
+                              "change (%)"],
+                             [[name, before, after, before * MMHG_PER_KPA, after * MMHG_PER_KPA,
+                               100 * (after - before) / abs(before) if before else None]
+                              for name, before, after in zip(moved["landmarks"], moved["baseline_kPa"],
+                                                             moved["final_kPa"])],
+                             "Each model at its own fitted parameters, the case's garment; "
+                             + ("the landmarks placed from I0's segmentation (case.toml names none); "
+                                if moved["landmarks_from"] == "segmentation" else "")
+                             + f"{SIGNIFICANT} significant digits (the spread over the intervals is in Table 3).",
+                             significant_digits=SIGNIFICANT))
     names = maps.get("sector_names") or [f"{c:.0f} deg" for c in maps["sector_centre_deg"]]
     sectors = _table("sectors", "Residual per sector around the leg (angles counter-clockwise on the image from its "
                                 "+x axis, 90 deg at the top; anterior towards the tibia, lateral towards the fibula)",

@@ -188,3 +188,36 @@ def test_pressures_are_those_of_the_identified_model_with_its_effects(phantom, t
     (run / "montecarlo.json").write_text(json.dumps(stale))
     with pytest.raises(RunFolderError, match="run calfit montecarlo RUN_DIR again"):
         run_pressures(run, draws=4, workers=2, progress=False)
+
+
+def test_the_diagnosis_reads_the_landmark_pressures_of_both_models_and_places_missing_landmarks(study):
+    """`landmark_pressures`: the final model's law at alpha = 0 is the identified model's (the same pressures), at
+    alpha = 1 (the garment pressing by the unloaded skin's curvature) the pressures move; a case whose case.toml
+    names no landmarks gets them placed from I0's segmentation, within a vein's diameter of the phantom's."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    from orchestrator.run.diagnose_stage import landmark_pressures
+    from orchestrator.run.setup import load_run
+
+    run, identification, _, _ = study
+    setup = load_run(run)
+    theta = list(identification["best"]["theta"])
+
+    def step(effects, values):
+        return SimpleNamespace(effects=effects, fit=SimpleNamespace(parameters=list(values), theta=list(values.values())))
+
+    identified = step([], dict(zip(LEG_PARAMETERS, theta)))
+    assert landmark_pressures(setup, SimpleNamespace(steps=[identified], final=identified)) is None   # nothing added
+    for alpha, moved in ((0.0, False), (1.0, True)):
+        final = step(["unloaded_curvature"], {**dict(zip(LEG_PARAMETERS, theta)), "alpha_unloaded": alpha})
+        found = landmark_pressures(setup, SimpleNamespace(steps=[identified, final], final=final))
+        assert found["landmarks"] == list(setup.case.landmarks) and found["landmarks_from"] == "case.toml"
+        change = np.abs(np.array(found["final_kPa"]) - found["baseline_kPa"]) / np.array(found["baseline_kPa"])
+        assert (change.max() > 0.005) == moved, change
+    given = dict(setup.case.landmarks)
+    setup.case = dataclasses.replace(setup.case, landmarks=None)
+    placed, source = setup.landmarks()
+    assert source == "segmentation" and list(placed) == list(given)
+    for name in given:
+        assert np.hypot(*(np.array(placed[name]) - given[name])) < 3.2, name
