@@ -185,10 +185,13 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         # a misfit that the mesh inflates: every verdict on it says so (`discretization`)
         diagnosis.verdict += f"; caution: {discretization_line(check)}"
     unexplained = not diagnosis.explained and diagnosis.lack_of_fit_p < alpha
-    if unexplained and diagnosis.maps.worst_region:
-        maps = diagnosis.maps
-        diagnosis.verdict += (f"; the residual is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f}"
-                              f" mm, {100 * maps.worst_region_share:.0f} % of the squared residual)")
+    # where what is left unexplained lies: the final model's residual when the path added effects
+    walked = len(path.steps) > 1
+    maps = residual_maps(objective.positions_mm, path.final.residual_mm, frame) if walked else diagnosis.maps
+    if unexplained and maps.worst_region:
+        whose = "the final model's residual" if walked else "the residual"
+        diagnosis.verdict += (f"; {whose} is largest in the {maps.worst_region} (RMS {maps.worst_region_rms_mm:.3f} mm, "
+                              f"{100 * maps.worst_region_share:.0f} % of the squared residual)")
     local = None
     if diagnosis.lack_of_fit_p < alpha and diagnosis.patches and diagnosis.patches[0].significant:
         patch = diagnosis.patches[0]
