@@ -3,7 +3,7 @@ side, when the same slice is diagnosed from one loaded image or from two under g
 
     .venv/bin/python benchmarks/levels_diagnosis.py [--effects drainage compartments] [--seed 4]
         [--model laplace|band|second-paper] [--data points|dic] [--second-tension 0.32] [--workers 2] [--keep DIR]
-        [--resume]
+        [--resume] [--together]
 
 For each hidden effect, a phantom calf is made by the engine at a truth drawn in physiological ranges (not the fit's
 start; `phantom.truths.random_truth(seed)`), on the phantom's own 8,000-element mesh, with scanner motion, under
@@ -16,6 +16,11 @@ once. Models:
 - second-paper: Bouten and Drapier's Table 1 Mooney-Rivlin tissues, incompressible on CPE6H, the band with friction
   0.3 (the engine carries the sensitivities of the constants, a volume change and the out-of-plane stretch along
   the put-on's path; a bone's motion and the band's prestretch profile are differences of runs).
+With --together the effects are hidden at once, in one case, and the stepwise diagnosis must add each of them and
+nothing else (issue 58, item 7: the same loop with every garment model): printed per sock count, the path (the
+effects in the model and the misfit over the floor at each step), the final model, whether it holds exactly the
+hidden effects, and the wall times.
+
 Printed per effect: one sock and two socks, the hidden effect's rank, score statistic and p-value, the best effect,
 the design effect D of the residual's correlation (the statistic is the chi^2 reduction over D), the misfit over the
 floor before and after the refit (and each level's own after it), and the wall times.
@@ -61,11 +66,12 @@ HIDDEN = {
 BAND_TABLES = '\n[model]\nelement = "CPE6"\ngarment = "explicit"\n'
 
 
-def make_case(folder: Path, model: str, effect: str, seed: int, second_tension: float, data: str) -> Path:
-    """The two-sock phantom case of `model` with `effect` hidden (module text)."""
-    spec = HIDDEN[effect]
+def make_case(folder: Path, model: str, effects: list[str], seed: int, second_tension: float, data: str) -> Path:
+    """The two-sock phantom case of `model` with `effects` hidden (module text)."""
+    specs = [HIDDEN[effect] for effect in effects]
+    labels = "compartments" if any(spec.get("labels") == "compartments" for spec in specs) else "segmented"
     options = dict(tension_N_per_mm=FIRST_TENSION, levels=(second_tension,), rigid=SCANNER_MOTION,
-                   effects={effect: spec["values"]}, labels=spec.get("labels", "segmented"),
+                   effects={effect: spec["values"] for effect, spec in zip(effects, specs)}, labels=labels,
                    points_spacing_mm=6.0 if data == "points" else None, noise_seeds=(10 + seed, 20 + seed),
                    overwrite=True)
     if model == "second-paper":
@@ -108,6 +114,18 @@ def summary(effect: str, result: dict) -> dict:
             "engine_runs": diagnosis["engine_runs"]}
 
 
+def path_summary(effects: list[str], result: dict) -> dict:
+    """What the stepwise diagnosis of a case with `effects` hidden at once did (--together)."""
+    diagnosis = result["diagnosis"]
+    final = diagnosis["final"]
+    return {"path": [{"effects": step["effects"], "misfit_over_floor": step["misfit_over_floor"]}
+                     for step in diagnosis["path"]],
+            "final": final["effects"], "final_misfit_over_floor": final["misfit_over_floor"],
+            "explained": final["explained"], "exactly_hidden": sorted(final["effects"]) == sorted(effects),
+            "verdict": diagnosis["verdict"], "identify_s": result["identify_s"], "diagnose_s": result["diagnose_s"],
+            "engine_runs": diagnosis["engine_runs"]}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--effects", nargs="+", default=["drainage", "compartments"], choices=sorted(HIDDEN))
@@ -119,6 +137,8 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, help="keep the cases and runs in this folder")
     parser.add_argument("--resume", action="store_true",
                         help="go on from the cases and runs that an interrupted benchmark left in --keep's folder")
+    parser.add_argument("--together", action="store_true",
+                        help="hide the effects at once, in one case, and print the stepwise diagnosis' path")
     arguments = parser.parse_args()
     if arguments.resume and arguments.keep is None:
         parser.error("--resume goes on from the folder of an earlier --keep: give it")
@@ -129,7 +149,9 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory(prefix="calfit-levels-diagnosis-") as scratch:
         root = arguments.keep or Path(scratch)
-        for effect in arguments.effects:
+        groups = [arguments.effects] if arguments.together else [[effect] for effect in arguments.effects]
+        for hidden in groups:
+            effect = "+".join(hidden)
             folder = root / f"{arguments.model}-{effect}"
             made = folder / "cases-made"
             two, one = folder / "two-socks", folder / "one-sock"
@@ -144,7 +166,7 @@ def main() -> None:
                 if folder.exists():
                     shutil.rmtree(folder)
                 began = time.perf_counter()
-                two = make_case(two, arguments.model, effect, arguments.seed, arguments.second_tension, arguments.data)
+                two = make_case(two, arguments.model, hidden, arguments.seed, arguments.second_tension, arguments.data)
                 one = first_level_only(two, one)
                 made.write_text(made_with)
                 print(f"{effect}: phantom made in {time.perf_counter() - began:.0f} s", flush=True)
@@ -156,14 +178,23 @@ def main() -> None:
                     pair[label] = json.loads(finished.read_text())
                     print(f"  {label}, finished earlier: {json.dumps(pair[label])}", flush=True)
                     continue
-                pair[label] = summary(effect, identify_and_diagnose(case, folder / f"run-{case.name}", arguments.data,
-                                                                    arguments.workers))
+                result = identify_and_diagnose(case, folder / f"run-{case.name}", arguments.data, arguments.workers)
+                pair[label] = path_summary(hidden, result) if arguments.together else summary(effect, result)
                 write_json(finished, pair[label])
                 print(f"  {label}: {json.dumps(pair[label])}", flush=True)
             rows.append((effect, pair))
     print()
     print(f"model {arguments.model}, data {arguments.data}, truth seed {arguments.seed}, socks {FIRST_TENSION:g} and "
           f"{arguments.second_tension:g} N/mm")
+    if arguments.together:
+        for effect, pair in rows:
+            for label, s in pair.items():
+                steps = " -> ".join(f"{step['misfit_over_floor']:.2f}" for step in s["path"])
+                print(f"{effect} hidden, {label}: path {steps} x the floor; final {', '.join(s['final']) or 'nothing'}"
+                      f" ({'exactly the hidden effects' if s['exactly_hidden'] else 'NOT the hidden effects'}, "
+                      f"{'explained' if s['explained'] else 'unexplained'}); identify {s['identify_s']:.0f} s, "
+                      f"diagnose {s['diagnose_s']:.0f} s, {s['engine_runs']} engine runs")
+        return
     header = (f"{'hidden':<16}{'socks':>6} {'rank':>6} {'statistic':>10} {'p-value':>9} {'best':>16} "
               f"{'D':>6} {'x floor':>8} {'refit':>7}  {'each level after':<18}{'identify':>9}{'diagnose':>9}")
     print(header)
