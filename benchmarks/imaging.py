@@ -225,24 +225,32 @@ def _kspace_bands(scratch: Path, seeds, noise_draws) -> None:
     """The third renderer (`phantom.kspace3d`: a 3D leg solved in 3D by CalculiX, imaged through k-space with a
     4 mm slice, the chemical shift, a coil fixed to the scanner and Rician noise): each random truth solved once and
     imaged under every noise draw, the leg turned and shifted between the sessions but not slid along its axis
-    (a slide moves the texture through the slice, which no two-slice error model covers: `calfit measure` warns)."""
+    (a slide moves the texture through the slice, which no two-slice error model covers: `calfit measure` warns).
+    Each case is written twice: as DICOM with the header a scanner writes (the chemical shift's size from its pixel
+    bandwidth, `case.acquisition`) and as PNG, where the size is read from the image alone."""
     if not ccx_available():
         print("  KspacePhantom: skipped, CalculiX (ccx) is not installed")
         return
     phantom = build_phantom()
     centre = phantom.leg.centre_mm(70.0)
     motion = LegMotion(turn_deg=-1.5, shift_mm=(0.6, -1.0), centre_mm=(float(centre[0]), float(centre[1]), 70.0))
-    pooled = []
+    pooled = {"DICOM": [], "PNG": []}
     for seed in seeds:
         theta = random_truth(seed)
         solution = solve_truth(phantom, theta, 0.16, heights_mm=[70.0], motion=motion, effects=HiddenEffects3D())
         for draw in noise_draws:
-            case, truth = make_kspace_case(scratch / f"kspace-{seed}-{draw}", theta_kPa=theta, motion=motion,
-                                           noise_seeds=(10 + draw, 20 + draw), phantom=phantom, solution=solution)
-            pooled.append(_print_bands(f"KspacePhantom, truth seed {seed}, noise draw {draw}", case,
-                                       scratch / f"run-kspace-{seed}-{draw}",
-                                       lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy")))
-    _print_pooled(f"KspacePhantom, {len(pooled)} cases", pooled)
+            for written, rows in pooled.items():
+                name = f"kspace-{seed}-{draw}-{written.lower()}"
+                case, truth = make_kspace_case(scratch / name, theta_kPa=theta, motion=motion,
+                                               noise_seeds=(10 + draw, 20 + draw), phantom=phantom, solution=solution,
+                                               dicom=written == "DICOM")
+                rows.append(_print_bands(f"KspacePhantom as {written}, truth seed {seed}, noise draw {draw}", case,
+                                         scratch / f"run-{name}",
+                                         lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy")))
+    _print_pooled(f"KspacePhantom, {len(pooled['DICOM'])} cases as DICOM (the chemical shift's size from its header)",
+                  pooled["DICOM"])
+    _print_pooled(f"KspacePhantom, {len(pooled['PNG'])} cases as PNG (images only: the size read from the image)",
+                  pooled["PNG"])
 
 
 def _print_bands(title: str, case: Path, run: Path, true_field, respect_outline: bool = False) -> list:

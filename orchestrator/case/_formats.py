@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import CaseError
+from .acquisition import Acquisition, acquisition_of
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".dcm", ".nii", ".nii.gz")
 _GREY_FIX = "save it as a single-channel (greyscale) 8 or 16-bit image"
@@ -41,6 +42,7 @@ class SliceFile:
     header_pixel_size_mm: tuple[float, float] | None
     missing: np.ndarray | None = None
     series_file: Path | None = None
+    acquisition: Acquisition | None = None   # DICOM: the sequence's parameters (`acquisition`), None for others
 
 
 def file_suffix(path: Path) -> str:
@@ -71,7 +73,7 @@ def _check_not_empty(path: Path) -> None:
                         "cut short or never written)")
 
 
-def _checked_slice(path: Path, pixels, spacing) -> SliceFile:
+def _checked_slice(path: Path, pixels, spacing, acquisition: Acquisition | None = None) -> SliceFile:
     pixels = _as_2d(path, pixels)
     if not np.issubdtype(pixels.dtype, np.number) or np.issubdtype(pixels.dtype, np.complexfloating):
         raise CaseError(path, f"holds {pixels.dtype} values, not real numbers", _GREY_FIX)
@@ -79,13 +81,13 @@ def _checked_slice(path: Path, pixels, spacing) -> SliceFile:
         raise CaseError(path, f"is only {pixels.shape[0]}x{pixels.shape[1]} pixels", "give the full slice")
     missing = ~np.isfinite(pixels)
     if not missing.any():
-        return SliceFile(path, pixels, spacing)
+        return SliceFile(path, pixels, spacing, acquisition=acquisition)
     if missing.mean() > MAX_MISSING_FRACTION:
         raise CaseError(path, f"has no value (NaN or infinite) in {100 * missing.mean():.0f} % of its pixels",
                         "export the slice from the scanner's series itself, not a masked or resliced copy")
     filled = pixels.astype(float)
     filled[missing] = filled[~missing].min()
-    return SliceFile(path, filled, spacing, missing)
+    return SliceFile(path, filled, spacing, missing, acquisition=acquisition)
 
 
 def _as_2d(path: Path, pixels: np.ndarray) -> np.ndarray:
@@ -169,7 +171,7 @@ def _read_dicom(path: Path):
     pixels = pixels * float(getattr(dataset, "RescaleSlope", 1.0)) + float(getattr(dataset, "RescaleIntercept", 0.0))
     spacing = getattr(dataset, "PixelSpacing", None)
     header = (float(spacing[0]), float(spacing[1])) if spacing is not None and len(spacing) == 2 else None
-    return pixels, header
+    return pixels, header, acquisition_of(dataset)
 
 
 def _read_nifti(path: Path):

@@ -42,6 +42,7 @@ from ..core.tissues import (
     LAST_COMPARTMENT,
     MUSCLE,
 )
+from .acquisition import LARMOR_MHZ_PER_T, READOUT_OF_PHASE_ENCODING, Acquisition
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
 from .dicom_series import PIXEL_SIZE_RTOL, read_image_pair
 from .schema import (
@@ -130,6 +131,7 @@ class Case:
     missing: dict[str, np.ndarray] = field(default_factory=dict)   # "unloaded"/"loaded": pixels with no value
     block_factor: int = 1     # pixels of the files per pixel side of these arrays (`resolution.working_resolution`)
     levels: tuple[GarmentLevel, ...] = ()   # more loaded images under other tensions ([[garment.levels]])
+    acquisition: Acquisition | None = None  # what the images' DICOM header says of the sequence (`acquisition`)
 
     @property
     def tensions(self) -> tuple[float, ...]:
@@ -195,7 +197,21 @@ def read_case(folder: str | os.PathLike) -> Case:
                                          else garment.tension_rel_uncertainty),
                 model=model, labels=labels, points=points, landmarks=landmarks, files=files,
                 missing={role: image.missing for role, image in (("unloaded", unloaded), ("loaded", loaded))
-                         if image.missing is not None}, levels=levels)
+                         if image.missing is not None}, levels=levels,
+                acquisition=_acquisition(settings.acquisition, (unloaded, loaded), pixel_size))
+
+
+def _acquisition(table, slices: tuple[SliceFile, ...], pixel_size: tuple[float, float]) -> Acquisition | None:
+    """The sequence's parameters: the images' DICOM header's, else case.toml's [acquisition] (`acquisition`)."""
+    for image in slices:
+        if image.acquisition is not None and image.acquisition.fat_shift_px is not None:
+            return image.acquisition
+    if table is None:
+        return next((image.acquisition for image in slices if image.acquisition is not None), None)
+    frequency = (table.imaging_frequency_MHz if table.imaging_frequency_MHz is not None
+                 else LARMOR_MHZ_PER_T * table.field_strength_T)
+    phase = {axis: phase for phase, axis in READOUT_OF_PHASE_ENCODING.items()}.get(table.readout)
+    return Acquisition(frequency, table.pixel_bandwidth_Hz, phase, tuple(pixel_size))
 
 
 def _level_file(path: Path, folder: Path, index: int, entry: GarmentLevelTable, key: str, what: str) -> Path:
@@ -435,7 +451,8 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
                       tension_rel_uncertainty: float = DEFAULT_TENSION_REL_UNCERTAINTY,
                       labels: np.ndarray | None = None, points: DisplacementPoints | None = None,
                       landmarks: dict[str, tuple[float, float]] | None = None, levels: tuple[GarmentLevel, ...] = (),
-                      images_as: str = "png", model_toml: str = "", overwrite: bool = False) -> Path:
+                      images_as: str = "png", model_toml: str = "", overwrite: bool = False,
+                      acquisition: Acquisition | None = None) -> Path:
     """Write a complete case folder atomically (temporary sibling, then rename). Returns the folder.
 
     images_as "png": float images are scaled by one common factor to 16-bit PNG; uint8/uint16 images are written
@@ -444,6 +461,8 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
     case.toml as it is (the model a volume case gives all its slices).
     levels: more loaded images under other tensions, each written as its `path` (a .png file name) with its
     [[garment.levels]] table, and its points as `points_path` (a file name) when it has points.
+    acquisition: the sequence's parameters of the images (a slice of a DICOM series), written as the [acquisition]
+    table when they give the chemical shift's size.
     """
     folder = Path(folder)
     if folder.exists() and not overwrite:
@@ -464,6 +483,8 @@ def write_case_folder(folder: str | os.PathLike, *, name: str, unloaded: np.ndar
         pngs, _ = to_uint16([np.asarray(image, float) for image in images])
     with staged_folders(folder) as (staging,):
         text = _case_toml(name, pixel_size_mm, tension_N_per_mm, tension_rel_uncertainty, landmarks or {}, levels)
+        if acquisition is not None and acquisition.fat_shift_px is not None:
+            text += _acquisition_toml(acquisition)
         (staging / "case.toml").write_text(text + ("\n" + model_toml.strip() + "\n" if model_toml.strip() else ""),
                                            encoding="utf-8")
         for role, image in (("unloaded", pngs[0]), ("loaded", pngs[1])):
@@ -494,6 +515,15 @@ def _case_toml(name, pixel_size_mm, tension, rel, landmarks, levels=()) -> str:
     if landmarks:
         lines += ["", "[landmarks]  # mm, image frame of the unloaded image (x right, y down)"]
         lines += [f"{key} = [{float(x)!r}, {float(y)!r}]" for key, (x, y) in landmarks.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _acquisition_toml(acquisition: Acquisition) -> str:
+    lines = ["", "[acquisition]  # the sequence's parameters: the size of the fat's chemical shift",
+             f"pixel_bandwidth_Hz = {float(acquisition.pixel_bandwidth_Hz)!r}",
+             f"imaging_frequency_MHz = {float(acquisition.imaging_frequency_MHz)!r}"]
+    if acquisition.readout_axis is not None:
+        lines.append(f"readout = {_toml_string(acquisition.readout_axis)}")
     return "\n".join(lines) + "\n"
 
 

@@ -183,6 +183,30 @@ class ModelTable(Table):
         return self
 
 
+Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+
+
+class AcquisitionTable(Table):
+    """The sequence's parameters that set the fat's chemical shift (`acquisition`), for images whose files carry no
+    DICOM header (PNG, TIFF, NIfTI exported from the scanner): the scanner's protocol sheet gives them."""
+
+    pixel_bandwidth_Hz: Positive = key(meaning="a bandwidth in Hz per pixel", example="160",
+                                       note=" (the protocol's receiver bandwidth per pixel, DICOM PixelBandwidth)")
+    imaging_frequency_MHz: Positive | None = key(None, meaning="a frequency in MHz", example="63.87",
+                                                 note=" (DICOM ImagingFrequency)")
+    field_strength_T: Positive | None = key(None, meaning="a field strength in tesla", example="1.5",
+                                            note=" (used when imaging_frequency_MHz is not given)")
+    readout: Literal["x", "y"] | None = key(None, meaning='"x" or "y"',
+                                           fix='write readout = "x" (the readout along the image\'s rows) or "y"')
+
+    @model_validator(mode="after")
+    def _a_frequency(self):
+        if self.imaging_frequency_MHz is None and self.field_strength_T is None:
+            raise Refusal("[acquisition] gives pixel_bandwidth_Hz but no frequency",
+                          "add imaging_frequency_MHz = <MHz> or field_strength_T = <T>", "pixel_bandwidth_Hz")
+        return self
+
+
 class CaseToml(Table):
     """case.toml of a slice case (docs/case-folder.md)."""
 
@@ -192,6 +216,7 @@ class CaseToml(Table):
                                      entry=("a pair of numbers", "write {name} = [x_mm, y_mm]"))
     images: ImagesTable | None = None
     model: ModelTable = ModelTable()
+    acquisition: AcquisitionTable | None = None
 
 
 # ----------------------------------------------------------------- the volume case ([study], `study.volume_cases`)

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..core.errors import CaseError
+from .acquisition import Acquisition
 
 
 @dataclass(frozen=True)
@@ -36,6 +37,7 @@ class Volume:
     voxels: np.ndarray
     affine: np.ndarray
     source: Path = field(default=Path("."))
+    acquisition: Acquisition | None = None   # a DICOM series' sequence parameters (`acquisition`), its first slice's
 
     def __post_init__(self):
         if np.ndim(self.voxels) != 3:
@@ -240,8 +242,10 @@ def _read_dicom_volume(folder: Path) -> Volume:
                         "export one stack of slices, all with the same field of view")
 
     voxels = np.empty((first.rows, first.columns, count))
+    acquisition = None
     for k, header in enumerate(series.slices):
-        pixels, _ = _read_dicom(header.path)      # rescale slope and intercept applied
+        pixels, _, read = _read_dicom(header.path)      # rescale slope and intercept applied
+        acquisition = acquisition if acquisition is not None else read
         pixels = np.squeeze(np.asarray(pixels, float))
         if pixels.shape != (first.rows, first.columns):
             raise CaseError(header.path, f"holds pixels of shape {pixels.shape} where its header says "
@@ -253,7 +257,7 @@ def _read_dicom_volume(folder: Path) -> Volume:
     affine[:3, 1] = first.directions[0] * column_spacing    # one column right: along the row direction cosines
     affine[:3, 2] = step
     affine[:3, 3] = corners[0]
-    return Volume(voxels, affine, folder)
+    return Volume(voxels, affine, folder, acquisition)
 
 
 def _read_nifti_volume(path: Path) -> Volume:

@@ -34,11 +34,20 @@ not significant. Within 0.1 mm, then, where the shift it corrects is 0.6-0.7 mm.
 
 `fat_shift` returns the estimate and whether it stands out of its error (a chi^2 test of delta = 0 on its two
 components at SIGNIFICANCE); the caller moves the fat/muscle interface back by it only then.
+
+The header first. A DICOM image's header gives the shift's size along the readout from the sequence itself
+(`case.acquisition`: 3.5 ppm of the imaging frequency over the pixel bandwidth), exact where the profiles' reading is
+not: on calfit's k-space renderer, whose fascia is as wide as the shift, the profiles read 1.95 px for 1.40
+(docs/validation/scanner-images.md). The sign (which way along the readout the fat moves) is the readout gradient's
+polarity, in no standard tag, so the profiles still give it: `fat_shift` with the header's size takes the
+profiles' component along the readout (the header's axis, or the larger of the two components when the header does
+not say) and keeps its sign when it stands out of its error (a two-sided test at SIGNIFICANCE), the size the
+header's. When it does not, the profiles' reading stands alone, and the sentence says why.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage, special, stats
@@ -59,6 +68,7 @@ MIN_PROFILES = 30
 SIGNIFICANCE = 0.01       # delta is taken when the chi^2 test of delta = 0 rejects it at this level
 HUBER_SCALE = 1.5         # residuals beyond this many robust standard deviations are down-weighted
 ROBUST_ROUNDS = 20
+HEADER_SIZE_UNCERTAINTY = 0.03   # the header's size: the fat's main resonance lies 3.4-3.5 ppm from water
 
 
 @dataclass(frozen=True)
@@ -70,7 +80,10 @@ class FatShift:
     fascia_width_mm: float        # w: the dark line between muscle and fat, the chemical shift apart
     profiles: int
     scatter_mm: float             # robust standard deviation of one profile's e - b about the regression
-    p_value: float                # of the chi^2 test of delta = 0
+    p_value: float                # of the chi^2 test of delta = 0 (with the header's size: of the sign's test)
+    source: str = "image"         # "image": the profiles' reading; "header": the header's size, the profiles' sign
+    header_sentence: str | None = None                 # what the header said (`Acquisition.sentence`)
+    image_shift_mm: tuple[float, float] | None = None  # the profiles' own reading, when the header's size is taken
 
     @property
     def significant(self) -> bool:
@@ -85,20 +98,30 @@ class FatShift:
         return {"shift_mm": list(self.shift_mm), "standard_error_mm": list(self.standard_error_mm),
                 "shift_px": list(self.in_pixels(pixel_size_mm)), "fascia_width_mm": self.fascia_width_mm,
                 "profiles": self.profiles, "scatter_mm": self.scatter_mm, "p_value": self.p_value,
-                "significant": self.significant}
+                "significant": self.significant, "source": self.source, "header": self.header_sentence,
+                "image_shift_mm": None if self.image_shift_mm is None else list(self.image_shift_mm)}
 
     @classmethod
     def from_dict(cls, info: dict) -> "FatShift":
+        image = info.get("image_shift_mm")
         return cls(tuple(info["shift_mm"]), tuple(info["standard_error_mm"]), info["fascia_width_mm"],
-                   info["profiles"], info["scatter_mm"], info["p_value"])
+                   info["profiles"], info["scatter_mm"], info["p_value"], info.get("source", "image"),
+                   info.get("header"), None if image is None else tuple(image))
 
     def sentence(self, pixel_size_mm) -> str:
         """What a user reads of it (setup lines)."""
         px, py = self.in_pixels(pixel_size_mm)
         dy, dx = (float(v) for v in pixel_size_mm)
         sx, sy = self.standard_error_mm[0] / dx, self.standard_error_mm[1] / dy
+        if self.source == "header":
+            ix, iy = self.image_shift_mm[0] / dx, self.image_shift_mm[1] / dy
+            return (f"chemical shift: the fat's signal lies ({px:+.2f}, {py:+.2f}) px along (x, y): {self.header_sentence}, "
+                    f"its sign from {self.profiles} profiles across the fat/muscle interface, which read "
+                    f"({ix:+.2f}, {iy:+.2f}) px; the fat/muscle interface is moved back by it")
         measured = (f"({px:+.2f} {PLUS_MINUS} {sx:.2f}, {py:+.2f} {PLUS_MINUS} {sy:.2f}) px along (x, y), from "
                     f"{self.profiles} profiles across the fat/muscle interface")
+        if self.header_sentence:
+            measured += f" (the header gives {self.header_sentence}, but the profiles do not tell its sign)"
         if self.significant:
             return (f"chemical shift: the fat's signal lies {measured}; the fat/muscle interface is moved back by it "
                     f"(p = {self.p_value:.1g} that there is none)")
@@ -154,9 +177,32 @@ def spaced(points_mm: np.ndarray, spacing_mm: float) -> np.ndarray:
     return np.array(kept, int)
 
 
-def fat_shift(image: np.ndarray, points_mm: np.ndarray, normals: np.ndarray, pixel_size_mm) -> FatShift | None:
+def fat_shift(image: np.ndarray, points_mm: np.ndarray, normals: np.ndarray, pixel_size_mm,
+              acquisition=None) -> FatShift | None:
     """The fat's displacement on `image` (module text) from profiles along the fat/muscle interface at points_mm
-    (N, 2), normals (N, 2) unit from the muscle into the fat; None when fewer than MIN_PROFILES profiles cross it."""
+    (N, 2), normals (N, 2) unit from the muscle into the fat; None when fewer than MIN_PROFILES profiles cross it.
+    acquisition: the images' `case.acquisition.Acquisition`; when it gives the shift's size, that size is taken and
+    the profiles give its sign (module text, "The header first")."""
+    found = _profiles_shift(image, points_mm, normals, pixel_size_mm)
+    size_mm = None if acquisition is None else acquisition.fat_shift_mm
+    if found is None or size_mm is None:
+        return found
+    axis = {"x": 0, "y": 1}.get(acquisition.readout_axis or "", int(abs(found.shift_mm[1]) > abs(found.shift_mm[0])))
+    component, error = found.shift_mm[axis], found.standard_error_mm[axis]
+    p_sign = float(2.0 * stats.norm.sf(abs(component) / max(error, 1e-12)))
+    if p_sign >= SIGNIFICANCE:
+        return replace(found, header_sentence=acquisition.sentence())
+    shift = [0.0, 0.0]
+    shift[axis] = float(np.copysign(size_mm, component))
+    # the header's size is exact up to the fat's spectrum (3.4-3.5 ppm: 3 %)
+    spread = [0.0, 0.0]
+    spread[axis] = HEADER_SIZE_UNCERTAINTY * size_mm
+    return replace(found, shift_mm=tuple(shift), standard_error_mm=tuple(spread), p_value=p_sign, source="header",
+                   header_sentence=acquisition.sentence(), image_shift_mm=found.shift_mm)
+
+
+def _profiles_shift(image: np.ndarray, points_mm: np.ndarray, normals: np.ndarray, pixel_size_mm) -> FatShift | None:
+    """The profiles' reading of the fat's displacement (module text), the header left aside."""
     points_mm, normals = (np.asarray(v, float).reshape(-1, 2) for v in (points_mm, normals))
     keep = spaced(points_mm, PROFILE_SPACING_MM)
     points_mm, normals = points_mm[keep], normals[keep]

@@ -424,7 +424,7 @@ def _segmented_case(case_dir, align: bool):
     unshifted = segment_t1(case.unloaded, case.pixel_size_mm) if case.labels is None else None
     first_labels = case.labels if case.labels is not None else unshifted
     first_curves = tissue_curves(first_labels, case.pixel_size_mm, image=case.unloaded)
-    first = fat_shift(case.unloaded, *fat_muscle_normals(first_curves), case.pixel_size_mm)
+    first = fat_shift(case.unloaded, *fat_muscle_normals(first_curves), case.pixel_size_mm, case.acquisition)
     shift_size = float(np.hypot(*first.shift_mm)) if first is not None and first.significant else 0.0
     # segment_t1 without a shift is the first segmentation again: not made twice
     segmented_unloaded = (unshifted if unshifted is not None and shift_size == 0.0
@@ -466,7 +466,7 @@ def _meshed_run(case_dir, run_dir, case: Case, labels_unloaded, labels_loaded, l
     first_labels, curves, shift = first   # the interfaces and the chemical shift the segmentation found
     if not np.array_equal(labels_unloaded, first_labels):   # segmented again, knowing the shift: found again
         curves = tissue_curves(labels_unloaded, case.pixel_size_mm, image=case.unloaded)
-        shift = fat_shift(case.unloaded, *fat_muscle_normals(curves), case.pixel_size_mm)
+        shift = fat_shift(case.unloaded, *fat_muscle_normals(curves), case.pixel_size_mm, case.acquisition)
     if shift is not None and shift.significant:
         curves = with_fat_moved_back(curves, shift.shift_mm)
     mesh = mesh_tissue_curves(curves, n_elements=n_elements, order=order)

@@ -226,7 +226,7 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
                           loaded=loaded_slice, pixel_size_mm=unloaded.pixel_size_mm,
                           tension_N_per_mm=piece.tension_N_per_mm, tension_rel_uncertainty=case.tension_rel_uncertainty,
                           landmarks=case.landmarks_at(piece.height_mm, half), images_as="npy",
-                          model_toml=case.model_toml, overwrite=True)
+                          model_toml=case.model_toml, overwrite=True, acquisition=unloaded.acquisition)
     if not slices:
         raise CaseError(case.loaded, "does not hold the leg at any studied height once aligned on the bones",
                         "study heights that both sessions imaged")
@@ -250,7 +250,8 @@ def slice_volume_case(folder: str | Path, out: str | Path, report=None) -> tuple
 
 def volume_fat_shift_mm(volume) -> float:
     """The size of the fat's chemical shift on the volume's images (mm; 0 when not significant), read as a slice
-    case's is (across the fat/muscle interface snapped to the image's edges, `imaging.chemical_shift.fat_shift`) on the slice nearest the middle that segments: the bones' segmentation
+    case's is (across the fat/muscle interface snapped to the image's edges, `imaging.chemical_shift.fat_shift`, the
+    size the series' DICOM header gives when it does) on the slice nearest the middle that segments: the bones' segmentation
     needs it (`align3d._find_bones`)."""
     from ..core.errors import ImagingError
     from ..imaging.chemical_shift import fat_shift
@@ -264,7 +265,7 @@ def volume_fat_shift_mm(volume) -> float:
             continue
         try:
             curves = tissue_curves(segment_t1(image, volume.pixel_size_mm), volume.pixel_size_mm, image=image)
-            found = fat_shift(image, *fat_muscle_normals(curves), volume.pixel_size_mm)
+            found = fat_shift(image, *fat_muscle_normals(curves), volume.pixel_size_mm, volume.acquisition)
         except ImagingError:
             continue
         return float(np.hypot(*found.shift_mm)) if found is not None and found.significant else 0.0

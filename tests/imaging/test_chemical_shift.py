@@ -139,3 +139,38 @@ def test_windows_see_the_fat_where_its_signal_lies_and_its_offset_between_the_se
     expected = np.sin(turn) * fat_shift[0]      # |(R^T - I) delta| along y, 0.021 mm
     assert along_y["without"] > 0.6 * expected, along_y
     assert along_y["with"] < 0.4 * along_y["without"], along_y
+
+
+def _header(size_px: float, readout: str | None):
+    """What a DICOM header of this scene would say: 1.5 T, the bandwidth that makes size_px of shift."""
+    from orchestrator.case.acquisition import FAT_WATER_PPM, LARMOR_MHZ_PER_T, Acquisition
+
+    frequency = 1.5 * LARMOR_MHZ_PER_T
+    phase = {"x": "COL", "y": "ROW"}.get(readout)
+    return Acquisition(frequency, FAT_WATER_PPM * frequency / size_px, phase, (PIXEL_MM, PIXEL_MM))
+
+
+@pytest.mark.parametrize("shift_px, readout", [((-1.8, 0.0), "x"), ((0.0, 1.2), None)])
+def test_the_headers_size_is_taken_and_the_image_gives_its_sign_and_axis(shift_px, readout):
+    image = scanner_image(shift_px)
+    pixel = (PIXEL_MM, PIXEL_MM)
+    curves = tissue_curves(segment_t1(image, pixel), pixel, image=image)
+    alone = fat_shift(image, *fat_muscle_normals(curves), pixel)
+    found = fat_shift(image, *fat_muscle_normals(curves), pixel, _header(float(np.hypot(*shift_px)), readout))
+    assert found.source == "header" and found.significant
+    # the header's size exactly, along the readout (the image's larger component where the header does not say)
+    assert np.allclose(found.in_pixels(pixel), shift_px, atol=1e-9), found
+    assert found.image_shift_mm == alone.shift_mm
+    sentence = found.sentence(pixel)
+    assert "from the DICOM header (PixelBandwidth" in sentence and "its sign from" in sentence
+
+
+def test_a_header_shift_whose_sign_the_image_does_not_show_is_not_taken():
+    """The header says 1.4 px, the image shows none (a sign cannot be read from nothing): the profiles' own reading
+    stands, and the sentence says that the header's size was left for want of a sign."""
+    image = scanner_image((0.0, 0.0), seed=1)
+    pixel = (PIXEL_MM, PIXEL_MM)
+    curves = tissue_curves(segment_t1(image, pixel), pixel, image=image)
+    found = fat_shift(image, *fat_muscle_normals(curves), pixel, _header(1.4, "x"))
+    assert found.source == "image" and not found.significant, found
+    assert "the profiles do not tell its sign" in found.sentence(pixel)

@@ -339,7 +339,7 @@ def write_kspace_volume_case(folder, truth_folder=None, *, heights_mm: Sequence[
                                   pixel_size_mm=scanner.pixel_size_mm,
                                   height_mm=float(height), slice_thickness_mm=scanner.slice_thickness_mm,
                                   identity=identity, instance=k + 1, spacing_mm=spacing,
-                                  chemical_shift_px=scanner.chemical_shift_px)
+                                  chemical_shift_px=scanner.chemical_shift_px, readout=scanner.readout)
         (case_staging / "case.toml").write_text(case_toml, encoding="utf-8")
     return folder, truth_folder
 
@@ -445,7 +445,7 @@ def _write_dicom_case(folder: Path, name: str, images, scanner: Scanner, height_
         for identity, role, image in zip(new_identities(("unloaded", "loaded"), name), ("unloaded", "loaded"), images):
             write_dicom_slice(staging / f"{role}.dcm", image, pixel_size_mm=scanner.pixel_size_mm, height_mm=height_mm,
                               slice_thickness_mm=scanner.slice_thickness_mm, identity=identity,
-                              chemical_shift_px=scanner.chemical_shift_px)
+                              chemical_shift_px=scanner.chemical_shift_px, readout=scanner.readout)
         lines = ["[case]", f"name = {json.dumps(name)}", "", "[garment]", f"tension_N_per_mm = {float(tension)!r}",
                  f"tension_rel_uncertainty = {float(rel)!r}", "",
                  "[landmarks]  # mm, image frame of the unloaded image (x right, y down)"]

@@ -7,8 +7,8 @@ of the first pixel's centre, SliceThickness, SliceLocation, and for a series the
 SeriesInstanceUID and a FrameOfReferenceUID shared by the two sessions' series (the same scanner frame). The
 patient frame is the image frame less half a pixel (as `phantom.volume` places a volume's voxels): the pixel of
 row i and column j, at ((j + 1/2) dx, (i + 1/2) dy) in the image frame, is at (j dx, i dy, z) in the patient frame.
-The sequence's parameters (field strength, pixel bandwidth from the chemical shift) are written as a 1.5 T T1 TSE
-would have them.
+The sequence's parameters (field strength, pixel bandwidth from the chemical shift, the phase encoding across the
+readout) are written as a 1.5 T T1 TSE would have them (`case.acquisition` reads them back).
 """
 
 from __future__ import annotations
@@ -18,8 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-LARMOR_MHZ_PER_T = 42.577
-FAT_SHIFT_PPM = 3.5
+from ...case.acquisition import FAT_WATER_PPM, LARMOR_MHZ_PER_T, READOUT_OF_PHASE_ENCODING
 
 
 @dataclass(frozen=True)
@@ -46,7 +45,7 @@ def new_identities(descriptions: tuple[str, ...], patient_id: str) -> list[Serie
 def write_dicom_slice(path: Path, stored: np.ndarray, *, pixel_size_mm: tuple[float, float], height_mm: float,
                       slice_thickness_mm: float, identity: SeriesIdentity, instance: int = 1,
                       spacing_mm: float | None = None, field_strength_T: float = 1.5,
-                      chemical_shift_px: float = 1.4) -> Path:
+                      chemical_shift_px: float = 1.4, readout: str = "x") -> Path:
     """Write one slice (uint16 pixels) with its geometry tags (module text)."""
     import pydicom
     from pydicom.dataset import FileMetaDataset
@@ -80,7 +79,8 @@ def write_dicom_slice(path: Path, stored: np.ndarray, *, pixel_size_mm: tuple[fl
     frequency = LARMOR_MHZ_PER_T * field_strength_T
     ds.MagneticFieldStrength = f"{field_strength_T:g}"
     ds.ImagingFrequency = f"{frequency:.4f}"
-    ds.PixelBandwidth = f"{FAT_SHIFT_PPM * frequency / chemical_shift_px:.2f}"   # Hz per pixel: the fat's shift
+    ds.PixelBandwidth = f"{FAT_WATER_PPM * frequency / chemical_shift_px:.2f}"   # Hz per pixel: the fat's shift
+    ds.InPlanePhaseEncodingDirection = {axis: phase for phase, axis in READOUT_OF_PHASE_ENCODING.items()}[readout]
     ds.ScanningSequence, ds.SequenceVariant, ds.MRAcquisitionType = "SE", "SK", "2D"
     ds.RepetitionTime, ds.EchoTime, ds.EchoTrainLength = "550", "12", 3
     ds.PixelData = np.ascontiguousarray(stored).tobytes()
