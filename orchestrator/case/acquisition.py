@@ -32,6 +32,7 @@ class Acquisition:
     pixel_bandwidth_Hz: float | None
     phase_encoding: str | None
     pixel_size_mm: tuple[float, float] | None
+    given_by: str = "the DICOM header"   # or "case.toml's [acquisition]"
 
     @property
     def fat_shift_px(self) -> float | None:
@@ -59,20 +60,9 @@ class Acquisition:
     def sentence(self) -> str:
         """The header's numbers, as the setup lines quote them."""
         axis = f" along {self.readout_axis}" if self.readout_axis else ", readout axis not given"
-        return (f"{self.fat_shift_px:.2f} px{axis} from the DICOM header (PixelBandwidth {self.pixel_bandwidth_Hz:g} "
-                f"Hz/px at {self.imaging_frequency_MHz:.4g} MHz, fat {FAT_WATER_PPM:g} ppm from water)")
-
-    def as_dict(self) -> dict:
-        return {"imaging_frequency_MHz": self.imaging_frequency_MHz, "pixel_bandwidth_Hz": self.pixel_bandwidth_Hz,
-                "phase_encoding": self.phase_encoding,
-                "pixel_size_mm": None if self.pixel_size_mm is None else list(self.pixel_size_mm),
-                "fat_shift_px": self.fat_shift_px, "readout_axis": self.readout_axis}
-
-    @classmethod
-    def from_dict(cls, info: dict) -> "Acquisition":
-        size = info.get("pixel_size_mm")
-        return cls(info.get("imaging_frequency_MHz"), info.get("pixel_bandwidth_Hz"), info.get("phase_encoding"),
-                   None if size is None else (float(size[0]), float(size[1])))
+        return (f"{self.fat_shift_px:.2f} px{axis} from {self.given_by} (a pixel bandwidth of "
+                f"{self.pixel_bandwidth_Hz:g} Hz/px at {self.imaging_frequency_MHz:.4g} MHz, fat {FAT_WATER_PPM:g} ppm "
+                "from water)")
 
 
 def acquisition_of(dataset) -> Acquisition | None:

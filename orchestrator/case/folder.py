@@ -211,7 +211,7 @@ def _acquisition(table, slices: tuple[SliceFile, ...], pixel_size: tuple[float, 
     frequency = (table.imaging_frequency_MHz if table.imaging_frequency_MHz is not None
                  else LARMOR_MHZ_PER_T * table.field_strength_T)
     phase = {axis: phase for phase, axis in READOUT_OF_PHASE_ENCODING.items()}.get(table.readout)
-    return Acquisition(frequency, table.pixel_bandwidth_Hz, phase, tuple(pixel_size))
+    return Acquisition(frequency, table.pixel_bandwidth_Hz, phase, tuple(pixel_size), "case.toml's [acquisition]")
 
 
 def _level_file(path: Path, folder: Path, index: int, entry: GarmentLevelTable, key: str, what: str) -> Path:

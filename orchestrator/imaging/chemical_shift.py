@@ -115,13 +115,13 @@ class FatShift:
         sx, sy = self.standard_error_mm[0] / dx, self.standard_error_mm[1] / dy
         if self.source == "header":
             ix, iy = self.image_shift_mm[0] / dx, self.image_shift_mm[1] / dy
-            return (f"chemical shift: the fat's signal lies ({px:+.2f}, {py:+.2f}) px along (x, y): {self.header_sentence}, "
-                    f"its sign from {self.profiles} profiles across the fat/muscle interface, which read "
-                    f"({ix:+.2f}, {iy:+.2f}) px; the fat/muscle interface is moved back by it")
+            return (f"chemical shift: the fat's signal lies ({px:+.2f}, {py:+.2f}) px along (x, y): "
+                    f"{self.header_sentence}, its sign from {self.profiles} profiles across the fat/muscle interface, "
+                    f"which read ({ix:+.2f}, {iy:+.2f}) px; the fat/muscle interface is moved back by it")
         measured = (f"({px:+.2f} {PLUS_MINUS} {sx:.2f}, {py:+.2f} {PLUS_MINUS} {sy:.2f}) px along (x, y), from "
                     f"{self.profiles} profiles across the fat/muscle interface")
         if self.header_sentence:
-            measured += f" (the header gives {self.header_sentence}, but the profiles do not tell its sign)"
+            measured += f" ({self.header_sentence} is not taken: the profiles do not tell its sign)"
         if self.significant:
             return (f"chemical shift: the fat's signal lies {measured}; the fat/muscle interface is moved back by it "
                     f"(p = {self.p_value:.1g} that there is none)")

@@ -63,6 +63,7 @@ def test_case_toml_gives_it_for_images_without_a_header(tmp_path):
     assert case.acquisition.readout_axis == "y"
     assert case.acquisition.fat_shift_px == pytest.approx(FAT_WATER_PPM * 1.5 * LARMOR_MHZ_PER_T / 160.0)
     assert case.acquisition.fat_shift_mm == pytest.approx(case.acquisition.fat_shift_px * 0.4)
+    assert "from case.toml's [acquisition]" in case.acquisition.sentence()
     assert read_case(_png_case(tmp_path / "d", "")).acquisition is None
 
 

@@ -162,7 +162,7 @@ def test_the_headers_size_is_taken_and_the_image_gives_its_sign_and_axis(shift_p
     assert np.allclose(found.in_pixels(pixel), shift_px, atol=1e-9), found
     assert found.image_shift_mm == alone.shift_mm
     sentence = found.sentence(pixel)
-    assert "from the DICOM header (PixelBandwidth" in sentence and "its sign from" in sentence
+    assert "from the DICOM header (a pixel bandwidth of" in sentence and "its sign from" in sentence
 
 
 def test_a_header_shift_whose_sign_the_image_does_not_show_is_not_taken():
@@ -173,4 +173,4 @@ def test_a_header_shift_whose_sign_the_image_does_not_show_is_not_taken():
     curves = tissue_curves(segment_t1(image, pixel), pixel, image=image)
     found = fat_shift(image, *fat_muscle_normals(curves), pixel, _header(1.4, "x"))
     assert found.source == "image" and not found.significant, found
-    assert "the profiles do not tell its sign" in found.sentence(pixel)
+    assert "is not taken: the profiles do not tell its sign" in found.sentence(pixel)
