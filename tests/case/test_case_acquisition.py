@@ -83,3 +83,16 @@ def test_a_dicom_case_carries_its_header_s_acquisition(tmp_path):
     (folder / "case.toml").write_text("[garment]\ntension_N_per_mm = 0.16\n")
     case = read_case(folder)
     assert case.acquisition.readout_axis == "x" and case.acquisition.fat_shift_px == pytest.approx(1.4, 1e-3)
+
+
+def test_a_slice_case_cut_from_a_series_keeps_its_acquisition(tmp_path):
+    """A volume study writes each slice case's images as arrays: the series' header goes into its [acquisition]."""
+    from orchestrator.case.folder import write_case_folder
+
+    header = acquisition_of(pydicom.dcmread(_slice(tmp_path / "a.dcm", "y", 1.6)))
+    image = np.random.default_rng(1).uniform(100, 200, (64, 64))
+    folder = write_case_folder(tmp_path / "slice", name="s", unloaded=image, loaded=image, pixel_size_mm=(0.4, 0.5),
+                               tension_N_per_mm=0.16, images_as="npy", acquisition=header)
+    again = read_case(folder).acquisition
+    assert again.readout_axis == "y" and again.fat_shift_px == pytest.approx(header.fat_shift_px)
+    assert again.fat_shift_mm == pytest.approx(header.fat_shift_mm)
