@@ -76,4 +76,5 @@ def test_the_declared_keys_are_what_the_docs_list():
     keys = keys_of()
     assert keys["garment"] == {"tension_N_per_mm", "tension_rel_uncertainty", "levels"}
     assert keys["landmarks"] is None and keys["model"] is None and set(keys) == {"case", "garment", "landmarks",
-                                                                                "images", "model"}
+                                                                                "images", "model", "acquisition"}
+    assert keys["acquisition"] == {"pixel_bandwidth_Hz", "imaging_frequency_MHz", "field_strength_T", "readout"}
