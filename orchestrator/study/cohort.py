@@ -193,10 +193,12 @@ def run_study(study: str | Path, out: str | Path, options: CaseOptions = CaseOpt
         if not scheduler:
             # the workers' sampling profiler (a stack walk every 10 ms) and 0.5 s system monitors feed a dashboard
             # that a local study does not open: an idle 2-worker cluster took 10.5 % of a core with them, 6.8 %
-            # without, on a 2-core machine where every worker's core is a case's
+            # without, on a 2-core machine where every worker's core is a case's. The scheduler starts its HTTP
+            # server whatever the dashboard (None means its default, port 8787): on a port the system picks, so
+            # that two studies (or a study and a test) on one machine do not collide
             with dask.config.set(QUIET_LOCAL_CLUSTER):
                 cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
-                                       dashboard_address=None)
+                                       dashboard_address=":0")
         try:
             with Client(scheduler or cluster, timeout=30, set_as_default=False) as client:
                 futures = [client.submit(run_case, str(case), str(out / "cases" / case.name), options,

@@ -140,7 +140,8 @@ def test_dask_cluster_gives_the_same_costs_as_the_local_pool(leg_model, tmp_path
     thetas = [TABLE2_CENTRAL_KPA, [5.0, 12.0, 100.0, 70.0], [3.0, 9.0, 120.0, 60.0]]
     with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "local", workers=2, progress=False) as evaluator:
         local = [record["cost"] for record in evaluator.evaluate(thetas)]
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+    # the scheduler's HTTP server on a port the system picks: 8787 may be another cluster's on this machine
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
         with Evaluator(leg_model, skin_objective(leg_model), tmp_path / "dask", scheduler=cluster.scheduler_address,
                        progress=False) as evaluator:
             remote = evaluator.evaluate(thetas)
