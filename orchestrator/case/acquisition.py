@@ -21,6 +21,7 @@ from dataclasses import dataclass
 FAT_WATER_PPM = 3.5
 LARMOR_MHZ_PER_T = 42.577   # the proton's gyromagnetic ratio over 2 pi
 READOUT_OF_PHASE_ENCODING = {"COL": "x", "ROW": "y"}
+PHASE_ENCODING_OF_READOUT = {axis: phase for phase, axis in READOUT_OF_PHASE_ENCODING.items()}
 
 
 @dataclass(frozen=True)

@@ -42,7 +42,7 @@ from ..core.tissues import (
     LAST_COMPARTMENT,
     MUSCLE,
 )
-from .acquisition import LARMOR_MHZ_PER_T, READOUT_OF_PHASE_ENCODING, Acquisition
+from .acquisition import LARMOR_MHZ_PER_T, PHASE_ENCODING_OF_READOUT, Acquisition
 from ._formats import IMAGE_SUFFIXES, SliceFile, file_suffix, read_slice, write_png16
 from .dicom_series import PIXEL_SIZE_RTOL, read_image_pair
 from .schema import (
@@ -210,7 +210,7 @@ def _acquisition(table, slices: tuple[SliceFile, ...], pixel_size: tuple[float, 
         return next((image.acquisition for image in slices if image.acquisition is not None), None)
     frequency = (table.imaging_frequency_MHz if table.imaging_frequency_MHz is not None
                  else LARMOR_MHZ_PER_T * table.field_strength_T)
-    phase = {axis: phase for phase, axis in READOUT_OF_PHASE_ENCODING.items()}.get(table.readout)
+    phase = PHASE_ENCODING_OF_READOUT.get(table.readout)
     return Acquisition(frequency, table.pixel_bandwidth_Hz, phase, tuple(pixel_size), "case.toml's [acquisition]")
 
 

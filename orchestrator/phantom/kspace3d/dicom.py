@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...case.acquisition import FAT_WATER_PPM, LARMOR_MHZ_PER_T, READOUT_OF_PHASE_ENCODING
+from ...case.acquisition import FAT_WATER_PPM, LARMOR_MHZ_PER_T, PHASE_ENCODING_OF_READOUT
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,7 @@ def write_dicom_slice(path: Path, stored: np.ndarray, *, pixel_size_mm: tuple[fl
     ds.MagneticFieldStrength = f"{field_strength_T:g}"
     ds.ImagingFrequency = f"{frequency:.4f}"
     ds.PixelBandwidth = f"{FAT_WATER_PPM * frequency / chemical_shift_px:.2f}"   # Hz per pixel: the fat's shift
-    ds.InPlanePhaseEncodingDirection = {axis: phase for phase, axis in READOUT_OF_PHASE_ENCODING.items()}[readout]
+    ds.InPlanePhaseEncodingDirection = PHASE_ENCODING_OF_READOUT[readout]
     ds.ScanningSequence, ds.SequenceVariant, ds.MRAcquisitionType = "SE", "SK", "2D"
     ds.RepetitionTime, ds.EchoTime, ds.EchoTrainLength = "550", "12", 3
     ds.PixelData = np.ascontiguousarray(stored).tobytes()
