@@ -68,6 +68,14 @@ What each window reports (as DICe does: users see what was trusted):
 - `uncertainty_px`, `anisotropy`: the largest standard deviation and the ratio
   of the largest to the smallest (large along a lone edge: the aperture problem).
 
+Compiled loops. The integer search and the Gauss-Newton iterations, where the time goes, run in C++
+(correlation_cpp/, the module `orchestrator._correlation`, on `workers` threads without the GIL): they read the
+prefiltered images, the spline coefficients scipy computed and the gradients from here, and return each window's
+start, its integer peak's ZNCC and the warp Gauss-Newton converged to; everything else (the checks that reject a
+window, the final ZNCC, the covariance and the residuals) is computed here from that warp, as for the loops in Python,
+which stay the reference (`correlate(..., compiled=False)`, or CALFIT_DIC_COMPILED=0 in the environment). The two agree
+to 1e-6 px (tests/measure/test_compiled_windows.py).
+
 `WindowOperators` holds, per window, the linear map from a displacement field
 to what the window measures of it, and the cross-covariance of overlapping
 windows; see its text.
@@ -76,6 +84,7 @@ windows; see its text.
 from __future__ import annotations
 
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
 
@@ -92,6 +101,7 @@ from .prefilter import EdgeResiduals, Prefilter, rician_variance_ratio
 SEARCH_FACTOR = 4
 GAUSS_NEWTON_ITERATIONS = 20
 GAUSS_NEWTON_TOLERANCE_PX = 1e-4
+GAUSS_NEWTON_GRADIENT_TOLERANCE = 1e-5   # on the step of the displacement gradient
 MAX_REFINEMENT_PX = 3.0   # Gauss-Newton may leave the integer peak of a ridge-shaped ZNCC, not wander off
 # Gauss-Newton has failed when it ends at a lower ZNCC than the integer peak it started from; both are interpolated
 # (the search patch is resampled through the priors), so a hair lower is not a failure
@@ -105,6 +115,31 @@ SPLINE_DERIVATIVE_NOISE_GAIN = Prefilter(0.0).derivative_noise_gain
 _NOISE_MASK = np.array([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]])
 _MAD_TO_SIGMA = 1.4826
 SPLINE_STEP_PX = 1e-3   # the cubic spline differentiated by a central difference of this step (pixels)
+COMPILED_ENV = "CALFIT_DIC_COMPILED"   # "0": the windows' loops in Python by default (the reference), not compiled
+
+
+def compiled_windows():
+    """The compiled windows' module (`orchestrator._correlation`), or None when this installation has none."""
+    try:
+        from .. import _correlation
+    except ImportError:
+        return None
+    return _correlation
+
+
+def _windows_module(compiled: bool | None):
+    """The compiled module to match the windows with, or None for the Python loops: `compiled` if given, else the
+    compiled loops unless CALFIT_DIC_COMPILED=0 or this installation has none."""
+    if compiled is None:
+        compiled = os.environ.get(COMPILED_ENV, "1").strip() not in ("0", "false", "no", "off")
+        return compiled_windows() if compiled else None
+    if not compiled:
+        return None
+    module = compiled_windows()
+    if module is None:
+        raise RuntimeError("the compiled DIC windows (orchestrator._correlation) are not installed: rebuild the "
+                           "package (pip install -e .) or correlate with compiled=False")
+    return module
 
 
 def estimate_noise_sigma(image: np.ndarray, mask: np.ndarray | None = None, smoothing_px: float = 2.0) -> float:
@@ -223,7 +258,8 @@ class _Pair:
 def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_size_mm, *, window_px: int = 16,
               search_factor: int = SEARCH_FACTOR, prior: RigidMotion | None = None,
               prior_field_mm: np.ndarray | None = None, noise_sigma: tuple[float, float] | None = None,
-              prefilter: Prefilter | None = None, pixel_masks=None, workers: int = 1) -> DICResult:
+              prefilter: Prefilter | None = None, pixel_masks=None, workers: int = 1,
+              compiled: bool | None = None) -> DICResult:
     """Correlate square windows of `window_px` centred at integer pixels `centres_rc` ((N, 2) rows, columns).
 
     prior: the rigid motion M of the bones (`align_on_bones`: I1(M(x)) ~ I0(x)), composed into every warp, so
@@ -234,11 +270,23 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     signal. prefilter: the Gaussian both images are smoothed with first (default `prefilter.Prefilter()`, one
     pixel; `Prefilter(0)` for none). pixel_masks: per window, None (every pixel of the square) or a (window_px,
     window_px) boolean array of the pixels it matches (`measure.window_pixel_masks`: a window inside the tissue
-    leaves out the leg's outline). workers: local processes the windows are shared among (`_match_windows`)."""
+    leaves out the leg's outline). workers: local processes the windows are shared among (`_match_windows`), and the
+    compiled loops' threads. compiled: the search and Gauss-Newton in C++ (True), in Python (False, the reference), or
+    (None) compiled unless CALFIT_DIC_COMPILED=0 or not installed (module text)."""
     reference = np.asarray(reference, float)
     deformed = np.asarray(deformed, float)
-    if reference.shape != deformed.shape:
-        raise ValueError("the reference and deformed images must have the same shape")
+    if reference.ndim != 2 or reference.shape != deformed.shape:
+        raise ValueError(f"the reference and deformed images must be 2-D of the same shape, not {reference.shape} and "
+                         f"{deformed.shape}")
+    for name, image in (("reference", reference), ("deformed", deformed)):
+        if not np.all(np.isfinite(image)):
+            raise ValueError(f"the {name} image holds {int(np.sum(~np.isfinite(image)))} NaN or infinite pixels: "
+                             "the correlation needs a grey level at every pixel")
+    if prior_field_mm is not None and (np.shape(prior_field_mm) != (2, *reference.shape)
+                                       or not np.all(np.isfinite(prior_field_mm))):
+        raise ValueError(f"the prior field must be finite and (2, {reference.shape[0]}, {reference.shape[1]}) mm, "
+                         f"not {np.shape(prior_field_mm)}")
+    module = _windows_module(compiled)
     prefilter = Prefilter() if prefilter is None else prefilter
     centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
     if noise_sigma is None:
@@ -263,7 +311,9 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     edges = [EdgeResiduals() for _ in range(len(centres))]
     edge_covariance = np.zeros((len(centres), 2, 2))
     pixel_sets = window_pixel_sets(pixel_masks, len(centres), window_px)
-    matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets), workers)
+    searched = (None if module is None else
+                _compiled_search(module, pair, centres, window_px, search_px, prior_px, pixel_sets, workers))
+    matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets, searched), workers)
     for k, match in enumerate(matches):
         if match is not None:
             displacement[k], confidence[k], covariance[k] = match.displacement, match.confidence, match.covariance
@@ -290,12 +340,48 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
 # windows than MIN_WINDOWS_PER_WORKER a process are matched here: forking costs more than they take.
 CHUNKS_PER_WORKER = 4
 MIN_WINDOWS_PER_WORKER = 50
-_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets)
+_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets, searched)
+
+
+def _compiled_search(module, pair: _Pair, centres: np.ndarray, window_px: int, search_px: int, prior_px,
+                     pixel_sets: list, threads: int) -> list:
+    """Per window, what the compiled loops found (`_Searched`), on `threads` threads."""
+    used = (np.stack(pixel_sets) if pixel_sets else np.zeros((0, window_px * window_px), bool)).astype(bool)
+    found = module.match_windows(
+        *(np.ascontiguousarray(a, dtype=float) for a in (pair.reference, pair.spline, pair.grad_rows, pair.grad_cols,
+                                                         pair.to_deformed)),
+        None if prior_px is None else np.ascontiguousarray(prior_px, dtype=float),
+        np.ascontiguousarray(centres, dtype=np.int64).reshape(-1, 2), np.ascontiguousarray(used), int(window_px),
+        int(search_px), GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_TOLERANCE_PX, GAUSS_NEWTON_GRADIENT_TOLERANCE,
+        max(int(threads), 1))
+    searched = []
+    for status, start, peak, warp in zip(found["status"], found["start"], found["peak_score"], found["warp"]):
+        status = int(status)
+        if status in (module.OUTSIDE, module.FLAT, module.NOT_FINITE):
+            searched.append(None)   # matched by nobody: the window is rejected as when it does not fit
+            continue
+        full = None
+        if status == module.MATCHED:
+            full = np.eye(3)
+            full[:2] = warp
+        searched.append(_Searched(start.copy(), float(peak), full))
+    return searched
+
+
+@dataclass(frozen=True)
+class _Searched:
+    """A window's integer search and Gauss-Newton iterations from the compiled loops: the start (d_col, d_row) px,
+    the integer peak's ZNCC and the final 3x3 warp (None where Gauss-Newton could not proceed)."""
+
+    start: np.ndarray
+    peak_score: float
+    warp: np.ndarray | None
 
 
 def _match_windows(job: tuple, workers: int) -> list:
-    """Every window's `_Match` (or None) of job = (pair, centres, window_px, search_px, prior_px, pixel_sets), in
-    order; in `workers` forked processes when the platform forks (the images reach them by the fork, not a pipe)."""
+    """Every window's `_Match` (or None) of job = (pair, centres, window_px, search_px, prior_px, pixel_sets,
+    searched), in order; in `workers` forked processes when the platform forks (the images reach them by the fork,
+    not a pipe). searched: None (the loops in Python) or each window's `_Searched` from the compiled loops."""
     count = len(job[1])
     workers = min(int(workers), count // MIN_WINDOWS_PER_WORKER)
     if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
@@ -312,7 +398,11 @@ def _hold_windows(job: tuple) -> None:
 
 
 def _match_chunk(indices, job: tuple | None = None) -> list:
-    pair, centres, window_px, search_px, prior_px, pixel_sets = _WORKER_WINDOWS if job is None else job
+    pair, centres, window_px, search_px, prior_px, pixel_sets, searched = _WORKER_WINDOWS if job is None else job
+    if searched is not None:
+        return [None if searched[k] is None else
+                _correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k],
+                                  searched[k]) for k in indices]
     return [_correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k])
             for k in indices]
 
@@ -423,9 +513,11 @@ class _Match:
                    np.zeros((2, 2)))
 
 
-def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, used: np.ndarray) -> _Match | None:
+def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, used: np.ndarray,
+                      searched: _Searched | None = None) -> _Match | None:
     """One window's `_Match`, or None if it does not fit or is flat. used: the pixels it matches (flat boolean over
-    its square, `window_pixel_sets`); the integer search that starts Gauss-Newton uses the whole square."""
+    its square, `window_pixel_sets`); the integer search that starts Gauss-Newton uses the whole square. searched:
+    the compiled loops' search and iterations for this window (None: both run here)."""
     height, width = pair.reference.shape
     r0, c0 = row - window_px // 2, col - window_px // 2
     if r0 < 0 or c0 < 0 or r0 + window_px > height or c0 + window_px > width:
@@ -433,18 +525,24 @@ def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, use
     template = pair.reference[r0:r0 + window_px, c0:c0 + window_px]
     if template.std() < 1e-12:
         return None
-    margin = (search_px - window_px) // 2
-    search_rows, search_cols = np.mgrid[r0 - margin:r0 + window_px + margin, c0 - margin:c0 + window_px + margin]
-    prior_cols, prior_rows = _prior_at(prior_px, search_rows, search_cols)
-    score = match_template(_sample(pair.spline, pair.to_deformed, search_cols + prior_cols, search_rows + prior_rows),
-                           template)
-    peak_row, peak_col = np.unravel_index(int(np.argmax(score)), score.shape)
-    start = np.array([peak_col + _parabola_offset(score[peak_row, :], peak_col) - margin,
-                      peak_row + _parabola_offset(score[:, peak_col], peak_row) - margin])
-    window_prior = (prior_cols[margin:margin + window_px, margin:margin + window_px].ravel(),
-                    prior_rows[margin:margin + window_px, margin:margin + window_px].ravel())
-    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used)
-    peak_score = float(score[peak_row, peak_col])
+    if searched is None:
+        margin = (search_px - window_px) // 2
+        search_rows, search_cols = np.mgrid[r0 - margin:r0 + window_px + margin, c0 - margin:c0 + window_px + margin]
+        prior_cols, prior_rows = _prior_at(prior_px, search_rows, search_cols)
+        score = match_template(_sample(pair.spline, pair.to_deformed, search_cols + prior_cols,
+                                       search_rows + prior_rows), template)
+        peak_row, peak_col = np.unravel_index(int(np.argmax(score)), score.shape)
+        start = np.array([peak_col + _parabola_offset(score[peak_row, :], peak_col) - margin,
+                          peak_row + _parabola_offset(score[:, peak_col], peak_row) - margin])
+        window_prior = (prior_cols[margin:margin + window_px, margin:margin + window_px].ravel(),
+                        prior_rows[margin:margin + window_px, margin:margin + window_px].ravel())
+        peak_score = float(score[peak_row, peak_col])
+    else:
+        window_rows, window_cols = np.mgrid[r0:r0 + window_px, c0:c0 + window_px]
+        prior_cols, prior_rows = _prior_at(prior_px, window_rows, window_cols)
+        window_prior = (prior_cols.ravel(), prior_rows.ravel())
+        start, peak_score = searched.start, searched.peak_score
+    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used, searched)
     if found is None or np.max(np.abs(found[0].displacement - start)) > MAX_REFINEMENT_PX or found[1] < peak_score - ZNCC_SLACK:
         return _Match.unmeasured(start, _raw_zncc(pair, r0, c0, window_px, start, window_prior, used=used))
     return found[0]
@@ -517,11 +615,13 @@ def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray) -> np.ndarray
     return np.stack([fx, fx * dxs, fx * dys, fy, fy * dxs, fy * dys], axis=1)
 
 
-def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np.ndarray) -> tuple[_Match, float] | None:
+def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np.ndarray,
+                           searched: _Searched | None = None) -> tuple[_Match, float] | None:
     """IC-GN with a first-order (affine) window shape function on the zero-normalised SSD of the prefiltered images,
     the deformed image sampled through the prior motion and the prior field (`prior`: (d_col, d_row) px at the
     window's pixels), over the window's pixels `used` (flat boolean). Returns the window's `_Match` (module text) and
-    the ZNCC of the prefiltered images there."""
+    the ZNCC of the prefiltered images there. searched: the compiled loops' result, whose warp replaces the
+    iterations here (None: they run here)."""
     f_hat, f_norm = _normalise(template.ravel()[used])
     if f_norm == 0.0:
         return None
@@ -546,14 +646,20 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
         return _normalise(_sample(pair.spline, pair.to_deformed, centre_col + moved[0] + prior_used[0],
                                   centre_row + moved[1] + prior_used[1]))
 
-    for _ in range(GAUSS_NEWTON_ITERATIONS):
-        g_hat, g_norm = sample(warp)
-        if g_norm == 0.0:
+    if searched is not None:
+        if searched.warp is None:   # the compiled iterations met a flat sample or a singular step
             return None
-        step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
-        warp = warp @ np.linalg.inv(_affine(step))
-        if max(abs(step[0]), abs(step[3])) < GAUSS_NEWTON_TOLERANCE_PX and np.max(np.abs(step[[1, 2, 4, 5]])) < 1e-5:
-            break
+        warp = searched.warp
+    else:
+        for _ in range(GAUSS_NEWTON_ITERATIONS):
+            g_hat, g_norm = sample(warp)
+            if g_norm == 0.0:
+                return None
+            step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
+            warp = warp @ np.linalg.inv(_affine(step))
+            if (max(abs(step[0]), abs(step[3])) < GAUSS_NEWTON_TOLERANCE_PX
+                    and np.max(np.abs(step[[1, 2, 4, 5]])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
+                break
     g_hat, g_norm = sample(warp)
     displacement, zncc = np.array([warp[0, 2], warp[1, 2]]), float(f_hat.ravel() @ g_hat)
     # the raw noise of the two images as it enters the normalised difference (the deformed one scaled to the reference)

@@ -1,0 +1,131 @@
+// orchestrator._correlation: the DIC windows' hot loops (windows.hpp) for orchestrator/measure/dic.py. The arrays
+// are checked here, each misfit refused with one sentence (ValueError), so that the loops read only what exists.
+#include <nanobind/nanobind.h>
+#include <nanobind/ndarray.h>
+#include <nanobind/stl/optional.h>
+
+#include <cstdint>
+#include <optional>
+#include <stdexcept>
+#include <string>
+
+#include "windows.hpp"
+
+namespace nb = nanobind;
+using namespace calfit::correlation;
+
+namespace {
+
+using Grid = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using Field = nb::ndarray<const double, nb::ndim<3>, nb::c_contig, nb::device::cpu>;
+using Centres = nb::ndarray<const std::int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using Masks = nb::ndarray<const bool, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+
+template <typename T>
+nb::ndarray<nb::numpy, T> owned(T* data, std::initializer_list<std::size_t> shape) {
+  nb::capsule owner(data, [](void* p) noexcept { delete[] static_cast<T*>(p); });
+  return nb::ndarray<nb::numpy, T>(data, shape, owner);
+}
+
+std::string shape_of(std::size_t rows, std::size_t cols) {
+  return "(" + std::to_string(rows) + ", " + std::to_string(cols) + ")";
+}
+
+nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad_cols, Grid to_deformed,
+                          std::optional<Field> prior, Centres centres, Masks used, int window_px, int search_px,
+                          int iterations, double tolerance_px, double tolerance_gradient, int threads) {
+  const std::size_t rows = reference.shape(0), cols = reference.shape(1);
+  if (rows == 0 || cols == 0) throw std::invalid_argument("the reference image is empty");
+  for (const Grid* grid : {&spline, &grad_rows, &grad_cols})
+    if (grid->shape(0) != rows || grid->shape(1) != cols)
+      throw std::invalid_argument("the spline coefficients and the gradients must have the reference's shape " +
+                                  shape_of(rows, cols) + ", not " + shape_of(grid->shape(0), grid->shape(1)));
+  if (to_deformed.shape(0) != 3 || to_deformed.shape(1) != 3)
+    throw std::invalid_argument("the prior motion is a 3x3 matrix on (column, row, 1)");
+  if (prior && (prior->shape(0) != 2 || prior->shape(1) != rows || prior->shape(2) != cols))
+    throw std::invalid_argument("the prior field must be (2, " + std::to_string(rows) + ", " + std::to_string(cols) +
+                                ") pixels");
+  if (window_px < 1 || search_px < window_px)
+    throw std::invalid_argument("a window of at least one pixel and a search area at least as large: window_px " +
+                                std::to_string(window_px) + ", search_px " + std::to_string(search_px));
+  if (iterations < 0 || !(tolerance_px >= 0.0) || !(tolerance_gradient >= 0.0))
+    throw std::invalid_argument("Gauss-Newton's iterations and tolerances cannot be negative");
+  if (threads < 1) throw std::invalid_argument("at least one thread matches the windows");
+  const std::size_t count = centres.shape(0);
+  const std::size_t square = static_cast<std::size_t>(window_px) * static_cast<std::size_t>(window_px);
+  if (centres.shape(1) != 2) throw std::invalid_argument("the window centres are (N, 2) (row, column) pixels");
+  if (used.shape(0) != count || used.shape(1) != square)
+    throw std::invalid_argument("one pixel set of " + std::to_string(square) + " per window: " +
+                                shape_of(count, square) + ", not " + shape_of(used.shape(0), used.shape(1)));
+
+  Pair pair;
+  pair.reference = {reference.data(), static_cast<std::ptrdiff_t>(rows), static_cast<std::ptrdiff_t>(cols)};
+  pair.spline = {spline.data(), pair.reference.rows, pair.reference.cols};
+  pair.grad_rows = {grad_rows.data(), pair.reference.rows, pair.reference.cols};
+  pair.grad_cols = {grad_cols.data(), pair.reference.rows, pair.reference.cols};
+  for (int k = 0; k < 6; ++k) pair.to_deformed[k] = to_deformed.data()[k];
+  pair.prior = prior ? prior->data() : nullptr;
+  Settings settings{window_px, search_px, iterations, tolerance_px, tolerance_gradient};
+
+  std::vector<WindowResult> results;
+  {
+    nb::gil_scoped_release free_python;   // the arrays stay alive: their Python objects are this call's arguments
+    results = match_windows(pair, settings, centres.data(), count, used.data(), threads);
+  }
+  auto* status = new std::int8_t[count];
+  auto* start = new double[2 * count];
+  auto* peak = new double[count];
+  auto* warp = new double[6 * count];
+  auto* steps = new std::int32_t[count];
+  for (std::size_t k = 0; k < count; ++k) {
+    status[k] = static_cast<std::int8_t>(results[k].status);
+    start[2 * k] = results[k].start[0];
+    start[2 * k + 1] = results[k].start[1];
+    peak[k] = results[k].peak_score;
+    for (int j = 0; j < 6; ++j) warp[6 * k + j] = results[k].warp[j];
+    steps[k] = results[k].iterations;
+  }
+  nb::dict out;
+  out["status"] = owned(status, {count});
+  out["start"] = owned(start, {count, 2});
+  out["peak_score"] = owned(peak, {count});
+  out["warp"] = owned(warp, {count, 2, 3});
+  out["iterations"] = owned(steps, {count});
+  return out;
+}
+
+nb::ndarray<nb::numpy, double> sample_py(Grid coefficients, nb::ndarray<const double, nb::ndim<1>, nb::c_contig,
+                                         nb::device::cpu> rows, nb::ndarray<const double, nb::ndim<1>, nb::c_contig,
+                                         nb::device::cpu> cols) {
+  if (coefficients.shape(0) == 0 || coefficients.shape(1) == 0)
+    throw std::invalid_argument("the spline coefficients are empty");
+  if (rows.shape(0) != cols.shape(0)) throw std::invalid_argument("as many rows as columns to sample at");
+  const Image image{coefficients.data(), static_cast<std::ptrdiff_t>(coefficients.shape(0)),
+                    static_cast<std::ptrdiff_t>(coefficients.shape(1))};
+  const std::size_t count = rows.shape(0);
+  auto* values = new double[count];
+  for (std::size_t k = 0; k < count; ++k) {
+    const double r = rows.data()[k], c = cols.data()[k];
+    values[k] = std::isfinite(r) && std::isfinite(c) ? sample_spline(image, r, c) : std::nan("");
+  }
+  return owned(values, {count});
+}
+
+}  // namespace
+
+NB_MODULE(_correlation, m) {
+  m.doc() = "calfit's DIC windows: the ZNCC integer search and the IC-GN iterations (orchestrator/measure/dic.py)";
+  m.attr("MATCHED") = static_cast<int>(Status::matched);
+  m.attr("OUTSIDE") = static_cast<int>(Status::outside);
+  m.attr("FLAT") = static_cast<int>(Status::flat);
+  m.attr("REFINEMENT_FAILED") = static_cast<int>(Status::refinement_failed);
+  m.attr("NOT_FINITE") = static_cast<int>(Status::not_finite);
+  m.def("match_windows", &match_windows_py, nb::arg("reference"), nb::arg("spline"), nb::arg("grad_rows"),
+        nb::arg("grad_cols"), nb::arg("to_deformed"), nb::arg("prior").none(), nb::arg("centres"), nb::arg("used"),
+        nb::arg("window_px"), nb::arg("search_px"), nb::arg("iterations"), nb::arg("tolerance_px"),
+        nb::arg("tolerance_gradient"), nb::arg("threads") = 1,
+        "Per window: status, start (d_col, d_row), peak_score, warp (2x3) and iterations (windows.hpp).");
+  m.def("sample_spline", &sample_py, nb::arg("coefficients"), nb::arg("rows"), nb::arg("cols"),
+        "The cubic B-spline of the coefficients at the points, as map_coordinates(order=3, prefilter=False, "
+        "mode='nearest') (NaN at a non-finite point).");
+}

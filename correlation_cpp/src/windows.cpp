@@ -1,0 +1,411 @@
+#include "windows.hpp"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <complex>
+#include <exception>
+#include <limits>
+#include <memory>
+#include <mutex>
+#include <stdexcept>
+#include <thread>
+
+#include "fft.hpp"
+
+namespace calfit::correlation {
+namespace {
+
+using Complex = std::complex<double>;
+
+// The four cubic B-spline weights of the knots floor(x) - 1 .. floor(x) + 2 at the fraction t = x - floor(x).
+inline void cubic_weights(double t, double* w) {
+  const double s = 1.0 - t;
+  w[0] = s * s * s / 6.0;
+  w[1] = (t * t * (t - 2.0) * 3.0 + 4.0) / 6.0;
+  w[2] = (s * s * (s - 2.0) * 3.0 + 4.0) / 6.0;
+  w[3] = t * t * t / 6.0;
+}
+
+// A coordinate far beyond the edge reads the edge's coefficients, as one just beyond it does: clamping it first keeps
+// floor() and the index arithmetic finite for any finite input.
+inline void axis_taps(double x, std::ptrdiff_t length, std::ptrdiff_t* index, double* weight) {
+  x = std::clamp(x, -4.0, static_cast<double>(length) + 3.0);
+  const double base = std::floor(x);
+  cubic_weights(x - base, weight);
+  const auto first = static_cast<std::ptrdiff_t>(base) - 1;
+  for (std::ptrdiff_t k = 0; k < 4; ++k) index[k] = std::clamp(first + k, std::ptrdiff_t{0}, length - 1);
+}
+
+// The deformed image at the reference-frame point (col, row) moved by the prior rigid motion (dic._sample).
+inline double sample_deformed(const Pair& pair, double col, double row) {
+  const auto& m = pair.to_deformed;
+  return sample_spline(pair.spline, m[3] * col + m[4] * row + m[5], m[0] * col + m[1] * row + m[2]);
+}
+
+// The prior field (d_col, d_row) at an integer pixel, held constant beyond the image (dic._prior_at).
+inline void prior_at(const Pair& pair, std::ptrdiff_t r, std::ptrdiff_t c, double& d_col, double& d_row) {
+  if (pair.prior == nullptr) {
+    d_col = d_row = 0.0;
+    return;
+  }
+  const std::ptrdiff_t rows = pair.reference.rows, cols = pair.reference.cols;
+  r = std::clamp(r, std::ptrdiff_t{0}, rows - 1);
+  c = std::clamp(c, std::ptrdiff_t{0}, cols - 1);
+  d_col = pair.prior[r * cols + c];
+  d_row = pair.prior[rows * cols + r * cols + c];
+}
+
+// Sub-pixel offset of the maximum of a parabola through a peak and its two neighbours (dic._parabola_offset).
+double parabola_offset(double left, double centre, double right) {
+  const double curvature = left - 2.0 * centre + right;
+  return curvature >= 0.0 ? 0.0 : std::clamp(0.5 * (left - right) / curvature, -0.5, 0.5);
+}
+
+// What one thread reuses from window to window: the FFT plan of the search's size and its grids.
+struct Workspace {
+  explicit Workspace(std::size_t n) : fft(n), spectrum(n * n), product(n * n) {}
+  Fft fft;
+  std::vector<Complex> spectrum, product;
+};
+
+std::vector<double> zncc_map_with(Workspace& ws, const std::vector<double>& patch, std::ptrdiff_t p,
+                                  const std::vector<double>& tmpl, std::ptrdiff_t w) {
+  const std::ptrdiff_t m = p - w + 1;
+  const auto n = static_cast<std::ptrdiff_t>(ws.fft.size());
+  const double count = static_cast<double>(w * w);
+  // The patch and the template mean-free: the ZNCC does not change, and the window sums below lose less to
+  // cancellation than skimage's running sums of the raw grey levels.
+  double patch_mean = 0.0, tmpl_mean = 0.0;
+  for (double v : patch) patch_mean += v;
+  for (double v : tmpl) tmpl_mean += v;
+  patch_mean /= static_cast<double>(p * p);
+  tmpl_mean /= count;
+  double tmpl_ssd = 0.0;
+  for (double v : tmpl) tmpl_ssd += (v - tmpl_mean) * (v - tmpl_mean);
+
+  // Two real grids in one complex transform (patch + i template), split by the spectrum's conjugate symmetry; the
+  // circular correlation of size n >= p does not wrap at the shifts kept, whose template stays inside the patch.
+  std::fill(ws.spectrum.begin(), ws.spectrum.end(), Complex{});
+  for (std::ptrdiff_t r = 0; r < p; ++r)
+    for (std::ptrdiff_t c = 0; c < p; ++c) ws.spectrum[r * n + c] = {patch[r * p + c] - patch_mean, 0.0};
+  for (std::ptrdiff_t r = 0; r < w; ++r)
+    for (std::ptrdiff_t c = 0; c < w; ++c) ws.spectrum[r * n + c].imag(tmpl[r * w + c] - tmpl_mean);
+  ws.fft.transform_2d(ws.spectrum, false);
+  for (std::ptrdiff_t r = 0; r < n; ++r) {
+    for (std::ptrdiff_t c = 0; c < n; ++c) {
+      const Complex z = ws.spectrum[r * n + c], mirrored = std::conj(ws.spectrum[((n - r) % n) * n + (n - c) % n]);
+      const Complex of_patch = 0.5 * (z + mirrored), of_tmpl = Complex{0.0, -0.5} * (z - mirrored);
+      ws.product[r * n + c] = of_patch * std::conj(of_tmpl);
+    }
+  }
+  ws.fft.transform_2d(ws.product, true);
+  const double scale = 1.0 / static_cast<double>(n * n);
+
+  // the windows' sums of the patch and its square from summed-area tables
+  std::vector<double> sum((p + 1) * (p + 1), 0.0), sum2((p + 1) * (p + 1), 0.0);
+  for (std::ptrdiff_t r = 0; r < p; ++r) {
+    for (std::ptrdiff_t c = 0; c < p; ++c) {
+      const double v = patch[r * p + c] - patch_mean;
+      const std::ptrdiff_t at = (r + 1) * (p + 1) + c + 1;
+      sum[at] = v + sum[at - 1] + sum[at - (p + 1)] - sum[at - (p + 1) - 1];
+      sum2[at] = v * v + sum2[at - 1] + sum2[at - (p + 1)] - sum2[at - (p + 1) - 1];
+    }
+  }
+  auto box = [&](const std::vector<double>& table, std::ptrdiff_t r, std::ptrdiff_t c) {
+    const std::ptrdiff_t s = p + 1;
+    return table[(r + w) * s + c + w] - table[r * s + c + w] - table[(r + w) * s + c] + table[r * s + c];
+  };
+  std::vector<double> score(m * m, 0.0);
+  for (std::ptrdiff_t r = 0; r < m; ++r) {
+    for (std::ptrdiff_t c = 0; c < m; ++c) {
+      const double s = box(sum, r, c);
+      const double variance = std::max(box(sum2, r, c) - s * s / count, 0.0);
+      const double denominator = std::sqrt(variance * tmpl_ssd);
+      // skimage's guard against a flat patch: below float64's epsilon the score is 0
+      if (denominator > std::numeric_limits<double>::epsilon())
+        score[r * m + c] = ws.product[r * n + c].real() * scale / denominator;
+    }
+  }
+  return score;
+}
+
+// LU factors with partial pivoting of the 6x6 Gauss-Newton matrix, which IC-GN keeps for all its iterations.
+struct Lu6 {
+  std::array<double, 36> a{};
+  std::array<int, 6> pivot{};
+  bool factor(const std::array<double, 36>& matrix) {
+    a = matrix;
+    for (int k = 0; k < 6; ++k) {
+      int best = k;
+      for (int i = k + 1; i < 6; ++i)
+        if (std::abs(a[i * 6 + k]) > std::abs(a[best * 6 + k])) best = i;
+      pivot[k] = best;
+      if (!(std::abs(a[best * 6 + k]) > 0.0) || !std::isfinite(a[best * 6 + k])) return false;
+      if (best != k)
+        for (int j = 0; j < 6; ++j) std::swap(a[k * 6 + j], a[best * 6 + j]);
+      for (int i = k + 1; i < 6; ++i) {
+        a[i * 6 + k] /= a[k * 6 + k];
+        for (int j = k + 1; j < 6; ++j) a[i * 6 + j] -= a[i * 6 + k] * a[k * 6 + j];
+      }
+    }
+    return true;
+  }
+  std::array<double, 6> solve(std::array<double, 6> b) const {
+    // the rows were swapped whole while factoring (L too), so all the swaps come before the substitution
+    for (int k = 0; k < 6; ++k) std::swap(b[k], b[pivot[k]]);
+    for (int k = 0; k < 6; ++k)
+      for (int i = k + 1; i < 6; ++i) b[i] -= a[i * 6 + k] * b[k];
+    for (int k = 5; k >= 0; --k) {
+      for (int j = k + 1; j < 6; ++j) b[k] -= a[k * 6 + j] * b[j];
+      b[k] /= a[k * 6 + k];
+    }
+    return b;
+  }
+};
+
+// (values - mean) / norm in place; returns the norm (dic._normalise).
+double normalise(std::vector<double>& values) {
+  double mean = 0.0;
+  for (double v : values) mean += v;
+  mean /= static_cast<double>(values.size());
+  double squares = 0.0;
+  for (double& v : values) {
+    v -= mean;
+    squares += v * v;
+  }
+  const double norm = std::sqrt(squares);
+  if (norm > 0.0)
+    for (double& v : values) v /= norm;
+  return norm;
+}
+
+// IC-GN from `start` over the window's used pixels (dic._inverse_compositional's loop); fills warp and iterations.
+Status refine(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdiff_t c0, const bool* used,
+              WindowResult& out) {
+  const std::ptrdiff_t w = s.window_px;
+  const double half = (static_cast<double>(w) - 1.0) / 2.0;
+  std::vector<double> f, dx, dy, gx, gy, prior_c, prior_r;
+  for (std::ptrdiff_t r = 0; r < w; ++r) {
+    for (std::ptrdiff_t c = 0; c < w; ++c) {
+      if (!used[r * w + c]) continue;
+      f.push_back(pair.reference.at(r0 + r, c0 + c));
+      dx.push_back(static_cast<double>(c) - half);
+      dy.push_back(static_cast<double>(r) - half);
+      gx.push_back(pair.grad_cols.at(r0 + r, c0 + c));
+      gy.push_back(pair.grad_rows.at(r0 + r, c0 + c));
+      double pc = 0.0, pr = 0.0;
+      prior_at(pair, r0 + r, c0 + c, pc, pr);
+      prior_c.push_back(pc);
+      prior_r.push_back(pr);
+    }
+  }
+  const std::size_t n = f.size();
+  if (n == 0) return Status::refinement_failed;
+  for (std::size_t i = 0; i < n; ++i)
+    if (!std::isfinite(gx[i]) || !std::isfinite(gy[i]) || !std::isfinite(prior_c[i]) || !std::isfinite(prior_r[i]))
+      return Status::not_finite;
+  const double f_norm = normalise(f);
+  if (f_norm == 0.0) return Status::refinement_failed;
+
+  // the steepest-descent images with the mean and f^ projected out (dic.zero_normalised_steepest_descent), over f_norm
+  std::vector<std::array<double, 6>> steepest(n);
+  std::array<double, 6> mean{}, along_f{};
+  for (std::size_t i = 0; i < n; ++i) {
+    steepest[i] = {gx[i], gx[i] * dx[i], gx[i] * dy[i], gy[i], gy[i] * dx[i], gy[i] * dy[i]};
+    for (int k = 0; k < 6; ++k) {
+      mean[k] += steepest[i][k];
+      along_f[k] += f[i] * steepest[i][k];
+    }
+  }
+  for (int k = 0; k < 6; ++k) mean[k] /= static_cast<double>(n);
+  std::array<double, 36> hessian{};
+  for (std::size_t i = 0; i < n; ++i) {
+    for (int k = 0; k < 6; ++k) steepest[i][k] -= mean[k] + f[i] * along_f[k];
+    for (int k = 0; k < 6; ++k)
+      for (int j = 0; j < 6; ++j) hessian[k * 6 + j] += steepest[i][k] * steepest[i][j];
+  }
+  for (double& h : hessian) h /= f_norm * f_norm;
+  for (auto& row : steepest)
+    for (double& v : row) v /= f_norm;
+  Lu6 lu;
+  if (!lu.factor(hessian)) return Status::refinement_failed;
+
+  const double centre_row = static_cast<double>(r0) + half, centre_col = static_cast<double>(c0) + half;
+  std::array<double, 6> warp = {1.0, 0.0, out.start[0], 0.0, 1.0, out.start[1]};
+  std::vector<double> g(n);
+  auto sample = [&](const std::array<double, 6>& a) {
+    for (std::size_t i = 0; i < n; ++i) {
+      const double moved_col = a[0] * dx[i] + a[1] * dy[i] + a[2];
+      const double moved_row = a[3] * dx[i] + a[4] * dy[i] + a[5];
+      g[i] = sample_deformed(pair, centre_col + moved_col + prior_c[i], centre_row + moved_row + prior_r[i]);
+    }
+    return normalise(g);
+  };
+  int iteration = 0;
+  while (iteration < s.iterations) {
+    ++iteration;
+    const double g_norm = sample(warp);
+    if (!std::isfinite(g_norm)) return Status::not_finite;
+    if (g_norm == 0.0) return Status::refinement_failed;
+    std::array<double, 6> b{};
+    for (std::size_t i = 0; i < n; ++i)
+      for (int k = 0; k < 6; ++k) b[k] += steepest[i][k] * (g[i] - f[i]);
+    const std::array<double, 6> p = lu.solve(b);
+    // warp <- warp inv(W(p)): W(p) = [[1 + ux, uy, u], [vx, 1 + vy, v]], inverted in closed form
+    const double a00 = 1.0 + p[1], a01 = p[2], a10 = p[4], a11 = 1.0 + p[5];
+    const double det = a00 * a11 - a01 * a10;
+    if (!(std::abs(det) > 0.0) || !std::isfinite(det)) return Status::refinement_failed;
+    const double i00 = a11 / det, i01 = -a01 / det, i10 = -a10 / det, i11 = a00 / det;
+    const double t0 = -(i00 * p[0] + i01 * p[3]), t1 = -(i10 * p[0] + i11 * p[3]);
+    const std::array<double, 6> old = warp;
+    for (int r = 0; r < 2; ++r) {
+      const double o0 = old[r * 3], o1 = old[r * 3 + 1], o2 = old[r * 3 + 2];
+      warp[r * 3] = o0 * i00 + o1 * i10;
+      warp[r * 3 + 1] = o0 * i01 + o1 * i11;
+      warp[r * 3 + 2] = o0 * t0 + o1 * t1 + o2;
+    }
+    const double gradient_step = std::max({std::abs(p[1]), std::abs(p[2]), std::abs(p[4]), std::abs(p[5])});
+    if (std::max(std::abs(p[0]), std::abs(p[3])) < s.tolerance_px && gradient_step < s.tolerance_gradient) break;
+  }
+  for (double v : warp)
+    if (!std::isfinite(v)) return Status::not_finite;
+  out.warp = warp;
+  out.iterations = iteration;
+  return Status::matched;
+}
+
+WindowResult match_window_with(Workspace& ws, const Pair& pair, const Settings& s, std::ptrdiff_t row,
+                               std::ptrdiff_t col, const bool* used) {
+  WindowResult out;
+  const std::ptrdiff_t w = s.window_px;
+  const std::ptrdiff_t r0 = row - w / 2, c0 = col - w / 2;
+  if (r0 < 0 || c0 < 0 || r0 + w > pair.reference.rows || c0 + w > pair.reference.cols) {
+    out.status = Status::outside;
+    return out;
+  }
+  std::vector<double> tmpl(w * w);
+  double mean = 0.0;
+  for (std::ptrdiff_t r = 0; r < w; ++r)
+    for (std::ptrdiff_t c = 0; c < w; ++c) mean += tmpl[r * w + c] = pair.reference.at(r0 + r, c0 + c);
+  mean /= static_cast<double>(w * w);
+  double squares = 0.0;
+  for (double v : tmpl) squares += (v - mean) * (v - mean);
+  if (!std::isfinite(squares)) {
+    out.status = Status::not_finite;
+    return out;
+  }
+  if (std::sqrt(squares / static_cast<double>(w * w)) < 1e-12) {
+    out.status = Status::flat;
+    return out;
+  }
+
+  // the search patch: the deformed image through the prior at every pixel of the search area (dic._correlate_window)
+  const std::ptrdiff_t margin = (s.search_px - w) / 2, p = w + 2 * margin;
+  std::vector<double> patch(p * p);
+  for (std::ptrdiff_t r = 0; r < p; ++r) {
+    for (std::ptrdiff_t c = 0; c < p; ++c) {
+      const std::ptrdiff_t at_r = r0 - margin + r, at_c = c0 - margin + c;
+      double pc = 0.0, pr = 0.0;
+      prior_at(pair, at_r, at_c, pc, pr);
+      const double x = static_cast<double>(at_c) + pc, y = static_cast<double>(at_r) + pr;
+      const auto& motion = pair.to_deformed;
+      const double moved_col = motion[0] * x + motion[1] * y + motion[2];
+      const double moved_row = motion[3] * x + motion[4] * y + motion[5];
+      if (!std::isfinite(moved_col) || !std::isfinite(moved_row)) {
+        out.status = Status::not_finite;
+        return out;
+      }
+      patch[r * p + c] = sample_spline(pair.spline, moved_row, moved_col);
+    }
+  }
+  for (double v : patch)
+    if (!std::isfinite(v)) {
+      out.status = Status::not_finite;
+      return out;
+    }
+  const std::vector<double> score = zncc_map_with(ws, patch, p, tmpl, w);
+  const std::ptrdiff_t m = p - w + 1;
+  std::ptrdiff_t best = 0;   // the first maximum in row-major order, as numpy's argmax
+  for (std::ptrdiff_t k = 1; k < m * m; ++k)
+    if (score[k] > score[best]) best = k;
+  const std::ptrdiff_t peak_row = best / m, peak_col = best % m;
+  const double along_cols = (peak_col == 0 || peak_col == m - 1) ? 0.0 :
+      parabola_offset(score[peak_row * m + peak_col - 1], score[best], score[peak_row * m + peak_col + 1]);
+  const double along_rows = (peak_row == 0 || peak_row == m - 1) ? 0.0 :
+      parabola_offset(score[(peak_row - 1) * m + peak_col], score[best], score[(peak_row + 1) * m + peak_col]);
+  out.start = {static_cast<double>(peak_col) + along_cols - static_cast<double>(margin),
+               static_cast<double>(peak_row) + along_rows - static_cast<double>(margin)};
+  out.peak_score = score[best];
+  out.status = refine(pair, s, r0, c0, used, out);
+  return out;
+}
+
+}  // namespace
+
+double sample_spline(const Image& coefficients, double row, double col) {
+  std::ptrdiff_t rows[4], cols[4];
+  double wr[4], wc[4];
+  axis_taps(row, coefficients.rows, rows, wr);
+  axis_taps(col, coefficients.cols, cols, wc);
+  double value = 0.0;
+  for (int i = 0; i < 4; ++i) {
+    const double* line = coefficients.data + rows[i] * coefficients.cols;
+    value += wr[i] * (wc[0] * line[cols[0]] + wc[1] * line[cols[1]] + wc[2] * line[cols[2]] + wc[3] * line[cols[3]]);
+  }
+  return value;
+}
+
+std::vector<double> zncc_map(const std::vector<double>& patch, std::ptrdiff_t p, const std::vector<double>& tmpl,
+                             std::ptrdiff_t w) {
+  if (w < 1 || p < w || patch.size() != static_cast<std::size_t>(p * p) ||
+      tmpl.size() != static_cast<std::size_t>(w * w))
+    throw std::invalid_argument("zncc_map: a w x w template inside a p x p patch, p >= w >= 1");
+  Workspace ws(next_power_of_two(static_cast<std::size_t>(p)));
+  return zncc_map_with(ws, patch, p, tmpl, w);
+}
+
+WindowResult match_window(const Pair& pair, const Settings& settings, std::ptrdiff_t row, std::ptrdiff_t col,
+                          const bool* used) {
+  const std::ptrdiff_t p = settings.window_px + 2 * ((settings.search_px - settings.window_px) / 2);
+  Workspace ws(next_power_of_two(static_cast<std::size_t>(p)));
+  return match_window_with(ws, pair, settings, row, col, used);
+}
+
+std::vector<WindowResult> match_windows(const Pair& pair, const Settings& settings, const std::int64_t* centres,
+                                        std::size_t count, const bool* used, int threads) {
+  if (settings.window_px < 1 || settings.search_px < settings.window_px || settings.iterations < 0)
+    throw std::invalid_argument("match_windows: window_px >= 1, search_px >= window_px and iterations >= 0");
+  if (pair.reference.rows < 1 || pair.reference.cols < 1)
+    throw std::invalid_argument("match_windows: the images are empty");
+  std::vector<WindowResult> results(count);
+  const std::size_t square = static_cast<std::size_t>(settings.window_px) * settings.window_px;
+  const std::ptrdiff_t p = settings.window_px + 2 * ((settings.search_px - settings.window_px) / 2);
+  const std::size_t side = next_power_of_two(static_cast<std::size_t>(p));
+  // windows differ in cost (a failed search stops early), so each thread takes the next one when it is free
+  std::atomic<std::size_t> next{0};
+  std::exception_ptr failure;
+  std::mutex failure_lock;
+  auto work = [&]() {
+    try {
+      Workspace ws(side);
+      for (std::size_t k = next++; k < count; k = next++)
+        results[k] = match_window_with(ws, pair, settings, static_cast<std::ptrdiff_t>(centres[2 * k]),
+                                       static_cast<std::ptrdiff_t>(centres[2 * k + 1]), used + k * square);
+    } catch (...) {   // an exception must not leave a thread (std::terminate): the first is rethrown after the join
+      std::lock_guard<std::mutex> hold(failure_lock);
+      if (!failure) failure = std::current_exception();
+      next = count;
+    }
+  };
+  const auto spawned = static_cast<std::size_t>(std::clamp(threads, 1, 256)) - 1;
+  std::vector<std::thread> pool;
+  pool.reserve(spawned);
+  for (std::size_t t = 0; t < std::min(spawned, count); ++t) pool.emplace_back(work);
+  work();
+  for (auto& thread : pool) thread.join();
+  if (failure) std::rethrow_exception(failure);
+  return results;
+}
+
+}  // namespace calfit::correlation

@@ -1,0 +1,72 @@
+// The hot loops of calfit's DIC windows (orchestrator/measure/dic.py): the ZNCC integer search and the
+// inverse-compositional Gauss-Newton (IC-GN) iterations with an affine window. Python keeps everything else (the
+// prefilter, the spline coefficients, the error model); these loops take what it computed and return, per window,
+// where the search started Gauss-Newton and the warp it converged to, so that Python finishes each window exactly as
+// its own loops would have. dic.py's module text says what each step is and why.
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+namespace calfit::correlation {
+
+// A row-major image (or spline coefficients) the caller owns.
+struct Image {
+  const double* data = nullptr;
+  std::ptrdiff_t rows = 0, cols = 0;
+  double at(std::ptrdiff_t r, std::ptrdiff_t c) const { return data[r * cols + c]; }
+};
+
+// What every window of one correlation reads (dic._Pair's part that the loops need).
+struct Pair {
+  Image reference;                      // the prefiltered reference
+  Image spline;                         // cubic B-spline coefficients of the prefiltered deformed image (scipy's)
+  Image grad_rows, grad_cols;           // the reference's spline gradients
+  std::array<double, 6> to_deformed{};  // the first two rows of the 3x3 prior rigid motion on (column, row, 1)
+  const double* prior = nullptr;        // (2, rows, cols) prior field (d_col, d_row) px, or none
+};
+
+struct Settings {
+  int window_px = 16;
+  int search_px = 64;
+  int iterations = 20;                // dic.GAUSS_NEWTON_ITERATIONS
+  double tolerance_px = 1e-4;         // dic.GAUSS_NEWTON_TOLERANCE_PX, on the translation step
+  double tolerance_gradient = 1e-5;   // on the step of the displacement gradient
+};
+
+enum class Status : std::int8_t {
+  matched = 0,            // searched and refined: start, peak_score and warp hold
+  outside = 1,            // the window does not fit in the image
+  flat = 2,               // the template's standard deviation is below 1e-12
+  refinement_failed = 3,  // searched (start, peak_score hold) but IC-GN could not proceed: a flat or singular system
+  not_finite = 4,         // a NaN or an infinity in the window, its search area or the prior: rejected, not guessed
+};
+
+struct WindowResult {
+  Status status = Status::outside;
+  std::array<double, 2> start{};   // (d_col, d_row) px, the integer peak refined by a parabola
+  double peak_score = 0.0;         // the ZNCC at the integer peak
+  std::array<double, 6> warp{};    // the first two rows of the final 3x3 affine warp
+  int iterations = 0;
+};
+
+// The value at (row, col) of the cubic B-spline of `coefficients`, as scipy.ndimage.map_coordinates(order=3,
+// prefilter=False, mode="nearest") evaluates it: the coefficients beyond the edge are those at the edge.
+double sample_spline(const Image& coefficients, double row, double col);
+
+// The ZNCC of `tmpl` (w x w) at every integer shift inside `patch` (p x p), (p - w + 1)^2 row-major values, as
+// skimage.feature.match_template(patch, tmpl) gives them (0 where the patch is flat).
+std::vector<double> zncc_map(const std::vector<double>& patch, std::ptrdiff_t p, const std::vector<double>& tmpl,
+                             std::ptrdiff_t w);
+
+// One window centred at the integer pixel (row, col); used: its w * w pixels that IC-GN matches (row-major).
+WindowResult match_window(const Pair& pair, const Settings& settings, std::ptrdiff_t row, std::ptrdiff_t col,
+                          const bool* used);
+
+// Every window of (count, 2) centres and (count, w * w) pixel sets, shared among `threads` threads.
+std::vector<WindowResult> match_windows(const Pair& pair, const Settings& settings, const std::int64_t* centres,
+                                        std::size_t count, const bool* used, int threads);
+
+}  // namespace calfit::correlation
