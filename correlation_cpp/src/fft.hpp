@@ -16,7 +16,10 @@ class Fft {
 
   std::size_t size() const { return n_; }
 
-  // The 2-D transform of an n x n row-major grid in place, unnormalised (the inverse does not divide by n^2).
+  // The 2-D transform of an n x n row-major grid in place, unnormalised (the inverse does not divide by n^2), and
+  // transposed: element (i, j) holds frequency (j, i). A forward and an inverse transform in turn give the grid back
+  // in its own orientation, and a product of two spectra is taken element by element, so the correlation, the one
+  // use, never transposes back.
   void transform_2d(std::vector<std::complex<double>>& grid, bool inverse);
 
  private:
@@ -25,7 +28,6 @@ class Fft {
   std::size_t n_;
   std::vector<std::size_t> reversed_;                  // the bit-reversed index of each position
   std::vector<std::complex<double>> twiddles_;         // exp(-2 pi i k / n), k < n / 2
-  std::vector<std::complex<double>> column_;           // one column, copied out so that it is transformed contiguously
 };
 
 std::size_t next_power_of_two(std::size_t n);

@@ -92,11 +92,14 @@ std::vector<double> zncc_map_with(Workspace& ws, const std::vector<double>& patc
   for (std::ptrdiff_t r = 0; r < w; ++r)
     for (std::ptrdiff_t c = 0; c < w; ++c) ws.spectrum[r * n + c].imag(tmpl[r * w + c] - tmpl_mean);
   ws.fft.transform_2d(ws.spectrum, false);
+  // (the spectrum is transposed, `Fft::transform_2d`, and so is the mirror of a frequency: the formula is the same)
   for (std::ptrdiff_t r = 0; r < n; ++r) {
     for (std::ptrdiff_t c = 0; c < n; ++c) {
       const Complex z = ws.spectrum[r * n + c], mirrored = std::conj(ws.spectrum[((n - r) % n) * n + (n - c) % n]);
-      const Complex of_patch = 0.5 * (z + mirrored), of_tmpl = Complex{0.0, -0.5} * (z - mirrored);
-      ws.product[r * n + c] = of_patch * std::conj(of_tmpl);
+      // patch's spectrum P = (z + mirrored) / 2, template's T = (z - mirrored) / 2i; P conj(T) in real arithmetic
+      const double pr = 0.5 * (z.real() + mirrored.real()), pi = 0.5 * (z.imag() + mirrored.imag());
+      const double tr = 0.5 * (z.imag() - mirrored.imag()), ti = -0.5 * (z.real() - mirrored.real());
+      ws.product[r * n + c] = {pr * tr + pi * ti, pi * tr - pr * ti};
     }
   }
   ws.fft.transform_2d(ws.product, true);
