@@ -19,8 +19,10 @@ the tissue relative to the bones between them (Bouten and Drapier sec. 2.2 and 3
    `median_threshold` (2, eps = 0.1 px) in either component is an outlier;
 4. the kept windows' full covariance, overlaps included (`imaging.windows`), with, for images that a renderer
    drew by point samples, the error of that drawing where boundaries run along the pixel grid, which no window's
-   residual shows (`imaging.drawing`), and the operator that observes a model's displacement field as the windows
-   do (so the fit compares like with like).
+   residual shows (`imaging.drawing`), the error that the loaded texture's own change makes (a thick slice the
+   tissue slides through, the ringing of the deformed leg: `texture_change`, measured on the images through the
+   kept windows' field, nothing where the texture moved intact), and the operator that observes a model's
+   displacement field as the windows do (so the fit compares like with like).
 
 Windows that respect the tissue (`respect_outline`, `window_pixel_masks`; `calfit measure --respect-outline`). A
 grid window centred within half a window of the skin spans the leg's outline and the air beyond, and so measures
@@ -70,6 +72,7 @@ from ..imaging.mismatch import tissue_mask
 from .dic import attainable_confidence, correlate, grid_centres, roi_centres
 from .drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
 from .prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
+from .texture_change import covariance_factor, measure_change, window_covariance
 from .windows import WindowOperators, textured
 
 WINDOW_CHOICES = (16, 32, 64)
@@ -122,6 +125,9 @@ class WindowTable:
     # (2 K, D) for the K kept windows: F with F F^T the covariance (mm^2) of their error from boundaries that a
     # point-sampling renderer drew (`imaging.drawing`), None for images not drawn so
     drawing_factor_mm: np.ndarray | None = None
+    # (2 K, D) for the K kept windows: F with F F^T the covariance (mm^2) of their error from the loaded texture that is
+    # not the unloaded texture moved (`texture_change`), None where the images showed none
+    texture_factor_mm: np.ndarray | None = None
 
     @property
     def kept(self) -> np.ndarray:
@@ -388,15 +394,24 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     if point_sampling is not None and operators is not None:
         drawing_factor = drawn_boundaries_factor(drawn, unloaded.shape, point_sampling.samples, to_loaded, operators,
                                                  operators.to_mm, DRAWING_DRAWS)
+    # the loaded texture that is not the unloaded texture moved (a thick slice the tissue slides through, the ringing
+    # of the deformed leg): measured on the images through the kept windows' field
+    texture_factor, texture = None, []
+    if operators is not None:
+        measured = prior_field(result.position_mm[kept], result.displacement_mm[kept], unloaded.shape, pixel_size_mm)
+        changes, texture = measure_change(unloaded, loaded, labels, loaded_index_map(measured, motion, pixel_size_mm),
+                                          result.noise_sigma, window_px, edge_variance)
+        texture_factor = covariance_factor(window_covariance(operators, labels, changes))
     residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise)
                                     for window in result.edge_residuals])
     covariance = result.covariance_mm2.copy()
-    if drawing_factor is not None:   # each kept window's own 2 x 2 block of F F^T
-        per_window = drawing_factor.reshape(-1, 2, drawing_factor.shape[1])
-        covariance[kept] += np.einsum("kad,kbd->kab", per_window, per_window)
+    for factor in (drawing_factor, texture_factor):
+        if factor is not None:   # each kept window's own 2 x 2 block of F F^T
+            per_window = factor.reshape(-1, 2, factor.shape[1])
+            covariance[kept] += np.einsum("kad,kbd->kab", per_window, per_window)
     table = WindowTable(centres, kinds, result.position_mm, result.displacement_mm, covariance,
                         result.confidence, result.intensity_variance, tissue, [str(v) for v in status], offset,
-                        residual_over_model, drawing_factor)
+                        residual_over_model, drawing_factor, texture_factor)
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
                                     edge_variance, labels, operators=operators, fat_shift_mm=fat_shift_mm,
                                     motion=motion)
@@ -419,6 +434,10 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                    "coverages": point_sampling.pixels, "draws": DRAWING_DRAWS,
                    "share_of_variance": (None if drawing_factor is None else
                                          float(np.sum(drawing_factor ** 2) / np.trace(measurements.covariance_mm2)))},
+               "texture_change": {
+                   "tissues": [change.as_dict() for change in texture],
+                   "share_of_variance": (None if texture_factor is None else
+                                         float(np.sum(texture_factor ** 2) / np.trace(measurements.covariance_mm2)))},
                "wall_time_s": time.perf_counter() - began}
     return measurements, table, summary
 
@@ -532,8 +551,9 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
                                     prefilter=Prefilter(prefilter_px), pixel_masks=masks,
                                     fat_signal=fat_signal(unloaded, labels) if shifted else None)
     covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
-    if table.drawing_factor_mm is not None:
-        covariance += table.drawing_factor_mm @ table.drawing_factor_mm.T
+    for factor in (table.drawing_factor_mm, table.texture_factor_mm):
+        if factor is not None:
+            covariance += factor @ factor.T
     kinds = [k for k, keep in zip(table.kind, kept) if keep]
     offset = 0.0 if table.prior_offset_mm is None else table.prior_offset_mm[kept]
     if shifted:
@@ -593,7 +613,9 @@ def write_measurements(run_dir: Path, table: WindowTable, summary: dict, image: 
                         confidence=table.confidence, intensity_variance=table.intensity_variance,
                         tissue=np.array(table.tissue), status=np.array(table.status),
                         prior_offset_mm=table.prior_offset_mm, residual_over_model=residual_over_model,
-                        **({} if table.drawing_factor_mm is None else {"drawing_factor_mm": table.drawing_factor_mm}))
+                        **{name: factor for name, factor in (("drawing_factor_mm", table.drawing_factor_mm),
+                                                             ("texture_factor_mm", table.texture_factor_mm))
+                           if factor is not None})
     temporary.replace(run_dir / files["arrays"])
     rows = ["x_mm,y_mm,ux_mm,uy_mm,var_x_mm2,var_y_mm2,cov_xy_mm2,confidence,residual_over_model,offset_x_mm,"
             "offset_y_mm,kind,tissue,status"]
@@ -620,5 +642,6 @@ def read_window_table(run_dir: Path, level: int = 1) -> WindowTable | None:
                            arrays["intensity_variance"], [str(v) for v in arrays["tissue"]],
                            [str(v) for v in arrays["status"]], arrays["prior_offset_mm"],
                            arrays["residual_over_model"] if "residual_over_model" in arrays.files else None,
-                           arrays["drawing_factor_mm"] if "drawing_factor_mm" in arrays.files else None)
+                           arrays["drawing_factor_mm"] if "drawing_factor_mm" in arrays.files else None,
+                           arrays["texture_factor_mm"] if "texture_factor_mm" in arrays.files else None)
 
