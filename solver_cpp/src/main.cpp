@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cstdlib>
 #include <filesystem>
+#include <future>
 #include <iostream>
 #include <new>
 #include <string>
@@ -73,11 +74,14 @@ int main(int argc, char** argv) {
     std::cerr << kUsageText;
     return kUsage;
   }
-  if (args.threads == 0) args.threads = platform::default_threads();
-  platform::restart_with_thread_environment(args.threads, argv);
+  platform::restart_with_thread_environment(argv);
+  platform::keep_freed_memory();
   if (args.outdir.empty()) args.outdir = default_outdir(args.deck);
   platform::set_blas_threads(1);
   const auto start = std::chrono::steady_clock::now();
+  // The idle cores are sampled (default_threads sleeps 2 ms between its samples) while the deck is read.
+  std::future<int> sampled_threads;
+  if (args.threads == 0) sampled_threads = std::async(std::launch::async, platform::default_threads);
   auto log = [&](const std::string& line) {
     if (!args.quiet) std::cout << line << '\n';
   };
@@ -85,6 +89,7 @@ int main(int argc, char** argv) {
   Model model;
   try {
     model = build_model(args.deck);
+    if (sampled_threads.valid()) args.threads = sampled_threads.get();
   } catch (const DeckError& e) {
     std::cerr << e.what() << '\n';
     return kBadDeck;

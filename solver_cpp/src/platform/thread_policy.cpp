@@ -2,6 +2,9 @@
 #include "platform/thread_policy.hpp"
 
 #include <dlfcn.h>
+#ifdef __GLIBC__
+#include <malloc.h>
+#endif
 #include <sched.h>
 #include <unistd.h>
 
@@ -73,16 +76,15 @@ int default_threads() {
 // libgomp reads OMP_WAIT_POLICY when it is loaded, before main, so a process started without it restarts
 // itself once with PASSIVE. OpenBLAS starts its worker threads when it is loaded too, and they spin (sched_yield)
 // for a while even when --threads keeps them idle (a sixth of a 22.5k-DOF run's samples on the second core with
-// --threads 1): the restart also sets OPENBLAS_NUM_THREADS=1 (set_blas_threads), so that none is started, and
-// OMP_NUM_THREADS to the count chosen (default_threads), so that the restarted process keeps it.
-void restart_with_thread_environment(int threads, char** argv) {
+// --threads 1): the restart also sets OPENBLAS_NUM_THREADS=1 (set_blas_threads), so that none is started. The
+// thread count is chosen after the restart (the analysis sets it with omp_set_num_threads), so that the first
+// process does no more than exec: sampling the idle cores there, and OMP_NUM_THREADS for the second, cost it
+// 9 ms of a 20 ms start on the loaded 2-core machine.
+void restart_with_thread_environment(char** argv) {
   bool changed = false;
   if (std::getenv("OMP_WAIT_POLICY") == nullptr) changed = setenv("OMP_WAIT_POLICY", "PASSIVE", 1) == 0;
   const char* blas = std::getenv("OPENBLAS_NUM_THREADS");
   if ((blas == nullptr || std::string(blas) != "1") && setenv("OPENBLAS_NUM_THREADS", "1", 1) == 0) changed = true;
-  const std::string count = std::to_string(threads);
-  const char* omp = std::getenv("OMP_NUM_THREADS");
-  if ((omp == nullptr || count != omp) && setenv("OMP_NUM_THREADS", count.c_str(), 1) == 0) changed = true;
   if (changed) execv("/proc/self/exe", argv);
 }
 
@@ -94,6 +96,14 @@ void restart_with_thread_environment(int threads, char** argv) {
 void set_blas_threads(int threads) {
   using Setter = void (*)(int);
   if (void* symbol = dlsym(RTLD_DEFAULT, "openblas_set_num_threads")) reinterpret_cast<Setter>(symbol)(threads);
+}
+
+void keep_freed_memory() {
+#ifdef __GLIBC__
+  constexpr int kOwnMapping = 256 << 20, kKeptTop = 512 << 20;
+  mallopt(M_MMAP_THRESHOLD, kOwnMapping);
+  mallopt(M_TRIM_THRESHOLD, kKeptTop);
+#endif
 }
 
 }  // namespace calfit::platform

@@ -45,18 +45,21 @@ StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, do
   std::vector<ContactElement> contact;
   if (!contacts_.empty()) {
     contact_residual(u, tangent, contact);
+    // The pattern keeps every coupling it was built with: it is rebuilt only when a contact element couples dofs
+    // it does not hold yet (a slave node meeting a new master segment), not whenever one opens or closes, so that
+    // the ordering, the symbolic analysis and a factorization for Newton to iterate on outlive such changes.
     if (tangent) {
-      std::vector<std::vector<int>> couplings;
-      for (const ContactElement& c : contact) couplings.push_back(c.dofs);
-      if (couplings != system_contact_dofs_) rebuild_system(contact);
+      std::vector<ContactElement> uncovered;
+      for (const ContactElement& c : contact)
+        if (!system_->holds(c.dofs)) uncovered.push_back(c);
+      if (!uncovered.empty()) rebuild_system(uncovered);
     }
   }
   // The reference force of the convergence test is the internal force of the bodies;
   // contact forces balance it and would otherwise vanish from it at equilibrium.
   const double contact_norm = residual_.norm();
   if (tangent) system_->set_zero();
-  for (std::size_t c = 0; c < contact.size() && tangent; ++c)
-    system_->add(n_elements + static_cast<int>(c), contact[c].K);
+  for (std::size_t c = 0; c < contact.size() && tangent; ++c) system_->add_coupled(contact[c].dofs, contact[c].K);
   for (int e = 0; e < n_elements; ++e) {
     const std::vector<int>& dofs = element_dofs_[e];
     for (std::size_t k = 0; k < dofs.size(); ++k) residual_[dofs[k]] += element_force_[e][static_cast<Eigen::Index>(k)];

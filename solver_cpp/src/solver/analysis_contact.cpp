@@ -15,8 +15,7 @@ namespace calfit {
 using namespace analysis_support;
 
 void StaticAnalysis::rebuild_system(const std::vector<ContactElement>& contact) {
-  system_contact_dofs_.clear();
-  for (const ContactElement& c : contact) system_contact_dofs_.push_back(c.dofs);
+  for (const ContactElement& c : contact) system_contact_dofs_.push_back(c.reach);
   auto rebuilt = std::make_unique<SparseSystem>(element_dofs_, free_, saddle_point_, system_contact_dofs_);
   if (system_) rebuilt->inherit_solver_choices(*system_);
   system_ = std::move(rebuilt);
@@ -262,6 +261,15 @@ void StaticAnalysis::contact_residual(const Eigen::VectorXd& u, bool tangent, st
       for (std::size_t k = 0; k < element.dofs.size(); ++k) residual_[element.dofs[k]] += r[static_cast<Eigen::Index>(k)];
       if (tangent) {
         element.K = std::move(K);
+        std::vector<int> near = nodes;
+        for (int k = best, j = 0; k >= 0 && j < kContactReach; k = c.previous[k], ++j) near.push_back(c.segments[k][0]);
+        for (int k = best, j = 0; k >= 0 && j < kContactReach; k = c.next[k], ++j) near.push_back(c.segments[k][1]);
+        std::sort(near.begin(), near.end());
+        near.erase(std::unique(near.begin(), near.end()), near.end());
+        for (int node : near) {
+          element.reach.push_back(2 * node);
+          element.reach.push_back(2 * node + 1);
+        }
         elements.push_back(std::move(element));
       }
     }

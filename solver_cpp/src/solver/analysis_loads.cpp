@@ -144,6 +144,7 @@ void StaticAnalysis::prepare_step(int step) {
     prescribed_.push_back({dof, u_[dof], value});
   }
   prepare_rigid_motions(before, now);
+  system_contact_dofs_.clear();  // a step's pattern starts from the elements alone: the free dofs change
   rebuild_system({});
   free_dofs_ = system_->size();
 

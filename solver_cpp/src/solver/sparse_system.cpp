@@ -125,6 +125,38 @@ SparseSystem::SparseSystem(const std::vector<std::vector<int>>& element_dofs, co
     for (int p = outer[c]; p < outer[c + 1]; ++p) transpose_position_[p] = cursor[inner[p]]++;
 }
 
+int SparseSystem::find(int row, int column) const {
+  const int* inner = matrix_.innerIndexPtr();
+  const int* first = inner + matrix_.outerIndexPtr()[column];
+  const int* last = inner + matrix_.outerIndexPtr()[column + 1];
+  const int* at = std::lower_bound(first, last, row);
+  return at != last && *at == row ? static_cast<int>(at - inner) : -1;
+}
+
+bool SparseSystem::holds(const std::vector<int>& dofs) const {
+  for (int c : dofs) {
+    if (equation_[c] < 0) continue;
+    for (int r : dofs)
+      if (equation_[r] >= 0 && find(equation_[r], equation_[c]) < 0) return false;
+  }
+  return true;
+}
+
+void SparseSystem::add_coupled(const std::vector<int>& dofs, const Eigen::MatrixXd& K) {
+  double* values = matrix_.valuePtr();
+  const auto m = static_cast<Eigen::Index>(dofs.size());
+  for (Eigen::Index j = 0; j < m; ++j) {
+    const int c = equation_[dofs[static_cast<std::size_t>(j)]];
+    if (c < 0) continue;
+    for (Eigen::Index i = 0; i < m; ++i) {
+      const int r = equation_[dofs[static_cast<std::size_t>(i)]];
+      if (r < 0) continue;
+      const int p = find(r, c);
+      if (p >= 0) values[p] += K(i, j);  // held: the caller checked with holds()
+    }
+  }
+}
+
 void SparseSystem::set_zero() { std::fill(matrix_.valuePtr(), matrix_.valuePtr() + matrix_.nonZeros(), 0.0); }
 
 bool SparseSystem::symmetric() const {
@@ -181,9 +213,21 @@ bool SparseSystem::factorize_cholesky(const Eigen::SparseMatrix<double>& matrix)
   return cholesky_->info() == Eigen::Success;
 }
 
-// Solves K x = b by GMRES right-preconditioned with the Cholesky factor F held (Saad, Iterative Methods for Sparse
-// Linear Systems, 2nd ed., Algorithm 9.5): F is the factor of K's symmetric part S when K = S + W is unsymmetric
-// (follower loads), or that of an earlier Newton iterate's tangent. The Krylov space of K F^-1, whose eigenvalues
+Eigen::VectorXd SparseSystem::apply_factor(const Eigen::VectorXd& v) const {
+  switch (factor_) {
+    case Factor::Cholesky:
+    case Factor::SymmetricPart: return cholesky_->solve(v);
+    case Factor::Lu: return lu_->solve(v);
+    case Factor::Ldlt: return ldlt_->solve(v);
+    case Factor::None: break;
+  }
+  return Eigen::VectorXd::Constant(v.size(), std::numeric_limits<double>::quiet_NaN());
+}
+
+// Solves K x = b by GMRES right-preconditioned with the factorization F held (Saad, Iterative Methods for Sparse
+// Linear Systems, 2nd ed., Algorithm 9.5): F is the Cholesky factor of K's symmetric part S when K = S + W is
+// unsymmetric (follower loads), or the Cholesky or LU factorization of an earlier Newton iterate's tangent, or of K
+// itself (a fresh LU, whose first solve usually meets the tolerance outright). The Krylov space of K F^-1, whose eigenvalues
 // cluster about 1 when K - F is small, reaches a relative residual `tolerance` in a few back-substitutions (7 to
 // kExactSolve on the calf under a non-uniform follower pressure); with right preconditioning the residual GMRES
 // minimizes is the true one. kExactSolve = 1e-10 of |b| stays above the round-off of K x (1e-12 was not reachable
@@ -199,7 +243,7 @@ bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& 
   Eigen::MatrixXd basis(n, m + 1), directions(n, m);
   Eigen::MatrixXd hessenberg = Eigen::MatrixXd::Zero(m + 1, m);
   Eigen::VectorXd g = Eigen::VectorXd::Zero(m + 1), cosines(m), sines(m);
-  x = cholesky_->solve(b);
+  x = apply_factor(b);
   Eigen::VectorXd r = b - matrix_ * x;
   const double beta = r.norm();
   if (iterations) *iterations = 0;
@@ -209,7 +253,7 @@ bool SparseSystem::iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& 
   g(0) = beta;
   int k = 0;
   for (; k < m; ++k) {
-    directions.col(k) = cholesky_->solve(basis.col(k));
+    directions.col(k) = apply_factor(basis.col(k));
     Eigen::VectorXd w = matrix_ * directions.col(k);
     for (int i = 0; i <= k; ++i) {  // modified Gram-Schmidt
       hessenberg(i, k) = basis.col(i).dot(w);
@@ -257,7 +301,7 @@ bool SparseSystem::solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x, dou
   return solved;
 }
 
-bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
+bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance) {
   if (!lu_) {
     lu_ = std::make_unique<Eigen::UmfPackLU<Eigen::SparseMatrix<double>>>();
     // The pattern is symmetric by construction (element and contact blocks are square), the values nearly so
@@ -267,14 +311,22 @@ bool SparseSystem::solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x) {
     // matrix and orders A^T A by COLAMD instead: on that leg with friction (20.5k unknowns) 6.4 times the flops
     // (2.25e9 against 3.5e8) and 3.3 times the factor's entries, and the run took twice the CPU time.
     lu_->umfpackControl()(UMFPACK_STRATEGY) = UMFPACK_STRATEGY_SYMMETRIC;
+    // No iterative refinement inside UMFPACK: each of its steps (two by default) costs a residual and a solve of
+    // its own, which made a solve 6 times dearer (15 ms against 2.5 on the garment deck's 9.6k unknowns) and a
+    // sixth of the garment's run with friction. GMRES on the factor (iterate_on_factor) refines where the
+    // tolerance asks, checked on the true residual.
+    lu_->umfpackControl()(UMFPACK_IRSTEP) = 0;
     lu_->analyzePattern(matrix_);
   }
   lu_->factorize(matrix_);
   if (lu_->info() != Eigen::Success) return false;
-  x = lu_->solve(b);
   solver_name_ = "umfpack";
   factor_ = Factor::Lu;
-  return lu_->info() == Eigen::Success && x.allFinite();
+  constexpr int kMaxRefinements = 30;
+  int iterations = 0;
+  const bool solved = iterate_on_factor(b, x, kMaxRefinements, &iterations, tolerance);
+  krylov_steps_ += iterations;
+  return solved;
 }
 
 bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance) {
@@ -284,30 +336,44 @@ bool SparseSystem::solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double to
     return true;
   }
   const bool is_symmetric = symmetric();
-  if (!saddle_point_ && !indefinite_ && (is_symmetric || split_skew_) &&
-      (factor_ == Factor::Cholesky || factor_ == Factor::SymmetricPart) && reuse_pays()) {
+  const bool cholesky = !indefinite_ && (is_symmetric || split_skew_) &&
+                        (factor_ == Factor::Cholesky || factor_ == Factor::SymmetricPart);
+  if (!saddle_point_ && (cholesky || factor_ == Factor::Lu) && reuse_pays()) {
     // Newton's tangent changes little from one iteration to the next: an earlier factor iterated to the current
     // matrix costs a few back-substitutions instead of a factorization
-    constexpr int kMaxReuseIterations = 16;
+    const int max_iterations = factor_ == Factor::Lu ? kMaxLuReuseIterations : 16;
     int iterations = 0;
-    const bool reused = iterate_on_factor(b, x, kMaxReuseIterations, &iterations, tolerance);
-    const int steps = reused ? iterations : kMaxReuseIterations;   // a failure counted at its limit
-    ++reuse_attempts_;
-    reuse_iterations_ += steps;
+    const bool reused = iterate_on_factor(b, x, max_iterations, &iterations, tolerance);
+    const int steps = reused ? iterations : max_iterations;   // a failure counted at its limit
+    record_reuse(steps);
     krylov_steps_ += steps;
     if (reused) {
       ++reused_factorizations_;
       stale_factor_ = true;
       return true;
     }
+  } else if (factor_ == Factor::Lu) {
+    lu_reuse_steps_ *= kLuReuseForgetting;  // not tried: the record fades, and an attempt is made again
   }
   return solve_fresh(b, x, is_symmetric, tolerance);
 }
 
+void SparseSystem::record_reuse(int steps) {
+  if (factor_ != Factor::Lu) {
+    ++reuse_attempts_;
+    reuse_iterations_ += steps;
+    return;
+  }
+  lu_reuse_steps_ = lu_reuse_attempts_++ == 0 ? steps : 0.7 * lu_reuse_steps_ + 0.3 * steps;
+}
+
 void SparseSystem::inherit_solver_choices(const SparseSystem& earlier) {
   split_skew_ = earlier.split_skew_;
+  split_failures_ = earlier.split_failures_;
   reuse_attempts_ = earlier.reuse_attempts_;
   reuse_iterations_ = earlier.reuse_iterations_;
+  lu_reuse_attempts_ = earlier.lu_reuse_attempts_;
+  lu_reuse_steps_ = earlier.lu_reuse_steps_;
 }
 
 // Reusing a factor pays when its GMRES iterations, failures counted at their limit, cost less on average than a
@@ -316,12 +382,23 @@ void SparseSystem::inherit_solver_choices(const SparseSystem& earlier) {
 // matrix, 4 nnz(L) + 2 nnz(K) flops, which run at about kSolveRateRatio times the slower rate of a supernodal
 // factorization's fl flops, whose BLAS 3 kernels reuse the cache (measured on the 22.5k-DOF calf of
 // benchmarks/engine.py: fl = 1.7e8 in 60 ms, an iteration 6.8e6 flops in 3.6 ms: 2.8 and 1.9 GFlop/s).
+//
+// UMFPACK reports no flop count through Eigen's interface; there a GMRES step (a solve with L and U, a product with
+// the matrix) is counted as kLuStepsPerFactorization-th of a factorization, the ratio measured on the garment decks'
+// matrices (9.6k unknowns: LU 41-67 ms, a step 2.8-3.3 ms; 22k: 121-167 ms against 7-10 ms), and an earlier LU is
+// reused while its recent attempts took less than half that: a moving average of their steps (weight 0.3 on the
+// last), which fades by kLuReuseForgetting at each factorization taken without an attempt. Where reuse did not pay
+// for a while (a garment band wrapping onto the skin) it is tried again after a few factorizations, and pays again
+// once the increments settle (the release with friction in 200 increments: 3-4 Newton iterations each).
 bool SparseSystem::reuse_pays() const {
   constexpr double kSolveRateRatio = 1.5;
+  constexpr double kLuStepsPerFactorization = 14.0;
+  if (factor_ == Factor::Lu) return lu_reuse_attempts_ < 2 || lu_reuse_steps_ < 0.5 * kLuStepsPerFactorization;
   if (reuse_attempts_ < 2 || !cholesky_) return true;
+  const double average = static_cast<double>(reuse_iterations_) / reuse_attempts_;
   const cholmod_common& common = cholesky_->cholmod();
   const double per_iteration = kSolveRateRatio * (4.0 * common.lnz + 2.0 * static_cast<double>(matrix_.nonZeros()));
-  return static_cast<double>(reuse_iterations_) / reuse_attempts_ * per_iteration < common.fl;
+  return average * per_iteration < common.fl;
 }
 
 bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric, double tolerance) {
@@ -336,8 +413,16 @@ bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, boo
     indefinite_ = true;
   }
   if (!saddle_point_ && !is_symmetric && !indefinite_ && split_skew_) {
-    if (solve_split(b, x, tolerance)) return true;
-    split_skew_ = false;
+    // A symmetric part that is not definite at one iterate may be again at the next (the garment band's first
+    // touch without friction: once in 30 iterations, where giving the split up made every later solve an LU,
+    // four times a Cholesky factorization's cost); with friction it stays indefinite. The split is given up after
+    // kMaxSplitFailures failures in a row.
+    constexpr int kMaxSplitFailures = 2;
+    if (solve_split(b, x, tolerance)) {
+      split_failures_ = 0;
+      return true;
+    }
+    split_skew_ = ++split_failures_ < kMaxSplitFailures;
   }
   if (saddle_point_ && is_symmetric && choice_ != Choice::Lu) {
     // CHOLMOD's LDL^T (simplicial, no pivoting: valid for the quasi-definite D1 > 0 systems, and checked by its
@@ -352,26 +437,18 @@ bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, boo
     }
     choice_ = Choice::Lu;  // a zero pivot (D1 = 0, an instability), or too large a factor
   }
-  return solve_lu(b, x);
+  return solve_lu(b, x, tolerance);
 }
 
-Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B, bool refine_each_column) const {
+Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B) const {
   switch (factor_) {
     case Factor::Cholesky:
     case Factor::SymmetricPart: return cholesky_->solve(B);
     case Factor::Ldlt: return ldlt_->solve(B);
-    case Factor::Lu: {
-      if (refine_each_column) return lu_->solve(B);
-      // UMFPACK solves one column at a time, each refined by a residual and a solve per step: with the sensitivities
-      // of many parameters along a path of friction (a diagnosis's 145 columns at each of 23 increments) that was
-      // most of the run (a third in the residuals alone). solve_refined refines the block where it needs to.
-      auto& control = lu_->umfpackControl();
-      const double steps = control(UMFPACK_IRSTEP);
-      control(UMFPACK_IRSTEP) = 0;
-      Eigen::MatrixXd X = lu_->solve(B);
-      control(UMFPACK_IRSTEP) = steps;
-      return X;
-    }
+    // UMFPACK solves one column at a time, unrefined (solve_lu says why): with the sensitivities of many parameters
+    // along a path of friction (a diagnosis's 145 columns at each of 23 increments) its own refinement was most of
+    // the run (a third in the residuals alone). solve_refined refines the block where it needs to.
+    case Factor::Lu: return lu_->solve(B);
     case Factor::None: break;
   }
   return Eigen::MatrixXd::Constant(B.rows(), B.cols(), std::numeric_limits<double>::quiet_NaN());
@@ -380,9 +457,11 @@ Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B, bool refi
 bool SparseSystem::solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
   const SerialOpenMpRegions serial;
   if (factor_ == Factor::None) return false;
-  // a Cholesky factor may be of the symmetric part, or of an earlier matrix than the one held (Newton iterations
-  // reuse it): GMRES on it solves the matrix held, as a fresh factorization would
-  if ((factor_ == Factor::Cholesky || factor_ == Factor::SymmetricPart) && iterate_on_factor(b, x, 30)) return true;
+  // a Cholesky factor may be of the symmetric part, or a factor of an earlier matrix than the one held (Newton
+  // iterations reuse it): GMRES on it solves the matrix held, as a fresh factorization would
+  if ((factor_ == Factor::Cholesky || factor_ == Factor::SymmetricPart || factor_ == Factor::Lu) &&
+      iterate_on_factor(b, x, 30))
+    return true;
   x = solve_factored(Eigen::MatrixXd(b)).col(0);
   return x.allFinite();
 }
@@ -414,14 +493,14 @@ bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, d
       if (solved && relative_residual() <= tolerance) return true;
       continue;
     }
-    X = solve_factored(B, false);
+    X = solve_factored(B);
     double previous = std::numeric_limits<double>::infinity();
     for (int it = 0; it < 10 && X.allFinite(); ++it) {
       const double r = relative_residual();
       if (r <= tolerance) return true;
       if (!(r < 0.5 * previous)) break;  // stalled: factorize the current matrix
       previous = r;
-      X += solve_factored(B - matrix_ * X, false);
+      X += solve_factored(B - matrix_ * X);
     }
   }
   return false;

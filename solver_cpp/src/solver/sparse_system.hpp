@@ -9,7 +9,8 @@
 // hundredths on a calf under a garment) to the accuracy of a direct solve, at a
 // third of the cost of an LU of K. UMFPACK LU takes over when S is not positive
 // definite or the iterations are slow (a loss of definiteness near an instability
-// too, detected once and then remembered, with the libraries' own messages silenced). The
+// too, detected once and then remembered, with the libraries' own messages silenced); an
+// LU of an earlier Newton iterate's matrix is iterated on by GMRES as a Cholesky factor is. The
 // saddle-point systems of the hybrid elements are symmetric indefinite: CHOLMOD's LDL^T
 // (no pivoting: valid for the quasi-definite D1 > 0 case, and checked by its residual)
 // solves them up to a factorization cost where UMFPACK's LU is faster, LU past it or when
@@ -39,6 +40,11 @@ public:
   // Adds the block K (local dofs `local` of element e, rows and columns) to the matrix.
   template <typename Block>
   void add(int element, const Block& K, const int* local = nullptr, int n_local = -1);
+  // Whether the pattern holds every coupling between the free ones of `dofs` (a contact element's), and adds
+  // such a block K (rows and columns in the order of `dofs`) by looking its entries up in the pattern: contact
+  // elements come and go from one Newton iterate to the next, the pattern stays while it holds them.
+  bool holds(const std::vector<int>& dofs) const;
+  void add_coupled(const std::vector<int>& dofs, const Eigen::MatrixXd& K);
 
   // Solves A x = b to a relative residual |b - A x| <= tolerance |b| (a direct solve's when it factorizes A):
   // with the factorization of an earlier matrix when GMRES on it converges in a few steps, otherwise by
@@ -46,6 +52,8 @@ public:
   // Returns false when singular.
   bool solve(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance = kExactSolve);
   static constexpr double kExactSolve = 1e-10;  // as good as a direct solve for Newton (see iterate_on_factor)
+  static constexpr int kMaxLuReuseIterations = 12;  // GMRES steps on an earlier LU before factorizing (reuse_pays)
+  static constexpr double kLuReuseForgetting = 0.8;
   // Solves A X = B for every column of B, to a relative residual |B - A X| / |B| <=
   // tolerance per column, with the factorization F of the last solve(), possibly of an
   // earlier matrix (Newton's previous iterate), against the current matrix: GMRES on a
@@ -87,11 +95,15 @@ private:
   enum class Choice { Undecided, Ldlt, Lu };
   enum class Factor { None, Cholesky, Ldlt, Lu, SymmetricPart };  // the factorization the last solve used
   bool saddle_point_ = false;
-  bool split_skew_ = true;  // off once the symmetric part failed (not definite, or iterations too slow)
+  bool split_skew_ = true;  // off once the symmetric part failed twice in a row (not definite, or iterations too slow)
+  int split_failures_ = 0;  // failures of the split in a row
   int reused_factorizations_ = 0;
   int krylov_steps_ = 0;
   bool stale_factor_ = false;  // the last solve() iterated on the factor of an earlier matrix
-  int reuse_attempts_ = 0, reuse_iterations_ = 0;  // attempts to iterate on an earlier factor, and their GMRES steps
+  int reuse_attempts_ = 0, reuse_iterations_ = 0;  // attempts to iterate on an earlier Cholesky factor, their steps
+  // Attempts on an earlier LU and their GMRES steps, a moving average that forgets (see reuse_pays)
+  int lu_reuse_attempts_ = 0;
+  double lu_reuse_steps_ = 0.0;
   bool indefinite_ = false, reported_indefinite_ = false;
   Choice choice_ = Choice::Undecided;
   Factor factor_ = Factor::None;
@@ -99,18 +111,19 @@ private:
 
   bool solve_ldlt(const Eigen::VectorXd& b, Eigen::VectorXd& x);
   double ldlt_flops();  // flops of the LDL^T factorization (analysing the pattern the first time)
-  bool solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x);
+  bool solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance);
   bool solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance);
+  int find(int row, int column) const;  // position of entry (row, column) in the value array, -1 if not held
+  Eigen::VectorXd apply_factor(const Eigen::VectorXd& v) const;  // F^-1 v with the factorization held
   bool solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric, double tolerance = kExactSolve);
   bool reuse_pays() const;
-  // GMRES on the Cholesky factor held (see the .cpp); `iterations` (if given) receives the steps it took.
+  void record_reuse(int steps);  // an attempt to iterate on an earlier factor, failures counted at their limit
+  // GMRES on the factorization held (see the .cpp); `iterations` (if given) receives the steps it took.
   bool iterate_on_factor(const Eigen::VectorXd& b, Eigen::VectorXd& x, int max_iterations,
                          int* iterations = nullptr, double tolerance = kExactSolve) const;
   bool factorize_cholesky(const Eigen::SparseMatrix<double>& matrix);
   bool accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const;
-  // refine_each_column: UMFPACK's own iterative refinement of every column (its default, two steps); off where the
-  // caller refines the whole block at once
-  Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B, bool refine_each_column = true) const;
+  Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B) const;  // F^-1 B, no refinement
 };
 
 template <typename Block>

@@ -137,7 +137,11 @@ private:
   struct ContactElement {
     std::vector<int> dofs;
     Eigen::MatrixXd K;
+    // The couplings the matrix pattern is given for it: its own and those of the master segments within
+    // kContactReach of its segment, where the node may slide next (rebuilding the pattern costs an ordering)
+    std::vector<int> reach;
   };
+  static constexpr int kContactReach = 3;
 
   void prepare_step(int step);
   void build_contacts();
@@ -154,6 +158,8 @@ private:
   bool hold_chattering_contacts();
   bool release_slipping_contacts();
   void forget_contact_iterates();
+  // A new system whose pattern holds system_contact_dofs_ (the couplings of the one before: prepare_step clears
+  // them) and `contact`'s, added to them.
   void rebuild_system(const std::vector<ContactElement>& contact);
   // After a converged increment, before its contact history is committed: du/dtheta of the increment and the
   // history's sensitivity it leaves (sensitivity.hpp, (4)-(5)).
