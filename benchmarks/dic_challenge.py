@@ -79,7 +79,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orchestrator.measure.dic import correlate, spline_gradient
+from orchestrator.measure.dic import COMPILED_ENV, correlate, spline_gradient, windows_module
 from orchestrator.measure.prefilter import Prefilter
 from orchestrator.measure.windows import WindowOperators
 
@@ -580,6 +580,8 @@ def main() -> None:
     floor_sigma = float(np.sqrt(0.5 * (noise_floor(reference) ** 2 + noise_floor(deformed) ** 2)))
     print(f"Star images {reference.shape[1]} px wide, rows {row0}-{row0 + reference.shape[0] - 1} kept; windows "
           f"{', '.join(map(str, args.windows))} px every {args.step} px along row {CREST_ROW}")
+    print("calfit's windows: " + ("the compiled loops (orchestrator._correlation)" if windows_module() is not None
+                                  else f"the Python loops ({COMPILED_ENV}=0 or no compiled module)"))
     results = []
     for window in args.windows:
         results.append(analyse(reference, deformed, gradients, field, window, args.step, row0, full_reference,

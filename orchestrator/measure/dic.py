@@ -83,6 +83,7 @@ windows; see its text.
 
 from __future__ import annotations
 
+import functools
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -127,7 +128,7 @@ def compiled_windows():
     return _correlation
 
 
-def _windows_module(compiled: bool | None):
+def windows_module(compiled: bool | None = None):
     """The compiled module to match the windows with, or None for the Python loops: `compiled` if given, else the
     compiled loops unless CALFIT_DIC_COMPILED=0 or this installation has none."""
     if compiled is None:
@@ -286,7 +287,7 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
                                        or not np.all(np.isfinite(prior_field_mm))):
         raise ValueError(f"the prior field must be finite and (2, {reference.shape[0]}, {reference.shape[1]}) mm, "
                          f"not {np.shape(prior_field_mm)}")
-    module = _windows_module(compiled)
+    module = windows_module(compiled)
     prefilter = Prefilter() if prefilter is None else prefilter
     centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
     if noise_sigma is None:
@@ -605,11 +606,20 @@ def on_window_square(rows_of_used: np.ndarray, used: np.ndarray, size: int) -> n
     return full.reshape(-1, size, size)
 
 
+@functools.lru_cache(maxsize=16)
+def _window_offsets(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) offsets of a size x size window's pixels from its centre, read-only: every window of a
+    correlation asks for the same grid several times, and making it anew took several per cent of a compiled window."""
+    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
+    offset_rows.flags.writeable = offset_cols.flags.writeable = False
+    return offset_rows, offset_cols
+
+
 def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray) -> np.ndarray:
     """(n, 6) steepest-descent images grad f . d(x + a_p(x))/dp of a square window, for the affine parameters
     p = (u, du/dx, du/dy, v, dv/dx, dv/dy), offsets measured from the window centre."""
     size = grad_cols.shape[0]
-    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
+    offset_rows, offset_cols = _window_offsets(size)
     fx, fy = grad_cols.ravel(), grad_rows.ravel()
     dxs, dys = offset_cols.ravel(), offset_rows.ravel()
     return np.stack([fx, fx * dxs, fx * dys, fy, fy * dxs, fy * dys], axis=1)
@@ -636,7 +646,7 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
                                       noise_q / pair.prefilter.noise_gain)
     steepest, hessian = steepest_raw / f_norm, hessian_raw / f_norm ** 2
     centre_row, centre_col = r0 + (size - 1) / 2.0, c0 + (size - 1) / 2.0
-    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
+    offset_rows, offset_cols = _window_offsets(size)
     points = np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])[:, used]
     prior_used = (prior[0][used], prior[1][used])
     warp = _affine(np.array([start[0], 0.0, 0.0, start[1], 0.0, 0.0]))
@@ -733,7 +743,7 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
     if warp is None:
         warp = _affine(np.array([displacement[0], 0.0, 0.0, displacement[1], 0.0, 0.0]))
     used = np.ones(size * size, bool) if used is None else used
-    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
+    offset_rows, offset_cols = _window_offsets(size)
     moved = warp @ np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])[:, used]
     deformed = _sample(spline, pair.to_deformed, c0 + (size - 1) / 2.0 + moved[0] + np.asarray(prior[0])[used],
                        r0 + (size - 1) / 2.0 + moved[1] + np.asarray(prior[1])[used])
@@ -745,7 +755,7 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
 def affine_moments(size: int, weights: np.ndarray | None = None) -> np.ndarray:
     """M = sum over a square window of w X^T X, X = [1, dx, dy] per pixel (w = 1 by default, else the (size, size)
     `weights`), for both displacement components (6x6)."""
-    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
+    offset_rows, offset_cols = _window_offsets(size)
     basis = np.stack([np.ones(size * size), offset_cols.ravel(), offset_rows.ravel()])
     weights = np.ones(size * size) if weights is None else np.asarray(weights, float).ravel()
     moments = np.zeros((6, 6))
