@@ -28,9 +28,13 @@ ElementVector StaticAnalysis::local_unknowns(const Eigen::VectorXd& u, int eleme
 StaticAnalysis::Evaluation StaticAnalysis::evaluate(const Eigen::VectorXd& u, double lambda, bool tangent) {
   const ScopedTimer timer(timings_.assembly_s);
   const int n_elements = static_cast<int>(elements_.size());
+  // The element forces at (u, lambda) are a function of them alone: when the last evaluation left them there (the
+  // output's residual at the converged state, which Newton's last line-search step evaluated), they are kept.
+  const bool forces_held = !tangent && forces_lambda_ == lambda && forces_u_.size() == u.size() && forces_u_ == u;
   int failures = 0;
-#pragma omp parallel for schedule(static) reduction(+ : failures)
+#pragma omp parallel for schedule(static) reduction(+ : failures) if (!forces_held)
   for (int e = 0; e < n_elements; ++e) {
+    if (forces_held) continue;
     if (!elements_[e]->internal_force(local_unknowns(u, e), kinematics(e, lambda), element_force_[e],
                                       tangent ? &element_tangent_[e] : nullptr))
       ++failures;

@@ -136,6 +136,7 @@ void StaticAnalysis::prepare_step(int step) {
   for (const std::vector<int>& dofs : element_dofs_)
     for (int d : dofs) active[d] = 1;
   current_step_ = step;
+  forces_lambda_ = -1;  // the element forces held are of the last step's loads and kinematics
   free_ = active;
   prescribed_.clear();
   // The *BOUNDARY values ramp linearly; rigid motions ramp in angle (prepare_rigid_motions).
