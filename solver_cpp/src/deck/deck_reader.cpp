@@ -19,12 +19,19 @@ std::string trim(const std::string& s) {
   return s.substr(a, b - a);
 }
 
+// Each field is trimmed where it lies and copied once (a mesh deck is mostly data lines: the 22.5k-DOF slice's
+// 17k took a third of its parse through the temporaries of substr and trim).
 std::vector<std::string> split_commas(const std::string& line) {
   std::vector<std::string> out;
+  out.reserve(static_cast<std::size_t>(std::count(line.begin(), line.end(), ',')) + 1);
+  const char* text = line.data();
   std::size_t start = 0;
   while (true) {
     const std::size_t comma = line.find(',', start);
-    out.push_back(trim(line.substr(start, comma == std::string::npos ? std::string::npos : comma - start)));
+    std::size_t a = start, b = comma == std::string::npos ? line.size() : comma;
+    while (a < b && std::isspace(static_cast<unsigned char>(text[a]))) ++a;
+    while (b > a && std::isspace(static_cast<unsigned char>(text[b - 1]))) --b;
+    out.emplace_back(text + a, b - a);
     if (comma == std::string::npos) break;
     start = comma + 1;
   }
@@ -212,10 +219,14 @@ std::string printable(const std::string& text) {
 }
 
 double to_double(const std::string& text, const SourceLocation& where, const std::string& what) {
-  std::string t = text;
-  for (char& c : t)
-    if (c == 'd' || c == 'D') c = 'e';  // Fortran exponents, as CalculiX accepts
-  if (t.empty()) throw DeckError(where, what + " is missing");
+  if (text.empty()) throw DeckError(where, what + " is missing");
+  std::string fortran;  // Fortran exponents, as CalculiX accepts: 1.5d3 is read as 1.5e3
+  if (text.find_first_of("dD") != std::string::npos) {
+    fortran = text;
+    for (char& c : fortran)
+      if (c == 'd' || c == 'D') c = 'e';
+  }
+  const std::string& t = fortran.empty() ? text : fortran;
   errno = 0;
   char* end = nullptr;
   const double v = std::strtod(t.c_str(), &end);
