@@ -4,6 +4,7 @@
 #include <nanobind/ndarray.h>
 #include <nanobind/stl/optional.h>
 
+#include <cmath>
 #include <cstdint>
 #include <optional>
 #include <stdexcept>
@@ -111,6 +112,30 @@ nb::ndarray<nb::numpy, double> sample_py(Grid coefficients, nb::ndarray<const do
   return owned(values, {count});
 }
 
+nb::tuple spline_gradient_py(Grid coefficients, double step) {
+  if (coefficients.shape(0) == 0 || coefficients.shape(1) == 0)
+    throw std::invalid_argument("the spline coefficients are empty");
+  if (!(step > 0.0) || !std::isfinite(step)) throw std::invalid_argument("the difference step must be positive");
+  const auto rows = static_cast<std::ptrdiff_t>(coefficients.shape(0));
+  const auto cols = static_cast<std::ptrdiff_t>(coefficients.shape(1));
+  const Image image{coefficients.data(), rows, cols};
+  auto* along_rows = new double[rows * cols];
+  auto* along_cols = new double[rows * cols];
+  {
+    nb::gil_scoped_release free_python;
+    // the central difference of the spline itself, as dic.spline_derivatives takes it with scipy
+    for (std::ptrdiff_t r = 0; r < rows; ++r) {
+      for (std::ptrdiff_t c = 0; c < cols; ++c) {
+        const double y = static_cast<double>(r), x = static_cast<double>(c);
+        along_rows[r * cols + c] = (sample_spline(image, y + step, x) - sample_spline(image, y - step, x)) / (2 * step);
+        along_cols[r * cols + c] = (sample_spline(image, y, x + step) - sample_spline(image, y, x - step)) / (2 * step);
+      }
+    }
+  }
+  return nb::make_tuple(owned(along_rows, {coefficients.shape(0), coefficients.shape(1)}),
+                        owned(along_cols, {coefficients.shape(0), coefficients.shape(1)}));
+}
+
 }  // namespace
 
 NB_MODULE(_correlation, m) {
@@ -125,6 +150,9 @@ NB_MODULE(_correlation, m) {
         nb::arg("window_px"), nb::arg("search_px"), nb::arg("iterations"), nb::arg("tolerance_px"),
         nb::arg("tolerance_gradient"), nb::arg("threads") = 1,
         "Per window: status, start (d_col, d_row), peak_score, warp (2x3) and iterations (windows.hpp).");
+  m.def("spline_gradient", &spline_gradient_py, nb::arg("coefficients"), nb::arg("step"),
+        "(d/drow, d/dcolumn) at every pixel of the cubic B-spline of the coefficients, by a central difference of "
+        "`step` pixels (dic.spline_derivatives).");
   m.def("sample_spline", &sample_py, nb::arg("coefficients"), nb::arg("rows"), nb::arg("cols"),
         "The cubic B-spline of the coefficients at the points, as map_coordinates(order=3, prefilter=False, "
         "mode='nearest') (NaN at a non-finite point).");

@@ -16,7 +16,7 @@ import pytest
 from scipy import ndimage
 
 from orchestrator.core.frame import RigidMotion
-from orchestrator.measure.dic import compiled_windows, correlate, grid_centres
+from orchestrator.measure.dic import compiled_windows, correlate, grid_centres, spline_gradient
 from orchestrator.measure.measurements import window_pixel_masks
 from orchestrator.phantom import CalfPhantom, make_loaded_image, render_unloaded
 
@@ -168,6 +168,14 @@ def test_the_compiled_module_refuses_arrays_that_do_not_fit():
     assert module.match_windows(**{**good, "reference": holed})["status"].tolist() == [module.NOT_FINITE]
     assert module.match_windows(**{**good, "spline": holed})["status"].tolist() == [module.NOT_FINITE]
     assert module.match_windows(**{**good, "prior": np.stack([holed, image])})["status"].tolist() == [module.NOT_FINITE]
+    # the spline's gradient: scipy's central difference, taken again in C++
+    for mine, scipys in zip(spline_gradient(image, module=module), spline_gradient(image)):
+        np.testing.assert_allclose(mine, scipys, rtol=0, atol=1e-9 * np.max(np.abs(scipys)))
+    for step in (0.0, -1e-3, np.nan):
+        with pytest.raises(ValueError):
+            module.spline_gradient(image, step)
+    with pytest.raises(ValueError):
+        module.spline_gradient(np.zeros((0, 3)), 1e-3)
     # random centres and pixel sets, some far outside: every window gets a status
     rng = np.random.default_rng(2)
     centres = rng.integers(-100, 140, size=(200, 2)).astype(np.int64)
