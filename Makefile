@@ -10,7 +10,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 DEBIAN_PACKAGES := g++ cmake make pkg-config libeigen3-dev libsuitesparse-dev libopenblas-dev calculix-ccx
-ENGINE_SOURCES := $(shell find solver_cpp -type f \( -name '*.cpp' -o -name '*.hpp' -o -name 'CMakeLists.txt' \))
+ENGINE_SOURCES := $(shell find solver_cpp correlation_cpp -type f \( -name '*.cpp' -o -name '*.hpp' -o -name 'CMakeLists.txt' \))
 # the editable install maps each module to its file: a module added or moved needs it made again (seconds)
 PACKAGE_SOURCES := $(shell find orchestrator -name "*.py")
 
