@@ -599,7 +599,12 @@ def window_pixel_sets(pixel_masks, count: int, window_px: int) -> list[np.ndarra
     masks = [None] * count if pixel_masks is None else list(pixel_masks)
     if len(masks) != count:
         raise ValueError(f"{len(masks)} pixel masks for {count} windows")
-    return [np.ones(window_px * window_px, bool) if mask is None else np.asarray(mask, bool).ravel() for mask in masks]
+    sets = [np.ones(window_px * window_px, bool) if mask is None else np.asarray(mask, bool).ravel() for mask in masks]
+    for k, used in enumerate(sets):
+        if used.size != window_px * window_px:
+            raise ValueError(f"window {k}'s pixel mask holds {used.size} pixels, not the {window_px} x {window_px} of "
+                             "its square")
+    return sets
 
 
 def on_window_square(rows_of_used: np.ndarray, used: np.ndarray, size: int) -> np.ndarray:

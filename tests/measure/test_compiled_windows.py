@@ -128,6 +128,8 @@ def test_bad_images_are_refused_in_one_sentence_and_bad_windows_rejected():
     bad_field[1, 3, 3] = np.inf
     with pytest.raises(ValueError, match="prior field"):
         correlate(texture, shifted, [(24, 24)], (1.0, 1.0), noise_sigma=noise, prior_field_mm=bad_field)
+    with pytest.raises(ValueError, match="pixel mask holds 9 pixels"):
+        correlate(texture, shifted, [(24, 24)], (1.0, 1.0), noise_sigma=noise, pixel_masks=[np.ones((3, 3), bool)])
     # centres at, beyond and far beyond the border, in images smaller than a window, and a flat image: rejected
     centres = [(24, 24), (8, 8), (7, 24), (24, 41), (-10**9, 5), (5, 10**12)]
     for compiled in (False, True):
