@@ -5,34 +5,39 @@ Why. A window's error model (`windows.WindowOperators`) takes the loaded image t
 noise. A scanner's loaded slice is not that. The slice is several millimetres thick, and the garment slides the
 tissue along the leg through it, so structures that run obliquely through the slice (fat septa, muscle bundles)
 move by their slope times that slide. The band-limited image's ringing is that of the deformed leg, not the
-unloaded ringing deformed. Each window matches what it sees, and the match follows the change. The error this
-leaves is smooth over 10-20 mm, as large as the noise's in the fat and invisible to the window's own residual
-(docs/validation/scanner-images.md).
+unloaded ringing deformed. Each window matches what it sees, and the match follows the change: the error this
+leaves is invisible to the window's own residual. On calfit's k-space renderer it made the fat's windows err by
+1.9-2.0 times their predicted variance (docs/validation/scanner-images.md).
 
-What is measured. Sample the loaded image through the measured field and the bones' motion, take away the
+What is measured. Sample the loaded image through the kept windows' field and the bones' motion, take away the
 unloaded image at the local gain (the coil is fixed to the scanner and the leg moves in it, so the gain varies
 smoothly across the leg), and high-pass it at the windows' scale (ZNCC takes out each window's mean and scale):
 
-    D = hp(I1(phi(x)) - g(x) I0(x)),   g = G * (I1(phi) I0) / G * (I0^2).
+    D = hp(I1(phi(x)) - g(x) I0(x)),   g = G * (I1(phi) I0) / G * (I0^2),
 
-D holds the images' noise, through the same warp and filters, the error of the edges' position that the windows'
-residuals calibrated (s_edge^2 |grad I0|^2, `prefilter`), and the texture change. Per tissue, the autocovariance of
-D less that of what the error model already holds (simulated: the images' own noise sigmas sent through the same
-warp, gain and filter, and the edges' error) is the change's autocovariance c_t(lag). It is taken only where it stands out of the noise
-estimate's own scatter (SIGNIFICANCE standard errors at lag 0), and made a valid autocovariance (its spectrum's
-negative part cut, `valid_autocovariance`). Then it is an intensity error of the loaded image, stationary within each tissue.
+less its local least-squares fit on I0's texture and on its Laplacian (`without_contrast_and_sharpness`): a change
+of contrast or sharpness is even about each feature and moves no match. D then holds the images' noise through the
+same warp and filters, the error of the edges' position that the windows' residuals calibrated (s_edge^2 |grad I0|^2,
+`prefilter`), and the texture change. Per tissue, the autocovariance of D less that of what the error model already
+holds (simulated: the images' own noise sigmas and the edges' error sent through the same warp, gain and filters) is
+the change's, c_t(lag). It is taken only where it stands out of the noise estimate's own scatter (SIGNIFICANCE
+standard errors at lag 0) and is made a valid autocovariance (`valid_autocovariance`). Its local amplitude a_t (the
+local excess variance over the tissue's, over half a window) says where it is larger.
+
+Only the part that moves features counts. A change that keeps each feature's centroid (a box-averaged thin septum
+moved by a fraction of a pixel) changes D without moving any window. So the patches of a quarter window show, by
+Lucas-Kanade, the displacements that D makes (`patch_displacements`); their mean square over the noise's, divided by
+what a random field of autocovariance c_t and amplitude a_t would make of them, is the share of the change that
+moves features (`_displacement_share`), itself tested at SIGNIFICANCE standard errors. c_t is scaled by that share.
 
 What it does to the windows. A window reports p = B e for an intensity error e of its raw pixels
-(`windows.WindowOperators.B`, the linearised IC-GN with the prefilter). An error of autocovariance c makes
+(`windows.WindowOperators.B`, the linearised IC-GN with the prefilter). An error of that autocovariance makes
 
     Cov(p_i, p_j) = sum_t sum_{x, y in t} B_i(x) a_t(x) c_t(x - y) a_t(y) B_j(y)^T,
 
-with a_t the change's local amplitude (the local excess variance over the tissue's, over half a window: the change
-is not the same everywhere in a tissue),
-
-which is added to the measurements' covariance as a factor F (F F^T, as the drawing model's: `drawing`). On images
-whose loaded texture is the unloaded one moved (calfit's 2D renderers, the other programs' point-sampled calves)
-the excess is within the noise estimate's scatter and nothing is added.
+added to the measurements' covariance as a factor F (F F^T, as the drawing model's: `drawing`). On images whose
+loaded texture is the unloaded one moved, or changed in ways that move nothing (calfit's 2D renderers, the other
+programs' calves drawn pixel by pixel and blind-51), nothing is added.
 """
 
 from __future__ import annotations
