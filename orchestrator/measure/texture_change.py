@@ -89,8 +89,9 @@ def high_pass(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return image - ndimage.gaussian_filter(image, sigma_px)
 
 
-def _residual(unloaded: np.ndarray, warped_loaded: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarray:
-    """D of the module text, zero where the warp left the loaded image."""
+def _residual(unloaded: np.ndarray, warped_loaded: np.ndarray, valid: np.ndarray,
+              sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """D of the module text before the contrast's fit (zero where the warp left the loaded image), and the gain g."""
     moved = np.where(valid, warped_loaded, 0.0)
     reference = np.where(valid, unloaded, 0.0)
     gain = (ndimage.gaussian_filter(moved * reference, GAIN_SMOOTHING_PX)
@@ -156,7 +157,7 @@ def valid_autocovariance(values: np.ndarray) -> np.ndarray:
 
 
 def measure_change(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, to_loaded, noise_sigma,
-                   window_px: int, edge_variance_px2: float = 0.0) -> tuple[dict[str, np.ndarray], list[TissueChange]]:
+                   window_px: int, edge_variance_px2: float = 0.0) -> tuple[dict[str, "Change"], list[TissueChange]]:
     """The change's autocovariance per tissue (intensity^2 by lag; only the significant ones) and what was measured.
     to_loaded: reference indices -> loaded indices (`measurements.loaded_index_map`); noise_sigma: the raw noise
     sigma of I0 and of I1; edge_variance_px2: the windows' calibrated variance of the edges' position, whose
