@@ -60,7 +60,7 @@ EIGEN_FLOOR = 1e-12      # relative: eigenvalues of the windows' covariance belo
 TISSUES = {"fat": 1, "muscle": 2}
 PATCH_MIN_PX = 6         # the patches that show whether the change moves features: a quarter window, at least 6 px
 PATCH_CONDITION = 50.0   # a patch whose gradients run mostly one way cannot show a displacement across them
-PATCH_MIN_COUNT = 20
+PATCH_MIN_COUNT = 20     # fewer patches than this say nothing: their mean square would scatter by a third or more
 
 
 @dataclass
