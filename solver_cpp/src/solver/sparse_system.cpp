@@ -213,15 +213,19 @@ bool SparseSystem::factorize_cholesky(const Eigen::SparseMatrix<double>& matrix)
   return cholesky_->info() == Eigen::Success;
 }
 
-Eigen::VectorXd SparseSystem::apply_factor(const Eigen::VectorXd& v) const {
+template <typename Rhs>
+typename Rhs::PlainObject SparseSystem::apply_factor(const Eigen::MatrixBase<Rhs>& B) const {
   switch (factor_) {
     case Factor::Cholesky:
-    case Factor::SymmetricPart: return cholesky_->solve(v);
-    case Factor::Lu: return lu_->solve(v);
-    case Factor::Ldlt: return ldlt_->solve(v);
+    case Factor::SymmetricPart: return cholesky_->solve(B);
+    case Factor::Ldlt: return ldlt_->solve(B);
+    // UMFPACK solves one column at a time, unrefined (solve_lu says why): with the sensitivities of many parameters
+    // along a path of friction (a diagnosis's 145 columns at each of 23 increments) its own refinement was most of
+    // the run (a third in the residuals alone). solve_refined refines the block where it needs to.
+    case Factor::Lu: return lu_->solve(B);
     case Factor::None: break;
   }
-  return Eigen::VectorXd::Constant(v.size(), std::numeric_limits<double>::quiet_NaN());
+  return Rhs::PlainObject::Constant(B.rows(), B.cols(), std::numeric_limits<double>::quiet_NaN());
 }
 
 // Solves K x = b by GMRES right-preconditioned with the factorization F held (Saad, Iterative Methods for Sparse
@@ -440,20 +444,6 @@ bool SparseSystem::solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, boo
   return solve_lu(b, x, tolerance);
 }
 
-Eigen::MatrixXd SparseSystem::solve_factored(const Eigen::MatrixXd& B) const {
-  switch (factor_) {
-    case Factor::Cholesky:
-    case Factor::SymmetricPart: return cholesky_->solve(B);
-    case Factor::Ldlt: return ldlt_->solve(B);
-    // UMFPACK solves one column at a time, unrefined (solve_lu says why): with the sensitivities of many parameters
-    // along a path of friction (a diagnosis's 145 columns at each of 23 increments) its own refinement was most of
-    // the run (a third in the residuals alone). solve_refined refines the block where it needs to.
-    case Factor::Lu: return lu_->solve(B);
-    case Factor::None: break;
-  }
-  return Eigen::MatrixXd::Constant(B.rows(), B.cols(), std::numeric_limits<double>::quiet_NaN());
-}
-
 bool SparseSystem::solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) const {
   const SerialOpenMpRegions serial;
   if (factor_ == Factor::None) return false;
@@ -462,7 +452,7 @@ bool SparseSystem::solve_factored(const Eigen::VectorXd& b, Eigen::VectorXd& x) 
   if ((factor_ == Factor::Cholesky || factor_ == Factor::SymmetricPart || factor_ == Factor::Lu) &&
       iterate_on_factor(b, x, 30))
     return true;
-  x = solve_factored(Eigen::MatrixXd(b)).col(0);
+  x = apply_factor(b);
   return x.allFinite();
 }
 
@@ -493,14 +483,14 @@ bool SparseSystem::solve_refined(const Eigen::MatrixXd& B, Eigen::MatrixXd& X, d
       if (solved && relative_residual() <= tolerance) return true;
       continue;
     }
-    X = solve_factored(B);
+    X = apply_factor(B);
     double previous = std::numeric_limits<double>::infinity();
     for (int it = 0; it < 10 && X.allFinite(); ++it) {
       const double r = relative_residual();
       if (r <= tolerance) return true;
       if (!(r < 0.5 * previous)) break;  // stalled: factorize the current matrix
       previous = r;
-      X += solve_factored(B - matrix_ * X);
+      X += apply_factor(Eigen::MatrixXd(B - matrix_ * X));
     }
   }
   return false;

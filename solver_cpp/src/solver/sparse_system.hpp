@@ -114,7 +114,9 @@ private:
   bool solve_lu(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance);
   bool solve_split(const Eigen::VectorXd& b, Eigen::VectorXd& x, double tolerance);
   int find(int row, int column) const;  // position of entry (row, column) in the value array, -1 if not held
-  Eigen::VectorXd apply_factor(const Eigen::VectorXd& v) const;  // F^-1 v with the factorization held
+  // F^-1 B with the factorization held, unrefined: a vector (GMRES's steps) or a block of columns (sensitivities)
+  template <typename Rhs>
+  typename Rhs::PlainObject apply_factor(const Eigen::MatrixBase<Rhs>& B) const;
   bool solve_fresh(const Eigen::VectorXd& b, Eigen::VectorXd& x, bool is_symmetric, double tolerance = kExactSolve);
   bool reuse_pays() const;
   void record_reuse(int steps);  // an attempt to iterate on an earlier factor, failures counted at their limit
@@ -123,7 +125,6 @@ private:
                          int* iterations = nullptr, double tolerance = kExactSolve) const;
   bool factorize_cholesky(const Eigen::SparseMatrix<double>& matrix);
   bool accurate(const Eigen::VectorXd& b, const Eigen::VectorXd& x) const;
-  Eigen::MatrixXd solve_factored(const Eigen::MatrixXd& B) const;  // F^-1 B, no refinement
 };
 
 template <typename Block>
