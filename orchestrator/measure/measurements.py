@@ -383,7 +383,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                                   for c in range(2)], axis=1)
         offset[kept] = centre_values - seen
     # does the loaded slice show the same tissue? (`imaging.coherence`: a slide along the leg between the sessions)
-    coherence = slice_coherence(unloaded, loaded, labels, pixel_size_mm, motion, result, status, result.noise_sigma)
+    through_kept = kept_field_warp(unloaded, loaded, pixel_size_mm, motion, result, status)
+    coherence = [] if through_kept is None else slice_coherence(unloaded, through_kept[1], labels, result.noise_sigma)
     # boundaries drawn by point samples (a renderer's, not a scanner's) carry an error that the residuals cannot show
     to_loaded = loaded_index_map(prior, motion, pixel_size_mm)
     drawn = boundaries(labels, unloaded)
@@ -397,10 +398,9 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     # the loaded texture that is not the unloaded texture moved (a thick slice the tissue slides through, the ringing
     # of the deformed leg): measured on the images through the kept windows' field
     texture_factor, texture = None, []
-    if operators is not None:
-        measured = prior_field(result.position_mm[kept], result.displacement_mm[kept], unloaded.shape, pixel_size_mm)
-        changes, texture = measure_change(unloaded, loaded, labels, loaded_index_map(measured, motion, pixel_size_mm),
-                                          result.noise_sigma, window_px, edge_variance)
+    if operators is not None and through_kept is not None:
+        changes, texture = measure_change(unloaded, loaded, labels, *through_kept, result.noise_sigma, window_px,
+                                          edge_variance)
         texture_factor = covariance_factor(window_covariance(operators, labels, changes))
     residual_over_model = np.array([window.residual_ratio(edge_variance, residual_noise)
                                     for window in result.edge_residuals])
@@ -481,18 +481,25 @@ def _checks(result, min_confidence: float, max_uncertainty_px: float, step_mm: f
     return status
 
 
-def slice_coherence(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pixel_size_mm, motion: RigidMotion,
-                    result, status: np.ndarray, noise_sigma) -> list:
-    """The fat's and the muscle's texture coherence between I0 and I1 sampled through the field the kept windows
-    measured and the bones' motion (`imaging.coherence`); empty with too few kept windows."""
+def kept_field_warp(unloaded: np.ndarray, loaded: np.ndarray, pixel_size_mm, motion: RigidMotion, result,
+                    status: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the loaded image shows every pixel of I0 through the field the kept windows measured and the bones'
+    motion ((2, H W) row and column indices), and I1 sampled there (cubic spline, NaN outside the image); None with
+    too few kept windows for a field."""
     kept = status == KEPT
     if kept.sum() < 10:
-        return []
+        return None
     field = prior_field(result.position_mm[kept], result.displacement_mm[kept], unloaded.shape, pixel_size_mm)
     rows, cols = np.indices(unloaded.shape, dtype=float)
-    to_loaded = loaded_index_map(field, motion, pixel_size_mm)(np.column_stack([rows.ravel(), cols.ravel()]))
-    warped = ndimage.map_coordinates(np.asarray(loaded, float), to_loaded.T, order=3, mode="constant",
+    where = loaded_index_map(field, motion, pixel_size_mm)(np.column_stack([rows.ravel(), cols.ravel()])).T
+    warped = ndimage.map_coordinates(np.asarray(loaded, float), where, order=3, mode="constant",
                                      cval=np.nan).reshape(unloaded.shape)
+    return where, warped
+
+
+def slice_coherence(unloaded: np.ndarray, warped: np.ndarray, labels: np.ndarray, noise_sigma) -> list:
+    """The fat's and the muscle's texture coherence between I0 and I1 sampled through the kept windows' field
+    (`kept_field_warp`, `imaging.coherence`)."""
     values = []
     for name, label in (("fat", FAT), ("muscle", MUSCLE)):
         found = texture_coherence(unloaded, warped, tissue_mask(labels, label), noise_sigma, name)

@@ -156,18 +156,16 @@ def valid_autocovariance(values: np.ndarray) -> np.ndarray:
     return out
 
 
-def measure_change(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, to_loaded, noise_sigma,
-                   window_px: int, edge_variance_px2: float = 0.0) -> tuple[dict[str, "Change"], list[TissueChange]]:
+def measure_change(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, where: np.ndarray,
+                   warped: np.ndarray, noise_sigma, window_px: int,
+                   edge_variance_px2: float = 0.0) -> tuple[dict[str, "Change"], list[TissueChange]]:
     """The change's autocovariance per tissue (intensity^2 by lag; only the significant ones) and what was measured.
-    to_loaded: reference indices -> loaded indices (`measurements.loaded_index_map`); noise_sigma: the raw noise
-    sigma of I0 and of I1; edge_variance_px2: the windows' calibrated variance of the edges' position, whose
-    intensity error s_edge^2 |grad I0|^2 the error model already holds and the simulation sends through too."""
+    where, warped: the loaded image's (2, H W) indices of I0's pixels and I1 sampled there, NaN outside it
+    (`measurements.kept_field_warp`); noise_sigma: the raw noise sigma of I0 and of I1; edge_variance_px2: the
+    windows' calibrated variance of the edges' position, whose intensity error s_edge^2 |grad I0|^2 the error model
+    already holds and the simulation sends through too."""
     unloaded = np.asarray(unloaded, float)
     shape = unloaded.shape
-    rows, cols = np.indices(shape, dtype=float)
-    where = to_loaded(np.column_stack([rows.ravel(), cols.ravel()])).T
-    warped = ndimage.map_coordinates(np.asarray(loaded, float), where, order=3, mode="constant", cval=np.nan)
-    warped = warped.reshape(shape)
     valid = np.isfinite(warped)
     # the window's own second moment: ZNCC and the affine warp take out what varies over more than a window
     sigma_px = window_px / np.sqrt(12.0)
