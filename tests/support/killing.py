@@ -34,8 +34,13 @@ def counting_wrapper(folder: Path):
 
 
 def log_lines(run: Path) -> list[dict]:
+    """The run's logged evaluations, its complete lines only: the command may be writing the last one as it is read
+    (a line is whole once its newline is written; `EvaluationLog` drops a cut line on opening for the same reason)."""
     path = run / LOG_NAME
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    if not path.exists():
+        return []
+    text = path.read_text()
+    return [json.loads(line) for line in text[: text.rfind("\n") + 1].splitlines()]
 
 
 def kill_after(command, environment, run: Path, evaluations: int, *, deadline_s: float = 300.0) -> None:
