@@ -81,6 +81,7 @@ import numpy as np
 
 from orchestrator.measure.dic import COMPILED_ENV, correlate, spline_gradient, windows_module
 from orchestrator.measure.prefilter import Prefilter
+from orchestrator.measure.shape import WindowShape
 from orchestrator.measure.windows import WindowOperators
 
 AMPLITUDE_PX = 0.5
@@ -316,18 +317,19 @@ def noise_floor(image: np.ndarray, from_cycles_per_px: float = 0.4) -> float:
     return float(np.sqrt(power[np.maximum(kx, ky) >= from_cycles_per_px].mean()))
 
 
-def observe_in_chunks(reference, gradients, centres, window, noise_sigma, field, chunk: int = 200) -> np.ndarray:
+def observe_in_chunks(reference, gradients, centres, window, noise_sigma, field, shape: WindowShape,
+                      chunk: int = 200) -> np.ndarray:
     """WindowOperators(...).observe(field) a few hundred windows at a time (a 64-px window holds 16 kB of weights)."""
     out = []
     for start in range(0, len(centres), chunk):
         operators = WindowOperators(reference, centres[start:start + chunk], window, (1.0, 1.0), noise_sigma,
-                                    gradients=gradients)
+                                    gradients=gradients, window_shape=shape)
         out.append(operators.observe(field))
     return np.concatenate(out)
 
 
 def analyse(reference, deformed, gradients, field, window: int, step: int, row0: int, full_reference,
-            full_deformed, noise_image: np.ndarray | None = None) -> dict:
+            full_deformed, shape: WindowShape, noise_image: np.ndarray | None = None) -> dict:
     """Measured and predicted displacement along the crest for one window size, the Challenge's metrics, the noise
     at the zero crossing below the crest (on the full images, whose rows the strip may not hold) and, given the
     Challenge's noise-floor image (the same speckle, fresh noise, no motion), the Challenge's n itself: the standard
@@ -340,10 +342,10 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     # one pass, no prior: the windows' own covariance under the images' noise, not calibrated on their residuals,
     # which here hold the misfit of an affine window to periods shorter than a few windows (`calfit measure` deforms
     # its windows by a first pass's field before it calibrates)
-    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window)
+    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window, shape=shape)
     seconds_dic = time.perf_counter() - began
     began = time.perf_counter()
-    seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field)[:, 1]
+    seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field, shape)[:, 1]
     seconds_operator = time.perf_counter() - began
 
     x = result.centre_rc[:, 1]
@@ -358,13 +360,13 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     common = common_metrics(x, y, measured, step)
     columns_long = columns[period_px(columns) >= NOISE_MIN_PERIOD_PX]
     zero = correlate(full_reference, full_deformed, np.column_stack([np.rint(zero_row(columns_long)), columns_long]),
-                     (1.0, 1.0), window_px=window)
+                     (1.0, 1.0), window_px=window, shape=shape)
     noise_zero = zero_crossing_noise(zero.centre_rc[:, 1], zero.centre_rc[:, 0], zero.displacement_px[:, 1], x,
                                      common["ratio"])
     noise_floor_image = float("nan")
     if noise_image is not None:
         still = correlate(reference, noise_image[row0:row0 + reference.shape[0]], centres, (1.0, 1.0),
-                          window_px=window)
+                          window_px=window, shape=shape)
         noise_floor_image = float(np.nanstd(still.displacement_px[:, 1]))
     ratio_measured = common["ratio"]
     ratio_seen = sliding_mean(seen / commanded, max(SMOOTH_SPAN_PX // step, 1))
@@ -490,7 +492,8 @@ def report_peer(results: list[dict], peers: list[dict]) -> None:
               f"{mei / mei_peer:.2f} x, time per window {per_window / per_window_peer:.2f} x")
 
 
-def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict, noise_source: str) -> None:
+def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict, noise_source: str,
+           shape: WindowShape) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -508,8 +511,8 @@ def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict, n
     periods = top.secondary_xaxis("top", functions=(period_px, lambda p: (p - PERIOD_AT_0_PX) / PERIOD_SLOPE))
     periods.set_xlabel("period p (px)")
     top.legend(loc="lower right", fontsize=8, ncol=2)
-    top.set_title("calfit DIC on the DIC Challenge 2.0 Star images (crest row, amplitude 0.5 px); below, pyvale's "
-                  "beside it", fontsize=10)
+    top.set_title(f"calfit DIC, {shape.name} windows, on the DIC Challenge 2.0 Star images (crest row, amplitude "
+                  "0.5 px); below, pyvale's beside it", fontsize=10)
 
     for r, colour in zip(results, colours):
         bottom.plot(r["period"], r["ratio_measured"], color=colour, lw=1.6,
@@ -566,8 +569,12 @@ def main() -> None:
     parser.add_argument("--noise-image", type=Path, default=None, help="the Challenge's noise-floor image of Star 5 "
                         "(DIC_Challenge_Star_Noise.tif from its site; pyvale does not ship it): n is then measured as "
                         "the Challenge measures it, for both codes")
+    parser.add_argument("--shape", choices=("affine", "quadratic"), default="quadratic",
+                        help="calfit's window shape function (orchestrator.measure.shape; default quadratic, the "
+                        "shape of the Challenge's best codes)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/figures/dic_challenge.png"))
     args = parser.parse_args()
+    shape = WindowShape.named(args.shape)
 
     full_reference, full_deformed = load_star(args.images)
     noise_image = None if args.noise_image is None else load_image(args.noise_image)
@@ -580,12 +587,13 @@ def main() -> None:
     floor_sigma = float(np.sqrt(0.5 * (noise_floor(reference) ** 2 + noise_floor(deformed) ** 2)))
     print(f"Star images {reference.shape[1]} px wide, rows {row0}-{row0 + reference.shape[0] - 1} kept; windows "
           f"{', '.join(map(str, args.windows))} px every {args.step} px along row {CREST_ROW}")
-    print("calfit's windows: " + ("the compiled loops (orchestrator._correlation)" if windows_module() is not None
-                                  else f"the Python loops ({COMPILED_ENV}=0 or no compiled module)"))
+    print(f"calfit's windows: {shape.name}, " + ("the compiled loops (orchestrator._correlation)"
+                                               if windows_module() is not None
+                                               else f"the Python loops ({COMPILED_ENV}=0 or no compiled module)"))
     results = []
     for window in args.windows:
         results.append(analyse(reference, deformed, gradients, field, window, args.step, row0, full_reference,
-                               full_deformed, noise_image))
+                               full_deformed, shape, noise_image))
         r = results[-1]
         print(f"  {window:2d} px: {r['windows']} windows, DIC {r['seconds_dic']:.1f} s, operator "
               f"{r['seconds_operator']:.1f} s", flush=True)
@@ -595,7 +603,7 @@ def main() -> None:
                  for window in args.windows]
     report_peer(results, peers)
     code_meis, noise_source = report_participants(results, peers)
-    figure(results, args.out, peers, code_meis, noise_source)
+    figure(results, args.out, peers, code_meis, noise_source, shape)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ from orchestrator.imaging.mismatch import ContourMismatch
 from orchestrator.imaging.segment import segment_t1
 from orchestrator.imaging.warp import warp_image
 from orchestrator.measure.dic import correlate, roi_centres
+from orchestrator.measure.measurements import DEFAULT_WINDOW_SHAPE, WINDOW_SHAPES
 from orchestrator.measure.verification import (
     band_errors,
     errors_against,
@@ -81,10 +82,14 @@ def main() -> None:
                         help="only the measurement's error against the true field (foreign: on the --foreign cases only)")
     parser.add_argument("--outline", action="store_true",
                         help="measure the foreign cases a second time leaving out the leg's outline")
+    parser.add_argument("--window-shape", choices=WINDOW_SHAPES, default=DEFAULT_WINDOW_SHAPE,
+                        help=f"the windows' shape function for the bands (default {DEFAULT_WINDOW_SHAPE}, "
+                             "`calfit measure`'s)")
     arguments = parser.parse_args()
     if arguments.only is None:
         timings()
-    measurement_error_by_band(arguments.foreign, phantoms=arguments.only != "foreign", outline=arguments.outline)
+    measurement_error_by_band(arguments.foreign, phantoms=arguments.only != "foreign", outline=arguments.outline,
+                              window_shape=arguments.window_shape)
 
 
 def timings() -> None:
@@ -164,16 +169,16 @@ def dic_accuracy(noise: float = 0.02) -> None:
 
 
 def measurement_error_by_band(foreign: list[Path], seeds=(3, 4), noise_draws=(0, 1, 2), phantoms: bool = True,
-                              outline: bool = False) -> None:
+                              outline: bool = False, window_shape: str = DEFAULT_WINDOW_SHAPE) -> None:
     """`calfit measure` (the default: 32-pixel windows, prefiltered, edges calibrated) against the true field, per
     band (module text): engine-made cases of the three renderers at random truths with a scanner motion, each truth under
     several draws of the images' noise, then the cases of other programs when given (each folder pooled apart:
     point-sampled 2D calves, k-space 3D calves). A band holds 27-200 windows, whose chi^2/n scatters from one noise
     draw to the next (0.51-1.27 in the deep fat of one truth of the second renderer): each group of images ends with
     the chi^2/n pooled over its draws, sum chi^2 / sum n. outline: the foreign cases measured a second time with
-    windows inside the leg leaving out its outline (`--respect-outline`)."""
+    windows inside the leg leaving out its outline (`--respect-outline`). window_shape: the windows' shape function."""
     print("\nThe measurement against the true field, per band (chi^2/n of the errors whitened by the predicted "
-          "covariance; 1 when the error model holds):")
+          f"covariance; 1 when the error model holds), {window_shape} windows:")
     with tempfile.TemporaryDirectory(prefix="calfit-bench-bands-") as scratch:
         scratch = Path(scratch)
         for name, phantom in (("CalfPhantom", CalfPhantom()), ("MRIPhantom", MRIPhantom.at_resolution(0.36))):
@@ -188,10 +193,11 @@ def measurement_error_by_band(foreign: list[Path], seeds=(3, 4), noise_draws=(0,
                                                     rigid=RigidMotion(-1.2, (1.1, 0.7), (75.6, 75.6)))
                     pooled.append(_print_bands(f"{name}, truth seed {seed}, noise draw {draw}", case,
                                                scratch / f"run-{name}-{seed}-{draw}",
-                                               lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy")))
+                                               lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy"),
+                                               window_shape=window_shape))
             _print_pooled(f"{name}, {len(pooled)} cases", pooled)
         if phantoms:
-            _kspace_bands(scratch, seeds, noise_draws)
+            _kspace_bands(scratch, seeds, noise_draws, window_shape)
         for folder in foreign:
             pooled, pooled_outline = [], []
             for case in sorted(p for p in folder.iterdir() if (p / "case.toml").is_file()):
@@ -208,12 +214,13 @@ def measurement_error_by_band(foreign: list[Path], seeds=(3, 4), noise_draws=(0,
                     return field_from_truth_file(truth_file, shape, pixel)
 
                 pooled.append(_print_bands(f"{folder.name}/{case.name} (another program)", images_only,
-                                           scratch / f"run-{folder.name}-{case.name}", truth))
+                                           scratch / f"run-{folder.name}-{case.name}", truth,
+                                           window_shape=window_shape))
                 if outline:
                     pooled_outline.append(_print_bands(
                         f"{folder.name}/{case.name} (another program), windows inside the leg leaving out its outline "
                         "(--respect-outline)", images_only, scratch / f"run-{folder.name}-{case.name}-outline", truth,
-                        respect_outline=True))
+                        respect_outline=True, window_shape=window_shape))
             if pooled:
                 _print_pooled(f"{folder.name}: the other program's {len(pooled)} cases", pooled)
             if pooled_outline:
@@ -221,7 +228,7 @@ def measurement_error_by_band(foreign: list[Path], seeds=(3, 4), noise_draws=(0,
                               pooled_outline)
 
 
-def _kspace_bands(scratch: Path, seeds, noise_draws) -> None:
+def _kspace_bands(scratch: Path, seeds, noise_draws, window_shape: str = DEFAULT_WINDOW_SHAPE) -> None:
     """The third renderer (`phantom.kspace3d`: a 3D leg solved in 3D by CalculiX, imaged through k-space with a
     4 mm slice, the chemical shift, a coil fixed to the scanner and Rician noise): each random truth solved once and
     imaged under every noise draw, the leg turned and shifted between the sessions but not slid along its axis
@@ -246,15 +253,17 @@ def _kspace_bands(scratch: Path, seeds, noise_draws) -> None:
                                                dicom=written == "DICOM")
                 rows.append(_print_bands(f"KspacePhantom as {written}, truth seed {seed}, noise draw {draw}", case,
                                          scratch / f"run-{name}",
-                                         lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy")))
+                                         lambda shape, pixel, truth=truth: np.load(truth / "displacement_mm.npy"),
+                                         window_shape=window_shape))
     _print_pooled(f"KspacePhantom, {len(pooled['DICOM'])} cases as DICOM (the chemical shift's size from its header)",
                   pooled["DICOM"])
     _print_pooled(f"KspacePhantom, {len(pooled['PNG'])} cases as PNG (images only: the size read from the image)",
                   pooled["PNG"])
 
 
-def _print_bands(title: str, case: Path, run: Path, true_field, respect_outline: bool = False) -> list:
-    summary = run_measure(case, run, respect_outline=respect_outline)
+def _print_bands(title: str, case: Path, run: Path, true_field, respect_outline: bool = False,
+                 window_shape: str = DEFAULT_WINDOW_SHAPE) -> list:
+    summary = run_measure(case, run, respect_outline=respect_outline, window_shape=window_shape)
     setup = load_run(run)
     measured = setup.measurements("dic")
     field = true_field(setup.case.unloaded.shape, setup.case.pixel_size_mm)

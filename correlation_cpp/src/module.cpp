@@ -34,7 +34,8 @@ std::string shape_of(std::size_t rows, std::size_t cols) {
 
 nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad_cols, Grid to_deformed,
                           std::optional<Field> prior, Centres centres, Masks used, int window_px, int search_px,
-                          int iterations, double tolerance_px, double tolerance_gradient, int threads) {
+                          int iterations, double tolerance_px, double tolerance_gradient, int threads,
+                          int shape_order) {
   const std::size_t rows = reference.shape(0), cols = reference.shape(1);
   if (rows == 0 || cols == 0) throw std::invalid_argument("the reference image is empty");
   for (const Grid* grid : {&spline, &grad_rows, &grad_cols})
@@ -52,6 +53,9 @@ nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad
   if (iterations < 0 || !(tolerance_px >= 0.0) || !(tolerance_gradient >= 0.0))
     throw std::invalid_argument("Gauss-Newton's iterations and tolerances cannot be negative");
   if (threads < 1) throw std::invalid_argument("at least one thread matches the windows");
+  if (shape_order != 1 && shape_order != 2)
+    throw std::invalid_argument("the window's shape function is of order 1 (affine) or 2 (quadratic), not " +
+                                std::to_string(shape_order));
   const std::size_t count = centres.shape(0);
   const std::size_t square = static_cast<std::size_t>(window_px) * static_cast<std::size_t>(window_px);
   if (centres.shape(1) != 2) throw std::invalid_argument("the window centres are (N, 2) (row, column) pixels");
@@ -66,7 +70,7 @@ nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad
   pair.grad_cols = {grad_cols.data(), pair.reference.rows, pair.reference.cols};
   for (int k = 0; k < 6; ++k) pair.to_deformed[k] = to_deformed.data()[k];
   pair.prior = prior ? prior->data() : nullptr;
-  Settings settings{window_px, search_px, iterations, tolerance_px, tolerance_gradient};
+  Settings settings{window_px, search_px, iterations, tolerance_px, tolerance_gradient, shape_order};
 
   std::vector<WindowResult> results;
   {
@@ -76,21 +80,22 @@ nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad
   auto* status = new std::int8_t[count];
   auto* start = new double[2 * count];
   auto* peak = new double[count];
-  auto* warp = new double[6 * count];
+  const std::size_t terms = shape_order == 2 ? 6 : 3;   // per row of the map (windows.hpp)
+  auto* warp = new double[2 * terms * count];
   auto* steps = new std::int32_t[count];
   for (std::size_t k = 0; k < count; ++k) {
     status[k] = static_cast<std::int8_t>(results[k].status);
     start[2 * k] = results[k].start[0];
     start[2 * k + 1] = results[k].start[1];
     peak[k] = results[k].peak_score;
-    for (int j = 0; j < 6; ++j) warp[6 * k + j] = results[k].warp[j];
+    for (std::size_t j = 0; j < 2 * terms; ++j) warp[2 * terms * k + j] = results[k].warp[j];
     steps[k] = results[k].iterations;
   }
   nb::dict out;
   out["status"] = owned(status, {count});
   out["start"] = owned(start, {count, 2});
   out["peak_score"] = owned(peak, {count});
-  out["warp"] = owned(warp, {count, 2, 3});
+  out["warp"] = owned(warp, {count, 2, terms});
   out["iterations"] = owned(steps, {count});
   return out;
 }
@@ -148,8 +153,9 @@ NB_MODULE(_correlation, m) {
   m.def("match_windows", &match_windows_py, nb::arg("reference"), nb::arg("spline"), nb::arg("grad_rows"),
         nb::arg("grad_cols"), nb::arg("to_deformed"), nb::arg("prior").none(), nb::arg("centres"), nb::arg("used"),
         nb::arg("window_px"), nb::arg("search_px"), nb::arg("iterations"), nb::arg("tolerance_px"),
-        nb::arg("tolerance_gradient"), nb::arg("threads") = 1,
-        "Per window: status, start (d_col, d_row), peak_score, warp (2x3) and iterations (windows.hpp).");
+        nb::arg("tolerance_gradient"), nb::arg("threads") = 1, nb::arg("shape_order") = 1,
+        "Per window: status, start (d_col, d_row), peak_score, warp (2 x 3 affine, 2 x 6 quadratic: the map's rows "
+        "over the monomials) and iterations (windows.hpp).");
   m.def("spline_gradient", &spline_gradient_py, nb::arg("coefficients"), nb::arg("step"),
         "(d/drow, d/dcolumn) at every pixel of the cubic B-spline of the coefficients, by a central difference of "
         "`step` pixels (dic.spline_derivatives).");

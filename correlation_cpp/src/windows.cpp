@@ -133,39 +133,149 @@ std::vector<double> zncc_map_with(Workspace& ws, const std::vector<double>& patc
   return score;
 }
 
-// LU factors with partial pivoting of the 6x6 Gauss-Newton matrix, which IC-GN keeps for all its iterations.
-struct Lu6 {
-  std::array<double, 36> a{};
-  std::array<int, 6> pivot{};
-  bool factor(const std::array<double, 36>& matrix) {
-    a = matrix;
-    for (int k = 0; k < 6; ++k) {
+// LU factors with partial pivoting of a small dense matrix (IC-GN's 6x6 or 12x12 Gauss-Newton matrix, kept for all
+// its iterations; a quadratic map's 6x6 matrix, inverted once per step).
+class Lu {
+ public:
+  bool factor(const std::vector<double>& matrix, int n) {
+    n_ = n;
+    a_ = matrix;
+    pivot_.assign(n, 0);
+    for (int k = 0; k < n; ++k) {
       int best = k;
-      for (int i = k + 1; i < 6; ++i)
-        if (std::abs(a[i * 6 + k]) > std::abs(a[best * 6 + k])) best = i;
-      pivot[k] = best;
-      if (!(std::abs(a[best * 6 + k]) > 0.0) || !std::isfinite(a[best * 6 + k])) return false;
+      for (int i = k + 1; i < n; ++i)
+        if (std::abs(a_[i * n + k]) > std::abs(a_[best * n + k])) best = i;
+      pivot_[k] = best;
+      if (!(std::abs(a_[best * n + k]) > 0.0) || !std::isfinite(a_[best * n + k])) return false;
       if (best != k)
-        for (int j = 0; j < 6; ++j) std::swap(a[k * 6 + j], a[best * 6 + j]);
-      for (int i = k + 1; i < 6; ++i) {
-        a[i * 6 + k] /= a[k * 6 + k];
-        for (int j = k + 1; j < 6; ++j) a[i * 6 + j] -= a[i * 6 + k] * a[k * 6 + j];
+        for (int j = 0; j < n; ++j) std::swap(a_[k * n + j], a_[best * n + j]);
+      for (int i = k + 1; i < n; ++i) {
+        a_[i * n + k] /= a_[k * n + k];
+        for (int j = k + 1; j < n; ++j) a_[i * n + j] -= a_[i * n + k] * a_[k * n + j];
       }
     }
     return true;
   }
-  std::array<double, 6> solve(std::array<double, 6> b) const {
+  std::vector<double> solve(std::vector<double> b) const {
+    const int n = n_;
     // the rows were swapped whole while factoring (L too), so all the swaps come before the substitution
-    for (int k = 0; k < 6; ++k) std::swap(b[k], b[pivot[k]]);
-    for (int k = 0; k < 6; ++k)
-      for (int i = k + 1; i < 6; ++i) b[i] -= a[i * 6 + k] * b[k];
-    for (int k = 5; k >= 0; --k) {
-      for (int j = k + 1; j < 6; ++j) b[k] -= a[k * 6 + j] * b[j];
-      b[k] /= a[k * 6 + k];
+    for (int k = 0; k < n; ++k) std::swap(b[k], b[pivot_[k]]);
+    for (int k = 0; k < n; ++k)
+      for (int i = k + 1; i < n; ++i) b[i] -= a_[i * n + k] * b[k];
+    for (int k = n - 1; k >= 0; --k) {
+      for (int j = k + 1; j < n; ++j) b[k] -= a_[k * n + j] * b[j];
+      b[k] /= a_[k * n + k];
     }
     return b;
   }
+
+ private:
+  int n_ = 0;
+  std::vector<double> a_;
+  std::vector<int> pivot_;
 };
+
+// The window's shape function (orchestrator/measure/shape.py): the basis of each displacement component and the
+// monomials its map's matrix acts on, both at an offset (dx, dy) from the window centre.
+struct ShapeFunction {
+  int terms = 3;   // 3 affine, 6 quadratic
+  void basis(double dx, double dy, double* out) const {
+    out[0] = 1.0;
+    out[1] = dx;
+    out[2] = dy;
+    if (terms == 6) {
+      out[3] = 0.5 * dx * dx;
+      out[4] = dx * dy;
+      out[5] = 0.5 * dy * dy;
+    }
+  }
+  void monomials(double dx, double dy, double* out) const {
+    if (terms == 3) {
+      out[0] = dx;
+      out[1] = dy;
+      out[2] = 1.0;
+      return;
+    }
+    const double values[6] = {dx * dx, dx * dy, dy * dy, dx, dy, 1.0};
+    std::copy(values, values + 6, out);
+  }
+};
+
+// The exponents of (dx, dy) of a quadratic map's monomials (shape.py), the affine ones last.
+constexpr int kMonomialExponents[6][2] = {{2, 0}, {1, 1}, {0, 2}, {1, 0}, {0, 1}, {0, 0}};
+
+int monomial_index(int a, int b) {
+  for (int k = 0; k < 6; ++k)
+    if (kMonomialExponents[k][0] == a && kMonomialExponents[k][1] == b) return k;
+  return -1;
+}
+
+// shape.lift: the 6x6 matrix (row-major) taking the monomials to those of (x', y'), the map's rows x' and y' over
+// the monomials, each product's terms above second order dropped (Gao et al., Opt. Lasers Eng. 65, 2015, eqs. 8-10).
+std::vector<double> lift(const double* x, const double* y) {
+  std::vector<double> out(36, 0.0);
+  auto product = [&](const double* a, const double* b, double* row) {
+    for (int i = 0; i < 6; ++i)
+      for (int j = 0; j < 6; ++j) {
+        const int da = kMonomialExponents[i][0] + kMonomialExponents[j][0];
+        const int db = kMonomialExponents[i][1] + kMonomialExponents[j][1];
+        if (da + db <= 2) row[monomial_index(da, db)] += a[i] * b[j];
+      }
+  };
+  product(x, x, &out[0]);
+  product(x, y, &out[6]);
+  product(y, y, &out[12]);
+  std::copy(x, x + 6, &out[18]);
+  std::copy(y, y + 6, &out[24]);
+  out[35] = 1.0;
+  return out;
+}
+
+// warp <- warp o W(p)^-1 for an affine window, W(p) = [[1 + ux, uy, u], [vx, 1 + vy, v]] inverted in closed form;
+// warp holds the rows x', y' over (dx, dy, 1). False where W(p) is singular.
+bool compose_affine(std::array<double, 12>& warp, const std::vector<double>& p) {
+  const double a00 = 1.0 + p[1], a01 = p[2], a10 = p[4], a11 = 1.0 + p[5];
+  const double det = a00 * a11 - a01 * a10;
+  if (!(std::abs(det) > 0.0) || !std::isfinite(det)) return false;
+  const double i00 = a11 / det, i01 = -a01 / det, i10 = -a10 / det, i11 = a00 / det;
+  const double t0 = -(i00 * p[0] + i01 * p[3]), t1 = -(i10 * p[0] + i11 * p[3]);
+  const std::array<double, 12> old = warp;
+  for (int r = 0; r < 2; ++r) {
+    const double o0 = old[r * 3], o1 = old[r * 3 + 1], o2 = old[r * 3 + 2];
+    warp[r * 3] = o0 * i00 + o1 * i10;
+    warp[r * 3 + 1] = o0 * i01 + o1 * i11;
+    warp[r * 3 + 2] = o0 * t0 + o1 * t1 + o2;
+  }
+  return true;
+}
+
+// The same for a quadratic window through the maps' 6x6 matrices (shape.py): warp's rows x', y' over the six
+// monomials become those of lift(warp) lift(W(p))^-1.
+bool compose_quadratic(std::array<double, 12>& warp, const std::vector<double>& p) {
+  const double x[6] = {0.5 * p[3], p[4], 0.5 * p[5], 1.0 + p[1], p[2], p[0]};
+  const double y[6] = {0.5 * p[9], p[10], 0.5 * p[11], p[7], 1.0 + p[8], p[6]};
+  Lu step;
+  if (!step.factor(lift(x, y), 6)) return false;
+  const std::vector<double> current = lift(&warp[0], &warp[6]);
+  // rows r of current times the inverse: solve inverse^T row^T, i.e. each new row q with M^T q = row; done as the
+  // columns of M^-1, six solves, since the LU is of M
+  std::vector<double> inverse(36);
+  for (int j = 0; j < 6; ++j) {
+    std::vector<double> unit(6, 0.0);
+    unit[j] = 1.0;
+    const std::vector<double> column = step.solve(unit);
+    for (int i = 0; i < 6; ++i) inverse[i * 6 + j] = column[i];
+  }
+  for (int r = 0; r < 2; ++r)
+    for (int j = 0; j < 6; ++j) {
+      double value = 0.0;
+      for (int k = 0; k < 6; ++k) value += current[(3 + r) * 6 + k] * inverse[k * 6 + j];
+      warp[r * 6 + j] = value;
+    }
+  for (double v : warp)
+    if (!std::isfinite(v)) return false;
+  return true;
+}
 
 // (values - mean) / norm in place; returns the norm (dic._normalise).
 double normalise(std::vector<double>& values) {
@@ -188,6 +298,8 @@ Status refine(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdi
               WindowResult& out) {
   const std::ptrdiff_t w = s.window_px;
   const double half = (static_cast<double>(w) - 1.0) / 2.0;
+  const ShapeFunction shape{s.shape_order == 2 ? 6 : 3};
+  const int k = shape.terms, np = 2 * k;
   std::vector<double> f, dx, dy, gx, gy, prior_c, prior_r;
   for (std::ptrdiff_t r = 0; r < w; ++r) {
     for (std::ptrdiff_t c = 0; c < w; ++c) {
@@ -211,36 +323,53 @@ Status refine(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdi
   const double f_norm = normalise(f);
   if (f_norm == 0.0) return Status::refinement_failed;
 
-  // the steepest-descent images with the mean and f^ projected out (dic.zero_normalised_steepest_descent), over f_norm
-  std::vector<std::array<double, 6>> steepest(n);
-  std::array<double, 6> mean{}, along_f{};
+  // the steepest-descent images with the mean and f^ projected out (dic.zero_normalised_steepest_descent), over
+  // f_norm, and each pixel's monomials (shape.py), row-major (n, np) and (n, k)
+  std::vector<double> steepest(n * np), monomials(n * k);
+  std::vector<double> mean(np, 0.0), along_f(np, 0.0);
+  double basis[6];
   for (std::size_t i = 0; i < n; ++i) {
-    steepest[i] = {gx[i], gx[i] * dx[i], gx[i] * dy[i], gy[i], gy[i] * dx[i], gy[i] * dy[i]};
-    for (int k = 0; k < 6; ++k) {
-      mean[k] += steepest[i][k];
-      along_f[k] += f[i] * steepest[i][k];
+    shape.basis(dx[i], dy[i], basis);
+    shape.monomials(dx[i], dy[i], &monomials[i * k]);
+    double* row = &steepest[i * np];
+    for (int j = 0; j < k; ++j) {
+      row[j] = gx[i] * basis[j];
+      row[k + j] = gy[i] * basis[j];
+    }
+    for (int j = 0; j < np; ++j) {
+      mean[j] += row[j];
+      along_f[j] += f[i] * row[j];
     }
   }
-  for (int k = 0; k < 6; ++k) mean[k] /= static_cast<double>(n);
-  std::array<double, 36> hessian{};
+  for (double& m : mean) m /= static_cast<double>(n);
+  std::vector<double> hessian(np * np, 0.0);
   for (std::size_t i = 0; i < n; ++i) {
-    for (int k = 0; k < 6; ++k) steepest[i][k] -= mean[k] + f[i] * along_f[k];
-    for (int k = 0; k < 6; ++k)
-      for (int j = 0; j < 6; ++j) hessian[k * 6 + j] += steepest[i][k] * steepest[i][j];
+    double* row = &steepest[i * np];
+    for (int j = 0; j < np; ++j) row[j] -= mean[j] + f[i] * along_f[j];
+    for (int a = 0; a < np; ++a)
+      for (int b = 0; b < np; ++b) hessian[a * np + b] += row[a] * row[b];
   }
   for (double& h : hessian) h /= f_norm * f_norm;
-  for (auto& row : steepest)
-    for (double& v : row) v /= f_norm;
-  Lu6 lu;
-  if (!lu.factor(hessian)) return Status::refinement_failed;
+  for (double& v : steepest) v /= f_norm;
+  Lu lu;
+  if (!lu.factor(hessian, np)) return Status::refinement_failed;
 
   const double centre_row = static_cast<double>(r0) + half, centre_col = static_cast<double>(c0) + half;
-  std::array<double, 6> warp = {1.0, 0.0, out.start[0], 0.0, 1.0, out.start[1]};
+  // the map's rows x', y' over the monomials, a translation by the start (shape.WindowShape.translated)
+  std::array<double, 12> warp{};
+  warp[k - 3] = 1.0;
+  warp[k + k - 2] = 1.0;
+  warp[k - 1] = out.start[0];
+  warp[2 * k - 1] = out.start[1];
   std::vector<double> g(n);
-  auto sample = [&](const std::array<double, 6>& a) {
+  auto sample = [&](const std::array<double, 12>& a) {
     for (std::size_t i = 0; i < n; ++i) {
-      const double moved_col = a[0] * dx[i] + a[1] * dy[i] + a[2];
-      const double moved_row = a[3] * dx[i] + a[4] * dy[i] + a[5];
+      const double* m = &monomials[i * k];
+      double moved_col = 0.0, moved_row = 0.0;
+      for (int j = 0; j < k; ++j) {
+        moved_col += a[j] * m[j];
+        moved_row += a[k + j] * m[j];
+      }
       g[i] = sample_deformed(pair, centre_col + moved_col + prior_c[i], centre_row + moved_row + prior_r[i]);
     }
     return normalise(g);
@@ -251,25 +380,16 @@ Status refine(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdi
     const double g_norm = sample(warp);
     if (!std::isfinite(g_norm)) return Status::not_finite;
     if (g_norm == 0.0) return Status::refinement_failed;
-    std::array<double, 6> b{};
+    std::vector<double> b(np, 0.0);
     for (std::size_t i = 0; i < n; ++i)
-      for (int k = 0; k < 6; ++k) b[k] += steepest[i][k] * (g[i] - f[i]);
-    const std::array<double, 6> p = lu.solve(b);
-    // warp <- warp inv(W(p)): W(p) = [[1 + ux, uy, u], [vx, 1 + vy, v]], inverted in closed form
-    const double a00 = 1.0 + p[1], a01 = p[2], a10 = p[4], a11 = 1.0 + p[5];
-    const double det = a00 * a11 - a01 * a10;
-    if (!(std::abs(det) > 0.0) || !std::isfinite(det)) return Status::refinement_failed;
-    const double i00 = a11 / det, i01 = -a01 / det, i10 = -a10 / det, i11 = a00 / det;
-    const double t0 = -(i00 * p[0] + i01 * p[3]), t1 = -(i10 * p[0] + i11 * p[3]);
-    const std::array<double, 6> old = warp;
-    for (int r = 0; r < 2; ++r) {
-      const double o0 = old[r * 3], o1 = old[r * 3 + 1], o2 = old[r * 3 + 2];
-      warp[r * 3] = o0 * i00 + o1 * i10;
-      warp[r * 3 + 1] = o0 * i01 + o1 * i11;
-      warp[r * 3 + 2] = o0 * t0 + o1 * t1 + o2;
-    }
-    const double gradient_step = std::max({std::abs(p[1]), std::abs(p[2]), std::abs(p[4]), std::abs(p[5])});
-    if (std::max(std::abs(p[0]), std::abs(p[3])) < s.tolerance_px && gradient_step < s.tolerance_gradient) break;
+      for (int j = 0; j < np; ++j) b[j] += steepest[i * np + j] * (g[i] - f[i]);
+    const std::vector<double> p = lu.solve(b);
+    if (!(k == 3 ? compose_affine(warp, p) : compose_quadratic(warp, p))) return Status::refinement_failed;
+    const double translation_step = std::max(std::abs(p[0]), std::abs(p[k]));
+    double shape_step = 0.0;   // the displacement gradient's step (and, quadratic, its derivatives')
+    for (int j = 0; j < np; ++j)
+      if (j != 0 && j != k) shape_step = std::max(shape_step, std::abs(p[j]));
+    if (translation_step < s.tolerance_px && shape_step < s.tolerance_gradient) break;
   }
   for (double v : warp)
     if (!std::isfinite(v)) return Status::not_finite;
@@ -379,6 +499,8 @@ std::vector<WindowResult> match_windows(const Pair& pair, const Settings& settin
                                         std::size_t count, const bool* used, int threads) {
   if (settings.window_px < 1 || settings.search_px < settings.window_px || settings.iterations < 0)
     throw std::invalid_argument("match_windows: window_px >= 1, search_px >= window_px and iterations >= 0");
+  if (settings.shape_order != 1 && settings.shape_order != 2)
+    throw std::invalid_argument("match_windows: the shape function is of order 1 (affine) or 2 (quadratic)");
   if (pair.reference.rows < 1 || pair.reference.cols < 1)
     throw std::invalid_argument("match_windows: the images are empty");
   std::vector<WindowResult> results(count);

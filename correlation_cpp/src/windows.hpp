@@ -1,5 +1,6 @@
 // The hot loops of calfit's DIC windows (orchestrator/measure/dic.py): the ZNCC integer search and the
-// inverse-compositional Gauss-Newton (IC-GN) iterations with an affine window. Python keeps everything else (the
+// inverse-compositional Gauss-Newton (IC-GN) iterations with an affine or a quadratic window
+// (orchestrator/measure/shape.py). Python keeps everything else (the
 // prefilter, the spline coefficients, the error model); these loops take what it computed and return, per window,
 // where the search started Gauss-Newton and the warp it converged to, so that Python finishes each window exactly as
 // its own loops would have. dic.py's module text says what each step is and why.
@@ -33,7 +34,8 @@ struct Settings {
   int search_px = 64;
   int iterations = 20;                // dic.GAUSS_NEWTON_ITERATIONS
   double tolerance_px = 1e-4;         // dic.GAUSS_NEWTON_TOLERANCE_PX, on the translation step
-  double tolerance_gradient = 1e-5;   // on the step of the displacement gradient
+  double tolerance_gradient = 1e-5;   // on the step of the displacement gradient (and of its derivatives)
+  int shape_order = 1;                // the window's shape function: 1 affine, 2 quadratic (shape.WindowShape)
 };
 
 enum class Status : std::int8_t {
@@ -48,7 +50,9 @@ struct WindowResult {
   Status status = Status::outside;
   std::array<double, 2> start{};   // (d_col, d_row) px, the integer peak refined by a parabola
   double peak_score = 0.0;         // the ZNCC at the integer peak
-  std::array<double, 6> warp{};    // the first two rows of the final 3x3 affine warp
+  // the final map's rows x' and y' over the monomials (shape.py): (dx, dy, 1) affine, the first 6 values;
+  // (dx^2, dx dy, dy^2, dx, dy, 1) quadratic, all 12
+  std::array<double, 12> warp{};
   int iterations = 0;
 };
 

@@ -1,6 +1,7 @@
 // The DIC windows' hot loops (correlation_cpp/src/windows.hpp) on inputs whose answer is known, and on inputs that
 // must be refused or rejected rather than read out of bounds: tiny images, windows at and beyond the border, NaN.
 // orchestrator's tests/measure/test_compiled_windows.py holds the loops to the Python reference on the phantom.
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -129,9 +130,81 @@ void test_a_shift_is_found() {
   CHECK(r.iterations >= 1 && r.iterations <= 20);
 }
 
-void test_border_tiny_and_nan_inputs_are_rejected_not_read() {
+// An image that is exactly a cubic B-spline: random coefficients, the reference their spline at the pixels, the
+// deformed image's coefficients the same moved by whole pixels, so I1(x) = I0(x - shift) holds between the pixels too
+// and Gauss-Newton must find the shift to its tolerance. A constant prior field takes the start off the integer grid.
+struct SplineScene {
+  std::ptrdiff_t rows, cols;
+  std::vector<double> coefficients, reference, deformed, grad_rows, grad_cols, prior;
+  Pair pair() const {
+    Pair p;
+    p.reference = {reference.data(), rows, cols};
+    p.spline = {deformed.data(), rows, cols};
+    p.grad_rows = {grad_rows.data(), rows, cols};
+    p.grad_cols = {grad_cols.data(), rows, cols};
+    p.to_deformed = {1, 0, 0, 0, 1, 0};
+    p.prior = prior.data();
+    return p;
+  }
+};
+
+SplineScene spline_scene(std::ptrdiff_t n, std::ptrdiff_t shift_col, std::ptrdiff_t shift_row, double prior_col,
+                         double prior_row) {
+  SplineScene s{n, n, {}, {}, {}, {}, {}, {}};
+  std::mt19937 random(11);
+  std::normal_distribution<double> grain(100.0, 20.0);
+  for (std::ptrdiff_t k = 0; k < n * n; ++k) s.coefficients.push_back(grain(random));
+  const Image c{s.coefficients.data(), n, n};
+  for (std::ptrdiff_t r = 0; r < n; ++r)
+    for (std::ptrdiff_t q = 0; q < n; ++q) {
+      const double y = static_cast<double>(r), x = static_cast<double>(q);
+      s.reference.push_back(sample_spline(c, y, x));
+      const std::ptrdiff_t from_r = std::clamp(r - shift_row, std::ptrdiff_t{0}, n - 1);
+      const std::ptrdiff_t from_c = std::clamp(q - shift_col, std::ptrdiff_t{0}, n - 1);
+      s.deformed.push_back(s.coefficients[from_r * n + from_c]);
+      s.grad_rows.push_back((sample_spline(c, y + 1e-4, x) - sample_spline(c, y - 1e-4, x)) / 2e-4);
+      s.grad_cols.push_back((sample_spline(c, y, x + 1e-4) - sample_spline(c, y, x - 1e-4)) / 2e-4);
+    }
+  s.prior.assign(n * n, prior_col);
+  s.prior.resize(2 * n * n, prior_row);
+  return s;
+}
+
+// Both shape functions find the shift less the prior exactly; the quadratic one finds no bend, its linear part the
+// identity. Rows x', y' of the map over (dx, dy, 1) affine, over (dx^2, dx dy, dy^2, dx, dy, 1) quadratic.
+void test_each_shape_finds_the_shift_of_a_spline_image_exactly() {
+  const SplineScene s = spline_scene(96, 2, -1, 0.3, -0.45);
+  const std::vector<char> used(24 * 24, 1);
+  for (int order : {1, 2}) {
+    Settings settings{24, 64, 20, 1e-8, 1e-9, order};
+    const WindowResult r = match_window(s.pair(), settings, 48, 48, reinterpret_cast<const bool*>(used.data()));
+    CHECK(r.status == Status::matched);
+    const int k = order == 1 ? 3 : 6;
+    CHECK_NEAR(r.warp[k - 1], 2.0 - 0.3, 1e-6);
+    CHECK_NEAR(r.warp[2 * k - 1], -1.0 + 0.45, 1e-6);
+    CHECK_NEAR(r.warp[k - 3], 1.0, 1e-6);
+    CHECK_NEAR(r.warp[2 * k - 2], 1.0, 1e-6);
+    CHECK_NEAR(r.warp[k - 2], 0.0, 1e-6);
+    CHECK_NEAR(r.warp[2 * k - 3], 0.0, 1e-6);
+    if (order == 2)
+      for (int j : {0, 1, 2, 6, 7, 8}) CHECK_NEAR(r.warp[j], 0.0, 1e-7);
+    CHECK(r.iterations >= 2);   // the prior's fraction of a pixel took Gauss-Newton off the start
+  }
+  bool refused = false;
+  try {
+    Settings cubic{16, 64, 20, 1e-4, 1e-5, 3};
+    const std::vector<std::int64_t> one = {48, 48};
+    match_windows(s.pair(), cubic, one.data(), 1, reinterpret_cast<const bool*>(used.data()), 1);
+  } catch (const std::invalid_argument&) {
+    refused = true;
+  }
+  CHECK(refused);
+}
+
+// shape_order: the window's shape function (1 affine, 2 quadratic), through the same rejections
+void test_border_tiny_and_nan_inputs_are_rejected_not_read(int shape_order) {
   Scene s = scene(40, 40, 0.4, 0.2);
-  Settings settings{16, 64, 20, 1e-4, 1e-5};
+  Settings settings{16, 64, 20, 1e-4, 1e-5, shape_order};
   const std::vector<char> mask(16 * 16, 1);
   const bool* used = reinterpret_cast<const bool*>(mask.data());
   // windows that do not fit, at every side and far away, and one whose search area leaves the image (allowed: the
@@ -168,13 +241,13 @@ void test_border_tiny_and_nan_inputs_are_rejected_not_read() {
   const Scene tiny = scene(3, 5, 0.0, 0.0);
   const std::vector<std::int64_t> one = {1, 2};
   CHECK(match_windows(tiny.pair(), settings, one.data(), 1, used, 1)[0].status == Status::outside);
-  Settings single{1, 4, 20, 1e-4, 1e-5};
+  Settings single{1, 4, 20, 1e-4, 1e-5, shape_order};
   const std::vector<char> one_pixel(1, 1);
   CHECK(match_windows(tiny.pair(), single, one.data(), 1, reinterpret_cast<const bool*>(one_pixel.data()), 1)[0]
             .status != Status::matched);
   bool refused = false;
   try {
-    Settings bad{16, 8, 20, 1e-4, 1e-5};
+    Settings bad{16, 8, 20, 1e-4, 1e-5, shape_order};
     match_windows(s.pair(), bad, one.data(), 1, used, 1);
   } catch (const std::invalid_argument&) {
     refused = true;
@@ -182,9 +255,9 @@ void test_border_tiny_and_nan_inputs_are_rejected_not_read() {
   CHECK(refused);
 }
 
-void test_threads_give_the_windows_of_one_thread() {
+void test_threads_give_the_windows_of_one_thread(int shape_order) {
   const Scene s = scene(80, 120, 0.7, 0.35);
-  Settings settings{16, 48, 20, 1e-4, 1e-5};
+  Settings settings{16, 48, 20, 1e-4, 1e-5, shape_order};
   std::vector<std::int64_t> centres;
   for (std::int64_t r = 8; r <= 72; r += 8)
     for (std::int64_t c = 8; c <= 112; c += 8) centres.insert(centres.end(), {r, c});
@@ -205,7 +278,10 @@ int main() {
   test_fft_round_trip_and_correlation();
   test_spline_reads_the_edge_beyond_it();
   test_a_shift_is_found();
-  test_border_tiny_and_nan_inputs_are_rejected_not_read();
-  test_threads_give_the_windows_of_one_thread();
+  test_each_shape_finds_the_shift_of_a_spline_image_exactly();
+  for (int shape_order : {1, 2}) {
+    test_border_tiny_and_nan_inputs_are_rejected_not_read(shape_order);
+    test_threads_give_the_windows_of_one_thread(shape_order);
+  }
   return calfit::testing::tally().finish();
 }

@@ -27,7 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from ..measure.measurements import DEFAULT_WINDOW_PX, FILES, WINDOW_CHOICES
+from ..measure.measurements import DEFAULT_WINDOW_PX, DEFAULT_WINDOW_SHAPE, FILES, WINDOW_CHOICES, WINDOW_SHAPES
 from ..measure.prefilter import PREFILTER_SIGMA_PX
 from ..run.stages import run_measure
 from ._common import (
@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=folder, required=True, help="run folder (created; later commands use it)")
     parser.add_argument("--window", type=int, choices=WINDOW_CHOICES, default=DEFAULT_WINDOW_PX,
                         help=f"correlation window side in working pixels (default {DEFAULT_WINDOW_PX})")
+    parser.add_argument("--window-shape", choices=WINDOW_SHAPES, default=DEFAULT_WINDOW_SHAPE,
+                        help=f"the windows' shape function: affine, or quadratic to follow a field that bends inside "
+                             f"a window (default {DEFAULT_WINDOW_SHAPE})")
     parser.add_argument("--step", type=whole_number(1), help="grid step in pixels (default half a window)")
     parser.add_argument("--roi-spacing", type=positive_number, help="spacing of the skin and fascia windows in mm (default: the step)")
     parser.add_argument("--prefilter", type=float, default=PREFILTER_SIGMA_PX,
@@ -63,7 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def summary_lines(summary: dict, run_dir: str) -> list[str]:
     lines = list(summary.get("setup_lines", []))
-    lines += [f"DIC: {summary['kept']} of {summary['windows']} windows of {summary['window_px']} px "
+    lines += [f"DIC: {summary['kept']} of {summary['windows']} {summary.get('window_shape', 'affine')} windows of "
+              f"{summary['window_px']} px "
               f"({summary['window_mm']:.1f} mm) kept "
              f"(grid step {summary['step_px']} px; {', '.join(f'{n} {k}' for k, n in summary['kinds'].items())})"]
     lines += [f"  {count:5d}  {status}" for status, count in sorted(summary["status"].items(), key=lambda kv: -kv[1])]
@@ -91,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = run_measure(args.case_dir, args.out, window_px=args.window, step_px=args.step,
                               roi_spacing_mm=args.roi_spacing, prefilter_px=args.prefilter,
-                              respect_outline=args.respect_outline, workers=args.workers)
+                              respect_outline=args.respect_outline, workers=args.workers,
+                              window_shape=args.window_shape)
     except ValueError as error:   # a CalfitError is reported by `cli.main`
         return fail(str(error))
     emit(args, summary, summary_lines(summary, args.out))

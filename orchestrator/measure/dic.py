@@ -28,8 +28,9 @@ ZNCC(p) = sum f^(x) g^(x + p), with f^ = (f - mean f) / ||f - mean f|| over the 
 (skimage.feature.match_template computes it for every integer shift). The
 integer peak is refined to sub-pixel by a 3-point parabola per axis, then by
 inverse-compositional Gauss-Newton (IC-GN) on the zero-normalised sum of
-squared differences with a first-order (affine) window shape function and
-cubic-spline interpolation of g. The affine shape removes the peak-locking
+squared differences with a first-order (affine) window shape function, or a
+second-order one (`shape`: quadratic, for fields that bend inside a window),
+and cubic-spline interpolation of g. The affine shape removes the peak-locking
 bias of the parabola and the bias of a translation-only window in a strained
 field.
 
@@ -49,7 +50,7 @@ What each window reports (as DICe does: users see what was trusted):
   correlated over a few pixels, would not);
 - `covariance_mm2`: the 2x2 covariance of the centre displacement. Linearised,
   IC-GN returns p = H^-1 S^T P e for image noise e, with S the steepest-descent
-  images (grad f times the affine basis), P the projection that the zero
+  images (grad f times the shape function's basis), P the projection that the zero
   normalisation makes (`zero_normalised_steepest_descent`) and H = S^T P S.
   The noise e of a prefiltered pixel is G * e_raw, so
   Cov p = s_e^2 H_s^-1 (G * PS)^T rho (G * PS) H_s^-1 (`prefilter`), with
@@ -59,7 +60,7 @@ What each window reports (as DICe does: users see what was trusted):
   gradients of the noisy reference, whose noise looks like texture: its
   expectation is H_s + s_f^2 g^2 M (H_s of the noiseless image, g^2 the noise
   gain of the spline derivative of the prefiltered image, M the moments of the
-  affine basis weighted by rho), hence H_s = H - s_f^2 g^2 M (errors in
+  shape function's basis weighted by rho), hence H_s = H - s_f^2 g^2 M (errors in
   variables; without it the predicted variance is 30-70 % short on texture as
   weak as muscle's in T1; with M unweighted, windows half in air over-predicted
   the variance along the skin 1.6 times, tests/measure/test_window_noise.py). The
@@ -98,6 +99,7 @@ from ..core.frame import RigidMotion, index_to_mm
 from ..core.tissues import FAT, MUSCLE
 from ..imaging.mismatch import contour_pixels, tissue_mask
 from .prefilter import EdgeResiduals, Prefilter, rician_variance_ratio
+from .shape import AFFINE, WindowShape
 
 SEARCH_FACTOR = 4
 GAUSS_NEWTON_ITERATIONS = 20
@@ -260,7 +262,7 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
               search_factor: int = SEARCH_FACTOR, prior: RigidMotion | None = None,
               prior_field_mm: np.ndarray | None = None, noise_sigma: tuple[float, float] | None = None,
               prefilter: Prefilter | None = None, pixel_masks=None, workers: int = 1,
-              compiled: bool | None = None) -> DICResult:
+              compiled: bool | None = None, shape: WindowShape = AFFINE) -> DICResult:
     """Correlate square windows of `window_px` centred at integer pixels `centres_rc` ((N, 2) rows, columns).
 
     prior: the rigid motion M of the bones (`align_on_bones`: I1(M(x)) ~ I0(x)), composed into every warp, so
@@ -273,7 +275,8 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     window_px) boolean array of the pixels it matches (`measure.window_pixel_masks`: a window inside the tissue
     leaves out the leg's outline). workers: local processes the windows are shared among (`_match_windows`), and the
     compiled loops' threads. compiled: the search and Gauss-Newton in C++ (True), in Python (False, the reference), or
-    (None) compiled unless CALFIT_DIC_COMPILED=0 or not installed (module text)."""
+    (None) compiled unless CALFIT_DIC_COMPILED=0 or not installed (module text). shape: the windows' shape function,
+    affine (default) or quadratic (`shape.WindowShape`)."""
     reference = np.asarray(reference, float)
     deformed = np.asarray(deformed, float)
     if reference.ndim != 2 or reference.shape != deformed.shape:
@@ -313,8 +316,8 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     edge_covariance = np.zeros((len(centres), 2, 2))
     pixel_sets = window_pixel_sets(pixel_masks, len(centres), window_px)
     searched = (None if module is None else
-                _compiled_search(module, pair, centres, window_px, search_px, prior_px, pixel_sets, workers))
-    matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets, searched), workers)
+                _compiled_search(module, pair, centres, window_px, search_px, prior_px, pixel_sets, workers, shape))
+    matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets, searched, shape), workers)
     for k, match in enumerate(matches):
         if match is not None:
             displacement[k], confidence[k], covariance[k] = match.displacement, match.confidence, match.covariance
@@ -341,11 +344,11 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
 # windows than MIN_WINDOWS_PER_WORKER a process are matched here: forking costs more than they take.
 CHUNKS_PER_WORKER = 4
 MIN_WINDOWS_PER_WORKER = 50
-_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets, searched)
+_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets, searched, shape)
 
 
 def _compiled_search(module, pair: _Pair, centres: np.ndarray, window_px: int, search_px: int, prior_px,
-                     pixel_sets: list, threads: int) -> list:
+                     pixel_sets: list, threads: int, shape: WindowShape = AFFINE) -> list:
     """Per window, what the compiled loops found (`_Searched`), on `threads` threads."""
     used = (np.stack(pixel_sets) if pixel_sets else np.zeros((0, window_px * window_px), bool)).astype(bool)
     found = module.match_windows(
@@ -354,17 +357,14 @@ def _compiled_search(module, pair: _Pair, centres: np.ndarray, window_px: int, s
         None if prior_px is None else np.ascontiguousarray(prior_px, dtype=float),
         np.ascontiguousarray(centres, dtype=np.int64).reshape(-1, 2), np.ascontiguousarray(used), int(window_px),
         int(search_px), GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_TOLERANCE_PX, GAUSS_NEWTON_GRADIENT_TOLERANCE,
-        max(int(threads), 1))
+        max(int(threads), 1), shape.order)
     searched = []
     for status, start, peak, warp in zip(found["status"], found["start"], found["peak_score"], found["warp"]):
         status = int(status)
         if status in (module.OUTSIDE, module.FLAT, module.NOT_FINITE):
             searched.append(None)   # matched by nobody: the window is rejected as when it does not fit
             continue
-        full = None
-        if status == module.MATCHED:
-            full = np.eye(3)
-            full[:2] = warp
+        full = shape.from_rows(warp) if status == module.MATCHED else None
         searched.append(_Searched(start.copy(), float(peak), full))
     return searched
 
@@ -372,7 +372,8 @@ def _compiled_search(module, pair: _Pair, centres: np.ndarray, window_px: int, s
 @dataclass(frozen=True)
 class _Searched:
     """A window's integer search and Gauss-Newton iterations from the compiled loops: the start (d_col, d_row) px,
-    the integer peak's ZNCC and the final 3x3 warp (None where Gauss-Newton could not proceed)."""
+    the integer peak's ZNCC and the final warp's matrix (`shape.WindowShape.matrix`; None where Gauss-Newton could
+    not proceed)."""
 
     start: np.ndarray
     peak_score: float
@@ -381,7 +382,7 @@ class _Searched:
 
 def _match_windows(job: tuple, workers: int) -> list:
     """Every window's `_Match` (or None) of job = (pair, centres, window_px, search_px, prior_px, pixel_sets,
-    searched), in order; in `workers` forked processes when the platform forks (the images reach them by the fork,
+    searched, shape), in order; in `workers` forked processes when the platform forks (the images reach them by the fork,
     not a pipe). searched: None (the loops in Python) or each window's `_Searched` from the compiled loops."""
     count = len(job[1])
     workers = min(int(workers), count // MIN_WINDOWS_PER_WORKER)
@@ -399,13 +400,14 @@ def _hold_windows(job: tuple) -> None:
 
 
 def _match_chunk(indices, job: tuple | None = None) -> list:
-    pair, centres, window_px, search_px, prior_px, pixel_sets, searched = _WORKER_WINDOWS if job is None else job
+    pair, centres, window_px, search_px, prior_px, pixel_sets, searched, shape = (_WORKER_WINDOWS if job is None
+                                                                                   else job)
     if searched is not None:
         return [None if searched[k] is None else
                 _correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k],
-                                  searched[k]) for k in indices]
-    return [_correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k])
-            for k in indices]
+                                  searched[k], shape) for k in indices]
+    return [_correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k],
+                              shape=shape) for k in indices]
 
 
 def attainable_confidence(reference: np.ndarray, centres_rc, window_px: int, noise_sigma: tuple[float, float],
@@ -519,7 +521,7 @@ class _Match:
 
 
 def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, used: np.ndarray,
-                      searched: _Searched | None = None) -> _Match | None:
+                      searched: _Searched | None = None, shape: WindowShape = AFFINE) -> _Match | None:
     """One window's `_Match`, or None if it does not fit or is flat. used: the pixels it matches (flat boolean over
     its square, `window_pixel_sets`); the integer search that starts Gauss-Newton uses the whole square. searched:
     the compiled loops' search and iterations for this window (None: both run here)."""
@@ -547,9 +549,10 @@ def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, use
         prior_cols, prior_rows = _prior_at(prior_px, window_rows, window_cols)
         window_prior = (prior_cols.ravel(), prior_rows.ravel())
         start, peak_score = searched.start, searched.peak_score
-    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used, searched)
+    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used, searched, shape)
     if found is None or np.max(np.abs(found[0].displacement - start)) > MAX_REFINEMENT_PX or found[1] < peak_score - ZNCC_SLACK:
-        return _Match.unmeasured(start, _raw_zncc(pair, r0, c0, window_px, start, window_prior, used=used))
+        return _Match.unmeasured(start, _raw_zncc(pair, r0, c0, window_px, start, window_prior, used=used,
+                                                  shape=shape))
     return found[0]
 
 
@@ -568,14 +571,9 @@ def _normalise(values: np.ndarray) -> tuple[np.ndarray, float]:
     return centred / norm, norm
 
 
-def _affine(p: np.ndarray) -> np.ndarray:
-    """3x3 matrix of the first-order window shape function, p = (u, du/dx, du/dy, v, dv/dx, dv/dy)."""
-    u, ux, uy, v, vx, vy = p
-    return np.array([[1.0 + ux, uy, u], [vx, 1.0 + vy, v], [0.0, 0.0, 1.0]])
-
-
 def zero_normalised_steepest_descent(template: np.ndarray, grad_cols: np.ndarray, grad_rows: np.ndarray,
-                                     used: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                                     used: np.ndarray | None = None,
+                                     shape: WindowShape = AFFINE) -> tuple[np.ndarray, np.ndarray]:
     """(P S, (P S)^T (P S)): the steepest-descent images of a window with the window's mean and its own grey levels
     f^ projected out, P = I - 11^T/n - f^ f^T, and the Gauss-Newton matrix they make. The zero-normalised SSD
     compares mean-free, unit-norm windows, so a change of the deformed image along a constant or along f itself
@@ -583,8 +581,9 @@ def zero_normalised_steepest_descent(template: np.ndarray, grad_cols: np.ndarray
     e, and what the window sees of a field u is (S^T P S)^-1 S^T P (grad f . u) (`windows`). Without P, a window
     across a bright edge (net gradient, brighter on one side) had its errors' correlation with its neighbours
     predicted 50 % too high (half-overlapping 16-pixel windows: 0.47 against 0.30 measured over 300 noise draws).
-    used: the window's pixels (flat boolean over the square, all by default); the rows are theirs."""
-    steepest = steepest_descent(grad_cols, grad_rows)
+    used: the window's pixels (flat boolean over the square, all by default); the rows are theirs. shape: the
+    window's shape function (affine by default)."""
+    steepest = steepest_descent(grad_cols, grad_rows, shape)
     values = np.asarray(template, float).ravel()
     if used is not None:
         steepest, values = steepest[used], values[used]
@@ -624,19 +623,20 @@ def _window_offsets(size: int) -> tuple[np.ndarray, np.ndarray]:
     return offset_rows, offset_cols
 
 
-def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray) -> np.ndarray:
-    """(n, 6) steepest-descent images grad f . d(x + a_p(x))/dp of a square window, for the affine parameters
-    p = (u, du/dx, du/dy, v, dv/dx, dv/dy), offsets measured from the window centre."""
+def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray, shape: WindowShape = AFFINE) -> np.ndarray:
+    """(n, parameters) steepest-descent images grad f . d(x + u_p(x))/dp of a square window, p the shape
+    function's parameters (`shape.WindowShape`; affine: (u, du/dx, du/dy, v, dv/dx, dv/dy)), offsets measured from
+    the window centre."""
     size = grad_cols.shape[0]
     offset_rows, offset_cols = _window_offsets(size)
-    fx, fy = grad_cols.ravel(), grad_rows.ravel()
-    dxs, dys = offset_cols.ravel(), offset_rows.ravel()
-    return np.stack([fx, fx * dxs, fx * dys, fy, fy * dxs, fy * dys], axis=1)
+    basis = shape.basis(offset_cols, offset_rows)
+    return np.concatenate([(grad_cols.ravel() * basis).T, (grad_rows.ravel() * basis).T], axis=1)
 
 
 def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np.ndarray,
-                           searched: _Searched | None = None) -> tuple[_Match, float] | None:
-    """IC-GN with a first-order (affine) window shape function on the zero-normalised SSD of the prefiltered images,
+                           searched: _Searched | None = None,
+                           shape: WindowShape = AFFINE) -> tuple[_Match, float] | None:
+    """IC-GN with the window shape function `shape` (affine or quadratic) on the zero-normalised SSD of the prefiltered images,
     the deformed image sampled through the prior motion and the prior field (`prior`: (d_col, d_row) px at the
     window's pixels), over the window's pixels `used` (flat boolean). Returns the window's `_Match` (module text) and
     the ZNCC of the prefiltered images there. searched: the compiled loops' result, whose warp replaces the
@@ -647,21 +647,22 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
     size = template.shape[0]
     window = (slice(r0, r0 + size), slice(c0, c0 + size))
     steepest_raw, hessian_raw = zero_normalised_steepest_descent(template, pair.grad_cols[window], pair.grad_rows[window],
-                                                                 used)
+                                                                 used, shape)
     if np.linalg.cond(hessian_raw) > 1e10:
         return None
     noise_q = np.where(used.reshape(size, size), pair.noise_q[window], 0.0)
     signal_hessian = denoised_hessian(hessian_raw, size, pair.noise_sigma[0], pair.prefilter.derivative_noise_gain,
-                                      noise_q / pair.prefilter.noise_gain)
+                                      noise_q / pair.prefilter.noise_gain, shape)
     steepest, hessian = steepest_raw / f_norm, hessian_raw / f_norm ** 2
     centre_row, centre_col = r0 + (size - 1) / 2.0, c0 + (size - 1) / 2.0
     offset_rows, offset_cols = _window_offsets(size)
-    points = np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])[:, used]
+    points = shape.monomials(offset_cols, offset_rows)[:, used]
     prior_used = (prior[0][used], prior[1][used])
-    warp = _affine(np.array([start[0], 0.0, 0.0, start[1], 0.0, 0.0]))
+    warp = shape.translated(start)
+    translation, gradient_terms = shape.translation, [k for k in range(shape.parameters) if k not in shape.translation]
 
     def sample(warp):
-        moved = warp @ points
+        moved = warp[-3:-1] @ points
         return _normalise(_sample(pair.spline, pair.to_deformed, centre_col + moved[0] + prior_used[0],
                                   centre_row + moved[1] + prior_used[1]))
 
@@ -675,21 +676,21 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
             if g_norm == 0.0:
                 return None
             step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
-            warp = warp @ np.linalg.inv(_affine(step))
-            if (max(abs(step[0]), abs(step[3])) < GAUSS_NEWTON_TOLERANCE_PX
-                    and np.max(np.abs(step[[1, 2, 4, 5]])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
+            warp = warp @ np.linalg.inv(shape.matrix(step))
+            if (np.max(np.abs(step[translation])) < GAUSS_NEWTON_TOLERANCE_PX
+                    and np.max(np.abs(step[gradient_terms])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
                 break
     g_hat, g_norm = sample(warp)
-    displacement, zncc = np.array([warp[0, 2], warp[1, 2]]), float(f_hat.ravel() @ g_hat)
+    displacement, zncc = np.array([warp[-3, -1], warp[-2, -1]]), float(f_hat.ravel() @ g_hat)
     # the raw noise of the two images as it enters the normalised difference (the deformed one scaled to the reference)
     variance = pair.noise_sigma[0] ** 2 + (f_norm / g_norm * pair.noise_sigma[1]) ** 2
-    confidence = (_raw_zncc(pair, r0, c0, size, displacement, prior, warp, used) if pair.raw_spline is not None
-                  else zncc)
+    confidence = (_raw_zncc(pair, r0, c0, size, displacement, prior, warp, used, shape)
+                  if pair.raw_spline is not None else zncc)
     if signal_hessian is None:   # the window's texture does not rise above the noise
         return _Match.unmeasured(displacement, confidence), zncc
     # p = H_s^-1 S^T (G * e) for raw noise e of variance s_e^2 rho: Cov p = s_e^2 H_s^-1 (G * S)^T rho (G * S) H_s^-1
     # (`prefilter`), and the part of an error of the edges' position per unit s_edge^2 likewise
-    spread = pair.prefilter.spread(on_window_square(steepest_raw.T, used, size)).reshape(6, -1)
+    spread = pair.prefilter.spread(on_window_square(steepest_raw.T, used, size)).reshape(shape.parameters, -1)
     edge_raw = pair.around(pair.edge_raw, r0, c0, size).ravel()
     edge_q = pair.edge_q[window].ravel()[used]
     noise_raw = pair.around(pair.rho_raw, r0, c0, size).ravel()
@@ -702,14 +703,14 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
     edges = EdgeResiduals()
     edges.add((g_hat - f_hat) * f_norm, edge_kept * edge_q, variance * noise_kept * noise_q.ravel()[used])
     inverse = np.linalg.inv(signal_hessian)
-    translation = np.ix_([0, 3], [0, 3])
+    centre_block = np.ix_(translation, translation)
 
     def sandwich(gram: np.ndarray) -> np.ndarray:
-        return (inverse @ gram @ inverse)[translation]
+        return (inverse @ gram @ inverse)[centre_block]
 
     noise_sandwich = sandwich(noise_gram)
     edge_sandwich = sandwich(edge_gram)
-    return (_Match(displacement, confidence, variance * noise_sandwich, variance, warp[:2, :2] - np.eye(2), edges,
+    return (_Match(displacement, confidence, variance * noise_sandwich, variance, warp[-3:-1, -3:-1] - np.eye(2), edges,
                    edge_sandwich), zncc)
 
 
@@ -727,7 +728,7 @@ def _absorbed_share(hessian: np.ndarray, gram: np.ndarray, normalisation: np.nda
     """tr(P C) / tr(C): the share of an error of the raw pixels (variance map `variance_raw`, C = G diag(w) G^T
     once prefiltered, `total` = tr(C) over the window) that a window's own fit takes into its parameters, and so
     leaves out of its residual (`prefilter`, module text). P projects the prefiltered window onto what its match
-    adjusts: the six affine directions S (projected, `zero_normalised_steepest_descent`; H = S^T S), the mean and
+    adjusts: the shape function's directions S (six affine, twelve quadratic; projected, `zero_normalised_steepest_descent`; H = S^T S), the mean and
     the template f^ that the zero-normalised SSD removes, so tr(P C) = tr(H^-1 (G * S)^T diag(w) (G * S)) + the
     same for 1 / sqrt(n) and f^ (orthogonal to S and to each other). gram: (G * S)^T diag(w) (G * S);
     normalisation: G * (1 / sqrt(n), f^) (`_normalisation_spread`). For the edges' error (w = |grad I0|^2 per unit
@@ -741,7 +742,7 @@ def _absorbed_share(hessian: np.ndarray, gram: np.ndarray, normalisation: np.nda
 
 
 def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, warp: np.ndarray | None = None,
-              used: np.ndarray | None = None) -> float:
+              used: np.ndarray | None = None, shape: WindowShape = AFFINE) -> float:
     """The ZNCC of the raw (not prefiltered) windows at the match: the quality the user reads. Smoothed noise
     correlates by chance (a 16-pixel window of air prefiltered by one pixel holds some 40 independent values, and
     the best of a search's 4,000 positions reaches a ZNCC of 0.9); raw noise does not."""
@@ -750,10 +751,10 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
     else:
         spline, reference = pair.raw_spline, pair.raw_reference
     if warp is None:
-        warp = _affine(np.array([displacement[0], 0.0, 0.0, displacement[1], 0.0, 0.0]))
+        warp = shape.translated(displacement)
     used = np.ones(size * size, bool) if used is None else used
     offset_rows, offset_cols = _window_offsets(size)
-    moved = warp @ np.stack([offset_cols.ravel(), offset_rows.ravel(), np.ones(size * size)])[:, used]
+    moved = warp[-3:-1] @ shape.monomials(offset_cols, offset_rows)[:, used]
     deformed = _sample(spline, pair.to_deformed, c0 + (size - 1) / 2.0 + moved[0] + np.asarray(prior[0])[used],
                        r0 + (size - 1) / 2.0 + moved[1] + np.asarray(prior[1])[used])
     f_hat, f_norm = _normalise(reference[r0:r0 + size, c0:c0 + size].ravel()[used])
@@ -761,27 +762,16 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
     return float(f_hat @ g_hat) if f_norm > 0 and g_norm > 0 else 0.0
 
 
-def affine_moments(size: int, weights: np.ndarray | None = None) -> np.ndarray:
-    """M = sum over a square window of w X^T X, X = [1, dx, dy] per pixel (w = 1 by default, else the (size, size)
-    `weights`), for both displacement components (6x6)."""
-    offset_rows, offset_cols = _window_offsets(size)
-    basis = np.stack([np.ones(size * size), offset_cols.ravel(), offset_rows.ravel()])
-    weights = np.ones(size * size) if weights is None else np.asarray(weights, float).ravel()
-    moments = np.zeros((6, 6))
-    moments[:3, :3] = moments[3:, 3:] = (basis * weights) @ basis.T
-    return moments
-
-
 def denoised_hessian(hessian: np.ndarray, size: int, reference_noise_sigma: float,
                      derivative_noise_gain: float = SPLINE_DERIVATIVE_NOISE_GAIN,
-                     noise_ratio: np.ndarray | None = None) -> np.ndarray | None:
+                     noise_ratio: np.ndarray | None = None, shape: WindowShape = AFFINE) -> np.ndarray | None:
     """H_s = H - s_f^2 g^2 M_rho, the Gauss-Newton matrix of the noiseless reference (module text; g^2 the gradient
-    noise gain of the prefiltered image, `prefilter.Prefilter.derivative_noise_gain`; M_rho the affine moments
-    weighted by each pixel's share rho of the noise variance, (size, size) `noise_ratio`, 1 if not given: the
-    Rician noise of the air beside the skin is 0.43 of the tissue's, and a window half in air, the tissue's noise
-    taken away everywhere, over-predicted the variance along the skin 1.6 times); None when it is not
-    positive definite, i.e. the window holds less texture than noise."""
-    signal = hessian - reference_noise_sigma ** 2 * derivative_noise_gain * affine_moments(size, noise_ratio)
+    noise gain of the prefiltered image, `prefilter.Prefilter.derivative_noise_gain`; M_rho the moments of the
+    window's shape function (`shape.WindowShape.moments`) weighted by each pixel's share rho of the noise variance,
+    (size, size) `noise_ratio`, 1 if not given: the Rician noise of the air beside the skin is 0.43 of the tissue's,
+    and a window half in air, the tissue's noise taken away everywhere, over-predicted the variance along the skin
+    1.6 times); None when it is not positive definite, i.e. the window holds less texture than noise."""
+    signal = hessian - reference_noise_sigma ** 2 * derivative_noise_gain * shape.moments(size, noise_ratio)
     try:
         np.linalg.cholesky(signal)
     except np.linalg.LinAlgError:

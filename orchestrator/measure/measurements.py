@@ -72,11 +72,14 @@ from ..imaging.mismatch import tissue_mask
 from .dic import attainable_confidence, correlate, grid_centres, roi_centres
 from .drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
 from .prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
+from .shape import WindowShape
 from .texture_change import covariance_factor, measure_change, window_covariance
 from .windows import WindowOperators, textured
 
 WINDOW_CHOICES = (16, 32, 64)
 DEFAULT_WINDOW_PX = 32
+WINDOW_SHAPES = ("affine", "quadratic")   # shape.WindowShape.named
+DEFAULT_WINDOW_SHAPE = "affine"
 MIN_CONFIDENCE = 0.8       # the share of the ZNCC its texture and noise allow a window must reach (`attainable_confidence`)
 MIN_ATTAINABLE = 0.4       # a window whose texture allows less is not matched with confidence: a false peak of noise
 #                            reaches 0.1-0.25 over the search (pure noise, 16-32 px windows, about 4,000 positions)
@@ -323,14 +326,16 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
                 roi_spacing_mm: float | None = None, min_confidence: float = MIN_CONFIDENCE,
                 max_uncertainty_px: float = MAX_UNCERTAINTY_PX, prefilter_px: float = PREFILTER_SIGMA_PX,
                 respect_outline: bool = False, workers: int = 1,
-                fat_shift_mm=None) -> tuple[Measurements, WindowTable, dict]:
+                fat_shift_mm=None, window_shape: str = DEFAULT_WINDOW_SHAPE) -> tuple[Measurements, WindowTable, dict]:
     """DIC between the two images (module text). Returns the kept windows as Measurements, every window tried,
     and a summary. respect_outline: windows inside the leg leave out its outline (`window_pixel_masks`); workers:
     local processes the windows are matched in (`imaging.dic.correlate`: the same matches as in one);
     fat_shift_mm: the fat's chemical shift (x, y) the setup found on I0 (`imaging.chemical_shift`), which the
-    windows see as `imaging.windows` says, or None."""
+    windows see as `imaging.windows` says, or None. window_shape: "affine" or "quadratic", the windows' shape
+    function (`shape.WindowShape`)."""
     if window_px not in WINDOW_CHOICES:
         raise ValueError(f"the DIC window must be one of {WINDOW_CHOICES} pixels, not {window_px}")
+    shape = WindowShape.named(window_shape)
     began = time.perf_counter()
     prefilter = Prefilter(prefilter_px)
     step_px = int(step_px or window_px // 2)
@@ -344,13 +349,13 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     margin_px = prefilter.radius + 1 if respect_outline else None
     masks = window_pixel_masks(labels, centres, window_px, margin_px) if respect_outline else None
     first = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion, prefilter=prefilter,
-                      pixel_masks=masks, workers=workers)
+                      pixel_masks=masks, workers=workers, shape=shape)
     attainable = attainable_confidence(unloaded, centres, window_px, first.noise_sigma, masks)
     trusted = _checks(first, min_confidence, max_uncertainty_px, step_px * pixel, attainable) == KEPT
     prior = prior_field(first.position_mm[trusted], first.displacement_mm[trusted], unloaded.shape, pixel_size_mm)
     result = correlate(unloaded, loaded, centres, pixel_size_mm, window_px=window_px, prior=motion,
                        prior_field_mm=prior, noise_sigma=first.noise_sigma, prefilter=prefilter, pixel_masks=masks,
-                       workers=workers)
+                       workers=workers, shape=shape)
     # the error model calibrated on the residuals of the windows that matched (`prefilter`): the edges' error of
     # position, and the noise the images hold
     matched = np.isfinite(result.uncertainty_px) & (result.confidence >= min_confidence * attainable)
@@ -364,7 +369,7 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     # calibrated: it is rejected and counted, not left to fail the operators of every other window
     candidates = np.flatnonzero(status == KEPT)
     flat = ~textured(unloaded, centres[candidates], window_px, result.noise_sigma[0], prefilter,
-                     None if masks is None else [masks[k] for k in candidates])
+                     None if masks is None else [masks[k] for k in candidates], shape)
     status[candidates[flat]] = FLAT
     tissue_names = {0: "outside", FAT: "fat", MUSCLE: "muscle", 3: "bone"}
     tissue = [tissue_names.get(int(v), "muscle") for v in labels[centres[:, 0], centres[:, 1]]]
@@ -377,7 +382,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
         operators = WindowOperators(unloaded, centres[kept], window_px, pixel_size_mm, result.noise_sigma[0],
                                     prefilter=prefilter,
                                     pixel_masks=None if masks is None else [masks[k] for k in np.flatnonzero(kept)],
-                                    fat_signal=None if fat_shift_mm is None else fat_signal(unloaded, labels))
+                                    fat_signal=None if fat_shift_mm is None else fat_signal(unloaded, labels),
+                                    window_shape=shape)
         seen = operators.observe(prior)
         centre_values = np.stack([ndimage.map_coordinates(prior[c], result.centre_rc[kept].T, order=1, mode="nearest")
                                   for c in range(2)], axis=1)
@@ -415,7 +421,8 @@ def measure_dic(unloaded: np.ndarray, loaded: np.ndarray, labels: np.ndarray, pi
     measurements = dic_measurements(unloaded, table, window_px, pixel_size_mm, result.noise_sigma[0], prefilter_px,
                                     edge_variance, labels, operators=operators, fat_shift_mm=fat_shift_mm,
                                     motion=motion)
-    summary = {"source": "dic", "window_px": window_px, "step_px": step_px, "roi_spacing_mm": roi_spacing_mm,
+    summary = {"source": "dic", "window_px": window_px, "window_shape": shape.name, "step_px": step_px,
+               "roi_spacing_mm": roi_spacing_mm,
                "prefilter_px": prefilter_px, "outline_margin_px": margin_px, "edge_variance_px2": edge_variance,
                "noise_scale": residual_noise,
                "windows_with_own_noise": int(np.sum((excess > 1.0) & kept)),
@@ -539,13 +546,14 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
                      reference_noise_sigma: float, prefilter_px: float, edge_variance_px2: float,
                      labels: np.ndarray | None = None, outline_margin_px: int | None = None,
                      operators: WindowOperators | None = None, fat_shift_mm=None,
-                     motion: RigidMotion | None = None) -> Measurements:
+                     motion: RigidMotion | None = None, window_shape: str = DEFAULT_WINDOW_SHAPE) -> Measurements:
     """The kept windows of a table as Measurements (operators and covariance rebuilt from I0, prefiltered as the
     windows were correlated, over the pixels they matched (`window_pixel_masks` of labels, when the measurement
     left out the outline), with the error of the images' edges). operators: the kept windows' own, when the caller
     has built them already (`measure_dic`). fat_shift_mm: the fat's chemical shift (x, y), with the bones' `motion`
     between the images: the windows then see the fat where it lies on the image, and what they measure of its
-    offset between the sessions, (R^T - I) delta, is taken out of the data (`imaging.windows`)."""
+    offset between the sessions, (R^T - I) delta, is taken out of the data (`imaging.windows`). window_shape: the
+    shape function the windows were correlated with (`measure_dic`)."""
     kept = table.kept
     if kept.sum() < 10:
         raise ValueError(f"only {int(kept.sum())} DIC windows passed the checks ({table.counts()}); the images do "
@@ -556,7 +564,8 @@ def dic_measurements(unloaded: np.ndarray, table: WindowTable, window_px: int, p
                  else window_pixel_masks(labels, table.centres_rc[kept], window_px, outline_margin_px))
         operators = WindowOperators(unloaded, table.centres_rc[kept], window_px, pixel_size_mm, reference_noise_sigma,
                                     prefilter=Prefilter(prefilter_px), pixel_masks=masks,
-                                    fat_signal=fat_signal(unloaded, labels) if shifted else None)
+                                    fat_signal=fat_signal(unloaded, labels) if shifted else None,
+                                    window_shape=WindowShape.named(window_shape))
     covariance = operators.covariance(table.intensity_variance[kept], edge_variance_px2)
     for factor in (table.drawing_factor_mm, table.texture_factor_mm):
         if factor is not None:
@@ -582,8 +591,8 @@ def reference_noise_covariance(first: Measurements, second: Measurements) -> np.
     a, b = first.operators, second.operators
     if a is None or b is None or first.reference_noise_sigma is None or second.reference_noise_sigma is None:
         return None
-    if (a.window_px != b.window_px or a.shape != b.shape or not np.allclose(a.to_mm, b.to_mm)
-            or a.prefilter != b.prefilter):
+    if (a.window_px != b.window_px or a.window_shape != b.window_shape or a.shape != b.shape
+            or not np.allclose(a.to_mm, b.to_mm) or a.prefilter != b.prefilter):
         raise ValueError("two garment levels measured with other windows or on another reference image")
     variance = first.reference_noise_sigma * second.reference_noise_sigma
     to_mm = np.diag(a.to_mm)

@@ -59,14 +59,17 @@ from .dic import (
     zero_normalised_steepest_descent,
 )
 from .prefilter import Prefilter, rician_variance_ratio
+from .shape import AFFINE, WindowShape
 
 
 class _WindowBasis:
     """What the operators of one set of windows share: the prefiltered reference, its gradients and each prefiltered
     pixel's noise variance over the tissue's, as `dic.correlate` weighs it."""
 
-    def __init__(self, reference: np.ndarray, reference_noise_sigma: float, prefilter: Prefilter, gradients=None):
+    def __init__(self, reference: np.ndarray, reference_noise_sigma: float, prefilter: Prefilter, gradients=None,
+                 window_shape: WindowShape = AFFINE):
         self.shape = reference.shape
+        self.window_shape = window_shape
         self.prefilter = prefilter
         self.reference_noise_sigma = float(reference_noise_sigma)
         self.smooth = prefilter(reference)
@@ -83,20 +86,21 @@ class _WindowBasis:
             raise ValueError(f"the window centred at row {row}, column {col} does not fit in the image")
         rows, cols = np.mgrid[r0:r0 + size, c0:c0 + size]
         fx, fy = self.grad_cols[rows, cols], self.grad_rows[rows, cols]
-        steepest, hessian = zero_normalised_steepest_descent(self.smooth[rows, cols], fx, fy, used)
+        steepest, hessian = zero_normalised_steepest_descent(self.smooth[rows, cols], fx, fy, used, self.window_shape)
         signal = denoised_hessian(hessian, size, self.reference_noise_sigma, self.prefilter.derivative_noise_gain,
-                                  np.where(used.reshape(size, size), self.noise_ratio[rows, cols], 0.0))
+                                  np.where(used.reshape(size, size), self.noise_ratio[rows, cols], 0.0),
+                                  self.window_shape)
         return rows, cols, fx, fy, steepest, hessian, signal
 
 
 def textured(reference: np.ndarray, centres_rc, window_px: int, reference_noise_sigma: float,
-             prefilter: Prefilter | None = None, pixel_masks=None) -> np.ndarray:
+             prefilter: Prefilter | None = None, pixel_masks=None, window_shape: WindowShape = AFFINE) -> np.ndarray:
     """(N,) True where a window's texture rises above the noise of reference_noise_sigma (its Gauss-Newton matrix
     less the noise's share is positive definite, `dic.denoised_hessian`): the windows whose operators exist. A
     window matched with the images' own noise estimate may fall below the noise that the windows' residuals then
     calibrate; `measure.measure_dic` rejects it and counts it, rather than failing every other window with it."""
     basis = _WindowBasis(np.asarray(reference, float), reference_noise_sigma,
-                         Prefilter() if prefilter is None else prefilter)
+                         Prefilter() if prefilter is None else prefilter, window_shape=window_shape)
     centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
     pixel_sets = window_pixel_sets(pixel_masks, len(centres), int(window_px))
     return np.array([basis.window(row, col, int(window_px), used)[-1] is not None
@@ -106,19 +110,22 @@ def textured(reference: np.ndarray, centres_rc, window_px: int, reference_noise_
 class WindowOperators:
     """The linear maps B~_i and K_i of a set of square windows on a reference image (module text), for windows
     correlated on images smoothed by `prefilter` (default: `dic.correlate`'s), each over the pixels it matched
-    (`pixel_masks`, as `dic.correlate` takes them; None: whole squares)."""
+    (`pixel_masks`, as `dic.correlate` takes them; None: whole squares), with the shape function `window_shape`
+    (affine by default, as `dic.correlate`'s `shape`)."""
 
     def __init__(self, reference: np.ndarray, centres_rc, window_px: int, pixel_size_mm, reference_noise_sigma: float,
                  gradients=None, prefilter: Prefilter | None = None, pixel_masks=None,
-                 fat_signal: np.ndarray | None = None):
+                 fat_signal: np.ndarray | None = None, window_shape: WindowShape = AFFINE):
         reference = np.asarray(reference, float)
         self.shape = tuple(np.shape(reference))
         self.centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
         self.window_px = int(window_px)
+        self.window_shape = window_shape
         self.prefilter = Prefilter() if prefilter is None else prefilter
         dy, dx = (float(v) for v in pixel_size_mm)
         self.to_mm = np.array([dx, dy])
-        basis = _WindowBasis(reference, reference_noise_sigma, self.prefilter, gradients)
+        basis = _WindowBasis(reference, reference_noise_sigma, self.prefilter, gradients, window_shape)
+        centre = window_shape.translation
         self._reference = reference
         self.reference_noise_sigma = float(reference_noise_sigma)
         size, reach = self.window_px, self.prefilter.radius
@@ -137,12 +144,12 @@ class WindowOperators:
                 raise ValueError(f"the window centred at row {row}, column {col} holds less texture than noise")
             r0, c0 = rows[0, 0], cols[0, 0]
             self.pixels.append((rows * self.shape[1] + cols).ravel()[used])
-            fit = np.linalg.solve(hessian, steepest.T)[[0, 3]]
+            fit = np.linalg.solve(hessian, steepest.T)[centre]
             self.K.append(fit[:, None, :] * np.stack([fx.ravel()[used], fy.ravel()[used]])[None, :, :])
             if self.K_fat is not None:
                 fat_x, fat_y = fat_cols[rows, cols].ravel()[used], fat_rows[rows, cols].ravel()[used]
                 self.K_fat.append(fit[:, None, :] * np.stack([fat_x, fat_y])[None, :, :])
-            spread = self.prefilter.spread(on_window_square(np.linalg.solve(signal, steepest.T)[[0, 3]], used, size))
+            spread = self.prefilter.spread(on_window_square(np.linalg.solve(signal, steepest.T)[centre], used, size))
             reach_rows, reach_cols = (spread_rows + r0).ravel(), (spread_cols + c0).ravel()
             inside = ((reach_rows >= 0) & (reach_rows < self.shape[0]) & (reach_cols >= 0)
                       & (reach_cols < self.shape[1]))

@@ -345,7 +345,8 @@ class RunSetup:
             self._measured[level] = (stamp, dic_measurements(
                 self.case.unloaded, table, summary["window_px"], self.case.pixel_size_mm, summary["noise_sigma"][0],
                 summary.get("prefilter_px", 0.0), summary.get("edge_variance_px2", 0.0), self.labels_unloaded,
-                summary.get("outline_margin_px"), fat_shift_mm=summary.get("fat_shift_mm"), motion=motion))
+                summary.get("outline_margin_px"), fat_shift_mm=summary.get("fat_shift_mm"), motion=motion,
+                window_shape=summary.get("window_shape", "affine")))   # measured before the shape was a choice
         measured = self._measured[level][1]
         geometry = read_geometry_covariance(self.run_dir, 2 * len(measured), level) if with_geometry else None
         if geometry is None:

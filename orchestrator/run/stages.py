@@ -55,6 +55,7 @@ from ..fit.identify import (
 from ..fit.levels import AtTension
 from ..measure.measurements import (
     DEFAULT_WINDOW_PX,
+    DEFAULT_WINDOW_SHAPE,
     measure_dic,
     read_window_table,
     write_measurements,
@@ -137,9 +138,11 @@ def _setup(case_dir, run_dir: Path, n_elements: int | None, order: int | None, o
 @holds_run_folder(create=True)
 def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_px: int | None = None,
                 roi_spacing_mm: float | None = None, n_elements: int | None = None, order: int | None = None,
-                prefilter_px: float = PREFILTER_SIGMA_PX, respect_outline: bool = False, workers: int = 1) -> dict:
+                prefilter_px: float = PREFILTER_SIGMA_PX, respect_outline: bool = False, workers: int = 1,
+                window_shape: str = DEFAULT_WINDOW_SHAPE) -> dict:
     """Measure the displacements from the two images by DIC (`measure.measure_dic`, both images smoothed by a
-    Gaussian of prefilter_px first, the windows matched in `workers` local processes) into the run folder
+    Gaussian of prefilter_px first, the windows of shape function `window_shape` matched in `workers` local
+    processes) into the run folder
     (measurements.csv, .npz, .json, .png); returns the summary."""
     run_dir = Path(run_dir)
     setup = _setup(case_dir, run_dir, n_elements, order)
@@ -149,7 +152,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
                                         landmarks=case.landmarks, window_px=window_px, step_px=step_px,
                                         roi_spacing_mm=roi_spacing_mm, prefilter_px=prefilter_px,
                                         respect_outline=respect_outline, workers=workers,
-                                        fat_shift_mm=setup.fat_shift_mm)
+                                        fat_shift_mm=setup.fat_shift_mm, window_shape=window_shape)
     summary["window_mm"] = window_px * min(case.pixel_size_mm)
     summary["setup_lines"] = setup.setup_lines()
     for level, motion in zip(case.levels, setup.level_motions):
@@ -159,7 +162,7 @@ def run_measure(case_dir, run_dir, *, window_px: int = DEFAULT_WINDOW_PX, step_p
                 case.unloaded, level.image, setup.labels_unloaded, case.pixel_size_mm, motion,
                 landmarks=case.landmarks, window_px=window_px, step_px=step_px, roi_spacing_mm=roi_spacing_mm,
                 prefilter_px=prefilter_px, respect_outline=respect_outline, workers=workers,
-                fat_shift_mm=setup.fat_shift_mm)
+                fat_shift_mm=setup.fat_shift_mm, window_shape=window_shape)
         level_summary.update(window_mm=summary["window_mm"], level=level.number, image=level.path.name,
                              tension_N_per_mm=level.tension_N_per_mm)
         write_measurements(run_dir, level_table, level_summary, case.unloaded, case.pixel_size_mm, level.number)

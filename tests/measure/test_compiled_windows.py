@@ -18,6 +18,7 @@ from scipy import ndimage
 from orchestrator.core.frame import RigidMotion
 from orchestrator.measure.dic import compiled_windows, correlate, grid_centres, spline_gradient
 from orchestrator.measure.measurements import window_pixel_masks
+from orchestrator.measure.shape import WindowShape
 from orchestrator.phantom import CalfPhantom, make_loaded_image, render_unloaded
 
 TOLERANCE_PX = 1e-6
@@ -55,8 +56,8 @@ def _assert_same(reference, compiled):
         assert mine.y == pytest.approx(theirs.y, rel=1e-6, abs=1e-12)
 
 
-@pytest.mark.parametrize("window", [16, 32])
-def test_the_compiled_windows_match_the_python_loops_on_the_phantom(images, window):
+@pytest.mark.parametrize("window, shape", [(16, "affine"), (32, "affine"), (32, "quadratic")])
+def test_the_compiled_windows_match_the_python_loops_on_the_phantom(images, window, shape):
     phantom, unloaded, loaded = images
     labels = phantom.labels()
     centres = grid_centres(unloaded.shape, window, window // 2, mask=labels > 0)[::2]
@@ -72,6 +73,7 @@ def test_the_compiled_windows_match_the_python_loops_on_the_phantom(images, wind
     rows, cols = np.indices(unloaded.shape, dtype=float)
     field = np.stack(_bent(cols * dx, rows * dy)) * 0.8
     for options in (dict(), dict(prior=prior, prior_field_mm=field, pixel_masks=masks)):
+        options["shape"] = WindowShape.named(shape)
         reference = correlate(unloaded, loaded, centres, phantom.pixel_size_mm, window_px=window, compiled=False,
                               **options)
         compiled = correlate(unloaded, loaded, centres, phantom.pixel_size_mm, window_px=window, compiled=True,
