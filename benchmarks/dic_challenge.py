@@ -2,6 +2,7 @@
 Prints figures and saves a figure, asserts nothing.
 
     PYTHONPATH=. .venv/bin/python benchmarks/dic_challenge.py [--windows 16 32 64] [--step 4] [--images DIR]
+                                                             [--shape quadratic|affine] [--prefilter 0]
                                                              [--out benchmarks/figures/dic_challenge.png]
 
 The images. Reu et al., "DIC Challenge 2.0: Developing Images and Guidelines for Evaluating Accuracy and Resolution
@@ -39,7 +40,8 @@ cuts and checked there against the paper's figures; not read off the paper here)
 noise-floor image, calfit's and pyvale's from the zero crossing of the same pair: the same images' noise through the
 same windows, but not the same pixels, and over the motion of the field's odd part.
 
-What calfit does (`orchestrator.measure.dic.correlate`: ZNCC then IC-GN, affine window; one pass, no prior) is run
+What calfit does (`orchestrator.measure.dic.correlate`: ZNCC then IC-GN, quadratic windows by default, --shape affine
+for `calfit measure`'s; no prefilter by default, --prefilter 1 for `calfit measure`'s; one pass, no prior) is run
 on windows along the centre row every --step pixels for each window size, on a 301-row strip around the centre row
 (enough for the 64-pixel windows' search area; the whole image only costs time). Beside it, what the linearised
 windows should see of the commanded field (`orchestrator.measure.windows.WindowOperators(...).observe`: the
@@ -80,7 +82,7 @@ from pathlib import Path
 import numpy as np
 
 from orchestrator.measure.dic import COMPILED_ENV, correlate, spline_gradient, windows_module
-from orchestrator.measure.prefilter import Prefilter
+from orchestrator.measure.prefilter import PREFILTER_SIGMA_PX, Prefilter
 from orchestrator.measure.shape import WindowShape
 from orchestrator.measure.windows import WindowOperators
 
@@ -318,18 +320,18 @@ def noise_floor(image: np.ndarray, from_cycles_per_px: float = 0.4) -> float:
 
 
 def observe_in_chunks(reference, gradients, centres, window, noise_sigma, field, shape: WindowShape,
-                      chunk: int = 200) -> np.ndarray:
+                      prefilter: Prefilter, chunk: int = 200) -> np.ndarray:
     """WindowOperators(...).observe(field) a few hundred windows at a time (a 64-px window holds 16 kB of weights)."""
     out = []
     for start in range(0, len(centres), chunk):
         operators = WindowOperators(reference, centres[start:start + chunk], window, (1.0, 1.0), noise_sigma,
-                                    gradients=gradients, window_shape=shape)
+                                    gradients=gradients, window_shape=shape, prefilter=prefilter)
         out.append(operators.observe(field))
     return np.concatenate(out)
 
 
 def analyse(reference, deformed, gradients, field, window: int, step: int, row0: int, full_reference,
-            full_deformed, shape: WindowShape, noise_image: np.ndarray | None = None) -> dict:
+            full_deformed, shape: WindowShape, prefilter: Prefilter, noise_image: np.ndarray | None = None) -> dict:
     """Measured and predicted displacement along the crest for one window size, the Challenge's metrics, the noise
     at the zero crossing below the crest (on the full images, whose rows the strip may not hold) and, given the
     Challenge's noise-floor image (the same speckle, fresh noise, no motion), the Challenge's n itself: the standard
@@ -342,10 +344,11 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     # one pass, no prior: the windows' own covariance under the images' noise, not calibrated on their residuals,
     # which here hold the misfit of an affine window to periods shorter than a few windows (`calfit measure` deforms
     # its windows by a first pass's field before it calibrates)
-    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window, shape=shape)
+    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter)
     seconds_dic = time.perf_counter() - began
     began = time.perf_counter()
-    seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field, shape)[:, 1]
+    seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field, shape,
+                             prefilter)[:, 1]
     seconds_operator = time.perf_counter() - began
 
     x = result.centre_rc[:, 1]
@@ -360,13 +363,13 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     common = common_metrics(x, y, measured, step)
     columns_long = columns[period_px(columns) >= NOISE_MIN_PERIOD_PX]
     zero = correlate(full_reference, full_deformed, np.column_stack([np.rint(zero_row(columns_long)), columns_long]),
-                     (1.0, 1.0), window_px=window, shape=shape)
+                     (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter)
     noise_zero = zero_crossing_noise(zero.centre_rc[:, 1], zero.centre_rc[:, 0], zero.displacement_px[:, 1], x,
                                      common["ratio"])
     noise_floor_image = float("nan")
     if noise_image is not None:
         still = correlate(reference, noise_image[row0:row0 + reference.shape[0]], centres, (1.0, 1.0),
-                          window_px=window, shape=shape)
+                          window_px=window, shape=shape, prefilter=prefilter)
         noise_floor_image = float(np.nanstd(still.displacement_px[:, 1]))
     ratio_measured = common["ratio"]
     ratio_seen = sliding_mean(seen / commanded, max(SMOOTH_SPAN_PX // step, 1))
@@ -512,7 +515,7 @@ def figure(results: list[dict], out: Path, peers: list[dict], code_meis: dict, n
     periods.set_xlabel("period p (px)")
     top.legend(loc="lower right", fontsize=8, ncol=2)
     top.set_title(f"calfit DIC, {shape.name} windows, on the DIC Challenge 2.0 Star images (crest row, amplitude "
-                  "0.5 px); below, pyvale's beside it", fontsize=10)
+                  "0.5 px);\nbelow, pyvale's beside it", fontsize=10)
 
     for r, colour in zip(results, colours):
         bottom.plot(r["period"], r["ratio_measured"], color=colour, lw=1.6,
@@ -572,9 +575,15 @@ def main() -> None:
     parser.add_argument("--shape", choices=("affine", "quadratic"), default="quadratic",
                         help="calfit's window shape function (orchestrator.measure.shape; default quadratic, the "
                         "shape of the Challenge's best codes)")
+    # calfit measure's one-pixel prefilter is there for the aliased edges that partial volume draws on an MRI slice;
+    # a camera's speckle is band-limited by its optics and has none, so the Star images are matched unfiltered
+    parser.add_argument("--prefilter", type=float, default=0.0,
+                        help="sigma (px) of the Gaussian calfit smooths both images with (default 0: camera speckle "
+                             f"has no partial-volume edges; `calfit measure`'s default for MRI is {PREFILTER_SIGMA_PX:g})")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/figures/dic_challenge.png"))
     args = parser.parse_args()
     shape = WindowShape.named(args.shape)
+    prefilter = Prefilter(args.prefilter)
 
     full_reference, full_deformed = load_star(args.images)
     noise_image = None if args.noise_image is None else load_image(args.noise_image)
@@ -583,17 +592,17 @@ def main() -> None:
     deformed = full_deformed[row0:CREST_ROW + STRIP_HALF_ROWS + 1]
     rows, cols = np.mgrid[0:reference.shape[0], 0:reference.shape[1]]
     field = np.stack([np.zeros(reference.shape), commanded_v(cols, rows + row0)])   # (u_x, u_y), px = mm here
-    gradients = spline_gradient(Prefilter()(reference))   # the windows' operators read the prefiltered reference
+    gradients = spline_gradient(prefilter(reference))   # the windows' operators read the prefiltered reference
     floor_sigma = float(np.sqrt(0.5 * (noise_floor(reference) ** 2 + noise_floor(deformed) ** 2)))
     print(f"Star images {reference.shape[1]} px wide, rows {row0}-{row0 + reference.shape[0] - 1} kept; windows "
           f"{', '.join(map(str, args.windows))} px every {args.step} px along row {CREST_ROW}")
-    print(f"calfit's windows: {shape.name}, " + ("the compiled loops (orchestrator._correlation)"
-                                               if windows_module() is not None
-                                               else f"the Python loops ({COMPILED_ENV}=0 or no compiled module)"))
+    loops = ("the compiled loops (orchestrator._correlation)" if windows_module() is not None
+             else f"the Python loops ({COMPILED_ENV}=0 or no compiled module)")
+    print(f"calfit's windows: {shape.name}, prefilter {prefilter.sigma_px:g} px, {loops}")
     results = []
     for window in args.windows:
         results.append(analyse(reference, deformed, gradients, field, window, args.step, row0, full_reference,
-                               full_deformed, shape, noise_image))
+                               full_deformed, shape, prefilter, noise_image))
         r = results[-1]
         print(f"  {window:2d} px: {r['windows']} windows, DIC {r['seconds_dic']:.1f} s, operator "
               f"{r['seconds_operator']:.1f} s", flush=True)
