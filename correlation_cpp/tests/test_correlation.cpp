@@ -27,6 +27,7 @@ double texture(double row, double col) {
 struct Scene {
   std::ptrdiff_t rows, cols;
   std::vector<double> reference, deformed, grad_rows, grad_cols;
+  std::vector<double> prior = {};   // (2, rows, cols) px, or empty: none
   Pair pair() const {
     Pair p;
     p.reference = {reference.data(), rows, cols};
@@ -34,6 +35,7 @@ struct Scene {
     p.grad_rows = {grad_rows.data(), rows, cols};
     p.grad_cols = {grad_cols.data(), rows, cols};
     p.to_deformed = {1, 0, 0, 0, 1, 0};
+    p.prior = prior.empty() ? nullptr : prior.data();
     return p;
   }
 };
@@ -133,35 +135,21 @@ void test_a_shift_is_found() {
 // An image that is exactly a cubic B-spline: random coefficients, the reference their spline at the pixels, the
 // deformed image's coefficients the same moved by whole pixels, so I1(x) = I0(x - shift) holds between the pixels too
 // and Gauss-Newton must find the shift to its tolerance. A constant prior field takes the start off the integer grid.
-struct SplineScene {
-  std::ptrdiff_t rows, cols;
-  std::vector<double> coefficients, reference, deformed, grad_rows, grad_cols, prior;
-  Pair pair() const {
-    Pair p;
-    p.reference = {reference.data(), rows, cols};
-    p.spline = {deformed.data(), rows, cols};
-    p.grad_rows = {grad_rows.data(), rows, cols};
-    p.grad_cols = {grad_cols.data(), rows, cols};
-    p.to_deformed = {1, 0, 0, 0, 1, 0};
-    p.prior = prior.data();
-    return p;
-  }
-};
-
-SplineScene spline_scene(std::ptrdiff_t n, std::ptrdiff_t shift_col, std::ptrdiff_t shift_row, double prior_col,
-                         double prior_row) {
-  SplineScene s{n, n, {}, {}, {}, {}, {}, {}};
+Scene spline_scene(std::ptrdiff_t n, std::ptrdiff_t shift_col, std::ptrdiff_t shift_row, double prior_col,
+                   double prior_row) {
+  Scene s{n, n, {}, {}, {}, {}};
+  std::vector<double> coefficients;
   std::mt19937 random(11);
   std::normal_distribution<double> grain(100.0, 20.0);
-  for (std::ptrdiff_t k = 0; k < n * n; ++k) s.coefficients.push_back(grain(random));
-  const Image c{s.coefficients.data(), n, n};
+  for (std::ptrdiff_t k = 0; k < n * n; ++k) coefficients.push_back(grain(random));
+  const Image c{coefficients.data(), n, n};
   for (std::ptrdiff_t r = 0; r < n; ++r)
     for (std::ptrdiff_t q = 0; q < n; ++q) {
       const double y = static_cast<double>(r), x = static_cast<double>(q);
       s.reference.push_back(sample_spline(c, y, x));
       const std::ptrdiff_t from_r = std::clamp(r - shift_row, std::ptrdiff_t{0}, n - 1);
       const std::ptrdiff_t from_c = std::clamp(q - shift_col, std::ptrdiff_t{0}, n - 1);
-      s.deformed.push_back(s.coefficients[from_r * n + from_c]);
+      s.deformed.push_back(coefficients[from_r * n + from_c]);
       s.grad_rows.push_back((sample_spline(c, y + 1e-4, x) - sample_spline(c, y - 1e-4, x)) / 2e-4);
       s.grad_cols.push_back((sample_spline(c, y, x + 1e-4) - sample_spline(c, y, x - 1e-4)) / 2e-4);
     }
@@ -173,7 +161,7 @@ SplineScene spline_scene(std::ptrdiff_t n, std::ptrdiff_t shift_col, std::ptrdif
 // Both shape functions find the shift less the prior exactly; the quadratic one finds no bend, its linear part the
 // identity. Rows x', y' of the map over (dx, dy, 1) affine, over (dx^2, dx dy, dy^2, dx, dy, 1) quadratic.
 void test_each_shape_finds_the_shift_of_a_spline_image_exactly() {
-  const SplineScene s = spline_scene(96, 2, -1, 0.3, -0.45);
+  const Scene s = spline_scene(96, 2, -1, 0.3, -0.45);
   const std::vector<char> used(24 * 24, 1);
   for (int order : {1, 2}) {
     Settings settings{24, 64, 20, 1e-8, 1e-9, order};

@@ -84,7 +84,6 @@ windows; see its text.
 
 from __future__ import annotations
 
-import functools
 import multiprocessing
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -614,22 +613,11 @@ def on_window_square(rows_of_used: np.ndarray, used: np.ndarray, size: int) -> n
     return full.reshape(-1, size, size)
 
 
-@functools.lru_cache(maxsize=16)
-def _window_offsets(size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, columns) offsets of a size x size window's pixels from its centre, read-only: every window of a
-    correlation asks for the same grid several times, and making it anew took several per cent of a compiled window."""
-    offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
-    offset_rows.flags.writeable = offset_cols.flags.writeable = False
-    return offset_rows, offset_cols
-
-
 def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray, shape: WindowShape = AFFINE) -> np.ndarray:
     """(n, parameters) steepest-descent images grad f . d(x + u_p(x))/dp of a square window, p the shape
     function's parameters (`shape.WindowShape`; affine: (u, du/dx, du/dy, v, dv/dx, dv/dy)), offsets measured from
     the window centre."""
-    size = grad_cols.shape[0]
-    offset_rows, offset_cols = _window_offsets(size)
-    basis = shape.basis(offset_cols, offset_rows)
+    basis = shape.window_basis(grad_cols.shape[0])
     return np.concatenate([(grad_cols.ravel() * basis).T, (grad_rows.ravel() * basis).T], axis=1)
 
 
@@ -655,11 +643,10 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
                                       noise_q / pair.prefilter.noise_gain, shape)
     steepest, hessian = steepest_raw / f_norm, hessian_raw / f_norm ** 2
     centre_row, centre_col = r0 + (size - 1) / 2.0, c0 + (size - 1) / 2.0
-    offset_rows, offset_cols = _window_offsets(size)
-    points = shape.monomials(offset_cols, offset_rows)[:, used]
+    points = shape.window_monomials(size)[:, used]
     prior_used = (prior[0][used], prior[1][used])
     warp = shape.translated(start)
-    translation, gradient_terms = shape.translation, [k for k in range(shape.parameters) if k not in shape.translation]
+    translation = shape.translation
 
     def sample(warp):
         moved = warp[-3:-1] @ points
@@ -678,7 +665,7 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
             step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
             warp = warp @ np.linalg.inv(shape.matrix(step))
             if (np.max(np.abs(step[translation])) < GAUSS_NEWTON_TOLERANCE_PX
-                    and np.max(np.abs(step[gradient_terms])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
+                    and np.max(np.abs(step[shape.deformation])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
                 break
     g_hat, g_norm = sample(warp)
     displacement, zncc = np.array([warp[-3, -1], warp[-2, -1]]), float(f_hat.ravel() @ g_hat)
@@ -753,8 +740,7 @@ def _raw_zncc(pair: _Pair, r0: int, c0: int, size: int, displacement, prior, war
     if warp is None:
         warp = shape.translated(displacement)
     used = np.ones(size * size, bool) if used is None else used
-    offset_rows, offset_cols = _window_offsets(size)
-    moved = warp[-3:-1] @ shape.monomials(offset_cols, offset_rows)[:, used]
+    moved = warp[-3:-1] @ shape.window_monomials(size)[:, used]
     deformed = _sample(spline, pair.to_deformed, c0 + (size - 1) / 2.0 + moved[0] + np.asarray(prior[0])[used],
                        r0 + (size - 1) / 2.0 + moved[1] + np.asarray(prior[1])[used])
     f_hat, f_norm = _normalise(reference[r0:r0 + size, c0:c0 + size].ravel()[used])

@@ -72,13 +72,13 @@ from ..imaging.mismatch import tissue_mask
 from .dic import attainable_confidence, correlate, grid_centres, roi_centres
 from .drawing import boundaries, detect_point_sampling, drawn_boundaries_factor
 from .prefilter import PREFILTER_SIGMA_PX, Prefilter, fit_error_model
-from .shape import WindowShape
+from .shape import SHAPE_ORDERS, WindowShape
 from .texture_change import covariance_factor, measure_change, window_covariance
 from .windows import WindowOperators, textured
 
 WINDOW_CHOICES = (16, 32, 64)
 DEFAULT_WINDOW_PX = 32
-WINDOW_SHAPES = ("affine", "quadratic")   # shape.WindowShape.named
+WINDOW_SHAPES = tuple(SHAPE_ORDERS)   # shape.WindowShape.named
 DEFAULT_WINDOW_SHAPE = "affine"
 MIN_CONFIDENCE = 0.8       # the share of the ZNCC its texture and noise allow a window must reach (`attainable_confidence`)
 MIN_ATTAINABLE = 0.4       # a window whose texture allows less is not matched with confidence: a false peak of noise

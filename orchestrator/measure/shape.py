@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+SHAPE_ORDERS = {"affine": 1, "quadratic": 2}   # the words the command line takes, and their orders
+
 # the monomials of a quadratic map's 6x6 matrix, as exponents of (dx, dy); the affine ones are its last three
 _QUADRATIC_MONOMIALS = ((2, 0), (1, 1), (0, 2), (1, 0), (0, 1), (0, 0))
 
@@ -40,15 +42,14 @@ class WindowShape:
 
     @classmethod
     def named(cls, name: str) -> "WindowShape":
-        """The shape called `name` ("affine" or "quadratic"), the word the command line and case.toml take."""
-        orders = {"affine": 1, "quadratic": 2}
-        if name not in orders:
+        """The shape called `name` ("affine" or "quadratic"), the word `calfit measure --window-shape` takes."""
+        if name not in SHAPE_ORDERS:
             raise ValueError(f"the window shape is 'affine' or 'quadratic', not {name!r}")
-        return cls(orders[name])
+        return cls(SHAPE_ORDERS[name])
 
     @property
     def name(self) -> str:
-        return "affine" if self.order == 1 else "quadratic"
+        return next(name for name, order in SHAPE_ORDERS.items() if order == self.order)
 
     @property
     def terms(self) -> int:
@@ -65,9 +66,10 @@ class WindowShape:
         return [0, self.terms]
 
     @property
-    def gradient(self) -> list[int]:
-        """The indices of (u_x, u_y, v_x, v_y) in p."""
-        return [1, 2, self.terms + 1, self.terms + 2]
+    def deformation(self) -> list[int]:
+        """The indices in p of everything but the translation: the displacement gradient (and, quadratic, its
+        derivatives), whose step Gauss-Newton's convergence test bounds apart from the translation's."""
+        return [k for k in range(self.parameters) if k not in self.translation]
 
     def basis(self, dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
         """(terms, n) the basis at the offsets (dx, dy): what d(x + u)/dp holds for either component."""
@@ -111,20 +113,37 @@ class WindowShape:
     def moments(self, size: int, weights: np.ndarray | None = None) -> np.ndarray:
         """M = sum over a size x size window of w X^T X, X the basis at each pixel (w = 1 by default, else the (size,
         size) `weights`), for both displacement components (parameters x parameters)."""
-        basis = _window_basis(self, size)
+        basis = self.window_basis(size)
         weights = np.ones(size * size) if weights is None else np.asarray(weights, float).ravel()
         moments = np.zeros((self.parameters, self.parameters))
         moments[:self.terms, :self.terms] = moments[self.terms:, self.terms:] = (basis * weights) @ basis.T
         return moments
 
+    def window_basis(self, size: int) -> np.ndarray:
+        """(terms, size^2) the basis at a size x size window's pixels, row-major, read-only (`window_offsets`)."""
+        return _over_window(self, size, "basis")
 
-@functools.lru_cache(maxsize=32)
-def _window_basis(shape: WindowShape, size: int) -> np.ndarray:
-    """The basis over a size x size window's pixels, made once: every window of a correlation asks for it."""
+    def window_monomials(self, size: int) -> np.ndarray:
+        """(terms, size^2) the monomials at a size x size window's pixels, row-major, read-only."""
+        return _over_window(self, size, "monomials")
+
+
+@functools.lru_cache(maxsize=16)
+def window_offsets(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) offsets of a size x size window's pixels from its centre, read-only: every window of a
+    correlation asks for the same grid several times, and making it anew took several per cent of a compiled window."""
     offset_rows, offset_cols = np.mgrid[0:size, 0:size].astype(float) - (size - 1) / 2.0
-    basis = shape.basis(offset_cols, offset_rows)
-    basis.flags.writeable = False
-    return basis
+    offset_rows.flags.writeable = offset_cols.flags.writeable = False
+    return offset_rows, offset_cols
+
+
+@functools.lru_cache(maxsize=64)
+def _over_window(shape: WindowShape, size: int, kind: str) -> np.ndarray:
+    """shape.basis or shape.monomials at the window's offsets, made once per shape and size."""
+    offset_rows, offset_cols = window_offsets(size)
+    values = getattr(shape, kind)(offset_cols, offset_rows)
+    values.flags.writeable = False
+    return values
 
 
 AFFINE = WindowShape(1)
