@@ -41,7 +41,8 @@ noise-floor image, calfit's and pyvale's from the zero crossing of the same pair
 same windows, but not the same pixels, and over the motion of the field's odd part.
 
 What calfit does (`orchestrator.measure.dic.correlate`: ZNCC then IC-GN, quadratic windows by default, --shape affine
-for `calfit measure`'s; no prefilter by default, --prefilter 1 for `calfit measure`'s; one pass, no prior) is run
+for `calfit measure`'s; no prefilter by default, --prefilter 1 for `calfit measure`'s; one pass, no prior; the
+search +-10 px about each window, as pyvale's below, `MAX_DISPLACEMENT_PX`) is run
 on windows along the centre row every --step pixels for each window size, on a 301-row strip around the centre row
 (enough for the 64-pixel windows' search area; the whole image only costs time). Beside it, what the linearised
 windows should see of the commanded field (`orchestrator.measure.windows.WindowOperators(...).observe`: the
@@ -64,7 +65,10 @@ defaults otherwise, one thread as calfit's windows here) on the same row with od
 calfit's windows (17 / 33 / 65 px: pyvale takes odd sizes only), so that its subsets are centred on the crest row
 itself, and on those nearest to the zero crossing below it. Both codes then go through the same metrics, which need
 nothing of either code's own error model: n at the zero crossing, l10 and the plateau as above, MEI = n x l10, the
-time of the correlation; and their ratios, calfit / pyvale.
+time of the correlation; and their ratios, calfit / pyvale. The time per window is taken on the same work: pyvale
+correlates every subset inside its region of interest, three rows of them about the crest, and calfit is timed again
+on those centres, on the same full images, both searching +-10 px (calfit's time includes its error model: each
+window's covariance and residual, which pyvale does not compute).
 
 About 5 minutes on a 2-core machine with the defaults (five window sizes, about 1,000 windows each on the crest and
 350 on the zero crossing, pyvale's about twice as many).
@@ -89,7 +93,10 @@ from orchestrator.measure.windows import WindowOperators
 AMPLITUDE_PX = 0.5
 CREST_ROW = 250
 PERIOD_AT_0_PX, PERIOD_SLOPE = 10.0, 0.0725
-STRIP_HALF_ROWS = 150            # rows kept on either side of the crest: the 64-px windows search +-128 rows
+STRIP_HALF_ROWS = 150            # rows kept on either side of the crest (enough for a 64-px window's default search)
+# how far both codes search for a window's match: pyvale's max_displacement, calfit's max_displacement_px (the
+# star's motion is half a pixel; the search is most of a window's time, so the two are timed on the same reach)
+MAX_DISPLACEMENT_PX = 10
 SMOOTH_SPAN_PX = 100             # sliding mean along x of the attenuation
 NOISE_MIN_PERIOD_PX = 200.0      # where the noise is measured
 PLATEAU_MIN_PERIOD_PX = 250.0    # where the plateau is read
@@ -143,7 +150,8 @@ def pyvale_run(reference: np.ndarray, deformed: np.ndarray, subset: int, step: i
     began = time.perf_counter()
     pyvale.dic.calculate_2d(reference=reference.astype(np.float32), deformed=deformed.astype(np.float32),
                             roi_mask=roi, seed=[seed_x, int(rows[len(rows) // 2])], subset_size=subset,
-                            subset_step=step, max_displacement=10, num_threads=1, output_basepath=out, print_level=0)
+                            subset_step=step, max_displacement=MAX_DISPLACEMENT_PX, num_threads=1, output_basepath=out,
+                            print_level=0)
     seconds = time.perf_counter() - began
     path = next(out.glob("dic_results_*.csv"))
     with open(path) as table:   # a quoted header whose lines, like the rows, end with a comma
@@ -188,9 +196,23 @@ def pyvale_crest(reference: np.ndarray, deformed: np.ndarray, subset: int, step:
     if noise_image is not None:
         still, _ = pyvale_run(reference, noise_image, subset, step, roi, 3500, scratch, "floor")
         noise_floor_image = float(np.nanstd(still["disp_v"][still["subset_y"] == CREST_ROW]))
+    # pyvale correlates every subset inside the region, three rows of them here: its time is theirs, not the crest's,
+    # and calfit is timed on the same centres (`time_on_centres`)
     return dict(subset=subset, step=step, x=x, v=v, failed=int(np.isnan(v).sum()), seconds=seconds,
+                centres=np.column_stack([columns["subset_y"], columns["subset_x"]]).astype(int),
                 noise_zero=zero_crossing_noise(zx, zy, zv, x, metrics["ratio"]),
                 noise_floor_image=noise_floor_image, **metrics)
+
+
+def time_on_centres(reference: np.ndarray, deformed: np.ndarray, window: int, centres: np.ndarray,
+                    shape: WindowShape, prefilter: Prefilter) -> float:
+    """Seconds calfit's `correlate` takes for windows of `window` px at the (row, column) `centres` of pyvale's
+    subsets on the same images: the two codes timed on the same work (a code's time per window falls with the
+    windows it shares its images' preparation among)."""
+    began = time.perf_counter()
+    correlate(reference, deformed, centres, (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter,
+              max_displacement_px=MAX_DISPLACEMENT_PX)
+    return time.perf_counter() - began
 
 
 def zero_row(x) -> np.ndarray:
@@ -344,7 +366,8 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     # one pass, no prior: the windows' own covariance under the images' noise, not calibrated on their residuals,
     # which here hold the misfit of an affine window to periods shorter than a few windows (`calfit measure` deforms
     # its windows by a first pass's field before it calibrates)
-    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter)
+    result = correlate(reference, deformed, centres, (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter,
+                       max_displacement_px=MAX_DISPLACEMENT_PX)
     seconds_dic = time.perf_counter() - began
     began = time.perf_counter()
     seen = observe_in_chunks(reference, gradients, centres, window, result.noise_sigma[0], field, shape,
@@ -363,13 +386,14 @@ def analyse(reference, deformed, gradients, field, window: int, step: int, row0:
     common = common_metrics(x, y, measured, step)
     columns_long = columns[period_px(columns) >= NOISE_MIN_PERIOD_PX]
     zero = correlate(full_reference, full_deformed, np.column_stack([np.rint(zero_row(columns_long)), columns_long]),
-                     (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter)
+                     (1.0, 1.0), window_px=window, shape=shape, prefilter=prefilter,
+                     max_displacement_px=MAX_DISPLACEMENT_PX)
     noise_zero = zero_crossing_noise(zero.centre_rc[:, 1], zero.centre_rc[:, 0], zero.displacement_px[:, 1], x,
                                      common["ratio"])
     noise_floor_image = float("nan")
     if noise_image is not None:
         still = correlate(reference, noise_image[row0:row0 + reference.shape[0]], centres, (1.0, 1.0),
-                          window_px=window, shape=shape, prefilter=prefilter)
+                          window_px=window, shape=shape, prefilter=prefilter, max_displacement_px=MAX_DISPLACEMENT_PX)
         noise_floor_image = float(np.nanstd(still.displacement_px[:, 1]))
     ratio_measured = common["ratio"]
     ratio_seen = sliding_mean(seen / commanded, max(SMOOTH_SPAN_PX // step, 1))
@@ -480,13 +504,15 @@ def report_peer(results: list[dict], peers: list[dict]) -> None:
     the sliding mean, MEI = n x l10), with calfit / pyvale ratios."""
     print("\nbeside pyvale's DIC engine (same images, same row, one thread each; the same metrics for both, which "
           "need neither code's error model: n at the zero crossing below the crest where p >= "
-          f"{NOISE_MIN_PERIOD_PX:g} px, l10 of the sliding mean)")
+          f"{NOISE_MIN_PERIOD_PX:g} px, l10 of the sliding mean; the time of both on pyvale's subsets, the crest's "
+          f"rows, searched +-{MAX_DISPLACEMENT_PX} px)")
     print(f"{'code':>8s} {'subset':>7s} {'step':>5s} {'windows':>8s} {'failed':>6s} {'n px':>7s} {'l10 px':>7s} "
           f"{'MEI px2':>8s} {'plateau':>8s} {'DIC s':>6s}")
     for r, peer in zip(results, peers):
         rows = []
-        for code, size, m, count, seconds in (("calfit", r["window"], r, r["windows"], r["seconds_dic"]),
-                                              ("pyvale", peer["subset"], peer, len(peer["x"]), peer["seconds"])):
+        count = len(peer["centres"])   # both timed on pyvale's subsets (`time_on_centres`)
+        for code, size, m, seconds in (("calfit", r["window"], r, r["seconds_same"]),
+                                       ("pyvale", peer["subset"], peer, peer["seconds"])):
             rows.append((m["noise_zero"], m["l10"], m["noise_zero"] * m["l10"], seconds / count))
             print(f"{code:>8s} {size:5d}px {m['step']:5d} {count:8d} {m['failed']:6d} {rows[-1][0]:7.4f} "
                   f"{rows[-1][1]:7.1f} {rows[-1][2]:8.3f} {m['plateau']:8.4f} {seconds:6.1f}")
@@ -610,6 +636,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="calfit-pyvale-") as scratch:
         peers = [pyvale_crest(full_reference, full_deformed, window + 1, args.step, Path(scratch), noise_image)
                  for window in args.windows]
+    for r, peer in zip(results, peers):
+        r["seconds_same"] = time_on_centres(full_reference, full_deformed, r["window"], peer["centres"], shape,
+                                            prefilter)
     report_peer(results, peers)
     code_meis, noise_source = report_participants(results, peers)
     figure(results, args.out, peers, code_meis, noise_source, shape)

@@ -21,6 +21,7 @@ using Grid = nb::ndarray<const double, nb::ndim<2>, nb::c_contig, nb::device::cp
 using Field = nb::ndarray<const double, nb::ndim<3>, nb::c_contig, nb::device::cpu>;
 using Centres = nb::ndarray<const std::int64_t, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
 using Masks = nb::ndarray<const bool, nb::ndim<2>, nb::c_contig, nb::device::cpu>;
+using Line = nb::ndarray<const double, nb::ndim<1>, nb::c_contig, nb::device::cpu>;
 
 template <typename T>
 nb::ndarray<nb::numpy, T> owned(T* data, std::initializer_list<std::size_t> shape) {
@@ -32,10 +33,92 @@ std::string shape_of(std::size_t rows, std::size_t cols) {
   return "(" + std::to_string(rows) + ", " + std::to_string(cols) + ")";
 }
 
+Image image_of(const Grid& grid) {
+  return {grid.data(), static_cast<std::ptrdiff_t>(grid.shape(0)), static_cast<std::ptrdiff_t>(grid.shape(1))};
+}
+
+// The error model's maps (error_model.hpp), checked against the reference's shape: every map or none of them.
+std::optional<ErrorMaps> error_maps(std::size_t rows, std::size_t cols, const std::optional<Grid>& raw_reference,
+                                    const std::optional<Grid>& raw_spline, const std::optional<Grid>& noise_q,
+                                    const std::optional<Grid>& edge_q, const std::optional<Grid>& rho_raw,
+                                    const std::optional<Grid>& edge_raw, const std::optional<Line>& kernel,
+                                    double noise_gain, double derivative_noise_gain, double noise_sigma_reference,
+                                    double noise_sigma_deformed, double max_refinement_px, double zncc_slack) {
+  const bool any = noise_q || edge_q || rho_raw || edge_raw || kernel || raw_reference || raw_spline;
+  if (!any) return std::nullopt;
+  if (!(noise_q && edge_q && rho_raw && edge_raw && kernel))
+    throw std::invalid_argument("the error model needs noise_q, edge_q, rho_raw, edge_raw and kernel together");
+  if (raw_reference.has_value() != raw_spline.has_value())
+    throw std::invalid_argument("the raw images come as a pair: raw_reference and raw_spline, or neither");
+  const std::size_t taps = kernel->shape(0);
+  if (taps % 2 == 0) throw std::invalid_argument("the prefilter's kernel has an odd number of taps, not " +
+                                                  std::to_string(taps));
+  const std::size_t reach = (taps - 1) / 2;
+  for (const auto* grid : {&noise_q, &edge_q, &raw_reference, &raw_spline})
+    if (*grid && ((*grid)->shape(0) != rows || (*grid)->shape(1) != cols))
+      throw std::invalid_argument("the raw images, noise_q and edge_q must have the reference's shape " +
+                                  shape_of(rows, cols) + ", not " + shape_of((*grid)->shape(0), (*grid)->shape(1)));
+  for (const auto* grid : {&rho_raw, &edge_raw})
+    if ((*grid)->shape(0) != rows + 2 * reach || (*grid)->shape(1) != cols + 2 * reach)
+      throw std::invalid_argument("rho_raw and edge_raw are the reference's shape padded by the kernel's radius: " +
+                                  shape_of(rows + 2 * reach, cols + 2 * reach) + ", not " +
+                                  shape_of((*grid)->shape(0), (*grid)->shape(1)));
+  for (double v : {noise_gain, derivative_noise_gain, noise_sigma_reference, noise_sigma_deformed, max_refinement_px,
+                   zncc_slack})
+    if (!(v >= 0.0) || !std::isfinite(v))
+      throw std::invalid_argument("the noise gains and sigmas, the largest refinement and the ZNCC's slack are finite "
+                                  "and not negative");
+  if (!(noise_gain > 0.0)) throw std::invalid_argument("the prefilter's noise gain is positive");
+  ErrorMaps maps;
+  if (raw_reference) {
+    maps.raw_reference = image_of(*raw_reference);
+    maps.raw_spline = image_of(*raw_spline);
+  }
+  maps.noise_q = image_of(*noise_q);
+  maps.edge_q = image_of(*edge_q);
+  maps.rho_raw = image_of(*rho_raw);
+  maps.edge_raw = image_of(*edge_raw);
+  maps.kernel.assign(kernel->data(), kernel->data() + taps);
+  maps.noise_gain = noise_gain;
+  maps.derivative_noise_gain = derivative_noise_gain;
+  maps.noise_sigma = {noise_sigma_reference, noise_sigma_deformed};
+  maps.max_refinement_px = max_refinement_px;
+  maps.zncc_slack = zncc_slack;
+  return maps;
+}
+
+// Each window's error terms as arrays (the keys dic._compiled_search reads)
+void put_errors(nb::dict& out, const std::vector<WindowResult>& results) {
+  const std::size_t count = results.size();
+  auto* flags = new bool[3 * count];
+  auto* scores = new double[4 * count];
+  auto* covariances = new double[8 * count];
+  auto* sums = new double[5 * count];
+  for (std::size_t k = 0; k < count; ++k) {
+    const WindowError& e = results[k].error;
+    flags[3 * k] = e.conditioned;
+    flags[3 * k + 1] = e.textured;
+    flags[3 * k + 2] = e.at_start;
+    const double values[4] = {e.zncc, e.confidence, e.start_confidence, e.variance};
+    std::copy(values, values + 4, scores + 4 * k);
+    std::copy(e.covariance.begin(), e.covariance.end(), covariances + 8 * k);
+    std::copy(e.edge_covariance.begin(), e.edge_covariance.end(), covariances + 8 * k + 4);
+    std::copy(e.edge_sums.begin(), e.edge_sums.end(), sums + 5 * k);
+  }
+  out["flags"] = owned(flags, {count, 3});
+  out["scores"] = owned(scores, {count, 4});
+  out["covariances"] = owned(covariances, {count, 2, 2, 2});
+  out["edge_sums"] = owned(sums, {count, 5});
+}
+
 nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad_cols, Grid to_deformed,
                           std::optional<Field> prior, Centres centres, Masks used, int window_px, int search_px,
                           int iterations, double tolerance_px, double tolerance_gradient, int threads,
-                          int shape_order) {
+                          int shape_order, std::optional<Grid> raw_reference, std::optional<Grid> raw_spline,
+                          std::optional<Grid> noise_q, std::optional<Grid> edge_q, std::optional<Grid> rho_raw,
+                          std::optional<Grid> edge_raw, std::optional<Line> kernel, double noise_gain,
+                          double derivative_noise_gain, double noise_sigma_reference, double noise_sigma_deformed,
+                          double max_refinement_px, double zncc_slack) {
   const std::size_t rows = reference.shape(0), cols = reference.shape(1);
   if (rows == 0 || cols == 0) throw std::invalid_argument("the reference image is empty");
   for (const Grid* grid : {&spline, &grad_rows, &grad_cols})
@@ -70,6 +153,10 @@ nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad
   pair.grad_cols = {grad_cols.data(), pair.reference.rows, pair.reference.cols};
   for (int k = 0; k < 6; ++k) pair.to_deformed[k] = to_deformed.data()[k];
   pair.prior = prior ? prior->data() : nullptr;
+  const std::optional<ErrorMaps> maps =
+      error_maps(rows, cols, raw_reference, raw_spline, noise_q, edge_q, rho_raw, edge_raw, kernel, noise_gain,
+                 derivative_noise_gain, noise_sigma_reference, noise_sigma_deformed, max_refinement_px, zncc_slack);
+  pair.errors = maps ? &*maps : nullptr;
   Settings settings{window_px, search_px, iterations, tolerance_px, tolerance_gradient, shape_order};
 
   std::vector<WindowResult> results;
@@ -97,6 +184,7 @@ nb::dict match_windows_py(Grid reference, Grid spline, Grid grad_rows, Grid grad
   out["peak_score"] = owned(peak, {count});
   out["warp"] = owned(warp, {count, 2, terms});
   out["iterations"] = owned(steps, {count});
+  if (maps) put_errors(out, results);
   return out;
 }
 
@@ -128,14 +216,7 @@ nb::tuple spline_gradient_py(Grid coefficients, double step) {
   auto* along_cols = new double[rows * cols];
   {
     nb::gil_scoped_release free_python;
-    // the central difference of the spline itself, as dic.spline_derivatives takes it with scipy
-    for (std::ptrdiff_t r = 0; r < rows; ++r) {
-      for (std::ptrdiff_t c = 0; c < cols; ++c) {
-        const double y = static_cast<double>(r), x = static_cast<double>(c);
-        along_rows[r * cols + c] = (sample_spline(image, y + step, x) - sample_spline(image, y - step, x)) / (2 * step);
-        along_cols[r * cols + c] = (sample_spline(image, y, x + step) - sample_spline(image, y, x - step)) / (2 * step);
-      }
-    }
+    spline_gradient(image, step, along_rows, along_cols);
   }
   return nb::make_tuple(owned(along_rows, {coefficients.shape(0), coefficients.shape(1)}),
                         owned(along_cols, {coefficients.shape(0), coefficients.shape(1)}));
@@ -144,7 +225,8 @@ nb::tuple spline_gradient_py(Grid coefficients, double step) {
 }  // namespace
 
 NB_MODULE(_correlation, m) {
-  m.doc() = "calfit's DIC windows: the ZNCC integer search and the IC-GN iterations (orchestrator/measure/dic.py)";
+  m.doc() = "calfit's DIC windows: the ZNCC integer search, the IC-GN iterations and each window's error terms "
+            "(orchestrator/measure/dic.py)";
   m.attr("MATCHED") = static_cast<int>(Status::matched);
   m.attr("OUTSIDE") = static_cast<int>(Status::outside);
   m.attr("FLAT") = static_cast<int>(Status::flat);
@@ -154,8 +236,16 @@ NB_MODULE(_correlation, m) {
         nb::arg("grad_cols"), nb::arg("to_deformed"), nb::arg("prior").none(), nb::arg("centres"), nb::arg("used"),
         nb::arg("window_px"), nb::arg("search_px"), nb::arg("iterations"), nb::arg("tolerance_px"),
         nb::arg("tolerance_gradient"), nb::arg("threads") = 1, nb::arg("shape_order") = 1,
+        nb::arg("raw_reference").none() = nb::none(), nb::arg("raw_spline").none() = nb::none(),
+        nb::arg("noise_q").none() = nb::none(), nb::arg("edge_q").none() = nb::none(),
+        nb::arg("rho_raw").none() = nb::none(), nb::arg("edge_raw").none() = nb::none(),
+        nb::arg("kernel").none() = nb::none(), nb::arg("noise_gain") = 1.0, nb::arg("derivative_noise_gain") = 1.0,
+        nb::arg("noise_sigma_reference") = 0.0, nb::arg("noise_sigma_deformed") = 0.0,
+        nb::arg("max_refinement_px") = 3.0, nb::arg("zncc_slack") = 0.02,
         "Per window: status, start (d_col, d_row), peak_score, warp (2 x 3 affine, 2 x 6 quadratic: the map's rows "
-        "over the monomials) and iterations (windows.hpp).");
+        "over the monomials) and iterations (windows.hpp); given the error model's maps (error_model.hpp), also "
+        "flags (conditioned, textured, at_start), scores (zncc, confidence, start_confidence, variance), covariances (noise, "
+        "edges; 2 x 2 px^2 each) and edge_sums (count, z, zz, y, yz).");
   m.def("spline_gradient", &spline_gradient_py, nb::arg("coefficients"), nb::arg("step"),
         "(d/drow, d/dcolumn) at every pixel of the cubic B-spline of the coefficients, by a central difference of "
         "`step` pixels (dic.spline_derivatives).");

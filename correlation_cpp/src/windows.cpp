@@ -12,36 +12,12 @@
 #include <thread>
 
 #include "fft.hpp"
+#include "window_system.hpp"
 
 namespace calfit::correlation {
 namespace {
 
 using Complex = std::complex<double>;
-
-// The four cubic B-spline weights of the knots floor(x) - 1 .. floor(x) + 2 at the fraction t = x - floor(x).
-inline void cubic_weights(double t, double* w) {
-  const double s = 1.0 - t;
-  w[0] = s * s * s / 6.0;
-  w[1] = (t * t * (t - 2.0) * 3.0 + 4.0) / 6.0;
-  w[2] = (s * s * (s - 2.0) * 3.0 + 4.0) / 6.0;
-  w[3] = t * t * t / 6.0;
-}
-
-// A coordinate far beyond the edge reads the edge's coefficients, as one just beyond it does: clamping it first keeps
-// floor() and the index arithmetic finite for any finite input.
-inline void axis_taps(double x, std::ptrdiff_t length, std::ptrdiff_t* index, double* weight) {
-  x = std::clamp(x, -4.0, static_cast<double>(length) + 3.0);
-  const double base = std::floor(x);
-  cubic_weights(x - base, weight);
-  const auto first = static_cast<std::ptrdiff_t>(base) - 1;
-  for (std::ptrdiff_t k = 0; k < 4; ++k) index[k] = std::clamp(first + k, std::ptrdiff_t{0}, length - 1);
-}
-
-// The deformed image at the reference-frame point (col, row) moved by the prior rigid motion (dic._sample).
-inline double sample_deformed(const Pair& pair, double col, double row) {
-  const auto& m = pair.to_deformed;
-  return sample_spline(pair.spline, m[3] * col + m[4] * row + m[5], m[0] * col + m[1] * row + m[2]);
-}
 
 // The prior field (d_col, d_row) at an integer pixel, held constant beyond the image (dic._prior_at).
 inline void prior_at(const Pair& pair, std::ptrdiff_t r, std::ptrdiff_t c, double& d_col, double& d_row) {
@@ -277,61 +253,54 @@ bool compose_quadratic(std::array<double, 12>& warp, const std::vector<double>& 
   return true;
 }
 
-// (values - mean) / norm in place; returns the norm (dic._normalise).
-double normalise(std::vector<double>& values) {
-  double mean = 0.0;
-  for (double v : values) mean += v;
-  mean /= static_cast<double>(values.size());
-  double squares = 0.0;
-  for (double& v : values) {
-    v -= mean;
-    squares += v * v;
-  }
-  const double norm = std::sqrt(squares);
-  if (norm > 0.0)
-    for (double& v : values) v /= norm;
-  return norm;
-}
-
-// IC-GN from `start` over the window's used pixels (dic._inverse_compositional's loop); fills warp and iterations.
-Status refine(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdiff_t c0, const bool* used,
-              WindowResult& out) {
+// The window's IC-GN system at the reference over its used pixels (dic._inverse_compositional, before its loop):
+// matched when it holds, refinement_failed for no pixel or a flat template, not_finite for a NaN in its gradients
+// or the prior there.
+Status build_system(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdiff_t c0, const bool* used,
+                    WindowSystem& system) {
   const std::ptrdiff_t w = s.window_px;
   const double half = (static_cast<double>(w) - 1.0) / 2.0;
   const ShapeFunction shape{s.shape_order == 2 ? 6 : 3};
   const int k = shape.terms, np = 2 * k;
-  std::vector<double> f, dx, dy, gx, gy, prior_c, prior_r;
+  system.r0 = r0;
+  system.c0 = c0;
+  system.size = w;
+  system.terms = k;
+  std::vector<double> dx, dy, gx, gy;
   for (std::ptrdiff_t r = 0; r < w; ++r) {
     for (std::ptrdiff_t c = 0; c < w; ++c) {
       if (!used[r * w + c]) continue;
-      f.push_back(pair.reference.at(r0 + r, c0 + c));
+      system.pixels.push_back(r * w + c);
+      system.f.push_back(pair.reference.at(r0 + r, c0 + c));
       dx.push_back(static_cast<double>(c) - half);
       dy.push_back(static_cast<double>(r) - half);
       gx.push_back(pair.grad_cols.at(r0 + r, c0 + c));
       gy.push_back(pair.grad_rows.at(r0 + r, c0 + c));
       double pc = 0.0, pr = 0.0;
       prior_at(pair, r0 + r, c0 + c, pc, pr);
-      prior_c.push_back(pc);
-      prior_r.push_back(pr);
+      system.prior_col.push_back(pc);
+      system.prior_row.push_back(pr);
     }
   }
-  const std::size_t n = f.size();
+  const std::size_t n = system.pixels.size();
   if (n == 0) return Status::refinement_failed;
   for (std::size_t i = 0; i < n; ++i)
-    if (!std::isfinite(gx[i]) || !std::isfinite(gy[i]) || !std::isfinite(prior_c[i]) || !std::isfinite(prior_r[i]))
+    if (!std::isfinite(gx[i]) || !std::isfinite(gy[i]) || !std::isfinite(system.prior_col[i]) ||
+        !std::isfinite(system.prior_row[i]))
       return Status::not_finite;
-  const double f_norm = normalise(f);
-  if (f_norm == 0.0) return Status::refinement_failed;
+  system.f_norm = normalise(system.f);
+  const std::vector<double>& f = system.f;
 
-  // the steepest-descent images with the mean and f^ projected out (dic.zero_normalised_steepest_descent), over
-  // f_norm, and each pixel's monomials (shape.py), row-major (n, np) and (n, k)
-  std::vector<double> steepest(n * np), monomials(n * k);
+  // the steepest-descent images with the mean and f^ projected out (dic.zero_normalised_steepest_descent) and each
+  // pixel's monomials (shape.py), row-major (n, np) and (n, k)
+  system.steepest.assign(n * np, 0.0);
+  system.monomials.assign(n * k, 0.0);
   std::vector<double> mean(np, 0.0), along_f(np, 0.0);
   double basis[6];
   for (std::size_t i = 0; i < n; ++i) {
     shape.basis(dx[i], dy[i], basis);
-    shape.monomials(dx[i], dy[i], &monomials[i * k]);
-    double* row = &steepest[i * np];
+    shape.monomials(dx[i], dy[i], &system.monomials[i * k]);
+    double* row = &system.steepest[i * np];
     for (int j = 0; j < k; ++j) {
       row[j] = gx[i] * basis[j];
       row[k + j] = gy[i] * basis[j];
@@ -342,47 +311,40 @@ Status refine(const Pair& pair, const Settings& s, std::ptrdiff_t r0, std::ptrdi
     }
   }
   for (double& m : mean) m /= static_cast<double>(n);
-  std::vector<double> hessian(np * np, 0.0);
+  system.hessian.assign(np * np, 0.0);
   for (std::size_t i = 0; i < n; ++i) {
-    double* row = &steepest[i * np];
+    double* row = &system.steepest[i * np];
     for (int j = 0; j < np; ++j) row[j] -= mean[j] + f[i] * along_f[j];
     for (int a = 0; a < np; ++a)
-      for (int b = 0; b < np; ++b) hessian[a * np + b] += row[a] * row[b];
+      for (int b = 0; b < np; ++b) system.hessian[a * np + b] += row[a] * row[b];
   }
+  return system.f_norm == 0.0 ? Status::refinement_failed : Status::matched;
+}
+
+// IC-GN from `out.start` on the window's system (dic._inverse_compositional's loop); fills warp and iterations.
+Status refine(const Pair& pair, const Settings& s, const WindowSystem& system, WindowResult& out) {
+  const int k = system.terms, np = system.parameters();
+  const std::size_t n = system.pixels.size();
+  const double f_norm = system.f_norm;
+  std::vector<double> steepest = system.steepest, hessian = system.hessian;
   for (double& h : hessian) h /= f_norm * f_norm;
   for (double& v : steepest) v /= f_norm;
   Lu lu;
   if (!lu.factor(hessian, np)) return Status::refinement_failed;
 
-  const double centre_row = static_cast<double>(r0) + half, centre_col = static_cast<double>(c0) + half;
   // the map's rows x', y' over the monomials, a translation by the start (shape.WindowShape.translated)
-  std::array<double, 12> warp{};
-  warp[k - 3] = 1.0;
-  warp[k + k - 2] = 1.0;
-  warp[k - 1] = out.start[0];
-  warp[2 * k - 1] = out.start[1];
+  Warp warp = translation_warp(k, out.start);
   std::vector<double> g(n);
-  auto sample = [&](const std::array<double, 12>& a) {
-    for (std::size_t i = 0; i < n; ++i) {
-      const double* m = &monomials[i * k];
-      double moved_col = 0.0, moved_row = 0.0;
-      for (int j = 0; j < k; ++j) {
-        moved_col += a[j] * m[j];
-        moved_row += a[k + j] * m[j];
-      }
-      g[i] = sample_deformed(pair, centre_col + moved_col + prior_c[i], centre_row + moved_row + prior_r[i]);
-    }
-    return normalise(g);
-  };
   int iteration = 0;
   while (iteration < s.iterations) {
     ++iteration;
-    const double g_norm = sample(warp);
+    sample_through(pair.spline, pair.to_deformed, system, warp, g);
+    const double g_norm = normalise(g);
     if (!std::isfinite(g_norm)) return Status::not_finite;
     if (g_norm == 0.0) return Status::refinement_failed;
     std::vector<double> b(np, 0.0);
     for (std::size_t i = 0; i < n; ++i)
-      for (int j = 0; j < np; ++j) b[j] += steepest[i * np + j] * (g[i] - f[i]);
+      for (int j = 0; j < np; ++j) b[j] += steepest[i * np + j] * (g[i] - system.f[i]);
     const std::vector<double> p = lu.solve(b);
     if (!(k == 3 ? compose_affine(warp, p) : compose_quadratic(warp, p))) return Status::refinement_failed;
     const double translation_step = std::max(std::abs(p[0]), std::abs(p[k]));
@@ -460,24 +422,16 @@ WindowResult match_window_with(Workspace& ws, const Pair& pair, const Settings& 
   out.start = {static_cast<double>(peak_col) + along_cols - static_cast<double>(margin),
                static_cast<double>(peak_row) + along_rows - static_cast<double>(margin)};
   out.peak_score = score[best];
-  out.status = refine(pair, s, r0, c0, used, out);
+  WindowSystem system;
+  out.status = build_system(pair, s, r0, c0, used, system);
+  if (out.status == Status::matched) out.status = refine(pair, s, system, out);
+  if (pair.errors != nullptr && out.status != Status::not_finite && !system.pixels.empty())
+    out.error = window_error(system, *pair.errors, pair.reference, pair.spline, pair.to_deformed,
+                             out.status == Status::matched ? &out.warp : nullptr, out.start, out.peak_score);
   return out;
 }
 
 }  // namespace
-
-double sample_spline(const Image& coefficients, double row, double col) {
-  std::ptrdiff_t rows[4], cols[4];
-  double wr[4], wc[4];
-  axis_taps(row, coefficients.rows, rows, wr);
-  axis_taps(col, coefficients.cols, cols, wc);
-  double value = 0.0;
-  for (int i = 0; i < 4; ++i) {
-    const double* line = coefficients.data + rows[i] * coefficients.cols;
-    value += wr[i] * (wc[0] * line[cols[0]] + wc[1] * line[cols[1]] + wc[2] * line[cols[2]] + wc[3] * line[cols[3]]);
-  }
-  return value;
-}
 
 std::vector<double> zncc_map(const std::vector<double>& patch, std::ptrdiff_t p, const std::vector<double>& tmpl,
                              std::ptrdiff_t w) {

@@ -1,9 +1,10 @@
-// The hot loops of calfit's DIC windows (orchestrator/measure/dic.py): the ZNCC integer search and the
+// The hot loops of calfit's DIC windows (orchestrator/measure/dic.py): the ZNCC integer search, the
 // inverse-compositional Gauss-Newton (IC-GN) iterations with an affine or a quadratic window
-// (orchestrator/measure/shape.py). Python keeps everything else (the
-// prefilter, the spline coefficients, the error model); these loops take what it computed and return, per window,
-// where the search started Gauss-Newton and the warp it converged to, so that Python finishes each window exactly as
-// its own loops would have. dic.py's module text says what each step is and why.
+// (orchestrator/measure/shape.py) and, given the error model's maps, each window's terms of that model
+// (error_model.hpp). Python keeps the images' preparation (the prefilter, the spline coefficients, the noise maps)
+// and the error model's logic; these loops take what it computed and return, per window, where the search started
+// Gauss-Newton, the warp it converged to and the window's error terms, as its own loops would have computed them.
+// dic.py's module text says what each step is and why.
 #pragma once
 
 #include <array>
@@ -11,14 +12,10 @@
 #include <cstdint>
 #include <vector>
 
-namespace calfit::correlation {
+#include "error_model.hpp"
+#include "image.hpp"
 
-// A row-major image (or spline coefficients) the caller owns.
-struct Image {
-  const double* data = nullptr;
-  std::ptrdiff_t rows = 0, cols = 0;
-  double at(std::ptrdiff_t r, std::ptrdiff_t c) const { return data[r * cols + c]; }
-};
+namespace calfit::correlation {
 
 // What every window of one correlation reads (dic._Pair's part that the loops need).
 struct Pair {
@@ -27,6 +24,7 @@ struct Pair {
   Image grad_rows, grad_cols;           // the reference's spline gradients
   std::array<double, 6> to_deformed{};  // the first two rows of the 3x3 prior rigid motion on (column, row, 1)
   const double* prior = nullptr;        // (2, rows, cols) prior field (d_col, d_row) px, or none
+  const ErrorMaps* errors = nullptr;    // the error model's maps (error_model.hpp), or none: warps only
 };
 
 struct Settings {
@@ -54,11 +52,8 @@ struct WindowResult {
   // (dx^2, dx dy, dy^2, dx, dy, 1) quadratic, all 12
   std::array<double, 12> warp{};
   int iterations = 0;
+  WindowError error;   // filled when the pair carries the error model's maps (status matched or refinement_failed)
 };
-
-// The value at (row, col) of the cubic B-spline of `coefficients`, as scipy.ndimage.map_coordinates(order=3,
-// prefilter=False, mode="nearest") evaluates it: the coefficients beyond the edge are those at the edge.
-double sample_spline(const Image& coefficients, double row, double col);
 
 // The ZNCC of `tmpl` (w x w) at every integer shift inside `patch` (p x p), (p - w + 1)^2 row-major values, as
 // skimage.feature.match_template(patch, tmpl) gives them (0 where the patch is flat).

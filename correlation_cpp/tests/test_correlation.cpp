@@ -260,6 +260,47 @@ void test_threads_give_the_windows_of_one_thread(int shape_order) {
   CHECK(same);
 }
 
+// The error terms (error_model.hpp) on the exactly shifted spline image, without a prefilter and with the noise
+// share rho = 1 everywhere: the noise's covariance is s_e^2 H_s^-1 H H_s^-1, so with no noise in the reference
+// (H_s = H) it is s_e^2 H^-1 and scales as the deformed image's noise squared; the residual of an exact match is
+// nothing; noise above the texture leaves the window untextured; and the fallback rules read the start's ZNCC.
+void test_the_error_terms_of_an_exact_match(int shape_order) {
+  const Scene s = spline_scene(96, 2, -1, 0.3, -0.45);
+  const std::size_t cells = 96 * 96;
+  const std::vector<double> ones(cells, 1.0), edges(cells, 4.0);
+  ErrorMaps maps;
+  maps.noise_q = maps.rho_raw = {ones.data(), 96, 96};
+  maps.edge_q = maps.edge_raw = {edges.data(), 96, 96};
+  Settings settings{24, 64, 20, 1e-10, 1e-10, shape_order};
+  const std::vector<char> mask(24 * 24, 1);
+  const bool* used = reinterpret_cast<const bool*>(mask.data());
+  auto terms = [&](double sigma_reference, double sigma_deformed, double max_refinement) {
+    maps.noise_sigma = {sigma_reference, sigma_deformed};
+    maps.max_refinement_px = max_refinement;
+    Pair pair = s.pair();
+    pair.errors = &maps;
+    const WindowResult r = match_window(pair, settings, 48, 48, used);
+    CHECK(r.status == Status::matched);
+    return r.error;
+  };
+  const WindowError one = terms(0.0, 1.0, 3.0), two = terms(0.0, 2.0, 3.0);
+  CHECK(one.textured && !one.at_start);
+  CHECK_NEAR(one.confidence, 1.0, 1e-9);   // no prefilter: the raw ZNCC is the matched one
+  CHECK_NEAR(one.zncc, 1.0, 1e-9);
+  CHECK(one.covariance[0] > 0.0 && one.covariance[3] > 0.0);
+  CHECK_NEAR(one.covariance[1], one.covariance[2], 1e-12 * one.covariance[0]);
+  CHECK(one.covariance[0] * one.covariance[3] > one.covariance[1] * one.covariance[1]);
+  for (int j = 0; j < 4; ++j) CHECK_NEAR(two.covariance[j], 4.0 * one.covariance[j], 1e-9 * one.covariance[0]);
+  // the edges' part per unit s_edge^2: |grad I|^2 = 4 where rho = 1, so four times the noise's per unit s_e^2
+  for (int j = 0; j < 4; ++j) CHECK_NEAR(one.edge_covariance[j], 4.0 * one.covariance[j] / one.variance,
+                                          1e-9 * one.edge_covariance[0]);
+  CHECK(one.edge_sums[0] == 24.0 * 24.0);
+  CHECK(one.edge_sums[3] < 1e-6 * one.edge_sums[0]);   // y: the residual's squares of an exact match
+  CHECK(!terms(1e4, 1.0, 3.0).textured);                // reference noise far above the texture
+  const WindowError fallback = terms(0.0, 1.0, 0.0);   // no refinement allowed: measured at the start
+  CHECK(fallback.at_start && fallback.start_confidence > 0.9 && fallback.start_confidence < 1.0);
+}
+
 }  // namespace
 
 int main() {
@@ -270,6 +311,7 @@ int main() {
   for (int shape_order : {1, 2}) {
     test_border_tiny_and_nan_inputs_are_rejected_not_read(shape_order);
     test_threads_give_the_windows_of_one_thread(shape_order);
+    test_the_error_terms_of_an_exact_match(shape_order);
   }
   return calfit::testing::tally().finish();
 }

@@ -69,13 +69,15 @@ What each window reports (as DICe does: users see what was trusted):
 - `uncertainty_px`, `anisotropy`: the largest standard deviation and the ratio
   of the largest to the smallest (large along a lone edge: the aperture problem).
 
-Compiled loops. The integer search and the Gauss-Newton iterations, where the time goes, run in C++
+Compiled loops. The integer search, the Gauss-Newton iterations and each window's error terms run in C++
 (correlation_cpp/, the module `orchestrator._correlation`, on `workers` threads without the GIL): they read the
-prefiltered images, the spline coefficients scipy computed and the gradients from here, and return each window's
-start, its integer peak's ZNCC and the warp Gauss-Newton converged to; everything else (the checks that reject a
-window, the final ZNCC, the covariance and the residuals) is computed here from that warp, as for the loops in Python,
-which stay the reference (`correlate(..., compiled=False)`, or CALFIT_DIC_COMPILED=0 in the environment). The two agree
-to 1e-6 px (tests/measure/test_compiled_windows.py).
+prefiltered and raw images, the spline coefficients scipy computed, the gradients and the error model's maps from
+here, and return each window's start, its integer peak's ZNCC, the warp Gauss-Newton converged to and, at that warp,
+the ZNCCs, the covariances and the residual's sums (correlation_cpp/src/error_model.hpp). The checks that reject a
+window are made here on them (`_finished`), by the rules of the loops in Python, which stay the reference
+(`correlate(..., compiled=False)`, or CALFIT_DIC_COMPILED=0 in the environment). The two agree to 1e-6 px and to
+rounding in the error model (tests/measure/test_compiled_windows.py). Computed in Python from each window's warp,
+the error terms took twice the time of the compiled search and iterations.
 
 `WindowOperators` holds, per window, the linear map from a displacement field
 to what the window measures of it, and the cross-covariance of overlapping
@@ -258,11 +260,16 @@ class _Pair:
 
 
 def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_size_mm, *, window_px: int = 16,
-              search_factor: int = SEARCH_FACTOR, prior: RigidMotion | None = None,
+              search_factor: int = SEARCH_FACTOR, max_displacement_px: int | None = None,
+              prior: RigidMotion | None = None,
               prior_field_mm: np.ndarray | None = None, noise_sigma: tuple[float, float] | None = None,
               prefilter: Prefilter | None = None, pixel_masks=None, workers: int = 1,
               compiled: bool | None = None, shape: WindowShape = AFFINE) -> DICResult:
     """Correlate square windows of `window_px` centred at integer pixels `centres_rc` ((N, 2) rows, columns).
+
+    The integer search covers a square of search_factor x window_px pixels about each window, i.e. a displacement
+    of up to (search_factor - 1) window_px / 2 from the priors, or, given max_displacement_px, up to that many pixels
+    (the motion a user knows to be small searched for no further: most of a window's time is its search).
 
     prior: the rigid motion M of the bones (`align_on_bones`: I1(M(x)) ~ I0(x)), composed into every warp, so
     that the displacements are relative to the bones. prior_field_mm: a displacement field (2, H, W) (mm, I0's
@@ -294,10 +301,15 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     centres = np.atleast_2d(np.asarray(centres_rc, dtype=int))
     if noise_sigma is None:
         noise_sigma = (_signal_noise(reference), _signal_noise(deformed))
-    search_px = search_factor * window_px
+    if max_displacement_px is not None and not (isinstance(max_displacement_px, (int, np.integer))
+                                                and max_displacement_px >= 0):
+        raise ValueError(f"the windows' largest displacement is a whole number of pixels, not {max_displacement_px}")
+    search_px = (search_factor * window_px if max_displacement_px is None
+                 else window_px + 2 * int(max_displacement_px))
     smooth_reference = prefilter(reference)
     grad_rows, grad_cols = spline_gradient(smooth_reference, module=module)
-    edges_raw = edge_strength(reference, module)
+    # |grad I0|^2 of the raw reference: the gradients' own when nothing was smoothed
+    edges_raw = edge_strength(reference, module) if prefilter.sigma_px > 0 else grad_rows ** 2 + grad_cols ** 2
     rho = rician_variance_ratio(reference, noise_sigma[0])
     pair = _Pair(smooth_reference, ndimage.spline_filter(prefilter(deformed), order=3), reference,
                  ndimage.spline_filter(deformed, order=3) if prefilter.sigma_px > 0 else None, grad_rows, grad_cols,
@@ -314,9 +326,11 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
     edges = [EdgeResiduals() for _ in range(len(centres))]
     edge_covariance = np.zeros((len(centres), 2, 2))
     pixel_sets = window_pixel_sets(pixel_masks, len(centres), window_px)
-    searched = (None if module is None else
-                _compiled_search(module, pair, centres, window_px, search_px, prior_px, pixel_sets, workers, shape))
-    matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets, searched, shape), workers)
+    if module is None:
+        matches = _match_windows((pair, centres, window_px, search_px, prior_px, pixel_sets, shape), workers)
+    else:   # the compiled loops computed every window's error terms too, on `workers` threads
+        matches = [None if searched is None else _finished(searched) for searched in
+                   _compiled_search(module, pair, centres, window_px, search_px, prior_px, pixel_sets, workers, shape)]
     for k, match in enumerate(matches):
         if match is not None:
             displacement[k], confidence[k], covariance[k] = match.displacement, match.confidence, match.covariance
@@ -343,46 +357,78 @@ def correlate(reference: np.ndarray, deformed: np.ndarray, centres_rc, pixel_siz
 # windows than MIN_WINDOWS_PER_WORKER a process are matched here: forking costs more than they take.
 CHUNKS_PER_WORKER = 4
 MIN_WINDOWS_PER_WORKER = 50
-_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets, searched, shape)
+_WORKER_WINDOWS = None   # a forked worker's (pair, centres, window_px, search_px, prior_px, pixel_sets, shape)
 
 
 def _compiled_search(module, pair: _Pair, centres: np.ndarray, window_px: int, search_px: int, prior_px,
                      pixel_sets: list, threads: int, shape: WindowShape = AFFINE) -> list:
-    """Per window, what the compiled loops found (`_Searched`), on `threads` threads."""
+    """Per window, what the compiled loops found and its error terms (`_Searched`), on `threads` threads."""
     used = (np.stack(pixel_sets) if pixel_sets else np.zeros((0, window_px * window_px), bool)).astype(bool)
+
+    def grid(a):
+        return None if a is None else np.ascontiguousarray(a, dtype=float)
+
     found = module.match_windows(
-        *(np.ascontiguousarray(a, dtype=float) for a in (pair.reference, pair.spline, pair.grad_rows, pair.grad_cols,
-                                                         pair.to_deformed)),
-        None if prior_px is None else np.ascontiguousarray(prior_px, dtype=float),
-        np.ascontiguousarray(centres, dtype=np.int64).reshape(-1, 2), np.ascontiguousarray(used), int(window_px),
-        int(search_px), GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_TOLERANCE_PX, GAUSS_NEWTON_GRADIENT_TOLERANCE,
-        max(int(threads), 1), shape.order)
+        *(grid(a) for a in (pair.reference, pair.spline, pair.grad_rows, pair.grad_cols, pair.to_deformed)),
+        grid(prior_px), np.ascontiguousarray(centres, dtype=np.int64).reshape(-1, 2), np.ascontiguousarray(used),
+        int(window_px), int(search_px), GAUSS_NEWTON_ITERATIONS, GAUSS_NEWTON_TOLERANCE_PX,
+        GAUSS_NEWTON_GRADIENT_TOLERANCE, max(int(threads), 1), shape.order,
+        raw_reference=None if pair.raw_spline is None else grid(pair.raw_reference), raw_spline=grid(pair.raw_spline),
+        noise_q=grid(pair.noise_q), edge_q=grid(pair.edge_q), rho_raw=grid(pair.rho_raw), edge_raw=grid(pair.edge_raw),
+        kernel=grid(pair.prefilter.kernel), noise_gain=pair.prefilter.noise_gain,
+        derivative_noise_gain=pair.prefilter.derivative_noise_gain, noise_sigma_reference=pair.noise_sigma[0],
+        noise_sigma_deformed=pair.noise_sigma[1], max_refinement_px=MAX_REFINEMENT_PX, zncc_slack=ZNCC_SLACK)
     searched = []
-    for status, start, peak, warp in zip(found["status"], found["start"], found["peak_score"], found["warp"]):
+    for k, (status, start, peak, warp) in enumerate(zip(found["status"], found["start"], found["peak_score"],
+                                                       found["warp"])):
         status = int(status)
         if status in (module.OUTSIDE, module.FLAT, module.NOT_FINITE):
             searched.append(None)   # matched by nobody: the window is rejected as when it does not fit
             continue
         full = shape.from_rows(warp) if status == module.MATCHED else None
-        searched.append(_Searched(start.copy(), float(peak), full))
+        textured, at_start = (bool(v) for v in found["flags"][k, 1:])   # (the first: conditioned, in at_start)
+        confidence, start_confidence, variance = (float(v) for v in found["scores"][k, 1:])   # (the first: the ZNCC)
+        terms = _ErrorTerms(textured, at_start, confidence, start_confidence, variance,
+                            found["covariances"][k, 0].copy(), found["covariances"][k, 1].copy(),
+                            EdgeResiduals(int(found["edge_sums"][k, 0]), *(float(v) for v in found["edge_sums"][k, 1:])))
+        searched.append(_Searched(start.copy(), float(peak), full, terms))
     return searched
 
 
 @dataclass(frozen=True)
+class _ErrorTerms:
+    """A window's error terms from the compiled loops (correlation_cpp/src/error_model.hpp), what
+    `_inverse_compositional` computes from the same warp: whether its texture rises above the noise, whether the
+    window is measured at its search's start (`_finished`), the ZNCC of the raw images at the match and at the
+    start, s_e^2, the covariance under the noise and per unit s_edge^2 (px^2)
+    and the sums its residual adds to the edges' estimate."""
+
+    textured: bool
+    at_start: bool   # measured at the search's start: no warp, not conditioned, or by the rules of `_finished`
+    confidence: float
+    start_confidence: float
+    variance: float
+    covariance: np.ndarray
+    edge_covariance: np.ndarray
+    edges: EdgeResiduals
+
+
+@dataclass(frozen=True)
 class _Searched:
-    """A window's integer search and Gauss-Newton iterations from the compiled loops: the start (d_col, d_row) px,
-    the integer peak's ZNCC and the final warp's matrix (`shape.WindowShape.matrix`; None where Gauss-Newton could
-    not proceed)."""
+    """A window's integer search, Gauss-Newton iterations and error terms from the compiled loops: the start (d_col,
+    d_row) px, the integer peak's ZNCC, the final warp's matrix (`shape.WindowShape.matrix`; None where Gauss-Newton
+    could not proceed) and the `_ErrorTerms` at it."""
 
     start: np.ndarray
     peak_score: float
     warp: np.ndarray | None
+    terms: _ErrorTerms
 
 
 def _match_windows(job: tuple, workers: int) -> list:
-    """Every window's `_Match` (or None) of job = (pair, centres, window_px, search_px, prior_px, pixel_sets,
-    searched, shape), in order; in `workers` forked processes when the platform forks (the images reach them by the fork,
-    not a pipe). searched: None (the loops in Python) or each window's `_Searched` from the compiled loops."""
+    """Every window's `_Match` (or None) of job = (pair, centres, window_px, search_px, prior_px, pixel_sets, shape)
+    by the Python loops, in order; in `workers` forked processes when the platform forks (the images reach them by
+    the fork, not a pipe)."""
     count = len(job[1])
     workers = min(int(workers), count // MIN_WINDOWS_PER_WORKER)
     if workers <= 1 or "fork" not in multiprocessing.get_all_start_methods():
@@ -399,12 +445,7 @@ def _hold_windows(job: tuple) -> None:
 
 
 def _match_chunk(indices, job: tuple | None = None) -> list:
-    pair, centres, window_px, search_px, prior_px, pixel_sets, searched, shape = (_WORKER_WINDOWS if job is None
-                                                                                   else job)
-    if searched is not None:
-        return [None if searched[k] is None else
-                _correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k],
-                                  searched[k], shape) for k in indices]
+    pair, centres, window_px, search_px, prior_px, pixel_sets, shape = _WORKER_WINDOWS if job is None else job
     return [_correlate_window(pair, centres[k][0], centres[k][1], window_px, search_px, prior_px, pixel_sets[k],
                               shape=shape) for k in indices]
 
@@ -520,10 +561,10 @@ class _Match:
 
 
 def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, used: np.ndarray,
-                      searched: _Searched | None = None, shape: WindowShape = AFFINE) -> _Match | None:
-    """One window's `_Match`, or None if it does not fit or is flat. used: the pixels it matches (flat boolean over
-    its square, `window_pixel_sets`); the integer search that starts Gauss-Newton uses the whole square. searched:
-    the compiled loops' search and iterations for this window (None: both run here)."""
+                      shape: WindowShape = AFFINE) -> _Match | None:
+    """One window's `_Match` by the Python loops (the compiled loops' reference), or None if it does not fit or is
+    flat. used: the pixels it matches (flat boolean over its square, `window_pixel_sets`); the integer search that
+    starts Gauss-Newton uses the whole square."""
     height, width = pair.reference.shape
     r0, c0 = row - window_px // 2, col - window_px // 2
     if r0 < 0 or c0 < 0 or r0 + window_px > height or c0 + window_px > width:
@@ -531,28 +572,36 @@ def _correlate_window(pair: _Pair, row, col, window_px, search_px, prior_px, use
     template = pair.reference[r0:r0 + window_px, c0:c0 + window_px]
     if template.std() < 1e-12:
         return None
-    if searched is None:
-        margin = (search_px - window_px) // 2
-        search_rows, search_cols = np.mgrid[r0 - margin:r0 + window_px + margin, c0 - margin:c0 + window_px + margin]
-        prior_cols, prior_rows = _prior_at(prior_px, search_rows, search_cols)
-        score = match_template(_sample(pair.spline, pair.to_deformed, search_cols + prior_cols,
-                                       search_rows + prior_rows), template)
-        peak_row, peak_col = np.unravel_index(int(np.argmax(score)), score.shape)
-        start = np.array([peak_col + _parabola_offset(score[peak_row, :], peak_col) - margin,
-                          peak_row + _parabola_offset(score[:, peak_col], peak_row) - margin])
-        window_prior = (prior_cols[margin:margin + window_px, margin:margin + window_px].ravel(),
-                        prior_rows[margin:margin + window_px, margin:margin + window_px].ravel())
-        peak_score = float(score[peak_row, peak_col])
-    else:
-        window_rows, window_cols = np.mgrid[r0:r0 + window_px, c0:c0 + window_px]
-        prior_cols, prior_rows = _prior_at(prior_px, window_rows, window_cols)
-        window_prior = (prior_cols.ravel(), prior_rows.ravel())
-        start, peak_score = searched.start, searched.peak_score
-    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used, searched, shape)
+    margin = (search_px - window_px) // 2
+    search_rows, search_cols = np.mgrid[r0 - margin:r0 + window_px + margin, c0 - margin:c0 + window_px + margin]
+    prior_cols, prior_rows = _prior_at(prior_px, search_rows, search_cols)
+    score = match_template(_sample(pair.spline, pair.to_deformed, search_cols + prior_cols,
+                                   search_rows + prior_rows), template)
+    peak_row, peak_col = np.unravel_index(int(np.argmax(score)), score.shape)
+    start = np.array([peak_col + _parabola_offset(score[peak_row, :], peak_col) - margin,
+                      peak_row + _parabola_offset(score[:, peak_col], peak_row) - margin])
+    window_prior = (prior_cols[margin:margin + window_px, margin:margin + window_px].ravel(),
+                    prior_rows[margin:margin + window_px, margin:margin + window_px].ravel())
+    peak_score = float(score[peak_row, peak_col])
+    found = _inverse_compositional(pair, template, r0, c0, start, window_prior, used, shape)
     if found is None or np.max(np.abs(found[0].displacement - start)) > MAX_REFINEMENT_PX or found[1] < peak_score - ZNCC_SLACK:
         return _Match.unmeasured(start, _raw_zncc(pair, r0, c0, window_px, start, window_prior, used=used,
                                                   shape=shape))
     return found[0]
+
+
+def _finished(searched: _Searched) -> _Match:
+    """A window's `_Match` from the compiled loops' warp and error terms. The loops applied `_correlate_window`'s
+    rules (MAX_REFINEMENT_PX and ZNCC_SLACK, passed to them) and `_inverse_compositional`'s (the condition number,
+    the texture above the noise) and say which held."""
+    terms, start, warp = searched.terms, searched.start, searched.warp
+    if warp is None or terms.at_start:
+        return _Match.unmeasured(start, terms.start_confidence)
+    displacement = np.array([warp[-3, -1], warp[-2, -1]])
+    if not terms.textured:
+        return _Match.unmeasured(displacement, terms.confidence)
+    return _Match(displacement, terms.confidence, terms.covariance, terms.variance, warp[-3:-1, -3:-1] - np.eye(2),
+                  terms.edges, terms.edge_covariance)
 
 
 def _parabola_offset(profile: np.ndarray, peak: int) -> float:
@@ -622,13 +671,12 @@ def steepest_descent(grad_cols: np.ndarray, grad_rows: np.ndarray, shape: Window
 
 
 def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np.ndarray,
-                           searched: _Searched | None = None,
                            shape: WindowShape = AFFINE) -> tuple[_Match, float] | None:
-    """IC-GN with the window shape function `shape` (affine or quadratic) on the zero-normalised SSD of the prefiltered images,
-    the deformed image sampled through the prior motion and the prior field (`prior`: (d_col, d_row) px at the
-    window's pixels), over the window's pixels `used` (flat boolean). Returns the window's `_Match` (module text) and
-    the ZNCC of the prefiltered images there. searched: the compiled loops' result, whose warp replaces the
-    iterations here (None: they run here)."""
+    """IC-GN with the window shape function `shape` (affine or quadratic) on the zero-normalised SSD of the
+    prefiltered images, the deformed image sampled through the prior motion and the prior field (`prior`: (d_col,
+    d_row) px at the window's pixels), over the window's pixels `used` (flat boolean). Returns the window's `_Match`
+    (module text) and the ZNCC of the prefiltered images there. The compiled loops compute the same
+    (correlation_cpp/src/error_model.hpp, `_finished`)."""
     f_hat, f_norm = _normalise(template.ravel()[used])
     if f_norm == 0.0:
         return None
@@ -653,20 +701,15 @@ def _inverse_compositional(pair: _Pair, template, r0, c0, start, prior, used: np
         return _normalise(_sample(pair.spline, pair.to_deformed, centre_col + moved[0] + prior_used[0],
                                   centre_row + moved[1] + prior_used[1]))
 
-    if searched is not None:
-        if searched.warp is None:   # the compiled iterations met a flat sample or a singular step
+    for _ in range(GAUSS_NEWTON_ITERATIONS):
+        g_hat, g_norm = sample(warp)
+        if g_norm == 0.0:
             return None
-        warp = searched.warp
-    else:
-        for _ in range(GAUSS_NEWTON_ITERATIONS):
-            g_hat, g_norm = sample(warp)
-            if g_norm == 0.0:
-                return None
-            step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
-            warp = warp @ np.linalg.inv(shape.matrix(step))
-            if (np.max(np.abs(step[translation])) < GAUSS_NEWTON_TOLERANCE_PX
-                    and np.max(np.abs(step[shape.deformation])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
-                break
+        step = np.linalg.solve(hessian, steepest.T @ (g_hat - f_hat))
+        warp = warp @ np.linalg.inv(shape.matrix(step))
+        if (np.max(np.abs(step[translation])) < GAUSS_NEWTON_TOLERANCE_PX
+                and np.max(np.abs(step[shape.deformation])) < GAUSS_NEWTON_GRADIENT_TOLERANCE):
+            break
     g_hat, g_norm = sample(warp)
     displacement, zncc = np.array([warp[-3, -1], warp[-2, -1]]), float(f_hat.ravel() @ g_hat)
     # the raw noise of the two images as it enters the normalised difference (the deformed one scaled to the reference)

@@ -75,6 +75,13 @@ class Prefilter:
         object.__setattr__(self, "_kernel", kernel)
 
     @property
+    def kernel(self) -> np.ndarray:
+        """The kernel's 2 radius + 1 taps along one axis (read-only; [1] without a prefilter)."""
+        view = self._kernel.view()
+        view.flags.writeable = False
+        return view
+
+    @property
     def radius(self) -> int:
         """Half-width (pixels) of the kernel: how far a window's error reaches beyond its own pixels."""
         return int(TRUNCATE * self.sigma_px + 0.5) if self.sigma_px > 0 else 0

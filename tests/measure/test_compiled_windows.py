@@ -4,9 +4,10 @@ replace, which stay the reference (`dic.correlate(..., compiled=False)`).
 On the phantom's images, through everything a window can meet in `calfit measure` (the bones' rigid motion, a prior
 field from a first pass, pixel sets that leave out the outline, windows whose search area leaves the image and windows
 that do not fit in it), the two give the same displacements to 1e-6 px, the same confidences and the same error model
-(covariances, intensity variances, the edges' part): the compiled loops return each window's start and warp, and the
-rest is computed in Python from them. Then inputs that must be refused with one sentence or rejected window by window,
-never crash: tiny images, NaN pixels, centres far outside, arrays of the wrong shape or type.
+(covariances, intensity variances, the edges' part, the residuals' sums): the compiled loops return each window's
+start, warp and error terms, which the Python loops compute in their own way (numpy, scipy's filters). Then inputs
+that must be refused with one sentence or rejected window by window, never crash: tiny images, NaN pixels, centres
+far outside, arrays of the wrong shape or type.
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ def _assert_same(reference, compiled):
         assert np.max(np.abs(a[finite] - b[finite]), initial=0.0) <= 1e-6 * scale, name
     for mine, theirs in zip(reference.edge_residuals, compiled.edge_residuals):
         assert mine.count == theirs.count
-        assert mine.y == pytest.approx(theirs.y, rel=1e-6, abs=1e-12)
+        for name in ("z", "zz", "y", "yz"):
+            assert getattr(mine, name) == pytest.approx(getattr(theirs, name), rel=1e-6, abs=1e-12), name
 
 
 @pytest.mark.parametrize("window, shape", [(16, "affine"), (32, "affine"), (32, "quadratic")])
