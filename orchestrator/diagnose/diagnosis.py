@@ -36,6 +36,7 @@ from ..engine.runner import Evaluator
 from ..fit.identify import jacobian_in_x, steps_into_box
 from ..model.effects import LOCAL_PROBE, effect
 from ..model.forward import LegModel
+from ..model.heterogeneity import is_cut
 from ..model.regions import LegFrame
 from .candidates import (
     GarmentRuns,
@@ -44,7 +45,7 @@ from .candidates import (
     garment_parameters,
     with_changes,
 )
-from .locate import PatchScore, locate
+from .locate import PatchScore, locate, locate_cuts
 from .maps import ResidualMaps, level_maps, level_misfits, level_points, residual_maps
 from .score import (
     ALPHA,
@@ -85,6 +86,7 @@ class Diagnosis:
     wall_time_s: float
     not_ranked: dict[str, str] = field(default_factory=dict)
     patches: list[PatchScore] = field(default_factory=list)   # where a local stiffness change would help, best first
+    cuts: list[PatchScore] = field(default_factory=list)      # the best straight boundary of a stiffness change
     levels: list[dict] = field(default_factory=list)   # several socks: each level's misfit and floor (`level_misfits`)
     level_maps: list[ResidualMaps] = field(default_factory=list)   # and its residual maps, level by level
 
@@ -98,6 +100,7 @@ class Diagnosis:
         values["ranking"] = [EffectScore(**s) for s in data["ranking"]]
         values["maps"] = ResidualMaps(**data["maps"])
         values["patches"] = [PatchScore(**p) for p in data.get("patches", [])]
+        values["cuts"] = [PatchScore(**p) for p in data.get("cuts", [])]
         values["level_maps"] = [ResidualMaps(**m) for m in data.get("level_maps", [])]
         return cls(**values)
 
@@ -217,13 +220,15 @@ def diagnose(evaluator_factory, model: LegModel, theta: Sequence[float], objecti
         top.tied_with = close + explaining[:max(0, MAX_TIED - len(close))]
     explained, verdict = ranking_verdict(ranking, misfit, floor, lack_of_fit)
     maps = residual_maps(positions_mm, residual_mm, frame)
-    patches = []
+    patches, cuts = [], []
     if probing and lack_of_fit and source.startswith("engine"):
         local = jacobian[:, column:column + len(probe.groups)]
         patches = locate(r, J, local, probe.groups, frame, chi2_to_misfit, deff, misfit, alpha)
+        if not any(is_cut(name) for name in model.effects):   # one cut per model
+            cuts = locate_cuts(r, J, local, probe.groups, probe.mesh, frame, chi2_to_misfit, deff, misfit, alpha)
     return Diagnosis(list(model.effects), list(model.space.names), list(map(float, theta)), misfit, floor, chi2, n,
                      lack_of_fit_p, deff, rho, ranking, explained, verdict, maps, runs, source,
-                     time.perf_counter() - began, skipped, patches, level_misfits(objective, r, p),
+                     time.perf_counter() - began, skipped, patches, cuts, level_misfits(objective, r, p),
                      level_maps(objective, residual_mm, frame))
 
 

@@ -6,7 +6,9 @@ theta (`diagnosis.diagnose`: the score test, design-effect corrected), and sever
 (`refit.refit_whitened`), not only the best: the linear score misjudges effects far from linear (a stiffness ratio of
 3 is ln 3 = 1.1 from zero; a band's response to a volume change). Refitted are the best MIN_REFITTED by score among
 those whose own score is significant at alpha, every other whose statistic is at least SCORE_FRACTION of the best's,
-and those the score cannot tell from the best (`EffectScore.tied_with`), at most MAX_REFITTED. Of the refits, the one
+and those the score cannot tell from the best (`EffectScore.tied_with`), at most MAX_REFITTED; beside them the best
+straight cut of the muscle (`locate.locate_cuts`: a compartment behind a septum the image does not show) when its
+score is significant, its line fitted by `_refine_cut` and counted as two parameters more. Of the refits, the one
 with the lowest BIC is the choice, and it is added when both
   (a) its own likelihood-ratio test is significant at alpha: the drop of chi^2 from the current model divided by the
       design effect D of the current model's residual (the score's correction, `score.design_effect`: a smooth model
@@ -52,10 +54,12 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy import stats
 
-from ..model.effects import CATALOG
+from ..model.effects import CATALOG, CUT_PARAMETER
 from ..model.forward import LegModel
+from ..model.heterogeneity import cut_name, is_cut, parse_cut
 from ..model.regions import LegFrame
 from .diagnosis import Diagnosis, diagnose
+from .locate import CUT_NORMALS, CUT_STEP_MM, PatchScore
 from .maps import level_points
 from .refit import Refit, refit_model, refit_whitened
 from .score import (
@@ -74,6 +78,9 @@ MAX_REFITTED = 5         # ...up to five refits a step
 TIE_BIC = 2.0            # BIC within 2: the data cannot choose between two models (a Bayes factor under e)
 REMOVAL_BIC = 2.0        # backward: an effect goes when the BIC without it is within 2 of the model's, or lower
 NESTED = (("friction", "bridging"),)   # (larger, smaller): the larger's columns hold the smaller's
+CUT_GEOMETRY = 2         # a cut's line: its normal's angle and its offset, fitted beside its ratio
+CUT_REFINE_REFITS = 12   # the line's compass search: at most twelve refits...
+CUT_REFINE_MIN_DEG = 0.9  # ...down to steps of about a degree (and 0.3 mm: the two steps are halved together)
 
 
 @dataclass
@@ -251,9 +258,11 @@ def choose_removal(current_chi2: float, current_bic: float, without: Sequence[di
 def counted_bic(fit: Refit, effects: Sequence[str], garment: str, n_residuals: int) -> float:
     """A fit's BIC with the switch from Laplace's law to the explicit band (bridging, friction) counted as the one
     parameter it is in the effect's test (`candidates.garment_parameters`): the band's model has no parameter for it,
-    so its BIC alone would let it in for free."""
+    so its BIC alone would let it in for free; and a cut's line, fitted outside its model (`_refine_cut`), as the
+    CUT_GEOMETRY parameters it is."""
     switched = garment == "laplace" and any(name in CATALOG and CATALOG[name].apply is None for name in effects)
-    return float(fit.bic + (np.log(n_residuals) if switched else 0.0))
+    cuts = sum(1 for name in effects if is_cut(name))
+    return float(fit.bic + (np.log(n_residuals) if switched else 0.0) + CUT_GEOMETRY * cuts * np.log(n_residuals))
 
 
 def _theta_for(model: LegModel, fit: Refit) -> list[float]:
@@ -307,9 +316,14 @@ def stepwise(evaluator_factory, model: LegModel, objective, frame: LegFrame, fir
             stopped = "nothing significant"   # what is left is outside the catalog
             break
         scores = {s.effect: s for s in diagnosis.ranking}
+        names = refit_candidates(diagnosis.ranking, alpha)
+        for cut in diagnosis.cuts[:1]:
+            if cut.significant:   # the best straight boundary of a stiffness change, beside the catalog's
+                scores[cut.effect] = cut_score(cut)
+                names.append(cut.effect)
         tried = _side_by_side(lambda factory, name: _try_addition(factory, current, name, scores[name],
                                                                   diagnosis.design_effect, objective, counted),
-                              count, refit_candidates(diagnosis.ranking, alpha), parallel)
+                              count, names, parallel)
         choice, ties = choose_addition(current.bic, tried, alpha)
         first_tried = tried if len(steps) == 1 else first_tried
         if choice is None:
@@ -356,9 +370,45 @@ def _side_by_side(work, count: _Counted, names: Sequence[str], parallel: int) ->
         return list(pool.map(lambda name: work(quiet, name), names))
 
 
+def cut_score(cut: PatchScore) -> EffectScore:
+    """The best straight cut (`locate.locate_cuts`) as a candidate of the step: its ratio and its line's two
+    coordinates (`_refine_cut`), its score's p-value Bonferroni over the places scored."""
+    return EffectScore(cut.effect, [CUT_PARAMETER], cut.statistic, 1 + CUT_GEOMETRY, cut.p_value, 0.0,
+                       cut.predicted_misfit, [1.0], [float(np.log(cut.predicted_ratio))], cut.significant)
+
+
+def _refine_cut(count, current: Step, name: str, fit: Refit, r: np.ndarray, objective) -> tuple[str, Refit, np.ndarray]:
+    """The cut's line fitted: a compass search on its normal's angle and its offset from the scored place (steps of
+    half the scoring grid, halved when no neighbour lowers chi^2), each place's ratio refitted, at most
+    CUT_REFINE_REFITS refits. The scoring's grid is coarser than the line matters: its columns are the probe's
+    groups weighted by area (blind-03: the scored line 3 degrees and 2.4 mm off left 1.25 x the floor, the true
+    one 1.09 x)."""
+    best = (name, fit, r)
+    steps = [180.0 / CUT_NORMALS, CUT_STEP_MM / 2.0]
+    refits = 0
+    while refits < CUT_REFINE_REFITS and steps[0] >= CUT_REFINE_MIN_DEG:
+        cut, moved = parse_cut(best[0]), False
+        for d_angle, d_offset in ((steps[0], 0.0), (-steps[0], 0.0), (0.0, steps[1]), (0.0, -steps[1])):
+            trial = cut_name(cut.kind, round((cut.normal_deg + d_angle) % 360.0, 4), round(cut.offset_mm + d_offset, 4))
+            refits += 1
+            try:
+                trial_fit, trial_r = refit_whitened(count, current.model, current.fit.theta, [trial], objective)
+            except RuntimeError:   # the engine cannot solve that place: the others are tried
+                continue
+            if trial_fit.chi2 < best[1].chi2:
+                best, moved = (trial, trial_fit, trial_r), True
+        if not moved:
+            steps = [steps[0] / 2.0, steps[1] / 2.0]
+    return best
+
+
 def _try_addition(count, current: Step, name: str, score: EffectScore, deff: float, objective, counted) -> Tried:
+    """A candidate refitted from the current model (a cut's line fitted too: `_refine_cut`; its BIC counts the
+    line's two coordinates)."""
     try:
         fit, r = refit_whitened(count, current.model, current.fit.theta, [name], objective)
+        if is_cut(name):
+            name, fit, r = _refine_cut(count, current, name, fit, r, objective)
     except RuntimeError as error:   # the engine cannot solve the refitted model somewhere: said, not fatal
         return Tried(name, score.dof, score.statistic, None, None, None, None, failure=str(error))
     fit.effects = current.effects + [name]   # the band's model lists no bridging: named by the effects asked for

@@ -205,6 +205,7 @@ def geometry_columns(setup, theta: Sequence[float], measurements, *, effects: Se
         weights.append(interface_sigma_mm ** 2)
     info = {"skin_sigma_mm": skin_sigma_mm, "interface_sigma_mm": interface_sigma_mm, "cutoff_mm": cutoff_mm,
             "modes": len(variances), "perimeter_mm": perimeter, "theta": [float(v) for v in theta],
+            "effects": list(model.effects),
             "skin_model": "the skin moved under the band" if model.band is not None else "laplace"}
     if tension_N_per_mm is not None:
         info["tension_N_per_mm"] = tension

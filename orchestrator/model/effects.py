@@ -20,12 +20,14 @@ An effect's parameters are additive (`linear`): zero is "effect off", negative v
 | unloaded_curvature | alpha_unloaded               | *LAPLACE PRESSURE, REFERENCE=alpha  |
 | band_profile    | band_a1, band_b1                | *VOLUME CHANGE of the band's sectors|
 
-Beyond the catalog, three effects act on the material groups of `orchestrator.model.heterogeneity` (every tissue cut
+Beyond the catalog, four effects act on the material groups of `orchestrator.model.heterogeneity` (every tissue cut
 by sector and depth, one material each): `patch:<groups>` (dlnE_patch: every modulus of the law, C10 and
 Kv alike, times exp(dlnE_patch) in those groups, the local stiffness change the diagnosis proposes where the
-catalog explains nothing), `region:<fat|muscle>:<start deg>:<end deg>` (dlnE: the same in an angular sector,
-cut on any mesh: how a phantom with a stiff patch is made) and `local` (dlnE_<group> of every group: the
-diagnosis' probe of where a stiffness change would reduce the residual).
+catalog explains nothing), `cut:<fat|muscle>:<normal deg>:<offset mm>` (dlnE_cut: the same beyond a straight line,
+the groups it crosses split on their elements' centroids: a compartment whose septum the images do not show),
+`region:<fat|muscle>:<start deg>:<end deg>` (dlnE: the same in an angular sector, cut on any mesh: how a phantom
+with a stiff patch is made) and `local` (dlnE_<group> of every group: the diagnosis' probe of where a stiffness
+change would reduce the residual).
 
 Which garment model carries an effect (`Effect.garments`). `friction` and `bridging` are not in the Laplace-law
 deck: they need the explicit garment band (`templates/leg_garment.inp.j2`, penalty contact, friction). The
@@ -52,7 +54,18 @@ from ..core.errors import EffectError
 from ..core.materials import engine_constant
 from ..core.units import KPA_PER_MPA
 from ..meshing.mesh import compartment_sets, muscle_sets
-from .heterogeneity import FAT_MODES, KINDS, MODES, PATCH_PREFIX, REGION_PREFIX, is_group, parse_region, patch_groups
+from .heterogeneity import (
+    CUT_PREFIX,
+    FAT_MODES,
+    KINDS,
+    MODES,
+    PATCH_PREFIX,
+    REGION_PREFIX,
+    is_group,
+    parse_cut,
+    parse_region,
+    patch_groups,
+)
 
 SECOND_BONE = "BONE2"
 PROFILE_NAME = "GARMENT"
@@ -229,14 +242,15 @@ def _apply_local(state: LegDeckState, values: dict[str, float]) -> None:
 
 def patch_effect(name: str) -> Effect:
     """Every modulus times exp(dlnE_patch) in the groups of `name` (patch:G1+G2+...)."""
-    members = patch_groups(name)
+    members = set(patch_groups(name))
 
     def apply(state: LegDeckState, values: dict[str, float]) -> None:
-        for group in members:
-            _add_log_factor(state, "dlnE_patch", group, 1.0, values["dlnE_patch"])
+        for group in state.groups:   # a group that a cut split is in the patch with both of its parts
+            if group.mesh_group in members:
+                _add_log_factor(state, "dlnE_patch", group.name, 1.0, values["dlnE_patch"])
 
     def requirement(element_sets, node_sets):
-        missing = sorted(set(members) - set(element_sets))
+        missing = sorted(m for m in members if not any(s == m or s.startswith(m + "C") for s in element_sets))
         return f"the model has no material group {', '.join(missing)}" if missing else None
 
     return Effect(name, "stiffness change in a patch of material groups",
@@ -261,6 +275,31 @@ def region_effect(name: str) -> Effect:
                   "A stiff or soft patch of tissue, wherever the mesh's elements lie (phantoms with physics outside the catalog).",
                   _fixed(EffectParameter("dlnE", "1", -2.5, 2.5, 0.25, "ln of the region's stiffness ratio")), apply,
                   requirement=_needs_groups)
+
+
+CUT_PARAMETER = "dlnE_cut"   # one cut per model (`heterogeneity.groups_for`)
+
+
+def cut_effect(name: str) -> Effect:
+    """Every modulus times exp(dlnE_<name>) in the part of a tissue beyond a straight line (`heterogeneity.Cut`):
+    the groups the line crosses are split on their elements' centroids (`heterogeneity.mesh_groups`)."""
+    try:
+        parse_cut(name)
+    except ValueError as error:
+        raise EffectError(str(error)) from None
+    parameter = CUT_PARAMETER
+
+    def apply(state: LegDeckState, values: dict[str, float]) -> None:
+        for group in state.groups:
+            if name in group.cuts:
+                _add_log_factor(state, parameter, group.name, 1.0, values[parameter])
+
+    return Effect(name, "stiffness change beyond a straight boundary in one tissue",
+                  "A compartment bounded by a septum the images do not show (the interosseous membrane, an "
+                  "intermuscular septum thinner than the slice): a stiffness step along a line.",
+                  _fixed(EffectParameter(parameter, "1", -2.5, 2.5, 0.25, "ln of the stiffness ratio beyond the line")),
+                  apply, requirement=_needs_groups)
+
 
 
 def _modulus_lines(group: str, law, constants_MPa: dict[str, float], dln_factor: float) -> list[tuple[str, float]]:
@@ -414,6 +453,8 @@ def effect(name: str) -> Effect:
         return patch_effect(name)
     if name.startswith(REGION_PREFIX):
         return region_effect(name)
+    if name.startswith(CUT_PREFIX):
+        return cut_effect(name)
     if name == LOCAL_PROBE.name:
         return LOCAL_PROBE
     raise EffectError(f"unknown effect {name!r}; the catalog has: {', '.join(CATALOG)} (and patch:<groups>, "

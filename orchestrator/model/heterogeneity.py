@@ -17,7 +17,15 @@ tissue's constants, every modulus (C10 and Kv alike: a stiffer region keeps its 
 - patches (`patch_effect`): one factor exp(p) on a set of groups, the local stiffness change the diagnosis
   proposes where the catalog explains nothing; du/dp = sum_(g in patch) C10_g du/dC10_g;
 - regions (`region_effect`, for the phantom's truth): a stiffness ratio in an angular sector of one tissue,
-  cut on the element centroids of whatever mesh carries it (not the groups of the fit).
+  cut on the element centroids of whatever mesh carries it (not the groups of the fit);
+- cuts (`cut_effect`): one factor exp(p) on the part of a tissue beyond a straight line, cut on the element
+  centroids: a compartment whose boundary the images do not show. The calf's compartments are bounded by
+  nearly straight sheets (the interosseous membrane between tibia and fibula, the intermuscular septa from the
+  fibula to the fascia); a septum too thin for the slice is not in the image, and what differs on its two sides is
+  a stiffness step along a line, which neither the smooth field nor a sector patch (a wedge from the leg's centre)
+  draws. The line is given by the display angle of its normal, pointing into the changed part, and its distance
+  from the leg's centre along it; the mesh groups it crosses are split in two, so that the smooth field, patches
+  and the local probe keep working on either side of it.
 
 The exponential keeps every C10 positive for any parameter value; at zero the derivative is the mode itself.
 """
@@ -25,6 +33,7 @@ The exponential keeps every C10 positive for any parameter value; at zero the de
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -41,6 +50,7 @@ KINDS = ("fat", "muscle")
 SECTOR_DEG = 360.0 / SECTORS
 PATCH_PREFIX = "patch:"
 REGION_PREFIX = "region:"
+CUT_PREFIX = "cut:"
 GROUP_PREFIX = "G_"
 GROUPED_EFFECTS = ("heterogeneity", "local")
 
@@ -63,6 +73,13 @@ class Group:
     area_mm2: float
     depth_range_mm: tuple[float, float]   # distance of its element centroids to the skin
     region: str = ""      # the region effect that made it (truth cases), "" for mesh groups
+    cuts: tuple[str, ...] = ()   # the cut effects whose changed part holds the group
+    parent: str = ""      # the mesh group a cut split it from ("" when not split: its own name)
+
+    @property
+    def mesh_group(self) -> str:
+        """The name of the sector-and-band group it belongs to, whatever cuts split it (what patches name)."""
+        return self.parent or self.name
 
     @property
     def kind(self) -> str:
@@ -118,11 +135,14 @@ def element_geometry(mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     return centroid, angle, depth, area
 
 
-def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray]) -> list[Group]:
+def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray], cuts: Sequence[str] = ()) -> list[Group]:
     """The groups of every tissue set (module text), empty ones left out; names like G_MUSCLE_S03B1. The depth
     bands are cut over all the sets of a kind (the muscle compartments together), so that a band means the same
-    depth in every compartment."""
-    _, angle, depth, area = element_geometry(mesh)
+    depth in every compartment. Each cut (`cut_name`) splits the groups of its tissue that it crosses: the part
+    beyond its line is named with a suffix C<k> (k its place in `cuts`), the rest keeps the group's name."""
+    centroid, angle, depth, area = element_geometry(mesh)
+    centre = leg_centre_mm(mesh)
+    beyond = {name: parse_cut(name).beyond(centroid, centre) for name in cuts}
     sector = np.minimum((angle / SECTOR_DEG).astype(int), SECTORS - 1)
     band, unit_depth = np.zeros(len(depth), int), np.zeros(len(depth))
     for kind in KINDS:
@@ -144,10 +164,22 @@ def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray]) -> list[Group]:
                 if len(chosen) == 0:
                     continue
                 unit = float(np.average(unit_depth[chosen], weights=area[chosen]))
-                groups.append(Group(f"{GROUP_PREFIX}{tissue_set}_S{s:02d}B{b}", tissue_set, chosen, s, b,
-                                    float((s + 0.5) * SECTOR_DEG), unit, float(area[chosen].sum()),
-                                    (float(depth[chosen].min()), float(depth[chosen].max()))))
+                name = f"{GROUP_PREFIX}{tissue_set}_S{s:02d}B{b}"
+                mine = [c for c in cuts if parse_cut(c).kind == tissue_kind(tissue_set)]
+                inside = np.array([[beyond[c][e] for c in mine] for e in chosen], bool).reshape(len(chosen), len(mine))
+                for pattern in sorted({tuple(row) for row in inside}):
+                    part = chosen[np.all(inside == np.array(pattern, bool), axis=1)]
+                    suffix = "".join(f"C{cuts.index(c)}" for c, hit in zip(mine, pattern) if hit)
+                    groups.append(Group(name + suffix, tissue_set, part, s, b, float((s + 0.5) * SECTOR_DEG), unit,
+                                        float(area[part].sum()), (float(depth[part].min()), float(depth[part].max())),
+                                        cuts=tuple(c for c, hit in zip(mine, pattern) if hit),
+                                        parent=name if suffix else ""))
     return groups
+
+
+def leg_centre_mm(mesh) -> np.ndarray:
+    """The centroid of the area inside the skin, bones included: the centre of the sectors and of the cuts."""
+    return polygon_centroid(mesh.nodes[mesh.skin_loop])
 
 
 def region_groups(mesh, tissue_sets: dict[str, np.ndarray], regions: dict[str, "Region"]) -> list[Group]:
@@ -211,6 +243,43 @@ def parse_region(name: str) -> Region:
     return region
 
 
+@dataclass(frozen=True)
+class Cut:
+    """The part of one tissue beyond a straight line: its normal's display angle (counter-clockwise from +x on the
+    displayed image, y down; the normal points into the changed part) and the line's signed distance from the leg's
+    centre along that normal."""
+
+    kind: str
+    normal_deg: float
+    offset_mm: float
+
+    def beyond(self, points_mm: np.ndarray, centre_mm: np.ndarray) -> np.ndarray:
+        angle = np.radians(self.normal_deg)
+        normal = np.array([np.cos(angle), -np.sin(angle)])   # display angles: y down
+        return (np.asarray(points_mm, float).reshape(-1, 2) - centre_mm) @ normal > self.offset_mm
+
+
+def is_cut(name: str) -> bool:
+    return name.startswith(CUT_PREFIX)
+
+
+def cut_name(kind: str, normal_deg: float, offset_mm: float) -> str:
+    return f"{CUT_PREFIX}{kind}:{normal_deg:g}:{offset_mm:g}"
+
+
+def parse_cut(name: str) -> Cut:
+    try:
+        _, kind, normal, offset = name.split(":")
+        cut = Cut(kind, float(normal) % 360.0, float(offset))
+    except ValueError:
+        raise ValueError(f"a cut effect reads cut:<fat|muscle>:<normal deg>:<offset mm>, not {name!r}") from None
+    if kind not in KINDS:
+        raise ValueError(f"a cut's tissue is fat or muscle, not {kind!r} (in {name!r})")
+    if not np.isfinite(cut.offset_mm):
+        raise ValueError(f"a cut's offset is a number of millimetres: {name!r}")
+    return cut
+
+
 def patch_name(groups: list[str]) -> str:
     return PATCH_PREFIX + "+".join(sorted(groups))
 
@@ -228,14 +297,17 @@ def groups_for(mesh, effect_names) -> list[Group]:
     the mesh groups when an effect works on them (heterogeneity, patches, the diagnosis' local probe), else none."""
     names = list(effect_names)
     regions = {n: parse_region(n) for n in names if n.startswith(REGION_PREFIX)}
-    grouped = [n for n in names if n in GROUPED_EFFECTS or n.startswith(PATCH_PREFIX)]
+    cuts = [n for n in names if n.startswith(CUT_PREFIX)]
+    grouped = [n for n in names if n in GROUPED_EFFECTS or n.startswith(PATCH_PREFIX)] + cuts
+    if len(cuts) > 1:
+        raise ValueError(f"one cut per model: {cuts}")
     if regions and grouped:
         raise ValueError(f"region effects {sorted(regions)} cut the tissues differently from {grouped}: use one or the other")
     sets = mesh.element_sets()
     tissue_sets = {name: ids for name, ids in sets.items() if name == "FAT" or name in muscle_sets(list(sets))}
     if regions:
         return region_groups(mesh, tissue_sets, regions)
-    return mesh_groups(mesh, tissue_sets) if grouped else []
+    return mesh_groups(mesh, tissue_sets, cuts) if grouped else []
 
 
 def patch_candidates(groups: list[Group], max_sectors: int = int(PATCH_MAX_DEG // (360.0 / SECTORS))) -> list[tuple[list[int], int, int]]:

@@ -321,7 +321,7 @@ def _fit_with_skin_uncertainty(setup: RunSetup, run_dir: Path, source: str, meas
         estimated_at = best.theta
         for level, level_measured in enumerate(measured, start=1):
             stored = read_geometry_covariance(run_dir, 2 * len(level_measured), level)
-            if stored is None or not np.allclose(stored[1]["theta"], estimated_at, rtol=1e-9):
+            if not _estimated_for(stored, setup.model.effects, estimated_at):
                 with stage("skin's uncertainty"):
                     columns, weights, info = _level_skin_columns(setup, estimated_at, level_measured, level,
                                                                  options, workers)
@@ -339,6 +339,16 @@ def _fit_with_skin_uncertainty(setup: RunSetup, run_dir: Path, source: str, meas
     geometry = dict(read_geometry_covariance(run_dir, 2 * len(weighed[0]))[1],
                     measurement_share_of_variance=_measurement_share(weighed), passes=len(passes), settled=settled)
     return fits, best, weighed, geometry
+
+
+def _estimated_for(stored, effects, theta) -> bool:
+    """Was the skin's uncertainty that a run folder holds (`read_geometry_covariance`) estimated for this model at
+    these parameters? A folder identified again with other effects (`--effects final`) holds another model's."""
+    if stored is None:
+        return False
+    info = stored[1]
+    return (list(info.get("effects", [])) == list(effects) and len(info["theta"]) == len(theta)
+            and bool(np.allclose(info["theta"], theta, rtol=1e-9)))
 
 
 def _identification_record(setup: RunSetup, case_dir, run_dir: Path, method: str, objective: str, source: str,

@@ -222,3 +222,97 @@ def test_the_stiffness_field_is_read_by_tissue_and_quarter_of_the_leg(compartmen
     assert c10["muscle"] / 3.0 < muscle["posterior"] < c10["muscle"] / 2.0
     assert all(value == pytest.approx(c10["fat"], rel=1e-9) for value in field["fat"].values())
     assert stiffness_field_text(field).startswith(f"muscle {muscle['all']:.3g} kPa (")
+
+
+# --- a compartment whose septum is not in the image: a cut along a straight line ------------------------------
+
+def test_a_cut_splits_the_groups_it_crosses_and_keeps_every_other(compartment_mesh):
+    """The part of the muscle beyond a line gets groups of its own; the groups the line crosses are split on their
+    elements' centroids, keep their sector, band and modes, and a patch of the unsplit group covers both parts."""
+    from orchestrator.model.effects import effect
+    from orchestrator.model.heterogeneity import cut_name, groups_for, leg_centre_mm, parse_cut
+
+    mesh = compartment_mesh
+    name = cut_name("muscle", 100.0, 6.0)
+    plain = {g.name: g for g in groups_for(mesh, ["heterogeneity"])}
+    split = groups_for(mesh, ["heterogeneity", name])
+    centroid, _, _, area = element_geometry(mesh)
+    beyond = parse_cut(name).beyond(centroid, leg_centre_mm(mesh))
+    assert sum(g.area_mm2 for g in split) == pytest.approx(sum(g.area_mm2 for g in plain.values()))
+    cut_parts = [g for g in split if name in g.cuts]
+    assert cut_parts and all(g.kind == "muscle" and beyond[g.elements].all() for g in cut_parts)
+    assert all(not beyond[g.elements].any() for g in split if g.kind == "muscle" and name not in g.cuts)
+    assert all(name not in g.cuts for g in split if g.kind == "fat")
+    crossed = {g.parent for g in cut_parts if g.parent}
+    assert crossed and all(g.mesh_group in plain for g in split)
+    for g in split:   # a part keeps its group's place in the smooth field
+        assert (g.sector, g.band, g.depth) == (plain[g.mesh_group].sector, plain[g.mesh_group].band, plain[g.mesh_group].depth)
+    # a patch named by a crossed group before the cut holds both of its parts after it
+    model = LegModel(mesh, 0.16, effects=(f"patch:{sorted(crossed)[0]}", name))
+    theta = list(TABLE2_CENTRAL_KPA) + [0.7, 0.0]
+    factors = model.deck_state(theta).constants
+    parts = [g.name for g in split if g.mesh_group == sorted(crossed)[0]]
+    assert len(parts) == 2
+    c10 = TABLE2_CENTRAL_KPA[1] / 1000.0
+    assert all(factors[p]["C10"] == pytest.approx(c10 * np.exp(0.7)) for p in parts)
+    with pytest.raises(Exception, match="cut:<fat|muscle>"):
+        effect("cut:muscle:100")
+
+
+def test_cut_sensitivity_is_the_central_difference_of_the_engine(tmp_path):
+    mesh = truth_mesh(CalfPhantom(), n_elements=2000, order=2)
+    name = "cut:muscle:110:8"
+    model = LegModel(mesh, 0.16, effects=(name,), engine_sensitivities=True)
+    theta = list(TABLE2_CENTRAL_KPA) + [0.9]
+    write_mesh_include(model, tmp_path)
+
+    def solve(values, label):
+        deck = tmp_path / f"{label}.inp"
+        deck.write_text(model.deck(values))
+        outcome = run_engine(deck, tmp_path / label, threads=None)
+        assert outcome.converged
+        return EngineResults(outcome.outdir)
+
+    results = solve(theta, "centre")
+    lines = model.sensitivity_map(theta)["dlnE_cut"]
+    engine = sum(weight * results.sensitivities()[line] for line, weight in lines)
+    h = 1e-4
+    up, down = theta[:-1] + [theta[-1] + h], theta[:-1] + [theta[-1] - h]
+    central = (solve(up, "up").displacement() - solve(down, "down").displacement()) / (2 * h)
+    engine = engine.reshape(central.shape)
+    assert np.abs(central).max() > 1e-3   # the cut's stiffness moves the leg
+    assert np.abs(engine - central).max() < 1e-4 * np.abs(central).max()
+
+
+CUT_DRAWS = 2
+
+
+def _cut_draws(seed: int):
+    """Straight boundaries anywhere around the leg, 2-14 mm from its centre, the muscle beyond them 2.5-4 times
+    stiffer (not on the diagnosis' scoring grid: 7.5 degrees, 2.5 mm)."""
+    rng = np.random.default_rng(seed)
+    return [(float(rng.uniform(0.0, 360.0)), float(rng.uniform(2.0, 14.0)), float(rng.uniform(2.5, 4.0)))
+            for _ in range(CUT_DRAWS)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("normal, offset, ratio", _cut_draws(58))
+def test_a_compartment_behind_an_unseen_straight_septum_is_found_by_the_stepwise_path(tmp_path, normal, offset, ratio):
+    """The muscle beyond a straight line stiffer (no septum drawn there), images only, a random truth on the
+    renderer's mesh, the fit on calfit's: the stepwise path adds a cut, its line within 10 degrees and 3 mm of the
+    truth's, its ratio within 20 %, and ends at the floor."""
+    truth = tuple(float(v) for v in TABLE2_CENTRAL_KPA * np.random.default_rng(int(normal)).uniform(0.75, 1.3, 4))
+    case, _ = make_phantom_case(tmp_path / "case", theta_kPa=truth, effects={f"cut:muscle:{normal:.2f}:{offset:.2f}":
+                                                                          {"dlnE_cut": float(np.log(ratio))}},
+                                labels=None, rigid=SCANNER_MOTION, points_spacing_mm=None)
+    run_identify(case, tmp_path / "run", workers=2, progress=False)
+    result = run_diagnose(tmp_path / "run", workers=2, progress=False)
+    final = result["final"]
+    cuts = [e for e in final["effects"] if e.startswith("cut:")]
+    assert len(cuts) == 1 and final["explained"] and final["misfit_over_floor"] <= 1.2, result["verdict"]
+    _, kind, found_normal, found_offset = cuts[0].split(":")
+    assert kind == "muscle"
+    assert abs((float(found_normal) - normal + 180.0) % 360.0 - 180.0) <= 10.0, cuts[0]
+    assert abs(float(found_offset) - offset) <= 3.0, cuts[0]
+    fitted = result["path"][-1]["parameters"]["dlnE_cut"]["value"]
+    assert abs(np.exp(fitted) / ratio - 1.0) <= 0.2, (np.exp(fitted), ratio)

@@ -102,7 +102,7 @@ def _diagnosis(table: Table, model: TableModel) -> SimpleNamespace:
     maps = ResidualMaps([[0.0, 0.0]] * (N // 2), [[0.0, 0.0]] * (N // 2), {}, [], [], [], [], [0.0, 0.0], 0.0)
     return SimpleNamespace(ranking=ranking, design_effect=1.0, maps=maps, engine_runs=1, wall_time_s=0.0,
                            n_residuals=N, verdict="the ranking's verdict", misfit=1.0, noise_floor=1.0,
-                           lack_of_fit_p=0.0 if lack_of_fit else 1.0)
+                           lack_of_fit_p=0.0 if lack_of_fit else 1.0, cuts=[])
 
 
 @pytest.fixture
