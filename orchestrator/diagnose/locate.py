@@ -10,7 +10,7 @@ catalog (`weigh_local`).
 
 A compartment whose septum the images do not show is no patch of groups: its boundary is a line across the sectors
 and bands. `locate_cuts` scores every straight cut of the muscle the same way (`heterogeneity.Cut`: CUT_NORMALS
-directions of its normal, offsets every CUT_STEP_MM where the part beyond holds CUT_AREA of the muscle), each
+directions of its normal, offsets every CUT_STEP_MM where the part beyond holds CUT_AREA of the muscle, the smaller part), each
 column the groups' dr/dln E weighted by the share of each group's area beyond the line (the probe's groups are
 coarser than the line; the refit cuts the elements themselves). The stepwise diagnosis refits the best cut beside
 the catalog's candidates, the choice of its place counted as a patch's is."""
@@ -42,7 +42,9 @@ from .score import ALPHA, ORTHOGONAL_ROUNDOFF
 PATCHES_KEPT = 3             # candidate places for a local stiffness change reported, best first
 CUT_NORMALS = 48             # the cuts' normals every 7.5 degrees...
 CUT_STEP_MM = 2.5            # ...their lines every 2.5 mm...
-CUT_AREA = (0.05, 0.6)       # ...where the part beyond holds 5-60 % of the muscle (beyond 60 %, its complement)
+CUT_AREA = (0.05, 0.5)       # ...where the part beyond holds 5-50 % of the muscle: the changed part is the smaller,
+                             # so that the tissue's constants stay those of most of it (the other side of a line is
+                             # the same field, its ratio inverted, with the tissue's constants moved by the ratio)
 
 
 

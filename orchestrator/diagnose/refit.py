@@ -112,18 +112,21 @@ def refit(evaluator_factory, model: LegModel, theta: Sequence[float], effects: S
 
 
 def refit_whitened(evaluator_factory, model: LegModel, theta: Sequence[float], effects: Sequence[str], objective, *,
-                   max_iterations: int = 25) -> tuple[Refit, np.ndarray]:
+                   max_iterations: int = 25, effect_start: Sequence[float] | None = None) -> tuple[Refit, np.ndarray]:
     """Levenberg-Marquardt with the effects' parameters free (starting at zero), from the fitted theta and, unless
     that fit settled (`settled`), from the usual start (Avril et al. Table 2 central values); the better fit is kept.
     The second start matters when the missing effect dragged the baseline fit to a bound or far from the tissue's
     values; after a fit at the noise floor with no parameter on a bound it could only move chi^2 within the noise
     (with friction, refits from two starts took 110 of a diagnosis's 123 runs).
+    effect_start: the effects' parameters' start in place of zero (a neighbour's fit of the same effect).
     Returns the fit and its whitened residual r (`objectives.DisplacementResidualObjective.weigh`)."""
     extended = refit_model(model, effects)
     # friction starts where the diagnosis probed it: at mu = 0 the friction forces vanish with their derivative's
     # one-sided difference, and Levenberg-Marquardt may not leave the bound
     extra = [(model.friction_mu or FRICTION_PROBE_MU) if name == "mu" else 0.0
              for name in extended.space.names[model.space.size:]]
+    if effect_start is not None:
+        extra = [float(v) for v in effect_start]
     starts = [list(map(float, theta)) + extra, model.start() + extra]
     with evaluator_factory(extended) as evaluator:
         fits = [levenberg_marquardt(evaluator, starts[0], max_iterations=max_iterations, ftol=REFIT_FTOL)]

@@ -113,6 +113,10 @@ class LevelsModel:
         effects added, the garment switched to the band."""
         return LevelsModel(dataclasses.replace(self.base, **changes), self.tensions)
 
+    def deck_state(self, theta: Sequence[float]):
+        """The base model's: the materials are the same under every tension (`heterogeneity.stiffness_field_kpa`)."""
+        return self.base.deck_state(theta)
+
     def sensitivity_map(self, theta: Sequence[float]) -> dict[str, list[tuple[str, float]] | None]:
         """The base model's: the tension is not a parameter, so every level has the same engine sensitivities."""
         return self.base.sensitivity_map(theta)

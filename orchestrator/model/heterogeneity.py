@@ -259,6 +259,19 @@ class Cut:
         return (np.asarray(points_mm, float).reshape(-1, 2) - centre_mm) @ normal > self.offset_mm
 
 
+def cut_share(mesh, name: str) -> float:
+    """The share of its tissue's area (every set of that kind) that a cut's line leaves beyond it."""
+    cut = parse_cut(name)
+    centroid, _, _, area = element_geometry(mesh)
+    sets = mesh.element_sets()
+    members = np.concatenate([np.asarray(ids, int) for set_name, ids in sets.items()
+                              if (set_name == "FAT" or set_name in muscle_sets(list(sets)))
+                              and tissue_kind(set_name) == cut.kind] or [np.zeros(0, int)])
+    total = float(area[members].sum())
+    beyond = cut.beyond(centroid[members], leg_centre_mm(mesh))
+    return float(area[members][beyond].sum()) / total if total > 0 else 0.0
+
+
 def is_cut(name: str) -> bool:
     return name.startswith(CUT_PREFIX)
 

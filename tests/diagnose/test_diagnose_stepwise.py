@@ -416,3 +416,43 @@ def test_three_hidden_effects_from_the_images_only(tmp_path):
                                        phantom=MRIPhantom())
     ratios = [entry["misfit_over_floor"] for entry in diagnosis["path"]]
     assert ratios == sorted(ratios, reverse=True)
+
+
+@pytest.mark.slow
+def test_a_compartment_behind_an_unseen_septum_and_the_curvature_law_from_the_images_only(tmp_path):
+    """Two missing at once, as in the other program's blind-03: the muscle beyond a straight line three times stiffer
+    (no septum drawn there) and the garment's pressure from the unloaded skin's curvature, the MRI renderer's images
+    only, random constants, the truth on the renderer's mesh: the path ends with a cut near the truth's line and the
+    curvature law, nothing else, at the floor."""
+    from orchestrator.core.frame import RigidMotion
+    from orchestrator.phantom import MRIPhantom
+    from orchestrator.phantom.cases import make_phantom_case
+    from orchestrator.run.stages import run_diagnose, run_identify
+
+    theta, _ = _truth(17)
+    rng = np.random.default_rng(17)
+    normal, offset = float(rng.uniform(0.0, 360.0)), float(rng.uniform(2.0, 14.0))
+    hidden = {f"cut:muscle:{normal:.2f}:{offset:.2f}": {"dlnE_cut": float(np.log(3.0))},
+              "unloaded_curvature": {"alpha_unloaded": 1.0}}
+    case, _ = make_phantom_case(tmp_path / "case", theta_kPa=theta, effects=hidden, points_spacing_mm=None,
+                                rigid=RigidMotion(0.7, (-0.4, 0.5), (75.0, 75.0)), phantom=MRIPhantom())
+    run_identify(case, tmp_path / "run", workers=2, progress=False)
+    diagnosis = run_diagnose(tmp_path / "run", workers=2, progress=False)
+    print("\n".join(path_lines(diagnosis["path"], diagnosis["final"])), "\n", diagnosis["verdict"])
+    final = diagnosis["final"]
+    cuts = [e for e in final["effects"] if e.startswith("cut:")]
+    assert len(cuts) == 1 and sorted(set(final["effects"]) - set(cuts)) == ["unloaded_curvature"], diagnosis["verdict"]
+    assert final["misfit_over_floor"] <= 1.2 and final["explained"], diagnosis["verdict"]
+    _, _, found_normal, found_offset = cuts[0].split(":")
+    assert abs((float(found_normal) - normal + 180.0) % 360.0 - 180.0) <= 10.0 and abs(float(found_offset) - offset) <= 3.0
+
+
+@pytest.mark.slow
+def test_bone_motion_and_stiffening_from_the_images_only(tmp_path):
+    """A rigid motion of the fibula and the tissues' stiffening at large strain (Avril's C20) missing at once, the
+    phantom renderer's images only, random constants: both in the final model, nothing else, at the floor."""
+    from orchestrator.core.frame import RigidMotion
+
+    theta, _ = _truth(23)
+    hidden = {"bone_motion": {"ux_BONE2": -0.2, "uy_BONE2": 0.15}, "stiffening": {"C20_fat": 3000.0, "C20_muscle": 6000.0}}
+    _diagnosed_from_images(tmp_path, theta, hidden, RigidMotion(-1.1, (0.3, 0.6), (75.0, 75.0)))
