@@ -336,7 +336,8 @@ def stepwise(evaluator_factory, model: LegModel, objective, frame: LegFrame, fir
         current = _refit_cut_line(count, current, objective, counted)
         if own_floor is not None:
             current.fit.own_floor = own_floor(current.fit, current.residual_mm)
-        current.engine_runs, current.wall_time_s = spent(since)["engine_runs"], spent(since)["wall_time_s"]
+        cost = spent(since)
+        current.engine_runs, current.wall_time_s = cost["engine_runs"], cost["wall_time_s"]
         steps.append(current)
         since, diagnosis, tried = mark(), None, []
         while len(steps) - 1 < max_steps:   # backward: the effects added before this one, tried out again
@@ -395,9 +396,8 @@ def _refine_cut(count, base: LegModel, base_theta, name: str, fit: Refit, r: np.
     mesh = base.mesh
     # the other side of the same line, the ratio inverted, where that side is the smaller too (a line through the
     # middle): from a softer half the tissue's constants may have gone to their bounds
-    cut = parse_cut(name)
-    flipped = cut_name(cut.kind, round((cut.normal_deg + 180.0) % 360.0, 4), round(-cut.offset_mm, 4))
-    if CUT_AREA[0] <= cut_share(mesh, flipped) <= CUT_AREA[1]:
+    flipped = _moved(parse_cut(name), 180.0, 0.0, flip=True)
+    if _smaller_side(mesh, flipped):
         refits += 1
         try:
             flip_fit, flip_r = refit_whitened(count, base, base_theta, [flipped], objective,
@@ -409,9 +409,9 @@ def _refine_cut(count, base: LegModel, base_theta, name: str, fit: Refit, r: np.
     while refits < CUT_REFINE_REFITS and steps[0] >= CUT_REFINE_MIN_DEG:
         cut, moved = parse_cut(best[0]), False
         for d_angle, d_offset in ((steps[0], 0.0), (-steps[0], 0.0), (0.0, steps[1]), (0.0, -steps[1])):
-            trial = cut_name(cut.kind, round((cut.normal_deg + d_angle) % 360.0, 4), round(cut.offset_mm + d_offset, 4))
-            if not CUT_AREA[0] <= cut_share(mesh, trial) <= CUT_AREA[1]:
-                continue   # the changed part stays the smaller (`locate.CUT_AREA`)
+            trial = _moved(cut, d_angle, d_offset)
+            if not _smaller_side(mesh, trial):
+                continue
             refits += 1
             try:
                 trial_fit, trial_r = refit_whitened(count, base, best[1].theta[:p], [trial], objective,
@@ -423,6 +423,18 @@ def _refine_cut(count, base: LegModel, base_theta, name: str, fit: Refit, r: np.
         if not moved:
             steps = [steps[0] / 2.0, steps[1] / 2.0]
     return best
+
+
+def _moved(cut, d_angle: float, d_offset: float, flip: bool = False) -> str:
+    """The name of `cut` turned by d_angle and moved by d_offset along its normal (flip: the offset's sign turned
+    too, the same line seen from its other side)."""
+    offset = -cut.offset_mm if flip else cut.offset_mm + d_offset
+    return cut_name(cut.kind, round((cut.normal_deg + d_angle) % 360.0, 4), round(offset, 4))
+
+
+def _smaller_side(mesh, name: str) -> bool:
+    """Does the cut's changed part hold the share of its tissue the scored cuts hold (`locate.CUT_AREA`)?"""
+    return CUT_AREA[0] <= cut_share(mesh, name) <= CUT_AREA[1]
 
 
 def _refit_cut_line(count, step: Step, objective, counted) -> Step:

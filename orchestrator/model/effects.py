@@ -281,26 +281,23 @@ CUT_PARAMETER = "dlnE_cut"   # one cut per model (`heterogeneity.groups_for`)
 
 
 def cut_effect(name: str) -> Effect:
-    """Every modulus times exp(dlnE_<name>) in the part of a tissue beyond a straight line (`heterogeneity.Cut`):
+    """Every modulus times exp(dlnE_cut) in the part of a tissue beyond a straight line (`heterogeneity.Cut`):
     the groups the line crosses are split on their elements' centroids (`heterogeneity.mesh_groups`)."""
     try:
         parse_cut(name)
     except ValueError as error:
         raise EffectError(str(error)) from None
-    parameter = CUT_PARAMETER
 
     def apply(state: LegDeckState, values: dict[str, float]) -> None:
         for group in state.groups:
             if name in group.cuts:
-                _add_log_factor(state, parameter, group.name, 1.0, values[parameter])
+                _add_log_factor(state, CUT_PARAMETER, group.name, 1.0, values[CUT_PARAMETER])
 
     return Effect(name, "stiffness change beyond a straight boundary in one tissue",
                   "A compartment bounded by a septum the images do not show (the interosseous membrane, an "
                   "intermuscular septum thinner than the slice): a stiffness step along a line.",
-                  _fixed(EffectParameter(parameter, "1", -2.5, 2.5, 0.25, "ln of the stiffness ratio beyond the line")),
+                  _fixed(EffectParameter(CUT_PARAMETER, "1", -2.5, 2.5, 0.25, "ln of the stiffness ratio beyond the line")),
                   apply, requirement=_needs_groups)
-
-
 
 def _modulus_lines(group: str, law, constants_MPa: dict[str, float], dln_factor: float) -> list[tuple[str, float]]:
     """The *SENSITIVITY lines of a group's moduli for a parameter p that multiplies all of them by exp(p): each

@@ -158,6 +158,7 @@ def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray], cuts: Sequence[str] = 
     for tissue_set, members in tissue_sets.items():
         members = np.asarray(members)
         bands = 1 if tissue_kind(tissue_set) == "fat" else MUSCLE_BANDS
+        mine = [c for c in cuts if parse_cut(c).kind == tissue_kind(tissue_set)]
         for s in range(SECTORS):
             for b in range(bands):
                 chosen = members[(sector[members] == s) & (band[members] == b)]
@@ -165,8 +166,7 @@ def mesh_groups(mesh, tissue_sets: dict[str, np.ndarray], cuts: Sequence[str] = 
                     continue
                 unit = float(np.average(unit_depth[chosen], weights=area[chosen]))
                 name = f"{GROUP_PREFIX}{tissue_set}_S{s:02d}B{b}"
-                mine = [c for c in cuts if parse_cut(c).kind == tissue_kind(tissue_set)]
-                inside = np.array([[beyond[c][e] for c in mine] for e in chosen], bool).reshape(len(chosen), len(mine))
+                inside = np.stack([beyond[c][chosen] for c in mine], axis=1) if mine else np.zeros((len(chosen), 0), bool)
                 for pattern in sorted({tuple(row) for row in inside}):
                     part = chosen[np.all(inside == np.array(pattern, bool), axis=1)]
                     suffix = "".join(f"C{cuts.index(c)}" for c, hit in zip(mine, pattern) if hit)
@@ -263,13 +263,17 @@ def cut_share(mesh, name: str) -> float:
     """The share of its tissue's area (every set of that kind) that a cut's line leaves beyond it."""
     cut = parse_cut(name)
     centroid, _, _, area = element_geometry(mesh)
-    sets = mesh.element_sets()
-    members = np.concatenate([np.asarray(ids, int) for set_name, ids in sets.items()
-                              if (set_name == "FAT" or set_name in muscle_sets(list(sets)))
-                              and tissue_kind(set_name) == cut.kind] or [np.zeros(0, int)])
+    members = np.concatenate([np.asarray(ids, int) for set_name, ids in tissue_element_sets(mesh).items()
+                              if tissue_kind(set_name) == cut.kind] or [np.zeros(0, int)])
     total = float(area[members].sum())
     beyond = cut.beyond(centroid[members], leg_centre_mm(mesh))
     return float(area[members][beyond].sum()) / total if total > 0 else 0.0
+
+
+def tissue_element_sets(mesh) -> dict[str, np.ndarray]:
+    """The mesh's element sets of soft tissue, FAT and the muscle's (MUSCLE or its compartments): what groups cut."""
+    sets = mesh.element_sets()
+    return {name: ids for name, ids in sets.items() if name == "FAT" or name in muscle_sets(list(sets))}
 
 
 def is_cut(name: str) -> bool:
@@ -316,8 +320,7 @@ def groups_for(mesh, effect_names) -> list[Group]:
         raise ValueError(f"one cut per model: {cuts}")
     if regions and grouped:
         raise ValueError(f"region effects {sorted(regions)} cut the tissues differently from {grouped}: use one or the other")
-    sets = mesh.element_sets()
-    tissue_sets = {name: ids for name, ids in sets.items() if name == "FAT" or name in muscle_sets(list(sets))}
+    tissue_sets = tissue_element_sets(mesh)
     if regions:
         return region_groups(mesh, tissue_sets, regions)
     return mesh_groups(mesh, tissue_sets, cuts) if grouped else []

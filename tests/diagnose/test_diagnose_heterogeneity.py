@@ -105,20 +105,26 @@ def test_patch_candidates_are_contiguous_places_of_one_tissue(compartment_mesh):
     assert len(singles) >= len({(g.kind, g.sector, g.band) for g in groups})
 
 
+def _engine_solver(model, folder):
+    """solve(theta, name) -> the engine's results of the model's deck at theta, in folder/name (converged)."""
+    write_mesh_include(model, folder)
+
+    def solve(values, name):
+        deck = folder / f"{name}.inp"
+        deck.write_text(model.deck(values))
+        outcome = run_engine(deck, folder / name, threads=None)
+        assert outcome.converged
+        return EngineResults(outcome.outdir)
+
+    return solve
+
+
 def test_heterogeneity_sensitivities_are_the_central_differences_of_the_engine(tmp_path):
     mesh = truth_mesh(CalfPhantom(), n_elements=2000, order=2)
     model = LegModel(mesh, 0.16, effects=("heterogeneity",), engine_sensitivities=True)
     rng = np.random.default_rng(3)
     theta = list(TABLE2_CENTRAL_KPA) + rng.uniform(-0.3, 0.3, model.space.size - 4).tolist()
-    write_mesh_include(model, tmp_path)
-
-    def solve(values, name):
-        deck = tmp_path / f"{name}.inp"
-        deck.write_text(model.deck(values))
-        outcome = run_engine(deck, tmp_path / name, threads=None)
-        assert outcome.converged
-        return EngineResults(outcome.outdir)
-
+    solve = _engine_solver(model, tmp_path)
     results = solve(theta, "centre")
     sensitivity, lines = results.sensitivities(), model.sensitivity_map(theta)
     step = 1e-4
@@ -264,15 +270,7 @@ def test_cut_sensitivity_is_the_central_difference_of_the_engine(tmp_path):
     name = "cut:muscle:110:8"
     model = LegModel(mesh, 0.16, effects=(name,), engine_sensitivities=True)
     theta = list(TABLE2_CENTRAL_KPA) + [0.9]
-    write_mesh_include(model, tmp_path)
-
-    def solve(values, label):
-        deck = tmp_path / f"{label}.inp"
-        deck.write_text(model.deck(values))
-        outcome = run_engine(deck, tmp_path / label, threads=None)
-        assert outcome.converged
-        return EngineResults(outcome.outdir)
-
+    solve = _engine_solver(model, tmp_path)
     results = solve(theta, "centre")
     lines = model.sensitivity_map(theta)["dlnE_cut"]
     engine = sum(weight * results.sensitivities()[line] for line, weight in lines)
