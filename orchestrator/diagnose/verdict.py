@@ -8,6 +8,7 @@ from dataclasses import asdict
 from typing import Sequence
 
 import numpy as np
+from scipy import stats
 
 from ..core.digits import PLUS_MINUS
 from ..model.heterogeneity import PATCH_PREFIX, patch_groups, stiffness_field_text
@@ -32,6 +33,26 @@ def settle_ties(diagnosis: Diagnosis, refits: Sequence[Refit]) -> None:
         s.tied_with = [name for name in group if name != s.effect] if s is tied[0] else []
     diagnosis.ranking = tied + rest
 
+
+
+def below_floor(fit: Refit, values: int, nuisance_dof: int, alpha: float) -> str | None:
+    """The caution when a model fits significantly better than its noise floor allows: its misfit below
+    1 / FLOOR_AGREEMENT of the floor (outside the band within which the error model agrees with the measured errors)
+    and noise alone reaching so low at p < alpha (chi^2's lower tail on the fit's degrees of freedom). The error
+    model then overstates the random part of the errors, and an error smooth enough for the parameters to take up
+    fits so (a study's slices resampled between a volume's slices: docs/validation/volumes.md), so the intervals are
+    not to be trusted. None when the fit is within its floor."""
+    ratio = judged_ratio(fit)
+    dof = values - len(fit.parameters) - nuisance_dof
+    if dof <= 0 or ratio >= 1.0 / FLOOR_AGREEMENT:
+        return None
+    p_low = float(stats.chi2.cdf(ratio * dof, dof))
+    if p_low >= alpha:
+        return None
+    return (f"the model fits at {ratio:.2f} x the floor, below the {1.0 / FLOOR_AGREEMENT:g} x within which the "
+            f"error model agrees with the measured errors (p = {p_low:.1g} that noise alone fits so well): the error "
+            "model overstates the random part of these errors, and what error is left the parameters may have taken "
+            "up, so the intervals are not to be trusted")
 
 
 def refit_verdict(diagnosis: Diagnosis, refits: Sequence[Refit]) -> tuple[bool, str]:

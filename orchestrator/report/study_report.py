@@ -50,7 +50,8 @@ def build_study_report(rows: list[dict], volume: dict | None, figure_dir: Path) 
     done = [row for row in rows if row.get("status") == "done"]
     parameters = parameter_names(done)
     pressures = pressure_names(done)
-    failing = [row for row in rows if row.get("status") != "done" or row.get("lack_of_fit") or row.get("too_coarse")]
+    failing = [row for row in rows if row.get("status") != "done" or row.get("lack_of_fit") or row.get("below_floor")
+               or row.get("too_coarse")]
     sections = []
     if volume is not None and volume.get("slide"):
         sections.append(_slide_section(volume))
@@ -172,7 +173,7 @@ def _answers(done, rows, failing, pressures, volume) -> dict:
         tables.append(_table("answers_heights", "Pressure at the compression standard's heights", header, table_rows,
                              "Linear between the two studied slices around each height; - where the height is outside "
                              "the studied slices. The spread adds the garment tension's uncertainty.", spreads))
-    fitting = [row for row in done if not row.get("too_coarse") and (
+    fitting = [row for row in done if not row.get("too_coarse") and not row.get("below_floor") and (
         not row["lack_of_fit"] if "lack_of_fit" in row else (row.get("misfit_over_floor") or np.inf) <= FITS_FACTOR)]
     verdict = (f"{len(fitting)} of {len(rows)} fit their model to the noise floor"
                + (f"; the model fails on {len(failing)}: {', '.join(row['case'] for row in failing)}" if failing else "")

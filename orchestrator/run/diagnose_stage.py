@@ -23,6 +23,7 @@ from ..diagnose.refit import refit, refit_model, summarize_fit
 from ..diagnose.score import ALPHA
 from ..diagnose.stepwise import identified_only, path_verdict, stepwise
 from ..diagnose.verdict import (
+    below_floor,
     judged_ratio,
     local_refit_unneeded,
     refit_verdict,
@@ -216,6 +217,11 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
         # an error model that does not hold judges every effect wrongly: the verdict says so first
         diagnosis.explained = False
         diagnosis.verdict = f"caution: {warning}; {diagnosis.verdict}"
+    too_good = below_floor(path.final.fit, diagnosis.n_residuals, objective.nuisance_dof, alpha)
+    if too_good:
+        # a fit better than the noise allows: the error model does not hold there either
+        diagnosis.explained = False
+        diagnosis.verdict += f"; caution: {too_good}"
     result = diagnosis.as_dict()
     result["before"] = before.as_dict()
     result["refits"] = [fit.as_dict() for fit in after]
@@ -229,8 +235,10 @@ def run_diagnose(run_dir, *, refit_effects: Sequence[str] | str = "auto", alpha:
     result["verdict_first_step"] = first_verdict
     result["path"] = [step.as_dict() for step in path.steps]
     # the final model explains the measurements when it reaches their floor, unless the error model does not hold
-    # there or a local stiffness change fits better than the catalog's effects
-    result["final"] = path.final_dict(doubt=bool(warning) or bool(local and local.get("explains")))
+    # there (a through-plane warning, a fit below the floor) or a local stiffness change fits better than the
+    # catalog's effects
+    result["final"] = path.final_dict(doubt=bool(warning) or bool(too_good) or bool(local and local.get("explains")))
+    result["final"]["below_floor"] = bool(too_good)
     with stage("landmark pressures"):
         result["final"]["landmark_pressures"] = landmark_pressures(setup, path)
     path_maps = [diagnosis.maps] + [residual_maps(objective.positions_mm, step.residual_mm, frame)

@@ -116,7 +116,8 @@ def run_case(case_dir: str, run_dir: str, options: CaseOptions, extra: dict | No
             try:
                 diagnosis = run_diagnose(run_dir, **evaluation)
                 row.update(verdict=diagnosis["verdict"], explained=bool(diagnosis["explained"]),
-                           lack_of_fit=bool(diagnosis["lack_of_fit_p"] < ALPHA))
+                           lack_of_fit=bool(diagnosis["lack_of_fit_p"] < ALPHA),
+                           below_floor=bool(diagnosis.get("final", {}).get("below_floor")))
             except ValueError as refused:   # a model the diagnosis does not take yet (garment levels)
                 row.update(verdict=f"not diagnosed: {refused}", explained=None)
     except Exception as error:   # noqa: BLE001 - one case's failure is its row; the study goes on

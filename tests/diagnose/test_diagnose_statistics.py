@@ -18,7 +18,7 @@ from orchestrator.diagnose.score import (
     neighbour_correlation,
     score_effect,
 )
-from orchestrator.diagnose.verdict import local_refit_unneeded, refit_verdict
+from orchestrator.diagnose.verdict import below_floor, local_refit_unneeded, refit_verdict
 from orchestrator.engine.results import OK
 from orchestrator.fit.identify import linearised_standard_errors
 from orchestrator.fit.objectives import DisplacementResidualObjective
@@ -274,3 +274,23 @@ def test_an_explaining_refit_above_the_floor_s_agreement_is_said_to_leave_part_o
     assert f"{refit_ratio:.2f} x the floor" in verdict
     partly = "explains most of the residual, not all of it" in verdict
     assert partly == (FLOOR_AGREEMENT < refit_ratio <= EXPLAINED_FACTOR), verdict
+
+
+def test_a_fit_below_its_floor_is_a_caution_at_most_as_often_as_alpha_under_the_noise():
+    """A model that fits better than the noise allows says that its error model overstates the errors: at 0.61 x
+    the floor on 310 values (a volume study's slice resampled between slices), and at most alpha of the time when
+    the misfit is chi^2 noise of the fit's degrees of freedom; a small set of values at 0.78 x is no evidence."""
+    def fit_at(ratio: float, parameters: int = 4) -> Refit:
+        return Refit(["unloaded_curvature"], [f"p{k}" for k in range(parameters)], [1.0] * parameters, ratio, ratio,
+                     0.0, 0.0, 0.0, {})
+
+    caution = below_floor(fit_at(0.61), 310, 3, 0.01)
+    assert caution and "0.61 x the floor" in caution and "0.8 x" in caution and "not to be trusted" in caution
+    assert below_floor(fit_at(0.95), 310, 3, 0.01) is None
+    assert stats.chi2.cdf(0.78 * 113, 113) > 0.01 and below_floor(fit_at(0.78), 120, 3, 0.01) is None
+    rng = np.random.default_rng(11)
+    for values in (60, 310, 2000):
+        dof = values - 4 - 3
+        ratios = rng.chisquare(dof, 4000) / dof
+        fired = sum(below_floor(fit_at(r), values, 3, 0.01) is not None for r in ratios)
+        assert fired <= 4000 * 0.01 + 3 * np.sqrt(4000 * 0.01), (values, fired)

@@ -8,7 +8,8 @@ What is checked, each by something that could fail:
   centre of every studied slice, and its standard error is said; it is in slices.json, study.json and the
   report (its own section and the overview);
 - no slice fails (a window with too little texture is rejected and counted, never the slice's end);
-- every slice's parameters are inside their 95 % intervals, or its diagnosis says the model lacks something.
+- every slice's parameters are inside their 95 % intervals, or its diagnosis says the model lacks something or
+  that it fits below its floor (the error model overstates the errors, so its intervals are not to be trusted).
 Slow (a 3D solve, 24 slices rendered through k-space, three slices identified): about 30 minutes on 2 cores.
 """
 
@@ -84,4 +85,4 @@ def test_each_slices_parameters_are_in_their_intervals_or_the_verdict_says_why(k
         outside = [name for name, value in zip(PARAMETERS, theta)
                    if not row[f"{name}_low"] <= value <= row[f"{name}_high"]]
         if outside:
-            assert row.get("lack_of_fit"), (row["case"], outside, row.get("verdict"))
+            assert row.get("lack_of_fit") or row.get("below_floor"), (row["case"], outside, row.get("verdict"))
